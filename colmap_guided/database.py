@@ -1,0 +1,126 @@
+"""Database io: the COLMAP SQLite database read and written through pycolmap only.
+
+Every write of a pair (matches, then its two-view geometry) is its own transaction, so a run killed at
+any moment leaves a database that a rerun continues from (pairs already written are skipped).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import pycolmap
+
+from .matchers.base import ImageData
+
+
+class DatabaseError(ValueError):
+    """A database that cannot be used as asked; the message says what to do."""
+
+
+@contextlib.contextmanager
+def open_database(path: Path, must_exist: bool = True) -> Iterator[pycolmap.Database]:
+    path = Path(path)
+    if must_exist and not path.is_file():
+        raise DatabaseError(f"No COLMAP database at {path}: run `colmap feature_extractor` (or `python -m colmap_guided reconstruct`) first.")
+    try:
+        db = pycolmap.Database.open(str(path))
+    except Exception as err:  # pycolmap raises RuntimeError / ValueError for a corrupt file
+        raise DatabaseError(f"{path} is not a readable COLMAP database ({err}); delete it or pass --overwrite.") from err
+    try:
+        yield db
+    finally:
+        db.close()
+
+
+def images_by_name(db: pycolmap.Database) -> dict[str, pycolmap.Image]:
+    return {image.name: image for image in db.read_all_images()}
+
+
+def check_image_folder(db: pycolmap.Database, image_path: Path) -> None:
+    """Refuse a database whose images are not in ``image_path`` (a database of another folder)."""
+    names = [image.name for image in db.read_all_images()]
+    missing = [name for name in names if not (Path(image_path) / name).is_file()]
+    if missing:
+        raise DatabaseError(
+            f"{len(missing)}/{len(names)} images of the database are not in {image_path} (e.g. {missing[0]!r}): "
+            "pass the --image_path the database was made from, or --overwrite to start a new database."
+        )
+
+
+def keypoint_scales(keypoints: np.ndarray) -> np.ndarray:
+    """Scale of COLMAP keypoints: column 2 of (x, y, scale, orientation), sqrt|det A| of affine (x, y, a11, a12, a21, a22)."""
+    if keypoints.shape[1] == 6:
+        return np.sqrt(np.abs(keypoints[:, 2] * keypoints[:, 5] - keypoints[:, 3] * keypoints[:, 4]))
+    if keypoints.shape[1] >= 3:
+        return keypoints[:, 2].copy()
+    return np.ones(len(keypoints), np.float32)
+
+
+def read_image_data(db: pycolmap.Database, image: pycolmap.Image, image_path: Path) -> ImageData:
+    camera = db.read_camera(image.camera_id)
+    keypoints = np.asarray(db.read_keypoints(image.image_id), np.float32)
+    descriptors = db.read_descriptors(image.image_id).data
+    if len(keypoints) != len(descriptors):
+        raise DatabaseError(f"Image {image.name}: {len(keypoints)} keypoints but {len(descriptors)} descriptors; rerun feature extraction (--overwrite).")
+    return ImageData(
+        name=image.name,
+        image_id=image.image_id,
+        path=(Path(image_path) / image.name).resolve(),
+        keypoints=keypoints.reshape(-1, keypoints.shape[1] if keypoints.ndim == 2 else 2),
+        descriptors=np.asarray(descriptors),
+        width=camera.width,
+        height=camera.height,
+    )
+
+
+def pair_has_matches(db: pycolmap.Database, id_a: int, id_b: int) -> bool:
+    return db.exists_matches(id_a, id_b)
+
+
+def pair_is_verified(db: pycolmap.Database, id_a: int, id_b: int) -> bool:
+    return db.exists_two_view_geometry(id_a, id_b)
+
+
+def write_pair_matches(db: pycolmap.Database, id_a: int, id_b: int, matches: np.ndarray) -> None:
+    """Write one pair's matches atomically, replacing what was there (so reruns never duplicate)."""
+    matches = np.ascontiguousarray(matches, dtype=np.uint32).reshape(-1, 2)
+    with pycolmap.DatabaseTransaction(db):
+        if db.exists_matches(id_a, id_b):
+            db.delete_matches(id_a, id_b)
+        if db.exists_two_view_geometry(id_a, id_b):
+            db.delete_two_view_geometry(id_a, id_b)
+        db.write_matches(id_a, id_b, matches)
+
+
+def write_pair_geometry(db: pycolmap.Database, id_a: int, id_b: int, geometry: pycolmap.TwoViewGeometry) -> None:
+    with pycolmap.DatabaseTransaction(db):
+        if db.exists_two_view_geometry(id_a, id_b):
+            db.delete_two_view_geometry(id_a, id_b)
+        db.write_two_view_geometry(id_a, id_b, geometry)
+
+
+def clear_matches(db: pycolmap.Database) -> None:
+    with pycolmap.DatabaseTransaction(db):
+        db.clear_matches()
+        db.clear_two_view_geometries()
+
+
+def read_pair_matches(db: pycolmap.Database, id_a: int, id_b: int) -> np.ndarray:
+    """Matches of (id_a, id_b) as indices into a's and b's keypoints, whatever order COLMAP stored them in."""
+    return np.asarray(db.read_matches(id_a, id_b), np.uint32).reshape(-1, 2)
+
+
+def database_summary(db: pycolmap.Database) -> dict:
+    return {
+        "num_images": db.num_images(),
+        "num_cameras": db.num_cameras(),
+        "num_keypoints": db.num_keypoints(),
+        "num_matched_pairs": db.num_matched_image_pairs(),
+        "num_matches": db.num_matches(),
+        "num_verified_pairs": db.num_verified_image_pairs(),
+        "num_inlier_matches": db.num_inlier_matches(),
+    }
+

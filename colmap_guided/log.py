@@ -1,0 +1,26 @@
+"""The package's one logger, and the switch that keeps pycolmap/glog quiet."""
+
+import logging
+import os
+
+logger = logging.getLogger("colmap_guided")
+if not logger.handlers:
+    _handler = logging.StreamHandler()
+    _handler.setFormatter(logging.Formatter("[%(asctime)s %(name)s %(levelname)s] %(message)s", "%H:%M:%S"))
+    logger.addHandler(_handler)
+    logger.setLevel(logging.INFO)
+    logger.propagate = False
+
+
+def set_verbosity(verbose: bool = False, quiet: bool = False) -> None:
+    """--verbose shows debug messages and pycolmap's own log; --quiet only warnings."""
+    logger.setLevel(logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO)
+    # glog level of COLMAP: 0 = INFO, 1 = WARNING, 2 = ERROR.
+    level = 0 if verbose else 2
+    os.environ["GLOG_minloglevel"] = str(level)
+    try:
+        import pycolmap
+
+        pycolmap.logging.minloglevel = level
+    except (ImportError, AttributeError):
+        pass

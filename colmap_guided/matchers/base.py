@@ -1,0 +1,49 @@
+"""The matcher interface every matcher implements (raw, guided, guided epipolar/homography, ...).
+
+Coordinates follow COLMAP: (0, 0) is the top-left corner of the top-left pixel, so the centre of
+pixel (col, row) is (col + 0.5, row + 0.5). Keypoints are in the original image's pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass
+class ImageData:
+    """One image as a matcher sees it: its keypoints, descriptors and where its pixels are."""
+
+    name: str  # COLMAP image name (path relative to the image folder, '/'-separated)
+    image_id: int
+    path: Path  # absolute path of the image file (read-only; never written)
+    keypoints: np.ndarray  # (N, >=2) float32, x, y first (COLMAP convention), then scale/orientation/affine
+    descriptors: np.ndarray  # (N, D) uint8 (SIFT) or float32
+    width: int
+    height: int
+    extra: dict = field(default_factory=dict)  # per-matcher caches (e.g. backbone features)
+
+
+class Matcher:
+    """Base class: ``match(a, b)`` returns (M, 2) uint32 indices into a.keypoints and b.keypoints."""
+
+    name = "base"
+    default_conf: dict = {}
+
+    def __init__(self, conf: dict | None = None):
+        unknown = set(conf or {}) - set(self.default_conf)
+        if unknown:
+            raise ValueError(f"Unknown {self.name} matcher option(s) {sorted(unknown)}; known: {sorted(self.default_conf)}")
+        self.conf = {**self.default_conf, **(conf or {})}
+
+    def match(self, a: ImageData, b: ImageData) -> np.ndarray:
+        raise NotImplementedError
+
+    def release(self, name: str) -> None:
+        """Called when the pipeline will not pass image ``name`` again: drop what is cached for it."""
+
+    def describe(self) -> dict:
+        """What the report records about this matcher."""
+        return {"name": self.name, "conf": self.conf}

@@ -1,0 +1,90 @@
+"""The whole pipeline: images → SIFT → pairs → (guided) matching → verification → mapping → report.
+
+    python -m colmap_guided reconstruct SCENE_DIR [--matcher guided|raw|...] [--output DIR]
+
+Photos are read from SCENE_DIR/images (or --image_path) and never written to. Everything the run makes
+goes to the workspace (SCENE_DIR/colmap_guided, or --output): database.db, sparse/N, report.json.
+A killed run started again continues from the database.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from pathlib import Path
+
+from . import database as dbio
+from . import features, mapping, match, report
+from .log import logger
+
+
+def resolve_paths(scene_dir: Path, image_path: Path | None, output: Path | None) -> tuple[Path, Path]:
+    scene_dir = Path(scene_dir)
+    if image_path is None:
+        image_path = scene_dir / "images" if (scene_dir / "images").is_dir() else scene_dir
+    image_path = Path(image_path).resolve()
+    if output is None:
+        # Never inside the photos' folder: SCENE_DIR/colmap_guided when photos are in SCENE_DIR/images,
+        # else a sibling folder SCENE_DIR_colmap_guided.
+        output = scene_dir / "colmap_guided" if image_path != scene_dir.resolve() else scene_dir.parent / f"{scene_dir.name}_colmap_guided"
+    output = Path(output).resolve()
+    if output == image_path or image_path in output.parents:
+        raise ValueError(f"The output folder {output} is inside the image folder {image_path}; pass --output outside it (photos are never written to).")
+    return image_path, output
+
+
+def reconstruct(
+    scene_dir: Path,
+    image_path: Path | None = None,
+    output: Path | None = None,
+    matcher: str = "raw",
+    matcher_conf: dict | None = None,
+    pairs_path: Path | None = None,
+    feature_conf: dict | None = None,
+    verification_conf: dict | None = None,
+    mapping_conf: dict | None = None,
+    overwrite: bool = False,
+) -> dict:
+    image_path, output = resolve_paths(scene_dir, image_path, output)
+    image_names = features.list_images(image_path)
+    if overwrite and output.exists():
+        shutil.rmtree(output)
+    output.mkdir(parents=True, exist_ok=True)
+    database_path = output / "database.db"
+    if database_path.exists():
+        with dbio.open_database(database_path) as db:
+            dbio.check_image_folder(db, image_path)
+    timings = {}
+
+    start = time.time()
+    extraction = features.extract_features(database_path, image_path, image_names, feature_conf)
+    timings["extract"] = time.time() - start
+
+    match_stats = match.match_database(database_path, image_path, pairs_path, matcher, matcher_conf, verification_conf)
+    timings["match"] = match_stats.pop("match_time")
+    timings["verify"] = match_stats.pop("verify_time")
+
+    start = time.time()
+    sparse_path = output / "sparse"
+    models = mapping.incremental_mapping(database_path, image_path, sparse_path, mapping_conf)
+    timings["map"] = time.time() - start
+
+    stats = report.model_statistics(models, image_names)
+    eras = report.read_manifest(Path(scene_dir) / "manifest.json")
+    result = {
+        "scene": Path(scene_dir).resolve().name,
+        "image_path": str(image_path),
+        "database_path": str(database_path),
+        "sparse_path": str(sparse_path),
+        "report_path": str(output / "report.json"),
+        "matcher": match_stats.pop("matcher"),
+        "options": {"features": {**features.default_conf, **(feature_conf or {})}, "verification": match_stats.pop("verification"), "mapping": {**mapping.default_conf, **(mapping_conf or {})}, "pairs": str(pairs_path) if pairs_path else "exhaustive"},
+        "model": stats,
+        "eras": report.era_ratios(eras, stats["registered_images"], image_names) if eras else {},
+        "database": match_stats,
+        "skipped_images": extraction["skipped"],
+        "timings": timings,
+        **{k: stats[k] for k in ("num_images", "num_registered", "registered_ratio", "num_points3D", "mean_track_length", "mean_reprojection_error")},
+    }
+    report.write_report(output / "report.json", result)
+    return result

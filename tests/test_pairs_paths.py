@@ -1,0 +1,42 @@
+"""Pairs files and workspace paths: what a user writes by hand must be read as meant."""
+
+from pathlib import Path
+
+import pytest
+
+from colmap_guided.pairs import exhaustive_pairs, read_pairs, write_pairs
+from colmap_guided.reconstruct import resolve_paths
+
+
+def test_exhaustive_pairs_are_all_unordered_pairs():
+    pairs = exhaustive_pairs(["c.jpg", "a.jpg", "b.jpg"])
+    assert pairs == [("a.jpg", "b.jpg"), ("a.jpg", "c.jpg"), ("b.jpg", "c.jpg")]
+
+
+def test_pairs_file_with_spaces_duplicates_and_comments(tmp_path):
+    names = ["old photo 1.jpg", "old photo 2.jpg", "sub/new.jpg"]
+    path = tmp_path / "pairs.txt"
+    path.write_text("# my pairs\nold photo 1.jpg old photo 2.jpg\nold photo 2.jpg\told photo 1.jpg\n\nsub/new.jpg old photo 1.jpg\nsub/new.jpg sub/new.jpg\n", encoding="utf-8")
+    assert read_pairs(path, names) == [("old photo 1.jpg", "old photo 2.jpg"), ("sub/new.jpg", "old photo 1.jpg")]
+    out = tmp_path / "out.txt"
+    write_pairs(out, read_pairs(path, names))
+    assert read_pairs(out, names) == read_pairs(path, names)
+
+
+def test_pairs_file_naming_an_unknown_image_is_refused(tmp_path):
+    path = tmp_path / "pairs.txt"
+    path.write_text("a.jpg z.jpg\n")
+    with pytest.raises(ValueError, match=r"pairs.txt:1: image 'z.jpg' is not in"):
+        read_pairs(path, ["a.jpg", "b.jpg"])
+
+
+def test_workspace_is_never_inside_the_photo_folder(tmp_path):
+    (tmp_path / "scene" / "images").mkdir(parents=True)
+    image_path, output = resolve_paths(tmp_path / "scene", None, None)
+    assert image_path == (tmp_path / "scene" / "images").resolve() and output == (tmp_path / "scene" / "colmap_guided").resolve()
+    # A bare folder of photos: the workspace goes beside it, not into it.
+    (tmp_path / "photos").mkdir()
+    image_path, output = resolve_paths(tmp_path / "photos", None, None)
+    assert output == (tmp_path / "photos_colmap_guided").resolve()
+    with pytest.raises(ValueError, match="inside the image folder"):
+        resolve_paths(tmp_path / "photos", None, tmp_path / "photos" / "out")
