@@ -1,0 +1,116 @@
+"""End to end on a real COLMAP database: reconstruct, the drop-in `match`, reruns (issue 3)."""
+
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+
+from colmap_guided import database as dbio
+from colmap_guided.match import match_database
+from colmap_guided.reconstruct import reconstruct
+from colmap_guided.synthetic import pose_errors
+
+
+def folder_digest(folder: Path) -> dict:
+    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def all_matches(database_path: Path) -> dict:
+    with dbio.open_database(database_path) as db:
+        images = dbio.images_by_name(db)
+        out = {}
+        for a in sorted(images):
+            for b in sorted(images):
+                if a < b and db.exists_matches(images[a].image_id, images[b].image_id):
+                    out[(a, b)] = dbio.read_pair_matches(db, images[a].image_id, images[b].image_id).tolist()
+        return out
+
+
+@pytest.fixture(scope="module")
+def raw_run(synthetic_scene, tmp_path_factory):
+    before = folder_digest(synthetic_scene.image_dir)
+    out = tmp_path_factory.mktemp("raw_run")
+    result = reconstruct(synthetic_scene.image_dir.parent, output=out, matcher="raw")
+    return result, before, out
+
+
+def test_reconstruct_registers_every_image_with_the_true_poses(raw_run, synthetic_scene):
+    result, _, out = raw_run
+    assert result["num_registered"] == len(synthetic_scene.names) == result["num_images"]
+    assert result["registered_ratio"] == 1.0
+    model = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    errors = pose_errors(model, synthetic_scene)
+    rot = [e[0] for e in errors.values()]
+    centre = [e[1] for e in errors.values()]
+    assert max(rot) < 1.0, errors
+    assert max(centre) < 0.02, errors
+    assert result["num_points3D"] > 500 and result["mean_reprojection_error"] < 1.0
+
+
+def test_report_json_has_what_the_user_reads(raw_run):
+    result, _, out = raw_run
+    saved = json.loads((out / "report.json").read_text())
+    for key in ("num_images", "num_registered", "registered_ratio", "num_points3D", "mean_track_length", "mean_reprojection_error"):
+        assert saved[key] == pytest.approx(result[key])
+    assert set(saved["timings"]) == {"extract", "match", "verify", "map"}
+    assert saved["matcher"]["name"] == "raw" and saved["matcher"]["conf"]["ratio"] == 0.8
+
+
+def test_photos_are_never_written(raw_run, synthetic_scene):
+    _, before, _ = raw_run
+    assert folder_digest(synthetic_scene.image_dir) == before
+    assert not (synthetic_scene.image_dir / "colmap_guided").exists()
+
+
+def test_match_is_a_drop_in_exhaustive_matcher_and_reruns_do_not_duplicate(raw_run, synthetic_scene, tmp_path):
+    """Database from pycolmap.extract_features → our `match` → pycolmap mapping registers the same images."""
+    result, _, out = raw_run
+    db = tmp_path / "db.db"
+    pycolmap.extract_features(db, synthetic_scene.image_dir)
+    stats = match_database(db, synthetic_scene.image_dir, matcher="raw")
+    assert stats["num_pairs"] == 28 and stats["num_verified_pairs"] >= 20
+    first = all_matches(db)
+    assert first == all_matches(out / "database.db")  # same SIFT, same matcher: same matches as reconstruct
+    # Running it again neither crashes nor duplicates anything.
+    again = match_database(db, synthetic_scene.image_dir, matcher="raw")
+    assert again["num_pairs_matched_now"] == 0 and again["num_matches"] == stats["num_matches"]
+    assert all_matches(db) == first
+    models = pycolmap.incremental_mapping(db, synthetic_scene.image_dir, tmp_path / "sparse")
+    largest = max(models.values(), key=lambda r: r.num_reg_images())
+    assert sorted(largest.images[i].name for i in largest.reg_image_ids()) == result["model"]["registered_images"]
+
+
+def test_cli_reconstruct_and_refusal_of_a_foreign_database(synthetic_scene, raw_run, tmp_path):
+    _, _, out = raw_run
+    other = tmp_path / "other" / "images"
+    other.mkdir(parents=True)
+    (other / "x.jpg").write_bytes((synthetic_scene.image_dir / synthetic_scene.names[0]).read_bytes())
+    run = subprocess.run(
+        [sys.executable, "-m", "colmap_guided", "match", "--database_path", str(out / "database.db"), "--image_path", str(other), "--matcher", "raw"],
+        capture_output=True, text=True,
+    )
+    assert run.returncode == 2
+    assert "are not in" in run.stderr and "--image_path" in run.stderr
+    assert "Traceback" not in run.stderr
+
+
+def test_matches_are_stored_as_pair_indices_into_both_images(raw_run):
+    _, _, out = raw_run
+    with dbio.open_database(out / "database.db") as db:
+        images = list(dbio.images_by_name(db).values())
+        a, b = images[0], images[1]
+        m = dbio.read_pair_matches(db, a.image_id, b.image_id)
+        assert len(m) > 0
+        assert m[:, 0].max() < db.num_keypoints_for_image(a.image_id) and m[:, 1].max() < db.num_keypoints_for_image(b.image_id)
+        assert len(np.unique(m[:, 0])) == len(m) and len(np.unique(m[:, 1])) == len(m)  # mutual: one-to-one
+
+
+@pytest.mark.slow
+def test_real_photos_sacre_coeur(shared_data, tmp_path):
+    result = reconstruct(shared_data / "sacre_coeur_hloc", output=tmp_path / "out", matcher="raw")
+    assert result["num_registered"] >= 9 and result["mean_reprojection_error"] < 1.5
