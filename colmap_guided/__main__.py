@@ -1,4 +1,4 @@
-"""Command line: `python -m colmap_guided {reconstruct,match,coarse} ...`."""
+"""Command line: `python -m colmap_guided {reconstruct,match,export,import,report} ...`."""
 
 from __future__ import annotations
 
@@ -37,6 +37,26 @@ def build_parser() -> argparse.ArgumentParser:
     mat.add_argument("--overwrite", action="store_true", help="delete existing matches and two-view geometries first")
     match.add_matcher_arguments(mat)
     _add_common(mat)
+
+    exp = sub.add_parser("export", help="keypoints and matches of a database as hloc h5 files (features.h5, matches.h5, pairs.txt)")
+    exp.add_argument("--database_path", type=Path, required=True)
+    exp.add_argument("--output", type=Path, required=True, help="folder for features.h5, matches.h5 and pairs.txt")
+    exp.add_argument("--inliers_only", action="store_true", help="export the verified matches instead of all putative matches")
+    exp.add_argument("--overwrite", action="store_true", help="replace existing h5 files in --output")
+    _add_common(exp)
+
+    imp = sub.add_parser("import", help="hloc h5 keypoints and matches into a COLMAP database (created if needed), then verify")
+    imp.add_argument("--database_path", type=Path, required=True)
+    imp.add_argument("--features", type=Path, required=True, help="features.h5 (hloc layout)")
+    imp.add_argument("--matches", type=Path, default=None, help="matches.h5 (hloc layout)")
+    imp.add_argument("--image_path", type=Path, default=None, help="photos folder: sizes for files without image_size")
+    _add_common(imp)
+
+    rep = sub.add_parser("report", help="write OUTPUT/report.html again from report.json, e.g. with raw vs guided matches")
+    rep.add_argument("output", type=Path, help="workspace of a reconstruct run (holds report.json)")
+    rep.add_argument("--compare", action="append", default=[], metavar="LABEL=DATABASE", help="also draw the same pairs from this database (repeatable)")
+    rep.add_argument("--num_pairs", type=int, default=3)
+    _add_common(rep)
     return parser
 
 
@@ -47,9 +67,31 @@ def main(argv=None) -> int:
     from . import match
     from .matchers import DEFAULT_MATCHER
 
-    matcher = args.matcher or DEFAULT_MATCHER
+    matcher = getattr(args, "matcher", None) or DEFAULT_MATCHER
     try:
-        if args.command == "reconstruct":
+        if getattr(args, "weights", None) is not None:
+            match.check_weights_file(args.weights)
+        if args.command == "export":
+            from .export import export_h5
+
+            out = export_h5(args.database_path, args.output, inliers_only=args.inliers_only, overwrite=args.overwrite)
+            print(f"{out['num_images']} images, {out['num_pairs']} pairs -> {out['features']}, {out['matches']}, {out['pairs']}")
+        elif args.command == "import":
+            from .export import import_h5
+
+            out = import_h5(args.database_path, args.features, args.matches, args.image_path)
+            print(f"{out['num_images_added']} images and {out['num_pairs_added']} pairs imported into {args.database_path}")
+        elif args.command == "report":
+            from .html_report import rewrite_report
+
+            compare = {}
+            for item in args.compare:
+                label, sep, path = item.partition("=")
+                if not sep or not label or not path:
+                    raise ValueError(f"--compare {item!r}: write LABEL=PATH/database.db, e.g. --compare raw=out_raw/database.db")
+                compare[label] = Path(path)
+            print(rewrite_report(args.output, compare, args.num_pairs))
+        elif args.command == "reconstruct":
             from .reconstruct import reconstruct
             from .report import summary_text
 
@@ -67,7 +109,7 @@ def main(argv=None) -> int:
         elif args.command == "match":
             stats = match.match_database(args.database_path, args.image_path, args.pairs, matcher, match.matcher_conf_from_args(args, matcher), overwrite=args.overwrite)
             print(f"{stats['num_verified_pairs']}/{stats['num_pairs']} pairs verified, {stats['num_inlier_matches']} inlier matches in {args.database_path}")
-    except (ValueError, FileNotFoundError, RuntimeError) as err:
+    except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as err:
         logger.error("%s", err)
         return 2
     except KeyboardInterrupt:

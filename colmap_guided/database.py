@@ -41,13 +41,28 @@ def images_by_name(db: pycolmap.Database) -> dict[str, pycolmap.Image]:
 
 def check_image_folder(db: pycolmap.Database, image_path: Path) -> None:
     """Refuse a database whose images are not in ``image_path`` (a database of another folder)."""
-    names = [image.name for image in db.read_all_images()]
+    database_images = db.read_all_images()
+    names = [image.name for image in database_images]
     missing = [name for name in names if not (Path(image_path) / name).is_file()]
     if missing:
         raise DatabaseError(
             f"{len(missing)}/{len(names)} images of the database are not in {image_path} (e.g. {missing[0]!r}): "
             "pass the --image_path the database was made from, or --overwrite to start a new database."
         )
+    # Same names, other photos (IMG_0001.jpg of another folder): the sizes give it away (header reads only).
+    from .images import image_size
+
+    for image in database_images:
+        camera = db.read_camera(image.camera_id)
+        try:
+            size = image_size(Path(image_path) / image.name)
+        except Exception:  # noqa: BLE001 - unreadable now: judged by extraction, not here
+            continue
+        if size != (camera.width, camera.height):
+            raise DatabaseError(
+                f"{image.name} in {image_path} is {size[0]}x{size[1]} pixels but {camera.width}x{camera.height} in the database: "
+                "the database was made from other photos; pass the --image_path it was made from, or --overwrite to start a new database."
+            )
 
 
 def keypoint_scales(keypoints: np.ndarray) -> np.ndarray:
@@ -113,6 +128,48 @@ def read_pair_matches(db: pycolmap.Database, id_a: int, id_b: int) -> np.ndarray
     return np.asarray(db.read_matches(id_a, id_b), np.uint32).reshape(-1, 2)
 
 
+def num_verified_pairs(db: pycolmap.Database) -> int:
+    """Pairs with inlier matches (COLMAP's count also includes pairs whose verification failed)."""
+    _, num_inliers = db.read_two_view_geometry_num_inliers()
+    return sum(n > 0 for n in num_inliers)
+
+
+def remove_orphans(path: Path) -> tuple[int, int]:
+    """Remove the cameras and rigs that a killed feature extraction left without images; returns (cameras, rigs).
+
+    COLMAP's image reader writes an image's camera and rig before its extractor threads write the image,
+    so a kill leaves up to a queue's worth of cameras without images. Removing them (and rewinding the id
+    counters to the largest id in use) makes the resumed extraction give the ids an uninterrupted run
+    gives. Cameras in a rig that has frames are kept. Call it while no pycolmap connection is open.
+    """
+    import sqlite3
+
+    path = Path(path)
+    if not path.is_file():
+        return 0, 0
+    with contextlib.closing(sqlite3.connect(str(path), timeout=30.0)) as conn:
+        tables = {name for (name,) in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        if not {"rigs", "rig_sensors", "frames", "cameras", "images", "sqlite_sequence"} <= tables:
+            return 0, 0  # a database of an older COLMAP: nothing of this kind to clean
+        with conn:
+            rigs = [r for (r,) in conn.execute("SELECT rig_id FROM rigs WHERE rig_id NOT IN (SELECT rig_id FROM frames)")]
+            conn.executemany("DELETE FROM rig_sensors WHERE rig_id = ?", [(r,) for r in rigs])
+            conn.executemany("DELETE FROM rigs WHERE rig_id = ?", [(r,) for r in rigs])
+            cameras = [
+                c
+                for (c,) in conn.execute(
+                    "SELECT camera_id FROM cameras WHERE camera_id NOT IN (SELECT camera_id FROM images)"
+                    " AND camera_id NOT IN (SELECT ref_sensor_id FROM rigs WHERE ref_sensor_type = 0)"
+                    " AND camera_id NOT IN (SELECT sensor_id FROM rig_sensors WHERE sensor_type = 0)"
+                )
+            ]
+            conn.executemany("DELETE FROM cameras WHERE camera_id = ?", [(c,) for c in cameras])
+            if rigs or cameras:
+                for table, key in (("rigs", "rig_id"), ("cameras", "camera_id")):
+                    conn.execute(f"UPDATE sqlite_sequence SET seq = (SELECT COALESCE(MAX({key}), 0) FROM {table}) WHERE name = ?", (table,))
+    return len(cameras), len(rigs)
+
+
 def database_summary(db: pycolmap.Database) -> dict:
     return {
         "num_images": db.num_images(),
@@ -120,7 +177,7 @@ def database_summary(db: pycolmap.Database) -> dict:
         "num_keypoints": db.num_keypoints(),
         "num_matched_pairs": db.num_matched_image_pairs(),
         "num_matches": db.num_matches(),
-        "num_verified_pairs": db.num_verified_image_pairs(),
+        "num_verified_pairs": num_verified_pairs(db),
         "num_inlier_matches": db.num_inlier_matches(),
     }
 

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pycolmap
 
+from .features import colmap_quiet
 from .log import logger
 
 default_conf = {"random_seed": 0, "min_model_size": 3, "num_threads": -1}
@@ -27,7 +28,8 @@ def incremental_mapping(database_path: Path, image_path: Path, sparse_path: Path
     options.min_model_size = conf["min_model_size"]
     options.num_threads = conf["num_threads"]
     logger.info("Incremental mapping")
-    models = pycolmap.incremental_mapping(str(database_path), str(image_path), str(tmp), options)
+    with colmap_quiet():
+        models = pycolmap.incremental_mapping(str(database_path), str(image_path), str(tmp), options)
     # Largest model first, as sparse/0, like COLMAP users expect to find it.
     ordered = sorted(models.values(), key=lambda rec: rec.num_reg_images(), reverse=True)
     shutil.rmtree(tmp, ignore_errors=True)

@@ -16,6 +16,7 @@ from tqdm import tqdm
 
 from . import database as dbio
 from . import verify
+from .features import colmap_quiet
 from .log import logger
 from .matchers import MATCHERS, get_matcher
 from .matchers.base import ImageData, Matcher
@@ -58,30 +59,54 @@ def match_database(
         for index, (_, _, a, b) in enumerate(id_pairs):
             last_use[a] = last_use[b] = index
 
-        def load(name: str) -> ImageData:
-            if name not in cache:
-                cache[name] = dbio.read_image_data(db, images[name], image_path)
-            return cache[name]
-
         todo = [p for p in id_pairs if not dbio.pair_has_matches(db, p[0], p[1])]
         logger.info("Matching %d pairs with the %s matcher (%d already matched)", len(todo), matcher.name, len(id_pairs) - len(todo))
         start = time.time()
         todo_index = {(p[0], p[1]) for p in todo}
-        for index, (id_a, id_b, a, b) in enumerate(_progress(id_pairs, "match", len(id_pairs))):
-            if (id_a, id_b) in todo_index:
-                matches = matcher.match(load(a), load(b))
-                dbio.write_pair_matches(db, id_a, id_b, matches)
-            for name in (a, b):
-                if last_use[name] == index:
-                    cache.pop(name, None)
-                    matcher.release(name)
+        # Matchers with a backbone (guided) compute an image's features at its first pair: a bar of its own.
+        backbone = getattr(matcher, "features", None)
+        num_todo_images = len({name for p in todo for name in p[2:]})
+        backbone_bar = tqdm(desc="backbone", total=num_todo_images, unit="img", disable=None, dynamic_ncols=True, leave=False) if callable(backbone) and todo else None
+
+        def load(name: str) -> ImageData:
+            if name not in cache:
+                cache[name] = dbio.read_image_data(db, images[name], image_path)
+                if backbone_bar is not None:
+                    backbone(cache[name])
+                    backbone_bar.update(1)
+            return cache[name]
+
+        with _progress(None, "match", len(todo)) as bar:
+            for index, (id_a, id_b, a, b) in enumerate(id_pairs):
+                if (id_a, id_b) in todo_index:
+                    matches = matcher.match(load(a), load(b))
+                    dbio.write_pair_matches(db, id_a, id_b, matches)
+                    bar.update(1)
+                for name in (a, b):
+                    if last_use[name] == index:
+                        cache.pop(name, None)
+                        matcher.release(name)
+        if backbone_bar is not None:
+            backbone_bar.close()
         stats["match_time"] = time.time() - start
         stats["num_pairs"] = len(id_pairs)
         stats["num_pairs_matched_now"] = len(todo)
 
         start = time.time()
-        unverified = [p for p in id_pairs if not dbio.pair_is_verified(db, p[0], p[1])]
-        cameras = {}
+        verify_pairs(db, images, id_pairs, options)
+        stats["verify_time"] = time.time() - start
+        stats.update(dbio.database_summary(db))
+    logger.info(
+        "%d/%d pairs verified, %d inlier matches", stats["num_verified_pairs"], stats["num_pairs"], stats["num_inlier_matches"]
+    )
+    return stats
+
+
+def verify_pairs(db, images: dict, id_pairs: list[tuple[int, int, str, str]], options) -> int:
+    """Two-view geometry of every matched, not yet verified pair (id_a, id_b, name_a, name_b); returns how many."""
+    unverified = [p for p in id_pairs if dbio.pair_has_matches(db, p[0], p[1]) and not dbio.pair_is_verified(db, p[0], p[1])]
+    cameras = {}
+    with colmap_quiet():
         for id_a, id_b, a, b in _progress(unverified, "verify", len(unverified)):
             kpts = []
             for name in (a, b):
@@ -92,12 +117,7 @@ def match_database(
             matches = dbio.read_pair_matches(db, id_a, id_b)
             geometry = verify.verify_pair(cameras[images[a].camera_id], kpts[0], cameras[images[b].camera_id], kpts[1], matches, options)
             dbio.write_pair_geometry(db, id_a, id_b, geometry)
-        stats["verify_time"] = time.time() - start
-        stats.update(dbio.database_summary(db))
-    logger.info(
-        "%d/%d pairs verified, %d inlier matches", stats["num_verified_pairs"], stats["num_pairs"], stats["num_inlier_matches"]
-    )
-    return stats
+    return len(unverified)
 
 
 def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:
@@ -106,6 +126,23 @@ def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pairs", type=Path, default=None, help="pairs file (name_a name_b per line); exhaustive if omitted")
     parser.add_argument("--weights", type=Path, default=None, help="coarse filter weights (guided matcher)")
     parser.add_argument("--device", default=None, help="torch device for matching (cpu, cuda)")
+
+
+def check_weights_file(path: Path) -> None:
+    """A --weights file that exists and is a readable safetensors/torch file, else a one-line error."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"--weights {path}: no such file; pass the path of the coarse filter weights (.safetensors), or leave --weights out.")
+    if path.suffix == ".safetensors":
+        try:
+            from safetensors import safe_open
+
+            with safe_open(str(path), framework="pt") as f:
+                list(f.keys())
+        except Exception as err:  # noqa: BLE001 - safetensors raises its own error types
+            raise ValueError(f"--weights {path} is not a readable safetensors file ({type(err).__name__}); download or train it again.") from None
+    elif path.stat().st_size == 0:
+        raise ValueError(f"--weights {path} is empty; download or train it again.")
 
 
 def matcher_conf_from_args(args, matcher: str) -> dict:

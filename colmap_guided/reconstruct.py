@@ -3,7 +3,7 @@
     python -m colmap_guided reconstruct SCENE_DIR [--matcher guided|raw|...] [--output DIR]
 
 Photos are read from SCENE_DIR/images (or --image_path) and never written to. Everything the run makes
-goes to the workspace (SCENE_DIR/colmap_guided, or --output): database.db, sparse/N, report.json.
+goes to the workspace (SCENE_DIR/colmap_guided, or --output): database.db, sparse/N, report.json, report.html.
 A killed run started again continues from the database.
 """
 
@@ -14,8 +14,9 @@ import time
 from pathlib import Path
 
 from . import database as dbio
-from . import features, mapping, match, report
+from . import features, html_report, mapping, match, report
 from .log import logger
+from .matchers import Matcher, get_matcher
 
 
 def resolve_paths(scene_dir: Path, image_path: Path | None, output: Path | None) -> tuple[Path, Path]:
@@ -47,6 +48,8 @@ def reconstruct(
 ) -> dict:
     image_path, output = resolve_paths(scene_dir, image_path, output)
     image_names = features.list_images(image_path)
+    # The matcher first: a missing or broken --weights file fails now, not after the extraction.
+    matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
     if overwrite and output.exists():
         shutil.rmtree(output)
     output.mkdir(parents=True, exist_ok=True)
@@ -59,8 +62,14 @@ def reconstruct(
     start = time.time()
     extraction = features.extract_features(database_path, image_path, image_names, feature_conf)
     timings["extract"] = time.time() - start
+    usable = [name for name in image_names if name not in extraction["skipped"]]
+    if len(usable) < 2:
+        raise ValueError(
+            f"Only {len(usable)} usable image(s) in {image_path} ({len(extraction['skipped'])} skipped): "
+            "a reconstruction needs at least 2 overlapping photos of the landmark; add photos and run again."
+        )
 
-    match_stats = match.match_database(database_path, image_path, pairs_path, matcher, matcher_conf, verification_conf)
+    match_stats = match.match_database(database_path, image_path, pairs_path, matcher, None, verification_conf)
     timings["match"] = match_stats.pop("match_time")
     timings["verify"] = match_stats.pop("verify_time")
 
@@ -86,5 +95,11 @@ def reconstruct(
         "timings": timings,
         **{k: stats[k] for k in ("num_images", "num_registered", "registered_ratio", "num_points3D", "mean_track_length", "mean_reprojection_error")},
     }
+    result["html_report_path"] = str(output / "report.html")
+    try:
+        html_report.write_html_report(output / "report.html", result, html_report.match_panels({result["matcher"]["name"]: database_path}, image_path))
+    except Exception as err:  # noqa: BLE001 - the reconstruction is done; a failed page must not hide it
+        logger.warning("Could not write the HTML report (%s); report.json is complete.", err)
+        result.pop("html_report_path")
     report.write_report(output / "report.json", result)
     return result

@@ -67,12 +67,20 @@ def summary_text(report: dict) -> str:
     ]
     for era, r in report.get("eras", {}).items():
         lines.append(f"  {era}: {r['num_registered']}/{r['num_images']} registered ({100 * r['registered_ratio']:.0f} %)")
-    if s["unregistered_images"]:
-        shown = ", ".join(s["unregistered_images"][:10]) + (" ..." if len(s["unregistered_images"]) > 10 else "")
+    skipped = report.get("skipped_images") or {}
+    unregistered = [name for name in s["unregistered_images"] if name not in skipped]
+    if unregistered:
+        shown = ", ".join(unregistered[:10]) + (" ..." if len(unregistered) > 10 else "")
         lines.append(f"Not registered: {shown}")
-    if report.get("skipped_images"):
-        lines.append(f"Skipped (unreadable): {', '.join(report['skipped_images'])}")
+    if skipped:
+        reasons = skipped if isinstance(skipped, dict) else dict.fromkeys(skipped, "unreadable")
+        lines.append(f"Skipped {len(reasons)} image(s):")
+        lines.extend(f"  {name}: {reason}" for name, reason in list(reasons.items())[:10])
+        if len(reasons) > 10:
+            lines.append(f"  ... and {len(reasons) - 10} more (report.json, skipped_images)")
     times = ", ".join(f"{k} {v:.1f} s" for k, v in report["timings"].items())
     lines.append(f"Time: {times}")
     lines.append(f"Model: {report['sparse_path']}/0   Report: {report['report_path']}")
+    if report.get("html_report_path"):
+        lines.append(f"Open in a browser: {report['html_report_path']}")
     return "\n".join(lines)

@@ -1,0 +1,330 @@
+"""hloc-compatible h5 files from a COLMAP database, and back: guided matches for hloc or other front-ends.
+
+    python -m colmap_guided export --database_path DB --output DIR    # DIR/features.h5, matches.h5, pairs.txt
+    python -m colmap_guided import --database_path NEW.db --features DIR/features.h5 --matches DIR/matches.h5
+
+The layout is hloc's (Hierarchical-Localization, ``hloc/utils/io.py`` and ``parsers.py``):
+
+- features.h5: one group per image name (a name with '/' gives nested groups, as h5py does for hloc),
+  with ``keypoints`` (N, 2) float32 in hloc's convention — pixel CENTRE at integer coordinates, i.e.
+  COLMAP's x, y minus 0.5 (hloc adds 0.5 back when it imports into COLMAP) —, ``descriptors`` (D, N)
+  (SIFT: uint8 as COLMAP stores them), ``scores`` (N,) (COLMAP stores none: ones) and ``image_size``
+  (width, height).
+- matches.h5: one group per pair, named ``names_to_pair(name0, name1)`` =
+  ``name0.replace('/', '-') + '/' + name1.replace('/', '-')``, with ``matches0`` (N0,) int32 (index in
+  image 1, -1 = unmatched) and ``matching_scores0`` (N0,) float16 (1 matched, 0 not: COLMAP keeps no score).
+- pairs.txt: the exported pairs, hloc's pairs-file format (hloc's import_matches needs it).
+
+Datasets and attributes prefixed ``colmap_`` are ours (hloc ignores them): the exact COLMAP keypoint
+rows (x, y, affine shape), the camera, and the verified two-view geometry, so that exporting and importing
+gives back the same database. Files written by hloc (without them) import too; their pairs are then
+verified with COLMAP's two-view estimator, as ``match`` does.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pycolmap
+from tqdm import tqdm
+
+from . import database as dbio
+from . import verify
+from .log import logger
+from .pairs import write_pairs
+
+
+def names_to_pair(name0: str, name1: str, separator: str = "/") -> str:
+    """hloc's pair key (current hloc; ``separator='_'`` gives its older ``names_to_pair_old``)."""
+    return separator.join((name0.replace("/", "-"), name1.replace("/", "-")))
+
+
+def _bar(total: int, desc: str, unit: str):
+    return tqdm(total=total, desc=desc, unit=unit, disable=None, dynamic_ncols=True, leave=False)
+
+
+def export_h5(database_path: Path, output: Path, inliers_only: bool = False, overwrite: bool = False) -> dict:
+    """Write OUTPUT/features.h5, matches.h5 and pairs.txt from ``database_path``; returns counts.
+
+    ``inliers_only``: matches.h5 holds the verified (inlier) matches instead of all putative matches.
+    """
+    output = Path(output)
+    output.mkdir(parents=True, exist_ok=True)
+    paths = {k: output / f"{k}.h5" for k in ("features", "matches")}
+    for path in paths.values():
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path} exists; pass --overwrite to replace it, or another --output.")
+    tmp = {k: p.with_suffix(".h5.partial") for k, p in paths.items()}
+    pairs = []
+    with dbio.open_database(database_path) as db:
+        images = sorted(db.read_all_images(), key=lambda im: im.name)
+        by_id = {im.image_id: im for im in images}
+        names_seen: dict[str, str] = {}
+        for im in images:
+            key = im.name.replace("/", "-")
+            if key in names_seen:
+                raise ValueError(f"Images {names_seen[key]!r} and {im.name!r} have the same hloc pair key {key!r}; rename one of them.")
+            names_seen[key] = im.name
+        with h5py.File(tmp["features"], "w") as fd, _bar(len(images), "export features", "img") as bar:
+            for im in images:
+                if not db.exists_keypoints(im.image_id):
+                    bar.update(1)
+                    continue
+                kpts = np.asarray(db.read_keypoints(im.image_id), np.float32)
+                desc = db.read_descriptors(im.image_id)
+                camera = db.read_camera(im.camera_id)
+                grp = fd.create_group(im.name)
+                grp.create_dataset("keypoints", data=kpts[:, :2] - 0.5)
+                grp.create_dataset("descriptors", data=np.ascontiguousarray(np.asarray(desc.data).T))
+                grp.create_dataset("scores", data=np.ones(len(kpts), np.float32))
+                grp.create_dataset("image_size", data=np.array([camera.width, camera.height], np.int64))
+                grp.create_dataset("colmap_keypoints", data=kpts)
+                grp.attrs["colmap_descriptor_type"] = desc.type.name
+                grp.attrs["colmap_camera_id"] = int(camera.camera_id)
+                grp.attrs["colmap_camera_model"] = camera.model.name
+                grp.attrs["colmap_camera_params"] = np.asarray(camera.params, np.float64)
+                grp.attrs["colmap_prior_focal_length"] = bool(camera.has_prior_focal_length)
+                bar.update(1)
+        pair_ids, _ = db.read_num_matches()
+        with h5py.File(tmp["matches"], "w") as fd, _bar(len(pair_ids), "export matches", "pair") as bar:
+            for pair_id in sorted(pair_ids, key=lambda p: tuple(sorted(by_id[i].name for i in pycolmap.pair_id_to_image_pair(p)))):
+                id_a, id_b = (int(i) for i in pycolmap.pair_id_to_image_pair(pair_id))
+                a, b = by_id[id_a], by_id[id_b]
+                if a.name > b.name:
+                    a, b = b, a
+                matches = dbio.read_pair_matches(db, a.image_id, b.image_id)
+                geometry = db.read_two_view_geometry(a.image_id, b.image_id) if db.exists_two_view_geometry(a.image_id, b.image_id) else None
+                if inliers_only:
+                    matches = np.asarray(geometry.inlier_matches, np.uint32).reshape(-1, 2) if geometry is not None else np.zeros((0, 2), np.uint32)
+                grp = fd.create_group(names_to_pair(a.name, b.name))
+                num0 = db.num_keypoints_for_image(a.image_id)
+                matches0 = np.full(num0, -1, np.int32)
+                matches0[matches[:, 0]] = matches[:, 1]
+                grp.create_dataset("matches0", data=matches0)
+                grp.create_dataset("matching_scores0", data=(matches0 >= 0).astype(np.float16))
+                grp.attrs["colmap_names"] = [a.name, b.name]
+                representable = len(np.unique(matches[:, 0])) == len(matches) and np.all(np.diff(matches[:, 0].astype(np.int64)) > 0)
+                if not representable:  # a keypoint matched twice, or not in order: matches0 cannot hold it exactly
+                    grp.create_dataset("colmap_matches", data=matches)
+                if geometry is not None and not inliers_only:
+                    _write_geometry(grp, geometry)
+                pairs.append((a.name, b.name))
+                bar.update(1)
+    for key in paths:
+        tmp[key].replace(paths[key])
+    write_pairs(output / "pairs.txt", pairs)
+    logger.info("Exported %d images and %d pairs to %s", len(images), len(pairs), output)
+    return {"num_images": len(images), "num_pairs": len(pairs), "features": str(paths["features"]), "matches": str(paths["matches"]), "pairs": str(output / "pairs.txt")}
+
+
+def _write_geometry(grp: h5py.Group, geometry: pycolmap.TwoViewGeometry) -> None:
+    grp.create_dataset("colmap_inlier_matches", data=np.asarray(geometry.inlier_matches, np.uint32).reshape(-1, 2))
+    grp.attrs["colmap_config"] = int(geometry.config)
+    for key in ("F", "E", "H"):
+        if getattr(geometry, key) is not None:
+            grp.attrs[f"colmap_{key}"] = np.asarray(getattr(geometry, key), np.float64)
+    pose = geometry.cam2_from_cam1
+    if pose is not None:
+        grp.attrs["colmap_cam2_from_cam1"] = np.r_[np.asarray(pose.rotation.quat, np.float64), np.asarray(pose.translation, np.float64)]
+
+
+def _read_geometry(grp: h5py.Group) -> pycolmap.TwoViewGeometry | None:
+    if "colmap_inlier_matches" not in grp:
+        return None
+    geometry = pycolmap.TwoViewGeometry()
+    geometry.config = int(grp.attrs["colmap_config"])
+    for key in ("F", "E", "H"):
+        if f"colmap_{key}" in grp.attrs:
+            setattr(geometry, key, np.asarray(grp.attrs[f"colmap_{key}"], np.float64))
+    if "colmap_cam2_from_cam1" in grp.attrs:
+        v = np.asarray(grp.attrs["colmap_cam2_from_cam1"], np.float64)
+        geometry.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(v[:4]), v[4:])
+    geometry.inlier_matches = np.ascontiguousarray(grp["colmap_inlier_matches"][()], np.uint32).reshape(-1, 2)
+    return geometry
+
+
+def _feature_groups(fd: h5py.File) -> dict[str, h5py.Group]:
+    """{image name: group} for every group holding ``keypoints`` (nested names joined with '/')."""
+    found = {}
+
+    def visit(name, obj):
+        if isinstance(obj, h5py.Group) and "keypoints" in obj:
+            found[name] = obj
+
+    fd.visititems(visit)
+    return found
+
+
+def _new_camera(grp: h5py.Group, name: str, image_path: Path | None) -> pycolmap.Camera:
+    if "colmap_camera_model" in grp.attrs:
+        width, height = (int(v) for v in grp["image_size"][()])
+        camera = pycolmap.Camera.create_from_model_name(0, str(grp.attrs["colmap_camera_model"]), 1.0, width, height)
+        camera.params = np.asarray(grp.attrs["colmap_camera_params"], np.float64)
+        camera.has_prior_focal_length = bool(grp.attrs["colmap_prior_focal_length"])
+        return camera
+    if "image_size" in grp:
+        width, height = (int(v) for v in grp["image_size"][()])
+    elif image_path is not None:
+        from .images import image_size
+
+        width, height = image_size(Path(image_path) / name)
+    else:
+        raise ValueError(f"features.h5 has no image_size for {name!r}: pass --image_path so the camera size can be read from the photo.")
+    # COLMAP's default camera for a photo without EXIF focal length (feature_extractor does the same).
+    return pycolmap.Camera.create_from_model_name(0, "SIMPLE_RADIAL", 1.2 * max(width, height), width, height)
+
+
+def _add_image(db: pycolmap.Database, name: str, camera: pycolmap.Camera) -> int:
+    """A camera's image with its rig (one per camera, shared) and frame, as COLMAP's feature extractor writes them."""
+    rig = db.read_rig_with_sensor(camera.sensor_id)
+    if rig is not None:
+        rig_id = rig.rig_id
+    else:
+        rig = pycolmap.Rig()
+        rig.add_ref_sensor(camera.sensor_id)
+        rig_id = db.write_rig(rig)
+    image = pycolmap.Image(name=name, camera_id=camera.camera_id)
+    image_id = db.write_image(image)
+    image = db.read_image(image_id)
+    frame = pycolmap.Frame()
+    frame.rig_id = rig_id
+    frame.add_data_id(image.data_id)
+    db.write_frame(frame)
+    return image_id
+
+
+def import_h5(
+    database_path: Path,
+    features_path: Path,
+    matches_path: Path | None = None,
+    image_path: Path | None = None,
+    verification_conf: dict | None = None,
+) -> dict:
+    """Keypoints, descriptors (and matches) of hloc h5 files into a COLMAP database (created if needed).
+
+    Images already in the database must have the same keypoints (else: an error, nothing written for
+    them); new images get a camera (ours: the exported one; hloc's: COLMAP's default from image_size).
+    Pairs already matched in the database are left as they are. Pairs without an exported two-view
+    geometry are verified with COLMAP's estimator.
+    """
+    database_path, features_path = Path(database_path), Path(features_path)
+    if not features_path.is_file():
+        raise FileNotFoundError(f"No features file at {features_path}: pass the features.h5 written by `export` or hloc.")
+    if matches_path is not None and not Path(matches_path).is_file():
+        raise FileNotFoundError(f"No matches file at {matches_path}: pass the matches.h5 written by `export` or hloc.")
+    database_path.parent.mkdir(parents=True, exist_ok=True)
+    stats = {"num_images_added": 0, "num_pairs_added": 0, "num_pairs_verified": 0}
+    with h5py.File(features_path, "r") as fd, dbio.open_database(database_path, must_exist=False) as db:
+        groups = _feature_groups(fd)
+        if not groups:
+            raise ValueError(f"{features_path} has no image groups with 'keypoints': not an hloc features file.")
+        existing = dbio.images_by_name(db)
+        cameras: dict[int, int] = {}  # exported camera id -> camera id in this database
+        with _bar(len(groups), "import features", "img") as bar:
+            for name in sorted(groups):
+                grp = groups[name]
+                kpts = np.asarray(grp["colmap_keypoints"][()] if "colmap_keypoints" in grp else grp["keypoints"][()] + 0.5, np.float32)
+                desc = np.ascontiguousarray(np.asarray(grp["descriptors"][()]).T) if "descriptors" in grp else None
+                if name in existing and db.exists_keypoints(existing[name].image_id):
+                    have = np.asarray(db.read_keypoints(existing[name].image_id), np.float32)
+                    if have.shape[0] != kpts.shape[0] or not np.array_equal(have[:, :2], kpts[:, :2]):
+                        raise ValueError(f"{name}: the database has other keypoints than {features_path}; import into a new database (another --database_path).")
+                    bar.update(1)
+                    continue
+                with pycolmap.DatabaseTransaction(db):
+                    if name in existing:
+                        image_id = existing[name].image_id
+                    else:
+                        exported = int(grp.attrs["colmap_camera_id"]) if "colmap_camera_id" in grp.attrs else None
+                        if exported is not None and exported in cameras:
+                            camera = db.read_camera(cameras[exported])
+                        else:
+                            camera = _new_camera(grp, name, image_path)
+                            camera.camera_id = db.write_camera(camera)
+                            if exported is not None:
+                                cameras[exported] = camera.camera_id
+                        image_id = _add_image(db, name, camera)
+                        stats["num_images_added"] += 1
+                    db.write_keypoints(image_id, np.ascontiguousarray(kpts))
+                    if desc is not None:
+                        kind = str(grp.attrs.get("colmap_descriptor_type", "SIFT"))
+                        if desc.dtype != np.uint8:
+                            raise ValueError(f"{name}: descriptors are {desc.dtype}; COLMAP's database holds uint8 (SIFT) descriptors — import keypoints and matches only by deleting 'descriptors' or convert them.")
+                        db.write_descriptors(image_id, pycolmap.FeatureDescriptors(getattr(pycolmap.FeatureExtractorType, kind), desc))
+                bar.update(1)
+        if matches_path is None:
+            return stats
+        images = dbio.images_by_name(db)
+        by_key = {}
+        for name in images:
+            by_key.setdefault(name.replace("/", "-"), []).append(name)
+        id_pairs = []
+        with h5py.File(matches_path, "r") as fm:
+            entries = list(_match_groups(fm, by_key))
+            with _bar(len(entries), "import matches", "pair") as bar:
+                for a, b, grp in entries:
+                    ia, ib = images[a].image_id, images[b].image_id
+                    id_pairs.append((ia, ib, a, b))
+                    if dbio.pair_has_matches(db, ia, ib):
+                        bar.update(1)
+                        continue
+                    if "colmap_matches" in grp:
+                        matches = np.asarray(grp["colmap_matches"][()], np.uint32).reshape(-1, 2)
+                    else:
+                        matches0 = np.asarray(grp["matches0"][()]).astype(np.int64)
+                        idx = np.flatnonzero(matches0 >= 0)
+                        matches = np.stack([idx, matches0[idx]], axis=1).astype(np.uint32)
+                    num_a, num_b = db.num_keypoints_for_image(ia), db.num_keypoints_for_image(ib)
+                    if len(matches) and (matches[:, 0].max() >= num_a or matches[:, 1].max() >= num_b):
+                        raise ValueError(f"Pair {a} / {b}: matches index keypoints that {features_path} does not have; the two files do not belong together.")
+                    dbio.write_pair_matches(db, ia, ib, matches)
+                    geometry = _read_geometry(grp)
+                    if geometry is not None:
+                        dbio.write_pair_geometry(db, ia, ib, geometry)
+                    stats["num_pairs_added"] += 1
+                    bar.update(1)
+        from .match import verify_pairs
+
+        stats["num_pairs_verified"] = verify_pairs(db, images, id_pairs, verify.two_view_options(verification_conf))
+        stats.update(dbio.database_summary(db))
+    logger.info("Imported %d new images and %d pairs into %s (%d pairs verified here)", stats["num_images_added"], stats["num_pairs_added"], database_path, stats["num_pairs_verified"])
+    return stats
+
+
+def _match_groups(fm: h5py.File, by_key: dict[str, list[str]]):
+    """(name_a, name_b, group) for every pair group of an hloc matches file (current or old naming)."""
+
+    def resolve(key: str) -> str | None:
+        names = by_key.get(key, [])
+        if len(names) > 1:
+            raise ValueError(f"Images {names} have the same hloc pair key {key!r}: hloc's matches cannot tell them apart.")
+        return names[0] if names else None
+
+    for k0, g0 in fm.items():
+        if not isinstance(g0, h5py.Group):
+            continue
+        if "matches0" in g0:  # old hloc naming: name0_name1 in one group
+            if "colmap_names" in g0.attrs:
+                yield str(g0.attrs["colmap_names"][0]), str(g0.attrs["colmap_names"][1]), g0
+                continue
+            parts = k0.split("_")
+            for cut in range(1, len(parts)):
+                a, b = resolve("_".join(parts[:cut])), resolve("_".join(parts[cut:]))
+                if a and b:
+                    yield a, b, g0
+                    break
+            else:
+                raise ValueError(f"Pair {k0!r} of the matches file names images that are not in the database; import the features first.")
+            continue
+        for k1, grp in g0.items():
+            if not (isinstance(grp, h5py.Group) and "matches0" in grp):
+                continue
+            if "colmap_names" in grp.attrs:
+                a, b = (str(v) for v in grp.attrs["colmap_names"])
+            else:
+                a, b = resolve(k0), resolve(k1)
+            if a is None or b is None:
+                raise ValueError(f"Pair {k0}/{k1} of the matches file names images that are not in the database; import the features first.")
+            yield a, b, grp

@@ -1,0 +1,305 @@
+"""Bad input: every odd file either works or is skipped with a reason (report.json), nothing else lost;
+every unusable command gives one line that says what to do. Real files, real COLMAP."""
+
+from __future__ import annotations
+
+import json
+import re
+import struct
+import subprocess
+import sys
+import textwrap
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+from PIL import Image
+
+from colmap_guided import images
+from colmap_guided.__main__ import main
+from colmap_guided.log import logger, set_verbosity
+from colmap_guided.reconstruct import reconstruct
+from colmap_guided.report import summary_text
+from colmap_guided.synthetic import render_scene
+
+GLOG_LINE = re.compile(r"^[IWE]\d{8} ", re.M)
+OUR_ERROR = re.compile(r"^\[[\d:]+ colmap_guided ERROR\] (.+)$", re.M)
+
+
+def _texture(h: int = 120, w: int = 160, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    small = rng.integers(0, 256, (h // 8, w // 8, 3), dtype=np.uint8)
+    return cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
+
+
+def _exif_rotated(rgb: np.ndarray, path: Path) -> None:
+    """Pixels stored rotated 90° CCW with orientation 6 ('rotate 90° CW to display')."""
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    Image.fromarray(np.ascontiguousarray(np.rot90(rgb, 1))).save(path, exif=exif.tobytes(), quality=92)
+
+
+def write_bad_files(folder: Path, rgb: np.ndarray) -> dict[str, str]:
+    """The unusable files; {name: a word the skip reason must contain}."""
+    folder.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(rgb).save(folder / "_good.jpg", quality=92)
+    good = (folder / "_good.jpg").read_bytes()
+    (folder / "_good.jpg").unlink()
+    (folder / "truncated.jpg").write_bytes(good[: len(good) // 2])
+    damaged = bytearray(good)
+    damaged[len(damaged) // 3 : len(damaged) // 3 + 1500] = np.random.default_rng(1).integers(0, 256, 1500, dtype=np.uint8).tobytes()
+    (folder / "corrupt.jpg").write_bytes(bytes(damaged))
+    (folder / "notes.jpg").write_text("These are the archivist's notes, not a photo.\n")
+    (folder / "empty.png").write_bytes(b"")
+    Image.fromarray(rgb).save(folder / "modern.webp")
+    Image.fromarray(rgb[:40, :50]).save(folder / "tiny.jpg")
+    Image.fromarray(rgb).convert("L").save(folder / "_g.png")
+    png = (folder / "_g.png").read_bytes()
+    (folder / "_g.png").unlink()
+    (folder / "truncated.png").write_bytes(png[: len(png) // 2])
+    return {
+        "truncated.jpg": "truncated",
+        "corrupt.jpg": "damaged",
+        "notes.jpg": "not an image",
+        "empty.png": "empty",
+        "modern.webp": "convert",
+        "tiny.jpg": "too small",
+        "truncated.png": "truncated",
+    }
+
+
+def write_good_variants(folder: Path, views: list[np.ndarray]) -> list[str]:
+    """Odd but usable photos (one synthetic view each); returns their COLMAP names."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "sub a").mkdir()
+    (folder / "sub b").mkdir()
+    Image.fromarray(views[0]).save(folder / "sub a" / "photo.jpg", quality=92)  # duplicate file names in sub-folders
+    Image.fromarray(views[1]).save(folder / "sub b" / "photo.jpg", quality=92)
+    Image.fromarray(views[2]).convert("CMYK").save(folder / "Sacré Cœur 1890.jpg", quality=92)  # CMYK, unicode, spaces
+    cv2.imwrite(str(folder / "gray16.png"), cv2.cvtColor(views[3], cv2.COLOR_RGB2GRAY).astype(np.uint16) * 257)
+    Image.fromarray(np.dstack([views[4], np.full(views[4].shape[:2], 180, np.uint8)])).save(folder / "alpha.png")
+    _exif_rotated(views[5], folder / "exif_rotated.jpg")
+    cv2.imwrite(str(folder / "rgb16.tif"), (views[6].astype(np.uint16) * 257)[:, :, ::-1])
+    Image.fromarray(views[7]).convert("LA").save(folder / "gray_alpha.png")
+    return ["Sacré Cœur 1890.jpg", "alpha.png", "exif_rotated.jpg", "gray16.png", "gray_alpha.png", "rgb16.tif", "sub a/photo.jpg", "sub b/photo.jpg"]
+
+
+def test_check_images_gives_a_reason_for_each_unusable_file(tmp_path):
+    rgb = _texture()
+    expected = write_bad_files(tmp_path, rgb)
+    good = {
+        "cmyk.jpg": lambda p: Image.fromarray(rgb).convert("CMYK").save(p),
+        "gray16.tif": lambda p: cv2.imwrite(str(p), cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.uint16) * 257),
+        "rgba.tif": lambda p: Image.fromarray(rgb).convert("RGBA").save(p),
+        "palette.png": lambda p: Image.fromarray(rgb).convert("P").save(p),
+        "bilevel.png": lambda p: Image.fromarray(rgb).convert("1").save(p),
+        "float.tif": lambda p: Image.fromarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255).save(p),
+        "exif6.jpg": lambda p: _exif_rotated(rgb, p),
+        "progressive.jpg": lambda p: Image.fromarray(rgb).save(p, progressive=True),
+        "photo.bmp": lambda p: Image.fromarray(rgb).save(p),
+    }
+    for name, make in good.items():
+        make(tmp_path / name)
+    names = sorted(p.name for p in tmp_path.iterdir())
+    ok, skipped = images.check_images(tmp_path, names)
+    assert sorted(ok) == sorted(good)
+    assert set(skipped) == set(expected)
+    for name, word in expected.items():
+        assert word in skipped[name], (name, skipped[name])
+    # What the checks let through, COLMAP reads; what they skip is damaged (COLMAP would silently use grey fill).
+    for name in ok:
+        assert pycolmap.Bitmap.read(str(tmp_path / name), True) is not None, name
+    assert pycolmap.Bitmap.read(str(tmp_path / "truncated.jpg"), True) is not None  # why the check is needed
+
+
+def test_read_image_is_colmaps_frame_and_pixels(tmp_path):
+    rgb = _texture(96, 128, seed=3)
+    rng = np.random.default_rng(4)
+    deep = rng.integers(0, 65536, (96, 128, 3), dtype=np.uint16)
+    files = {
+        "exif6.jpg": lambda p: _exif_rotated(rgb, p),
+        "cmyk.jpg": lambda p: Image.fromarray(rgb).convert("CMYK").save(p, quality=95),
+        "gray16.png": lambda p: cv2.imwrite(str(p), deep[:, :, 0]),
+        "rgb16.png": lambda p: cv2.imwrite(str(p), deep),
+        "rgb16.tif": lambda p: cv2.imwrite(str(p), deep),
+        "la.png": lambda p: Image.fromarray(rgb).convert("LA").save(p),
+        "rgba.png": lambda p: Image.fromarray(np.dstack([rgb, rgb[:, :, 0]])).save(p),
+        "float.tif": lambda p: Image.fromarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255).save(p),
+        "palette.png": lambda p: Image.fromarray(rgb).convert("P").save(p),
+    }
+    for name, make in files.items():
+        make(tmp_path / name)
+        ours = images.read_image(tmp_path / name)
+        colmaps = pycolmap.Bitmap.read(str(tmp_path / name), True).to_array()
+        assert ours.dtype == np.uint8 and ours.shape == colmaps.shape, name
+        assert np.abs(ours.astype(int) - colmaps.astype(int)).max() <= 1, name
+    # EXIF orientation is NOT applied: the stored (rotated) grid, like COLMAP's keypoints and camera size.
+    assert images.read_image(tmp_path / "exif6.jpg").shape == (128, 96, 3)
+    assert images.image_size(tmp_path / "exif6.jpg") == (96, 128)
+    thumb, sx, sy = images.read_thumbnail(tmp_path / "exif6.jpg", 64)
+    assert thumb.shape == (64, 48, 3) and sx == pytest.approx(0.5) and sy == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="Cannot read image"):
+        images.read_image(tmp_path / "missing.jpg")
+
+
+def _huge_png(path: Path, side: int = 10240) -> None:
+    """A ~105 MP grey PNG written row by row (a flat page with a textured square): cheap to make."""
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+
+    patch = np.kron(np.random.default_rng(0).integers(0, 256, (128, 128), dtype=np.uint8), np.ones((8, 8), np.uint8))
+    comp = zlib.compressobj(1)
+    flat = b"\x00" + bytes([128]) * side
+    parts = []
+    for y in range(side):
+        if 4000 <= y < 5024:
+            row = np.full(side, 128, np.uint8)
+            row[4000:5024] = patch[y - 4000]
+            parts.append(comp.compress(b"\x00" + row.tobytes()))
+        else:
+            parts.append(comp.compress(flat))
+    parts.append(comp.flush())
+    with open(path, "wb") as f:
+        f.write(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0)))
+        f.write(chunk(b"IDAT", b"".join(parts)) + chunk(b"IEND", b""))
+
+
+def test_huge_image_is_checked_without_decoding_it(tmp_path):
+    """A 105 MP scan: the up-front check reads headers and CRCs only (a full decode would take 105+ MB)."""
+    _huge_png(tmp_path / "huge.png")
+    code = textwrap.dedent(
+        f"""
+        import resource
+        from colmap_guided import images
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        ok, skipped = images.check_images({str(tmp_path)!r}, ["huge.png"])
+        grown = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
+        print(ok, skipped, grown)
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    grown = int(out.stdout.split()[-1])
+    assert "['huge.png'] {}" in out.stdout
+    assert grown < 40_000, f"the check grew the process by {grown} kB"  # ru_maxrss is in kB on Linux
+    assert "100 MP or more" in out.stderr
+
+
+@pytest.mark.slow
+def test_huge_image_extracts_with_keypoints_in_full_size_pixels(tmp_path):
+    """COLMAP downscales the 105 MP scan for SIFT (max_image_size) and maps keypoints back to full size."""
+    from colmap_guided.features import extract_features
+
+    folder = tmp_path / "images"
+    folder.mkdir()
+    _huge_png(folder / "huge.png")
+    db_path = tmp_path / "database.db"
+    out = extract_features(db_path, folder, ["huge.png"], {"max_image_size": 1600})
+    assert out["skipped"] == {}
+    with pycolmap.Database.open(str(db_path)) as db:
+        image = db.read_all_images()[0]
+        camera = db.read_camera(image.camera_id)
+        xy = db.read_keypoints(image.image_id)[:, :2]
+    assert (camera.width, camera.height) == (10240, 10240)
+    assert len(xy) > 50
+    # The texture is in [4000, 5024]^2 of the full-size image.
+    assert xy.min() > 3900 and xy.max() < 5130
+
+
+def test_bad_and_odd_photos_end_to_end(tmp_path, capfd):
+    """Skipped ones listed with reasons; every odd-but-valid photo registered; the photos never written.
+    Called as a library with COLMAP's log at its own default (everything), the run is still quiet."""
+    scene = render_scene(tmp_path / "render", num_images=8, width=400, height=300)
+    views = [cv2.imread(str(scene.image_dir / n))[:, :, ::-1] for n in scene.names]
+    folder = tmp_path / "Archives Saint-Jacques — fonds 1890" / "images"  # unicode and spaces in the path
+    good = write_good_variants(folder, views)
+    bad = write_bad_files(folder, views[0])
+    before = images.folder_digests(folder)
+
+    out = tmp_path / "sortie résultats"
+    saved_level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 0  # a fresh Python session's setting
+    try:
+        result = reconstruct(folder.parent, output=out, matcher="raw")
+    finally:
+        pycolmap.logging.minloglevel = saved_level
+    assert not GLOG_LINE.search(capfd.readouterr().err), "COLMAP's own log must be quiet by default"
+
+    assert images.folder_digests(folder) == before, "the photo folder was written to"
+    assert set(result["skipped_images"]) == set(bad)
+    for name, word in bad.items():
+        assert word in result["skipped_images"][name]
+    assert sorted(result["model"]["registered_images"]) == sorted(good), result["model"]
+    saved = json.loads((out / "report.json").read_text(encoding="utf-8"))
+    assert saved["skipped_images"] == result["skipped_images"]
+    text = summary_text(result)
+    for name in bad:
+        assert name in text
+    with pycolmap.Database.open(str(out / "database.db")) as db:
+        cameras = {im.name: db.read_camera(im.camera_id) for im in db.read_all_images()}
+    assert (cameras["exif_rotated.jpg"].width, cameras["exif_rotated.jpg"].height) == (300, 400)  # stored frame
+    assert "Sacré Cœur 1890.jpg" in (out / "report.html").read_text(encoding="utf-8")
+
+
+def _cli(argv: list[str], capfd) -> tuple[int, str, str]:
+    """main() in this process; our logger's handler pointed at the (captured) stderr of now."""
+    saved = [h.setStream(sys.stderr) for h in logger.handlers]
+    try:
+        code = main([str(a) for a in argv])
+    finally:
+        set_verbosity(False, False)
+        for h, stream in zip(logger.handlers, saved):
+            h.setStream(stream)
+    out, err = capfd.readouterr()
+    return code, out, err
+
+
+def _one_error_line(err: str) -> str:
+    assert "Traceback" not in err
+    lines = OUR_ERROR.findall(err)
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def test_cli_errors_are_one_actionable_line(tmp_path, capfd):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    code, _, err = _cli(["reconstruct", empty, "--output", tmp_path / "o1", "--matcher", "raw"], capfd)
+    assert code == 2 and "No images" in _one_error_line(err)
+
+    code, _, err = _cli(["reconstruct", tmp_path / "nowhere", "--output", tmp_path / "o2", "--matcher", "raw"], capfd)
+    assert code == 2 and "does not exist" in _one_error_line(err)
+
+    allbad = tmp_path / "allbad"
+    write_bad_files(allbad, _texture())
+    code, _, err = _cli(["reconstruct", allbad, "--output", tmp_path / "o3", "--matcher", "raw"], capfd)
+    assert code == 2 and "None of the 7 image(s)" in _one_error_line(err)
+
+    for weights, word in ((tmp_path / "missing.safetensors", "no such file"), (tmp_path / "broken.safetensors", "not a readable safetensors")):
+        if "broken" in weights.name:
+            weights.write_bytes(b"\x00\x01garbage" * 100)
+        code, _, err = _cli(["reconstruct", allbad, "--output", tmp_path / "o4", "--matcher", "guided", "--weights", weights], capfd)
+        assert code == 2 and word in _one_error_line(err)
+        assert not (tmp_path / "o4").exists(), "a bad --weights must fail before any work"
+    # A readable safetensors file that is not coarse-filter weights: refused by the guided matcher, before extraction.
+    from safetensors.numpy import save_file
+
+    save_file({"w": np.zeros((2, 2), np.float32)}, str(tmp_path / "other.safetensors"))
+    code, _, err = _cli(["reconstruct", allbad, "--output", tmp_path / "o5", "--matcher", "guided", "--weights", tmp_path / "other.safetensors"], capfd)
+    assert code == 2 and "other.safetensors" in _one_error_line(err)
+    assert not (tmp_path / "o5" / "database.db").exists()
+
+
+def test_single_image_one_line_and_verbose_shows_colmap_log(tmp_path, capfd):
+    folder = tmp_path / "one"
+    folder.mkdir()
+    Image.fromarray(_texture(240, 320)).save(folder / "only.jpg")
+    code, _, err = _cli(["reconstruct", folder, "--output", tmp_path / "out", "--matcher", "raw", "--verbose"], capfd)
+    assert code == 2 and "Only 1 usable image" in _one_error_line(err)
+    assert GLOG_LINE.search(err), "--verbose must show COLMAP's own log"
+    code, _, err = _cli(["reconstruct", folder, "--output", tmp_path / "out2", "--matcher", "raw"], capfd)  # extracts again
+    assert code == 2 and "Only 1 usable image" in _one_error_line(err)
+    assert not GLOG_LINE.search(err), "COLMAP's log must be quiet by default"
