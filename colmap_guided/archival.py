@@ -1,0 +1,269 @@
+"""Archival-photo degradations: make modern photos look like scanned prints of the past.
+
+The paper trains on MegaDepth (modern internet photos) and evaluates on LTLL (historical photos of
+landmarks, §5). No historical multi-view collection is available offline, so training images are
+degraded with effects typical of old prints and scans: grayscale, sepia toning, faded contrast, blur,
+film grain, JPEG artefacts, vignetting, scratches and dust, and an optional crop.
+
+Every effect takes and returns an RGB float32 image in [0, 1] and draws its randomness only from the
+``numpy.random.Generator`` it is given, so a result is fully determined by (image, seed, strength).
+
+API
+    degrade(image, rng, strength=1.0, effects=None, crop=0.0, return_offset=False)
+        random subset of effects (or the listed ones), random parameters scaled by ``strength``.
+    apply_preset(image, name, seed=0)   named, reproducible looks: see ``PRESETS``.
+    EFFECTS                             name -> function(img, rng, strength) for single effects.
+
+Input: uint8 (H, W, 3) RGB or (H, W) gray. Output: uint8 (H', W', 3) RGB (H' = H unless cropped).
+A crop keeps COLMAP's pixel convention: a point (x, y) of the input is (x - x0, y - y0) in the output,
+with (x0, y0) the integer offset returned when ``return_offset=True``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from colmap_guided.log import logger
+
+_LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # ITU-R BT.601, RGB order
+# Classic sepia toning matrix (rows: output R, G, B; columns: input R, G, B).
+_SEPIA = np.array([[0.393, 0.769, 0.189], [0.349, 0.686, 0.168], [0.272, 0.534, 0.131]], np.float32)
+
+
+def _as_rng(rng) -> np.random.Generator:
+    return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+
+
+def _to_float(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image)
+    if image.dtype != np.uint8:
+        raise TypeError(f"expected a uint8 image, got {image.dtype}")
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=2)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"expected (H, W) or (H, W, 3) image, got shape {image.shape}")
+    return image.astype(np.float32) * (1.0 / 255.0)
+
+
+def _to_uint8(image: np.ndarray) -> np.ndarray:
+    return np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
+def _luma(img: np.ndarray) -> np.ndarray:
+    return img @ _LUMA
+
+
+# ----------------------------------------------------------------------------------------- effects
+def grayscale(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
+    """Black-and-white film: luminance replicated on the three channels (strength is unused)."""
+    return np.repeat(_luma(img)[..., None], 3, axis=2)
+
+
+def sepia(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
+    """Sepia toning: the classic sepia matrix on the luminance, blended with random amount."""
+    amount = float(np.clip(rng.uniform(0.6, 1.0) * strength, 0, 1))
+    gray = np.repeat(_luma(img)[..., None], 3, axis=2)
+    toned = gray @ _SEPIA.T
+    toned /= max(float(_SEPIA.sum(1).max()), 1.0)  # keep white below saturation: a brown-ish paper tone
+    return (1 - amount) * img + amount * toned
+
+
+def fade(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
+    """Faded print: contrast reduced, blacks lifted to grey, whites dimmed, slight colour cast."""
+    contrast = 1.0 - strength * rng.uniform(0.3, 0.6)
+    black = strength * rng.uniform(0.05, 0.2)
+    white = 1.0 - strength * rng.uniform(0.0, 0.15)
+    cast = 1.0 + strength * rng.uniform(-0.06, 0.06, size=3).astype(np.float32)
+    mean = float(img.mean())
+    out = mean + (img - mean) * contrast
+    out = black + (white - black) * np.clip(out, 0, 1)
+    return out * cast
+
+
+def blur(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
+    """Out-of-focus lens or soft print: Gaussian blur, sigma relative to the image size."""
+    size = max(img.shape[:2])
+    sigma = max(0.5, strength * rng.uniform(0.6, 2.0) * size / 1000.0)
+    return cv2.GaussianBlur(img, (0, 0), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REFLECT)
+
+
+def film_grain(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
+    """Film grain: spatially correlated luminance noise, stronger in the mid-tones."""
+    h, w = img.shape[:2]
+    amp = strength * rng.uniform(0.03, 0.08)
+    grain = max(1.0, max(h, w) / 1000.0 * rng.uniform(0.7, 1.5))  # grain size in pixels
+    gh, gw = max(1, int(round(h / grain))), max(1, int(round(w / grain)))
+    noise = rng.standard_normal((gh, gw), dtype=np.float32)
+    if (gh, gw) != (h, w):
+        noise = cv2.resize(noise, (w, h), interpolation=cv2.INTER_LINEAR)
+        noise /= max(float(noise.std()), 1e-6)
+    y = _luma(img)
+    weight = 0.5 + 2.0 * y * (1.0 - y)  # mid-tones get most grain
+    return img + (amp * noise * weight)[..., None]
+
+
+def jpeg(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
+    """JPEG artefacts of a low-quality scan: re-encode at a random low quality."""
+    quality = int(np.clip(round(60 - strength * rng.uniform(25, 50)), 5, 95))
+    bgr = _to_uint8(img)[..., ::-1]
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(bgr), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:  # pragma: no cover - OpenCV always encodes a valid uint8 image
+        raise RuntimeError("JPEG encoding failed")
+    return cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) * (1.0 / 255.0)
+
+
+def vignette(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
+    """Lens vignetting: radial darkening towards the corners around a slightly shifted centre."""
+    h, w = img.shape[:2]
+    cx = w * (0.5 + rng.uniform(-0.1, 0.1))
+    cy = h * (0.5 + rng.uniform(-0.1, 0.1))
+    x = (np.arange(w, dtype=np.float32) + 0.5 - cx) / (0.5 * w)
+    y = (np.arange(h, dtype=np.float32) + 0.5 - cy) / (0.5 * h)
+    r2 = (y[:, None] ** 2 + x[None, :] ** 2) * 0.5  # 1 at the corners of a centred vignette
+    amount = strength * rng.uniform(0.3, 0.7)
+    falloff = 1.0 - amount * np.clip(r2, 0, 2) ** rng.uniform(1.0, 2.0)
+    return img * np.clip(falloff, 0, 1)[..., None]
+
+
+def scratches(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
+    """Scratches (long thin near-vertical lines) and dust specks, bright or dark."""
+    h, w = img.shape[:2]
+    size = max(h, w)
+    mask_bright = np.zeros((h, w), np.float32)
+    mask_dark = np.zeros((h, w), np.float32)
+    n_lines = int(rng.integers(2, 6) * max(strength, 0.2) + 0.5) + 1
+    for _ in range(n_lines):
+        x0 = rng.uniform(0, w)
+        y0 = rng.uniform(-0.2 * h, 0.5 * h)
+        length = rng.uniform(0.3, 1.0) * h
+        angle = np.pi / 2 + rng.uniform(-0.15, 0.15)
+        x1, y1 = x0 + length * np.cos(angle), y0 + length * np.sin(angle)
+        thick = max(1, int(round(size / 1000.0 * rng.uniform(0.8, 2.0))))
+        target = mask_bright if rng.random() < 0.6 else mask_dark
+        cv2.line(target, (int(x0), int(y0)), (int(x1), int(y1)), float(rng.uniform(0.4, 0.9)), thick, cv2.LINE_AA)
+    n_dust = int(rng.integers(20, 60) * strength * (size / 1000.0) ** 2) + 5
+    for _ in range(n_dust):
+        c = (int(rng.uniform(0, w)), int(rng.uniform(0, h)))
+        radius = max(1, int(round(size / 1000.0 * rng.exponential(1.5))))
+        target = mask_dark if rng.random() < 0.6 else mask_bright
+        cv2.circle(target, c, radius, float(rng.uniform(0.5, 1.0)), -1, cv2.LINE_AA)
+    out = img + mask_bright[..., None] * (1.0 - img)
+    return out * (1.0 - mask_dark[..., None])
+
+
+EFFECTS: dict[str, Callable[[np.ndarray, np.random.Generator, float], np.ndarray]] = {
+    "grayscale": grayscale,
+    "sepia": sepia,
+    "fade": fade,
+    "blur": blur,
+    "grain": film_grain,
+    "jpeg": jpeg,
+    "vignette": vignette,
+    "scratches": scratches,
+}
+# Physical order of a degradation chain: toning of the print, ageing, optics, then the scan.
+_ORDER = ["grayscale", "sepia", "fade", "vignette", "blur", "grain", "scratches", "jpeg"]
+# Probability of each effect when ``degrade`` picks a random subset (colour: gray xor sepia xor none).
+_PROB = {"fade": 0.6, "vignette": 0.5, "blur": 0.5, "grain": 0.6, "scratches": 0.3, "jpeg": 0.5}
+
+PRESETS: dict[str, dict] = {
+    "none": {"effects": []},
+    "bw_print": {"effects": ["grayscale", "fade", "grain"], "strength": 0.8},
+    "sepia_print": {"effects": ["sepia", "fade", "vignette", "grain"], "strength": 1.0},
+    "faded_colour": {"effects": ["fade", "blur", "jpeg"], "strength": 1.0},
+    "damaged_scan": {"effects": ["grayscale", "fade", "vignette", "blur", "grain", "scratches", "jpeg"], "strength": 1.0},
+    "old_postcard": {"effects": ["sepia", "blur", "grain", "scratches", "jpeg"], "strength": 1.2},
+}
+
+
+def random_crop(image: np.ndarray, rng: np.random.Generator, min_fraction: float) -> tuple[np.ndarray, tuple[int, int]]:
+    """Crop keeping at least ``min_fraction`` of each side; returns the crop and its offset (x0, y0)."""
+    h, w = image.shape[:2]
+    cw = int(round(w * rng.uniform(min_fraction, 1.0)))
+    ch = int(round(h * rng.uniform(min_fraction, 1.0)))
+    cw, ch = max(1, min(w, cw)), max(1, min(h, ch))
+    x0 = int(rng.integers(0, w - cw + 1))
+    y0 = int(rng.integers(0, h - ch + 1))
+    return image[y0 : y0 + ch, x0 : x0 + cw], (x0, y0)
+
+
+def degrade(
+    image: np.ndarray,
+    rng: np.random.Generator | int | None = None,
+    strength: float = 1.0,
+    effects: list[str] | None = None,
+    crop: float = 0.0,
+    return_offset: bool = False,
+):
+    """Degrade an image like an archival photo.
+
+    Args:
+        image: uint8 (H, W, 3) RGB or (H, W) gray.
+        rng: numpy Generator or seed; the only source of randomness.
+        strength: 0 = no change, 1 = typical, up to ~2 = heavy.
+        effects: names from ``EFFECTS`` applied in physical order; None draws a random subset
+            (one of gray/sepia/colour, then each other effect with its own probability).
+        crop: if > 0, random crop keeping at least (1 - crop) of each side before the effects.
+        return_offset: also return the crop's offset (x0, y0) ((0, 0) without crop).
+    """
+    rng = _as_rng(rng)
+    img = _to_float(image)
+    offset = (0, 0)
+    if crop > 0:
+        img, offset = random_crop(img, rng, 1.0 - crop)
+    if effects is None:
+        colour = rng.random()
+        chosen = {"grayscale"} if colour < 0.35 else {"sepia"} if colour < 0.6 else set()
+        chosen |= {name for name in _ORDER if name in _PROB and rng.random() < _PROB[name]}
+    else:
+        unknown = set(effects) - set(EFFECTS)
+        if unknown:
+            raise ValueError(f"unknown effect(s) {sorted(unknown)}; known: {sorted(EFFECTS)}")
+        chosen = set(effects)
+    if strength > 0:
+        for name in _ORDER:
+            if name in chosen:
+                img = np.clip(EFFECTS[name](img, rng, strength), 0.0, 1.0)
+    out = _to_uint8(img)
+    return (out, offset) if return_offset else out
+
+
+def apply_preset(image: np.ndarray, name: str, seed: int = 0) -> np.ndarray:
+    """Apply a named look from ``PRESETS`` (deterministic for a given seed)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown archival preset {name!r}; known: {sorted(PRESETS)}")
+    preset = PRESETS[name]
+    return degrade(image, np.random.default_rng(seed), strength=preset.get("strength", 1.0), effects=preset["effects"])
+
+
+def main(argv=None):
+    """Write degraded copies of images (for a visual check or a simulated archival set)."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("images", nargs="+", type=Path)
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--preset", default=None, help=f"one of {sorted(PRESETS)}; default: random effects")
+    parser.add_argument("--strength", type=float, default=1.0)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    for i, path in enumerate(args.images):
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if bgr is None:
+            logger.warning("Cannot read %s, skipped.", path)
+            continue
+        rgb = bgr[..., ::-1]
+        if args.preset:
+            out = apply_preset(rgb, args.preset, seed=args.seed + i)
+        else:
+            out = degrade(rgb, np.random.default_rng(args.seed + i), strength=args.strength)
+        cv2.imwrite(str(args.out / path.name), np.ascontiguousarray(out[..., ::-1]))
+    logger.info("Wrote %d degraded images to %s.", len(args.images), args.out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,176 @@
+"""PCK of the coarse matcher on held-out SfM pairs (paper Table 1 protocol), Markdown + JSON.
+
+For every ground-truth match (p^A, p^B) — the two observations of a 3D point shared by a positive
+pair (≥ 30 common points) of a held-out scene — the error is ‖m^{A→B}(p^A) − p^B‖ (and the reverse
+direction), in pixels of the ORIGINAL images (the paper measures in resized pixels; our thresholds
+at original resolution are stricter for images larger than the network input). PCK@t is the share
+of errors below t = 8, 16, 32 px.
+
+Methods: raw correlation (no filter, mutual-NN-free argmax), the untrained filter (random init,
+seed 0), and every trained filter given with --weights. Optionally --archival PRESET also measures
+every method with image B degraded by that archival preset (an old photo matched to a modern one).
+
+    python recon_scripts/eval_coarse_pck.py --weights outputs/train_epipolar_lite0/coarse_filter.safetensors \
+        --out outputs/coarse_pck [--pairs_per_scene 25] [--resize_max 512] [--impl sparse] [--archival damaged_scan]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from colmap_guided import archival
+from colmap_guided.coarse.matcher import CoarseMatcher, load_image
+from colmap_guided.coarse.model import CoarseNet
+from colmap_guided.coarse.weights import save_filter_weights
+from colmap_guided.log import logger, set_verbosity
+from colmap_guided.train.data import VAL_SCENES, load_scene
+
+THRESHOLDS = (8, 16, 32)
+
+
+def select_pairs(scenes: list[str], per_scene: int, max_points: int, seed: int = 0):
+    """Up to ``per_scene`` random positive pairs per scene, with at most ``max_points`` GT matches each."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for name in scenes:
+        scene = load_scene(name)
+        idx = rng.choice(len(scene.pairs), min(per_scene, len(scene.pairs)), replace=False) if scene.pairs else []
+        for i in sorted(idx):
+            p = scene.pairs[i]
+            keep = rng.choice(p.n_shared, min(max_points, p.n_shared), replace=False)
+            out.append((name, scene.images[p.a].path, scene.images[p.b].path, p.xy_a[keep], p.xy_b[keep]))
+    return out
+
+
+def untrained_weights(path: Path, backbone: str, resize_max: int, seed: int = 0) -> Path:
+    torch.manual_seed(seed)
+    net = CoarseNet({"backbone": backbone, "pretrained": False})
+    save_filter_weights(net, path, resize_max, training={"note": f"untrained, torch seed {seed}"})
+    return path
+
+
+def evaluate(matcher: CoarseMatcher, pairs, archival_preset: str | None, desc: str) -> dict:
+    errors: dict[str, list[np.ndarray]] = {}
+    t_match = 0.0
+    for scene, path_a, path_b, xy_a, xy_b in tqdm(pairs, desc=desc, mininterval=10):
+        fa = matcher.extract_path(path_a, str(path_a))
+        key_b = str(path_b) + (f"#{archival_preset}" if archival_preset else "")
+        if key_b not in matcher.cache:
+            img_b = load_image(path_b)
+            if archival_preset:
+                img_b = archival.apply_preset(img_b, archival_preset, seed=archival_seed(path_b))
+            matcher.extract(img_b, key_b)
+        fb = matcher.cache[key_b]
+        t = time.perf_counter()
+        res = matcher.match(fa, fb)
+        t_match += time.perf_counter() - t
+        e_ab = np.linalg.norm(res.flow_ab(xy_a)[0] - xy_b, axis=1)
+        e_ba = np.linalg.norm(res.flow_ba(xy_b)[0] - xy_a, axis=1)
+        errors.setdefault(scene, []).append(np.concatenate([e_ab, e_ba]))
+    result = {"per_scene": {}, "ms_per_pair": 1000 * t_match / max(len(pairs), 1)}
+    for scene, errs in errors.items():
+        e = np.concatenate(errs)
+        result["per_scene"][scene] = {f"pck{t}": float((e < t).mean()) for t in THRESHOLDS} | {"n": int(len(e)), "pairs": len(errs)}
+    every = np.concatenate([np.concatenate(v) for v in errors.values()]) if errors else np.zeros(0)
+    result.update({f"pck{t}": float((every < t).mean()) if len(every) else float("nan") for t in THRESHOLDS})
+    # mean over scenes (each held-out scene weighs the same, whatever its number of points)
+    result.update({f"scene_mean_pck{t}": float(np.mean([v[f"pck{t}"] for v in result["per_scene"].values()])) for t in THRESHOLDS})
+    result["n_points"] = int(len(every))
+    return result
+
+
+def archival_seed(path: Path) -> int:
+    import zlib
+
+    return zlib.crc32(str(Path(path).name).encode())
+
+
+def markdown(results: dict, conf: dict) -> str:
+    lines = [
+        f"Coarse PCK on held-out pairs ({', '.join(conf['scenes'])}; {conf['n_pairs']} pairs, "
+        f"GT = shared SfM tracks, both directions), errors in original-resolution pixels; "
+        f"network input {conf['resize_max']} px, {conf['impl']} filter path.",
+        "",
+        "| method | images | PCK@8 | PCK@16 | PCK@32 | scene-mean PCK@16 | ms/pair |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, r in results.items():
+        method, _, cond = name.partition("|")
+        lines.append(f"| {method} | {cond or 'clean'} | {100 * r['pck8']:.1f} | {100 * r['pck16']:.1f} | {100 * r['pck32']:.1f} | "
+                     f"{100 * r['scene_mean_pck16']:.1f} | {r['ms_per_pair']:.0f} |")
+    lines += ["", "Per scene PCK@8/16/32:", "", "| method | images | " + " | ".join(conf["scenes"]) + " |",
+              "|---|---|" + "---|" * len(conf["scenes"])]
+    for name, r in results.items():
+        method, _, cond = name.partition("|")
+        cells = []
+        for s in conf["scenes"]:
+            v = r["per_scene"].get(s)
+            cells.append("–" if v is None else f"{100 * v['pck8']:.0f}/{100 * v['pck16']:.0f}/{100 * v['pck32']:.0f}")
+        lines.append(f"| {method} | {cond or 'clean'} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--weights", nargs="*", type=Path, default=[], help="trained filter .safetensors files")
+    p.add_argument("--labels", nargs="*", default=None, help="names of the --weights in the table")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--scenes", nargs="+", default=VAL_SCENES)
+    p.add_argument("--pairs_per_scene", type=int, default=25)
+    p.add_argument("--max_points", type=int, default=500, help="GT matches per pair")
+    p.add_argument("--resize_max", type=int, default=512)
+    p.add_argument("--impl", choices=["auto", "dense", "sparse"], default="auto")
+    p.add_argument("--sparse_k", type=int, default=10)
+    p.add_argument("--backbone", default="efficientnet-lite0")
+    p.add_argument("--archival", default=None, help=f"also evaluate with B degraded by a preset of {sorted(archival.PRESETS)}")
+    p.add_argument("--no_baselines", action="store_true", help="skip raw correlation and the untrained filter")
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--verbose", action="store_true")
+    args = p.parse_args(argv)
+    set_verbosity(args.verbose)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    args.out.mkdir(parents=True, exist_ok=True)
+    pairs = select_pairs(args.scenes, args.pairs_per_scene, args.max_points, args.seed)
+    logger.info("%d held-out pairs from %s.", len(pairs), ", ".join(args.scenes))
+    common = {"backbone": args.backbone, "resize_max": args.resize_max, "impl": args.impl, "sparse_k": args.sparse_k}
+    methods: list[tuple[str, dict]] = []
+    tmp = tempfile.TemporaryDirectory()
+    if not args.no_baselines:
+        methods.append(("raw correlation", {"mode": "raw"}))
+        methods.append(("untrained filter", {"weights": str(untrained_weights(Path(tmp.name) / "untrained.safetensors", args.backbone, args.resize_max))}))
+    labels = args.labels or [w.parent.name if w.name == "coarse_filter.safetensors" else w.stem for w in args.weights]
+    methods += [(label, {"weights": str(w)}) for label, w in zip(labels, args.weights)]
+    conditions = [None] + ([args.archival] if args.archival else [])
+    results, shared_cache = {}, {}
+    for label, conf in methods:
+        matcher = CoarseMatcher({**common, **conf})
+        matcher.cache = shared_cache  # same backbone and input size: features computed once
+        for cond in conditions:
+            name = label + (f"|{cond}" if cond else "")
+            results[name] = evaluate(matcher, pairs, cond, name)
+            r = results[name]
+            logger.info("%-32s PCK@8/16/32 = %.1f / %.1f / %.1f %%", name, 100 * r["pck8"], 100 * r["pck16"], 100 * r["pck32"])
+        if label not in ("raw correlation", "untrained filter"):
+            results[label]["weights"] = str(dict(zip(labels, args.weights))[label])
+            results[label]["training"] = matcher.weights_config.get("training", {})
+    conf = {"scenes": args.scenes, "n_pairs": len(pairs), "resize_max": args.resize_max, "impl": matcher.impl,
+            "pairs_per_scene": args.pairs_per_scene, "max_points": args.max_points, "seed": args.seed, "archival": args.archival}
+    (args.out / "coarse_pck.json").write_text(json.dumps({"conf": conf, "results": results}, indent=1))
+    md = markdown(results, conf)
+    (args.out / "coarse_pck.md").write_text(md)
+    print(md)
+    tmp.cleanup()
+
+
+if __name__ == "__main__":
+    main()
