@@ -1,0 +1,177 @@
+"""Offline historical proxy: real photo sets with half of their images turned into archival photos.
+
+No historical multi-view collection (LTLL) is available offline, so each source set of ../shared/data
+becomes a proxy scene:
+- a deterministic half of its images (seeded permutation) is degraded with ``colmap_guided.archival``
+  (the named looks of ``archival.PRESETS`` in turn — B&W print, sepia print, faded colour, damaged scan,
+  old postcard — plus a random crop keeping >= 90 % of each side): era ``historical``;
+- the other half is kept as is: era ``modern``;
+- a few images of OTHER, unrelated scenes are added (half of them degraded too): era ``distractor``;
+  they must never register.
+All images are resized so the long side is <= ``max_size`` (default 1024, as the train scenes).
+
+Output (never inside ../shared): OUT/<scene>/images/*.jpg + OUT/<scene>/manifest.json (one-scene schema
+with era, source file, reference name, preset, crop) and OUT/proxy_manifest.json (the multi-scene
+datasets/ltll_manifest.json schema, root = OUT), so eval_registration.py runs on it like on LTLL.
+The crop changes the pixel frame but not the camera pose: registrations are checked on poses only.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from colmap_guided import archival
+from colmap_guided.features import list_images
+from colmap_guided.log import logger
+from colmap_guided.paths import shared_data_dir, shared_dir
+
+from .reference import reference_model_dir
+
+DEFAULT_SOURCES = ("sacre_coeur_hloc", "lund_door_gtsfm", "opensfm_lund", "train/dfsfm_sacre_coeur", "train/vggsfm_british_museum")
+# Unrelated to every default source (no Sacre Coeur, Lund or British Museum views among them).
+DISTRACTOR_POOL = (
+    "train/bundler_kermit", "train/llff_fern", "train/vggsfm_statue", "train/cut3r_kitchen",
+    "train/posediffusion_apple", "train/aliked_kitti", "train/pmvs_hall", "train/dim_cyprus",
+)
+# Sets that show the same landmark: never distractors for one another.
+SAME_LANDMARK = (
+    {"sacre_coeur_hloc", "train/dfsfm_sacre_coeur", "lightglue_assets", "phototourism_superglue"},
+    {"lund_door_gtsfm", "opensfm_lund"},
+    {"train/vggsfm_british_museum", "phototourism_superglue"},
+)
+HISTORICAL_PRESETS = ("bw_print", "sepia_print", "faded_colour", "damaged_scan", "old_postcard")
+
+
+def _seed(*parts) -> int:
+    return zlib.crc32("/".join(str(p) for p in parts).encode())
+
+
+def _read_rgb(path: Path) -> np.ndarray:
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ValueError(f"cannot read {path}")
+    return np.ascontiguousarray(bgr[..., ::-1])
+
+
+def _resize(rgb: np.ndarray, max_size: int | None) -> tuple[np.ndarray, float]:
+    h, w = rgb.shape[:2]
+    scale = 1.0 if not max_size or max(h, w) <= max_size else max_size / max(h, w)
+    if scale == 1.0:
+        return rgb, 1.0
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA), scale
+
+
+def _write_jpg(path: Path, rgb: np.ndarray, quality: int = 95) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality]):
+        raise OSError(f"cannot write {path}")
+
+
+def _degrade(rgb: np.ndarray, preset: str, seed: int, crop: float) -> tuple[np.ndarray, tuple[int, int]]:
+    p = archival.PRESETS[preset]
+    return archival.degrade(rgb, np.random.default_rng(seed), strength=p.get("strength", 1.0), effects=p["effects"], crop=crop, return_offset=True)
+
+
+def _check_out(out_dir: Path) -> Path:
+    out_dir = Path(out_dir).resolve()
+    for protected in (shared_dir().resolve(), shared_data_dir().resolve()):
+        if out_dir == protected or protected in out_dir.parents:
+            raise ValueError(f"The proxy must not be written inside {protected}; choose another --output.")
+    return out_dir
+
+
+def historical_half(names: list[str], key: str, seed: int = 0) -> set[str]:
+    """The deterministic half (floor(n/2)) of a set's images that becomes historical."""
+    order = np.random.default_rng(_seed("half", key, seed)).permutation(len(names))
+    return {names[i] for i in order[: len(names) // 2]}
+
+
+def distractor_sources(key: str, pool=DISTRACTOR_POOL, n: int = 3, seed: int = 0) -> list[str]:
+    banned = set().union(*(g for g in SAME_LANDMARK if key in g)) | {key}
+    allowed = [p for p in pool if p not in banned]
+    order = np.random.default_rng(_seed("distractors", key, seed)).permutation(len(allowed))
+    return [allowed[i] for i in order[:n]]
+
+
+def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int = 0, n_distractors: int = 3, max_size: int | None = 1024, crop: float = 0.1, max_images: int | None = None, pool=DISTRACTOR_POOL) -> Path:
+    """One proxy scene from the set ``key`` of ../shared/data; returns OUT/<scene>."""
+    data_dir = Path(data_dir) if data_dir else shared_data_dir()
+    out_dir = _check_out(out_dir)
+    src = data_dir / key / "images"
+    names = list_images(src)
+    if max_images:
+        names = names[:max_images]
+    hist = historical_half(names, key, seed)
+    scene = key.split("/")[-1]
+    scene_dir = out_dir / scene
+    if (scene_dir / "images").exists():
+        shutil.rmtree(scene_dir / "images")
+    entries = []
+    k = 0
+    for name in names:
+        rgb, scale = _resize(_read_rgb(src / name), max_size)
+        out_name = str(Path(name).with_suffix(".jpg").as_posix())
+        entry = {"name": out_name, "source": f"{key}/images/{name}", "ref_name": name, "scale": scale}
+        if name in hist:
+            preset = HISTORICAL_PRESETS[k % len(HISTORICAL_PRESETS)]
+            k += 1
+            rgb, offset = _degrade(rgb, preset, _seed(key, name, seed), crop)
+            entry.update(era="historical", preset=preset, crop_offset=list(offset))
+        else:
+            entry.update(era="modern")
+        _write_jpg(scene_dir / "images" / out_name, rgb)
+        entries.append(entry)
+    for i, dkey in enumerate(distractor_sources(key, pool, n_distractors, seed)):
+        dnames = list_images(data_dir / dkey / "images")
+        dname = dnames[int(np.random.default_rng(_seed("pick", key, dkey, seed)).integers(len(dnames)))]
+        rgb, scale = _resize(_read_rgb(data_dir / dkey / "images" / dname), max_size)
+        out_name = f"distractor_{dkey.split('/')[-1]}_{Path(dname).stem}.jpg"
+        entry = {"name": out_name, "era": "distractor", "source": f"{dkey}/images/{dname}", "scale": scale}
+        if i % 2 == 0:  # half of the distractors look archival too
+            preset = HISTORICAL_PRESETS[(k + i) % len(HISTORICAL_PRESETS)]
+            rgb, offset = _degrade(rgb, preset, _seed(key, dkey, dname, seed), crop)
+            entry.update(preset=preset, crop_offset=list(offset))
+        _write_jpg(scene_dir / "images" / out_name, rgb)
+        entries.append(entry)
+    ref = reference_model_dir(key, data_dir)
+    one = {
+        "scene": scene, "subset": "all", "source": key,
+        "reference": {"type": "colmap", "path": str(ref), "kind": "reference" if ref and ref.name == "colmap_ground_truth" else "pseudo_gt"} if ref else None,
+        "build": {"seed": seed, "max_size": max_size, "crop": crop, "n_distractors": n_distractors},
+        "images": entries,
+    }
+    (scene_dir / "manifest.json").write_text(json.dumps(one, indent=1) + "\n", encoding="utf-8")
+    counts = {e: sum(x["era"] == e for x in entries) for e in ("historical", "modern", "distractor")}
+    logger.info("Proxy %s: %d historical, %d modern, %d distractors -> %s", scene, counts["historical"], counts["modern"], counts["distractor"], scene_dir)
+    return scene_dir
+
+
+def build_proxy(out_dir: Path, sources=DEFAULT_SOURCES, **kwargs) -> Path:
+    """All proxy scenes + OUT/proxy_manifest.json (multi-scene schema); returns the manifest path."""
+    out_dir = _check_out(out_dir)
+    scenes = []
+    for key in sources:
+        scene_dir = build_scene(key, out_dir, **kwargs)
+        one = json.loads((scene_dir / "manifest.json").read_text())
+        scenes.append({
+            "name": one["scene"], "path": one["scene"], "image_dir": "images", "source": key,
+            "reference": {"type": "colmap", "path": one["reference"]["path"]} if one.get("reference") else None,
+            "images": [{k: v for k, v in im.items() if k in ("name", "era", "ref_name")} for im in one["images"]],
+        })
+    manifest = {
+        "name": "historical_proxy",
+        "description": "Offline historical proxy built by recon_scripts/make_historical_proxy.py: half of each set degraded (era historical), the rest modern, plus distractors of unrelated scenes that must not register.",
+        "source": "../shared/data (see its README.md for provenance and licences)",
+        "root": ".",
+        "scenes": scenes,
+    }
+    path = out_dir / "proxy_manifest.json"
+    path.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
+    return path

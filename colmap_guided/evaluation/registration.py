@@ -1,0 +1,311 @@
+"""Registration benchmark (paper Fig. 5a): registered ratio per scene, checked against a reference model.
+
+Methods
+- ``pycolmap``: pycolmap's default pipeline, untouched (extract_features + match_exhaustive +
+  incremental_mapping with default options);
+- any matcher spec of the registry (``raw``, ``guided``, ``guided:ratio=0.9``...): ``reconstruct``.
+
+A registered image counts as *correct* only when its pose agrees with the reference model (where the
+scene has one): the est->ref world rotation is the consensus of R_ref_i^T R_est_i over the registered
+images (the candidate agreeing with most others within ``max_rotation_deg``), an image is wrong when its
+rotation error exceeds ``max_rotation_deg`` (5°) or, with >= 3 images, its camera centre is farther than
+``max_center_frac`` (10 %) of the scene depth (median depth of the reference's 3D points in its
+cameras; the spread of the reference centres when it has no points) from its reference after a robust
+similarity fit. Images without a reference pose are 'unverified'. Distractors (era 'distractor') must
+never register; each one registered is a failure.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import time
+from itertools import combinations
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from colmap_guided.log import logger
+
+from . import matcher_specs
+from .metrics import rotation_angle
+
+MAX_ROTATION_DEG = 5.0
+MAX_CENTER_FRAC = 0.1
+
+
+# ---------------------------------------------------------------------------- reference check
+def _chordal_mean(Rs: list[np.ndarray]) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(np.sum(Rs, axis=0))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def compare_poses(
+    est: dict[str, tuple[np.ndarray, np.ndarray]],
+    ref: dict[str, tuple[np.ndarray, np.ndarray]],
+    max_rotation_deg: float = MAX_ROTATION_DEG,
+    max_center_frac: float = MAX_CENTER_FRAC,
+    scale: float | None = None,
+) -> dict[str, dict]:
+    """Per image of ``est`` (name -> (R, t) cam_from_world) that ``ref`` also has: rotation error (deg),
+    centre error (fraction of ``scale``, the scene depth in reference units; default the median spread
+    of the reference centres; None with < 3 images) and 'ok'."""
+    names = sorted(set(est) & set(ref))
+    if len(names) < 2:
+        return {n: {"rotation_error": None, "center_error": None, "ok": None} for n in names}
+    Qs = {n: ref[n][0].T @ est[n][0] for n in names}  # x_ref = Q x_est (rotation part)
+    support = {n: [m for m in names if rotation_angle(Qs[n].T @ Qs[m]) < max_rotation_deg] for n in names}
+    best = max(names, key=lambda n: (len(support[n]), -names.index(n)))
+    Q = _chordal_mean([Qs[m] for m in support[best]])
+    rot_err = {n: rotation_angle((ref[n][0] @ Q).T @ est[n][0]) for n in names}
+
+    c_est = {n: -est[n][0].T @ est[n][1] for n in names}
+    c_ref = {n: -ref[n][0].T @ ref[n][1] for n in names}
+    center_err = {n: None for n in names}
+    inl = [n for n in names if rot_err[n] < max_rotation_deg]
+    if len(inl) >= 3:
+        ref_pts = np.array([c_ref[n] for n in names])
+        spread = scale if scale else float(np.median(np.linalg.norm(ref_pts - np.median(ref_pts, 0), axis=1))) or 1.0
+        tol = max_center_frac * spread
+        best_fit, best_count = None, -1
+        for i, j in combinations(inl, 2):  # similarity (Q fixed) from two centres, scored on all
+            d_est = Q @ (c_est[i] - c_est[j])
+            den = float(d_est @ d_est)
+            if den < 1e-12:
+                continue
+            s = float((c_ref[i] - c_ref[j]) @ d_est) / den
+            if s <= 0:
+                continue
+            t = c_ref[i] - s * Q @ c_est[i]
+            count = sum(np.linalg.norm(s * Q @ c_est[n] + t - c_ref[n]) < tol for n in inl)
+            if count > best_count:
+                best_fit, best_count = (s, t), count
+        if best_fit is not None:
+            s, t = best_fit
+            fit = [n for n in inl if np.linalg.norm(s * Q @ c_est[n] + t - c_ref[n]) < tol]
+            if len(fit) >= 2:  # least-squares refinement of s, t on the inliers
+                A = np.array([Q @ c_est[n] for n in fit])
+                B = np.array([c_ref[n] for n in fit])
+                Ac, Bc = A - A.mean(0), B - B.mean(0)
+                s = float(np.sum(Ac * Bc) / max(np.sum(Ac * Ac), 1e-12))
+                t = B.mean(0) - s * A.mean(0)
+            center_err = {n: float(np.linalg.norm(s * Q @ c_est[n] + t - c_ref[n]) / spread) for n in names}
+    out = {}
+    for n in names:
+        ok = rot_err[n] < max_rotation_deg and (center_err[n] is None or center_err[n] < max_center_frac)
+        out[n] = {"rotation_error": rot_err[n], "center_error": center_err[n], "ok": bool(ok)}
+    return out
+
+
+def model_poses(rec: pycolmap.Reconstruction, names: set | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    out = {}
+    for image in rec.images.values():
+        if image.has_pose and (names is None or image.name in names):
+            pose = image.cam_from_world()
+            out[image.name] = (pose.rotation.matrix(), np.asarray(pose.translation, float))
+    return out
+
+
+def scene_depth(rec: pycolmap.Reconstruction, names) -> float | None:
+    """Median over the given images of the median depth of their 3D points (the model's units)."""
+    depths = []
+    by_name = {im.name: im for im in rec.images.values()}
+    for name in names:
+        image = by_name.get(name)
+        if image is None or not image.has_pose:
+            continue
+        ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
+        if not ids:
+            continue
+        pose = image.cam_from_world()
+        xyz = np.array([rec.points3D[i].xyz for i in ids[:: max(1, len(ids) // 500)]])
+        z = (xyz @ pose.rotation.matrix().T + pose.translation)[:, 2]
+        depths.append(float(np.median(z)))
+    return float(np.median(depths)) if depths else None
+
+
+def largest_model(models: dict) -> pycolmap.Reconstruction | None:
+    return max(models.values(), key=lambda rec: rec.num_reg_images(), default=None)
+
+
+def score_registration(largest: pycolmap.Reconstruction | None, images: list[dict], reference: pycolmap.Reconstruction | None, **tol) -> dict:
+    """Counts for one run: images = the scene's manifest entries (name, era, optional ref_name)."""
+    registered = set(model_poses(largest)) if largest is not None else set()
+    targets = [im for im in images if im["era"] != "distractor"]
+    distractors = [im for im in images if im["era"] == "distractor"]
+    out = {
+        "num_images": len(targets),
+        "num_registered": sum(im["name"] in registered for im in targets),
+        "num_distractors": len(distractors),
+        "distractors_registered": sorted(im["name"] for im in distractors if im["name"] in registered),
+    }
+    for era in sorted({im["era"] for im in targets}):
+        sub = [im for im in targets if im["era"] == era]
+        out[f"{era}_registered"] = f"{sum(im['name'] in registered for im in sub)}/{len(sub)}"
+    out["registered_ratio"] = out["num_registered"] / out["num_images"] if out["num_images"] else 0.0
+    out["correct"] = out["wrong"] = out["unverified"] = None
+    if reference is not None and largest is not None:
+        ref_poses_by_name = model_poses(reference)
+        est = model_poses(largest)
+        to_ref = {im["name"]: im.get("ref_name", im["name"]) for im in targets}
+        pairs = {n: (est[n], ref_poses_by_name[r]) for n, r in to_ref.items() if n in est and r in ref_poses_by_name}
+        depth = scene_depth(reference, [to_ref[n] for n in pairs])
+        checks = compare_poses({n: p[0] for n, p in pairs.items()}, {n: p[1] for n, p in pairs.items()}, scale=depth, **tol)
+        reg_targets = [im["name"] for im in targets if im["name"] in registered]
+        out["correct"] = sum(1 for n in reg_targets if checks.get(n, {}).get("ok"))
+        out["wrong"] = sorted(n for n in reg_targets if checks.get(n, {}).get("ok") is False)
+        out["unverified"] = sorted(n for n in reg_targets if checks.get(n, {}).get("ok") is None)
+        out["correct_ratio"] = out["correct"] / out["num_images"] if out["num_images"] else 0.0
+        out["pose_checks"] = checks
+    elif reference is None:
+        out["correct_ratio"] = None
+    else:
+        out["correct"], out["wrong"], out["unverified"], out["correct_ratio"] = 0, [], [], 0.0
+    return out
+
+
+# ----------------------------------------------------------------------------------------- runs
+def method_slug(method: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.=-]+", "_", method).strip("_")
+
+
+def run_pycolmap_default(image_dir: Path, workspace: Path) -> tuple[dict, dict]:
+    """pycolmap's default pipeline with default options; returns (models, timings)."""
+    workspace = Path(workspace)
+    if workspace.exists():
+        shutil.rmtree(workspace)
+    (workspace / "sparse").mkdir(parents=True)
+    db = workspace / "database.db"
+    timings = {}
+    start = time.time()
+    pycolmap.extract_features(db, image_dir)
+    timings["extract"] = time.time() - start
+    start = time.time()
+    pycolmap.match_exhaustive(db)
+    timings["match"] = time.time() - start
+    start = time.time()
+    models = pycolmap.incremental_mapping(db, image_dir, workspace / "sparse")
+    timings["map"] = time.time() - start
+    return dict(models), timings
+
+
+def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict | None = None) -> tuple[pycolmap.Reconstruction | None, dict]:
+    """One reconstruction of a laid-out scene; returns (largest model, summary)."""
+    scene_dir = Path(scene_dir)
+    image_dir = scene_dir / "images"
+    start = time.time()
+    if method == "pycolmap":
+        models, timings = run_pycolmap_default(image_dir, workspace)
+        largest = largest_model(models)
+        info = {"timings": timings, "num_models": len(models)}
+    else:
+        from colmap_guided.mapping import load_models
+        from colmap_guided.reconstruct import reconstruct
+
+        spec = matcher_specs.available_specs([method], extra_conf)
+        if not spec:
+            raise ValueError(f"matcher {method!r} is not available")
+        result = reconstruct(scene_dir, output=workspace, matcher=spec[0].name, matcher_conf=spec[0].conf, overwrite=True)
+        models = load_models(Path(result["sparse_path"]))
+        largest = largest_model(models)
+        info = {"timings": result["timings"], "num_models": result["model"]["num_models"], "matcher": result["matcher"]}
+    info["num_points3D"] = largest.num_points3D() if largest is not None else 0
+    info["wall_time"] = time.time() - start
+    return largest, info
+
+
+def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = None, extra_conf: dict | None = None, resume: bool = False, **tol) -> dict:
+    """Run every method on one laid-out scene (SCENE/images + SCENE/manifest.json) and score it."""
+    scene_dir = Path(scene_dir)
+    one = json.loads((scene_dir / "manifest.json").read_text(encoding="utf-8"))
+    images = one["images"]
+    ref_path = (one.get("reference") or {}).get("path")
+    reference = pycolmap.Reconstruction(ref_path) if ref_path and Path(ref_path).is_dir() else None
+    runs_dir = Path(runs_dir) if runs_dir else scene_dir / "runs"
+    out = {"scene": one.get("scene", scene_dir.name), "subset": one.get("subset", "all"), "scene_dir": str(scene_dir), "reference": ref_path, "eras": era_counts(images), "methods": {}}
+    for method in methods:
+        workspace = runs_dir / method_slug(method)
+        done = workspace / "eval.json"
+        if resume and done.is_file():
+            out["methods"][method] = json.loads(done.read_text())
+            continue
+        logger.info("%s [%s]: %s", out["scene"], out["subset"], method)
+        try:
+            largest, info = run_method(scene_dir, method, workspace, extra_conf)
+        except Exception as err:  # one failing method must not lose the others' results
+            logger.error("%s [%s] %s failed: %r", out["scene"], out["subset"], method, err)
+            out["methods"][method] = {"error": repr(err)}
+            continue
+        record = {**score_registration(largest, images, reference, **tol), **info}
+        workspace.mkdir(parents=True, exist_ok=True)
+        done.write_text(json.dumps(record, indent=1, default=str), encoding="utf-8")
+        out["methods"][method] = record
+    return out
+
+
+def era_counts(images: list[dict]) -> dict:
+    out = {}
+    for im in images:
+        out[im["era"]] = out.get(im["era"], 0) + 1
+    return out
+
+
+def read_scene_manifest(scene_dir: Path) -> dict:
+    return json.loads((Path(scene_dir) / "manifest.json").read_text(encoding="utf-8"))
+
+
+
+# ------------------------------------------------------------------------------------- reporting
+def _cell(rec: dict | None) -> str:
+    if not rec:
+        return "–"
+    if "error" in rec:
+        return "failed"
+    return f"{rec['num_registered']}/{rec['num_images']} ({100 * rec['registered_ratio']:.0f} %)"
+
+
+def _check_cell(rec: dict | None) -> str:
+    if not rec or "error" in rec:
+        return "–"
+    d = f"{len(rec['distractors_registered'])}/{rec['num_distractors']}" if rec.get("num_distractors") else "–"
+    if rec.get("correct") is None:
+        return f"no ref · distr. {d}"
+    return f"{rec['correct']} ok · {len(rec['wrong'])} wrong · distr. {d}"
+
+
+def markdown_tables(results: list[dict], methods: list[str]) -> str:
+    from .tables import markdown_table
+
+    head = ["scene", "subset", "images h/m/d"]
+    rows, rows2 = [], []
+    for r in results:
+        counts = r.get("eras", {})
+        n = f"{counts.get('historical', 0)}/{counts.get('modern', 0)}/{counts.get('distractor', 0)}"
+        rows.append([r["scene"], r["subset"], n] + [_cell(r["methods"].get(m)) for m in methods])
+        rows2.append([r["scene"], r["subset"]] + [_check_cell(r["methods"].get(m)) for m in methods])
+    text = "Registered images (largest model; distractors not counted):\n\n" + markdown_table(head + methods, rows)
+    means = []
+    for subset in sorted({r["subset"] for r in results}):
+        vals = []
+        for m in methods:
+            ratios = [r["methods"][m]["registered_ratio"] for r in results if r["subset"] == subset and "registered_ratio" in r["methods"].get(m, {})]
+            vals.append(f"{100 * np.mean(ratios):.0f} %" if ratios else "–")
+        means.append([subset] + vals)
+    text += "\n\nMean registered ratio per subset (paper Fig. 5a):\n\n" + markdown_table(["subset"] + methods, means)
+    text += "\n\nAgreement with the reference model (rotation < 5°, centre < 10 % of the scene depth) and distractors registered (must be 0):\n\n" + markdown_table(["scene", "subset"] + methods, rows2)
+    return text
+
+
+def plot_registration(results: list[dict], methods: list[str], path: Path) -> None:
+    from . import tables
+
+    subsets = [s for s in ("historical", "modern", "all") if any(r["subset"] == s for r in results)]
+    fig, axes = tables.figure(max(1, len(subsets)), 6.5, 4.2)
+    for ax, subset in zip(axes, subsets):
+        rs = [r for r in results if r["subset"] == subset]
+        series = {m: [100 * r["methods"].get(m, {}).get("registered_ratio", float("nan")) for r in rs] for m in methods}
+        tables.grouped_bars(None, [r["scene"] for r in rs], series, "registered images (%)", f"Registered ratio — {subset} images", (0, 105), ax=ax)
+    tables.save_figure(fig, path)

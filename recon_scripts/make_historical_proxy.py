@@ -1,0 +1,42 @@
+"""Build the offline historical proxy: sets of ../shared/data with half of each degraded + distractors.
+
+    python recon_scripts/make_historical_proxy.py [--output outputs/historical_proxy] [--sources KEY ...]
+
+Writes OUTPUT/<scene>/images + OUTPUT/<scene>/manifest.json per source set and OUTPUT/proxy_manifest.json
+(the datasets/ltll_manifest.json schema), never anything inside ../shared. Deterministic for a --seed.
+Then: python recon_scripts/eval_registration.py --manifest OUTPUT/proxy_manifest.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from colmap_guided.evaluation import proxy  # noqa: E402
+from colmap_guided.paths import REPO_ROOT  # noqa: E402
+
+DEFAULT_OUTPUT = REPO_ROOT / "outputs" / "historical_proxy"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
+    parser.add_argument("--sources", nargs="+", default=list(proxy.DEFAULT_SOURCES), help="sets of ../shared/data (e.g. sacre_coeur_hloc train/dfsfm_sacre_coeur)")
+    parser.add_argument("--distractors", type=int, default=3, help="images of unrelated scenes added to each scene")
+    parser.add_argument("--max_size", type=int, default=1024, help="long side of every image (0 = keep)")
+    parser.add_argument("--crop", type=float, default=0.1, help="historical images keep >= 1 - crop of each side")
+    parser.add_argument("--max_images", type=int, default=0, help="first N images of each set (0 = all)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    path = proxy.build_proxy(
+        args.output, args.sources, seed=args.seed, n_distractors=args.distractors, max_size=args.max_size or None, crop=args.crop, max_images=args.max_images or None
+    )
+    print(f"Proxy manifest: {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
