@@ -1,0 +1,192 @@
+"""CoarseMatcher: the coarse matching network as the guided matcher uses it.
+
+    cm = CoarseMatcher({"mode": "raw"})            # or the default mode='filter' with trained weights
+    fa = cm.extract(load_image(path_a), name="a")  # backbone once per image, cached by name
+    res = cm.match(fa, fb)                          # CoarseResult
+    xy_b, score, fb_err = res.flow_ab(xy_a)
+
+Images are read the way COLMAP reads them (``load_image``: stored pixel order, EXIF orientation NOT
+applied — pycolmap 4.2.1 checked), so keypoints and the coarse flow share one frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+from PIL import Image
+
+from colmap_guided.coarse.backbone import BACKBONES
+from colmap_guided.coarse.flow import CoarseResult
+from colmap_guided.coarse.geometry import ImageGeometry, as_rgb, resize_geometry, resize_image
+from colmap_guided.coarse.model import CoarseNet
+from colmap_guided.coarse.weights import DEFAULT_WEIGHTS, load_filter_weights, net_conf_from_config, read_filter_weights
+from colmap_guided.log import logger
+
+
+def load_image(path: str | Path, grayscale: bool = False) -> np.ndarray:
+    """Image file → uint8 HxWx3 RGB (or HxW gray) in its stored pixel order, as COLMAP's reader sees
+    it: the EXIF orientation tag is ignored (pycolmap 4.2.1's feature extraction does not rotate)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"Image not found: {path}")
+    with Image.open(path) as im:
+        return np.asarray(im.convert("L" if grayscale else "RGB"))
+
+
+@dataclass
+class CoarseFeatures:
+    """Backbone features of one image: L2-normalised (C, h, w) on the matcher's device + geometry."""
+
+    features: torch.Tensor
+    geometry: ImageGeometry
+    name: str | None = None
+
+
+class CoarseMatcher:
+    """Coarse matches and flow between images (paper §3.1, §4.1), with a per-image feature cache."""
+
+    default_conf = {
+        "backbone": "efficientnet-lite0",
+        "backbone_weights": None,  # path overriding the backbone's ImageNet weights
+        "resize_max": 512,  # long side of the network input (grid at most 32x32)
+        "mode": "filter",  # 'filter': learned filter (needs weights) | 'raw': correlation only
+        "weights": None,  # filter weights; None: colmap_guided/weights/coarse_filter.safetensors
+        "device": "auto",  # 'auto' (cuda if available) | 'cpu' | 'cuda' | 'cuda:N'
+        "impl": "auto",  # filter: 'dense' | 'sparse' | 'auto' (dense on CUDA, sparse on CPU)
+        "sparse_k": 3,  # sparse filter: best cells kept per cell and direction (README: cost vs accuracy)
+        "sparse_radius": 1,  # sparse filter: also the (2r+1)^2 cells around each cell's best match
+        "raw_temperature": 0.02,  # raw mode: softmax temperature of the scores
+        "cache_path": None,  # optional .h5 file caching backbone features across runs
+        "num_threads": 1,  # CPU: torch.set_num_threads(n) at construction (process-wide!); None: leave as is
+    }
+
+    def __init__(self, conf: dict | None = None):
+        unknown = set(conf or {}) - set(self.default_conf)
+        if unknown:
+            raise ValueError(f"Unknown CoarseMatcher option(s) {sorted(unknown)}; known: {sorted(self.default_conf)}")
+        self.conf = conf = {**self.default_conf, **(conf or {})}
+        if conf["mode"] not in ("filter", "raw"):
+            raise ValueError(f"mode must be 'filter' or 'raw', got {conf['mode']!r}")
+        self.device = torch.device("cuda" if conf["device"] == "auto" and torch.cuda.is_available() else
+                                   "cpu" if conf["device"] == "auto" else conf["device"])
+        impl = conf["impl"] if conf["impl"] != "auto" else ("dense" if self.device.type == "cuda" else "sparse")
+        if impl not in ("dense", "sparse"):
+            raise ValueError(f"impl must be 'dense', 'sparse' or 'auto', got {conf['impl']!r}")
+        self.impl = impl
+        if self.device.type == "cpu" and conf["num_threads"] is not None and torch.get_num_threads() != conf["num_threads"]:
+            # The sparse filter is hundreds of small ops; on shared cores every OpenMP barrier waits for
+            # a descheduled thread. On the 2-core dev machine (load ~5-10) one thread was 3-8x faster
+            # than two for the sparse filter and 2.4x faster for the backbone (README.md).
+            logger.debug("torch CPU threads: %d -> %d (CoarseMatcher num_threads)", torch.get_num_threads(), conf["num_threads"])
+            torch.set_num_threads(conf["num_threads"])
+        net_conf = {"backbone": conf["backbone"], "backbone_weights": conf["backbone_weights"],
+                    "raw_temperature": conf["raw_temperature"], "filter": conf["mode"] == "filter"}
+        self.weights_config = None
+        if conf["mode"] == "filter":
+            _, self.weights_config = read_filter_weights(conf["weights"])  # FileNotFoundError → caller falls back
+            wanted = net_conf_from_config(self.weights_config)
+            if wanted["backbone"] != conf["backbone"]:
+                raise ValueError(f"Filter weights {conf['weights'] or DEFAULT_WEIGHTS} were trained on {wanted['backbone']}, "
+                                 f"not {conf['backbone']}: set backbone={wanted['backbone']!r} or use other weights")
+            net_conf.update(wanted)
+        self.net = CoarseNet(net_conf)
+        if conf["mode"] == "filter":
+            load_filter_weights(self.net, conf["weights"])
+        self.net.to(self.device).eval()
+        self.spec = BACKBONES[conf["backbone"]]
+        self.cache: dict[str, CoarseFeatures] = {}
+
+    # -- features -------------------------------------------------------------------------------
+
+    def geometry(self, width: int, height: int) -> ImageGeometry:
+        return resize_geometry(width, height, self.conf["resize_max"], self.spec.stride, self.spec.cell_offset)
+
+    @torch.no_grad()
+    def extract(self, image: np.ndarray, name: str | None = None) -> CoarseFeatures:
+        """Features of a uint8 HxW (gray) or HxWx3 (RGB) image. With ``name``, cached in memory (and in
+        ``cache_path`` if set): later calls with the same name return the cache without the image."""
+        if name is not None and name in self.cache:
+            return self.cache[name]
+        if name is not None and self.conf["cache_path"]:
+            cached = self._read_h5(name)
+            if cached is not None:
+                self.cache[name] = cached
+                return cached
+        if image is None:
+            raise ValueError(f"No cached coarse features for {name!r}: pass the image (or extract_path)")
+        rgb = as_rgb(image)
+        geo = self.geometry(rgb.shape[1], rgb.shape[0])
+        x = torch.from_numpy(resize_image(rgb, geo)).to(self.device).permute(2, 0, 1)[None].float()
+        feats = CoarseFeatures(self.net.extract_features(self.net.normalize(x))[0], geo, name)
+        if name is not None:
+            self.cache[name] = feats
+            if self.conf["cache_path"]:
+                self._write_h5(feats)
+        return feats
+
+    def extract_path(self, path: str | Path, name: str | None = None) -> CoarseFeatures:
+        """``extract(load_image(path), name)``, reading the file only on a cache miss."""
+        key = name or str(path)
+        if key in self.cache:
+            return self.cache[key]
+        return self.extract(load_image(path), key)
+
+    def release(self, name: str) -> None:
+        """Drop image ``name`` from the in-memory cache."""
+        self.cache.pop(name, None)
+
+    def _h5_key(self) -> str:
+        return f"{self.spec.name}_{self.conf['resize_max']}"
+
+    def _read_h5(self, name: str) -> CoarseFeatures | None:
+        path = Path(self.conf["cache_path"])
+        if not path.is_file():
+            return None
+        with h5py.File(path, "r") as f:
+            group = f.get(f"{self._h5_key()}/{name}")
+            if group is None:
+                return None
+            geo = ImageGeometry(**{k: (float if k == "cell_offset" else int)(group.attrs[k]) for k in ImageGeometry.__dataclass_fields__})
+            feats = torch.from_numpy(group["features"][()]).to(self.device, torch.float32)
+        return CoarseFeatures(feats, geo, name)
+
+    def _write_h5(self, feats: CoarseFeatures) -> None:
+        path = Path(self.conf["cache_path"])
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with h5py.File(path, "a") as f:
+            key = f"{self._h5_key()}/{feats.name}"
+            if key in f:
+                del f[key]
+            group = f.create_group(key)
+            group.create_dataset("features", data=feats.features.cpu().numpy())
+            for k, v in feats.geometry.to_dict().items():
+                group.attrs[k] = v
+
+    # -- matching -------------------------------------------------------------------------------
+
+    def match(self, fa: CoarseFeatures, fb: CoarseFeatures) -> CoarseResult:
+        """Coarse matches and flow of one pair (A = fa, B = fb)."""
+        grid = self.net.match(fa.features, fb.features, self.impl, self.conf["sparse_k"], self.conf["sparse_radius"])
+        return CoarseResult(fa.geometry, fb.geometry, grid)
+
+    def match_pairs(self, pairs: list[tuple[CoarseFeatures, CoarseFeatures]]) -> list[CoarseResult]:
+        """``match`` for many pairs; pairs of equal grid shapes are batched in the dense filter."""
+        if self.impl == "sparse" or self.net.filter is None:
+            return [self.match(fa, fb) for fa, fb in pairs]
+        results: list[CoarseResult | None] = [None] * len(pairs)
+        groups: dict[tuple, list[int]] = {}
+        for i, (fa, fb) in enumerate(pairs):
+            groups.setdefault((tuple(fa.features.shape), tuple(fb.features.shape)), []).append(i)
+        for idx in groups.values():
+            grids = self.net.match_batch(torch.stack([pairs[i][0].features for i in idx]),
+                                         torch.stack([pairs[i][1].features for i in idx]))
+            for i, grid in zip(idx, grids):
+                results[i] = CoarseResult(pairs[i][0].geometry, pairs[i][1].geometry, grid)
+        return results
+
+    def describe(self) -> dict:
+        return {"conf": self.conf, "impl": self.impl, "device": str(self.device), "weights_config": self.weights_config}

@@ -1,0 +1,181 @@
+"""Speed of the coarse network's neighbourhood-consensus filter (issue 6), and pycolmap's exhaustive
+SIFT matching of real pairs measured in the same run as the reference.
+
+    python recon_scripts/benchmark_coarse.py [--grids 25 32] [--sift-images 4] [--repeats 3]
+
+Prints a Markdown table of ms per pair at square grids (25x25 and 32x32 by default) for
+- naive: the paper's/NCNet's 4D convolution as a loop of conv3d (reference from tests/test_coarse_conv4d.py),
+- dense: ``NeighConsensus.forward`` (batched conv3d, both image orders in one 2-group pass),
+- sparse k, radius: ``CoarseNet.match_sparse`` (filter on ``sparse_support``; correlation, mutual
+  steps and argmax included), and raw mode (correlation + argmax, no filter),
+with ratios vs naive; on CUDA (if present) dense, batched and single. Features are real (two photos of
+the Sacre Coeur resized square to the grid), so sparse supports have realistic sizes. Filter weights:
+the default trained file if present, else random (the speed does not depend on the values). Then the
+backbone per image, and pycolmap SIFT extraction + exhaustive matching (with verification) per pair.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from colmap_guided.coarse import DEFAULT_WEIGHTS, CoarseMatcher, CoarseNet, load_image, save_filter_weights
+from colmap_guided.coarse.model import correlation, soft_mutual_nn
+from colmap_guided.paths import REPO_ROOT, shared_data_dir
+
+
+def naive_reference():
+    """``conv4d_naive`` from the tests (the naive loop lives there only)."""
+    spec = importlib.util.spec_from_file_location("test_coarse_conv4d", REPO_ROOT / "tests" / "test_coarse_conv4d.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.conv4d_naive
+
+
+def timed(fn, repeats: int, sync=lambda: None, warmup: bool = True) -> tuple[float, float]:
+    """Best wall-clock and best process CPU time (all threads) of ``repeats`` runs after a warm-up, ms.
+    CPU time is less sensitive than wall time to other processes sharing the cores."""
+    if warmup:
+        fn()
+        sync()
+    wall = cpu = float("inf")
+    for _ in range(repeats):
+        t, c = time.perf_counter(), time.process_time()
+        fn()
+        sync()
+        wall, cpu = min(wall, time.perf_counter() - t), min(cpu, time.process_time() - c)
+    return 1000 * wall, 1000 * cpu
+
+
+def square_features(net: CoarseNet, path: Path, grid: int, device) -> torch.Tensor:
+    img = cv2.resize(load_image(path), (16 * grid, 16 * grid), interpolation=cv2.INTER_AREA)
+    x = torch.from_numpy(img).permute(2, 0, 1)[None].float().to(device)
+    with torch.no_grad():
+        return net.extract_features(net.normalize(x))[0]
+
+
+def cm_sparse(cm: CoarseMatcher) -> str:
+    return f", k={cm.conf['sparse_k']} radius={cm.conf['sparse_radius']}" if cm.impl == "sparse" else ""
+
+
+def sift_reference(images: list[Path]) -> tuple[float, float, float, int]:
+    """pycolmap default SIFT: extraction s/image, exhaustive matching (incl. verification) wall and CPU
+    ms/pair, mean keypoints per image."""
+    import pycolmap
+
+    work = Path(tempfile.mkdtemp(prefix="bench_coarse_"))
+    try:
+        (work / "images").mkdir()
+        for p in images:
+            shutil.copy(p, work / "images" / p.name)
+        db = work / "db.db"
+        t = time.perf_counter()
+        pycolmap.extract_features(db, work / "images")
+        t_extract = (time.perf_counter() - t) / len(images)
+        t, c = time.perf_counter(), time.process_time()
+        pycolmap.match_exhaustive(db)
+        n_pairs = len(images) * (len(images) - 1) // 2
+        t_match = 1000 * (time.perf_counter() - t) / n_pairs
+        c_match = 1000 * (time.process_time() - c) / n_pairs
+        with pycolmap.Database.open(db) as database:
+            kps = np.mean([database.read_keypoints(im.image_id).shape[0] for im in database.read_all_images()])
+        return t_extract, t_match, c_match, int(kps)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--grids", type=int, nargs="+", default=[25, 32])
+    parser.add_argument("--supports", nargs="+", default=["3,0", "5,0", "10,0", "3,1"], help="sparse supports 'k,radius'")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--no-naive", action="store_true", help="skip the slow naive loop")
+    parser.add_argument("--sift-images", type=int, default=10, help="sacre_coeur_hloc images for the SIFT reference (0: skip)")
+    parser.add_argument("--batch", type=int, default=8, help="pairs per batch for the batched GPU row")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (CoarseMatcher's default num_threads is 1)")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+
+    torch.manual_seed(0)
+    weights, label = DEFAULT_WEIGHTS, "trained"
+    if not DEFAULT_WEIGHTS.is_file():  # the speed does not depend on the values
+        weights, label = Path(tempfile.mkdtemp(prefix="bench_coarse_")) / "random.safetensors", "random"
+        save_filter_weights(CoarseNet({"pretrained": False}), weights, resize_max=512)
+    raw = CoarseNet({"filter": False}).eval()
+    naive = None if args.no_naive else naive_reference()
+    images = shared_data_dir() / "lightglue_assets" / "images"
+    pair = [images / "sacre_coeur1.jpg", images / "sacre_coeur2.jpg"]
+
+    rows = []  # (device, method, grid, wall ms, CPU ms)
+    devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
+    for device in devices:
+        sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+        cm = CoarseMatcher({"mode": "filter", "weights": weights, "device": device.type, "num_threads": None})
+        net = cm.net
+        raw.to(device)
+        for grid in args.grids:
+            fa, fb = (square_features(net, p, grid, device) for p in pair)
+            with torch.no_grad():
+                vin = soft_mutual_nn(torch.relu(correlation(fa[None], fb[None])))
+                if naive is not None and device.type == "cpu":
+                    def run_naive():
+                        x = vin.unsqueeze(1)
+                        for w, b, groups in net.filter.fused_layers():
+                            x = torch.relu(naive(x, w, b, groups))
+                        return x.mean(1)
+                    rows.append((device.type, "naive loop of conv3d (filter only)", grid, *timed(run_naive, 1, warmup=False)))
+                rows.append((device.type, "dense (filter only)", grid, *timed(lambda: net.filter(vin), args.repeats, sync)))
+                if device.type == "cuda":
+                    vb = vin.expand(args.batch, -1, -1, -1, -1).contiguous()
+                    ms, cpu = timed(lambda: net.filter(vb), args.repeats, sync)
+                    rows.append((device.type, f"dense batched x{args.batch} (filter only)", grid, ms / args.batch, cpu / args.batch))
+                    rows.append((device.type, "dense match (corr+filter+argmax)", grid,
+                                 *timed(lambda: net.match(fa, fb, "dense"), args.repeats, sync)))
+                for k, r in (map(int, sup.split(",")) for sup in args.supports):
+                    rows.append((device.type, f"sparse k={k} radius={r} match (corr+filter+argmax)", grid,
+                                 *timed(lambda: net.match(fa, fb, "sparse", k, r), args.repeats, sync)))
+                rows.append((device.type, "raw mode match (corr+argmax)", grid, *timed(lambda: raw.match(fa, fb), args.repeats, sync)))
+        img = torch.from_numpy(cv2.resize(load_image(pair[0]), (512, 368))).permute(2, 0, 1)[None].float().to(device)
+        with torch.no_grad():
+            times = timed(lambda: net.extract_features(net.normalize(img)), args.repeats, sync)
+        rows.append((device.type, "backbone Lite0 per image (512x368)", 0, *times))
+        fa, fb = (cm.extract(load_image(p)) for p in pair)
+        rows.append((device.type, f"CoarseMatcher.match, real pair 32x23 / 24x32 (default: {cm.impl}{cm_sparse(cm)})", 0,
+                     *timed(lambda: cm.match(fa, fb), args.repeats, sync)))
+        if device.type == "cpu":
+            for k, r in (map(int, sup.split(",")) for sup in args.supports):
+                rows.append((device.type, f"real pair 32x23 / 24x32, sparse k={k} radius={r}", 0,
+                             *timed(lambda: net.match(fa.features, fb.features, "sparse", k, r), args.repeats, sync)))
+
+    sift = None
+    if args.sift_images >= 2:
+        sc = sorted((shared_data_dir() / "sacre_coeur_hloc" / "images").glob("*.jpg"))[: args.sift_images]
+        t_extract, t_match, c_match, kps = sift_reference(sc)
+        sift = (t_match, c_match)
+        print(f"\npycolmap {__import__('pycolmap').__version__} SIFT on {len(sc)} sacre_coeur_hloc images "
+              f"({kps} keypoints/image): extraction {t_extract:.2f} s/image, exhaustive matching + verification "
+              f"{t_match:.1f} ms/pair wall, {c_match:.1f} ms/pair CPU")
+    naive_ms = {(d, g): ms for d, m, g, ms, _ in rows if m.startswith("naive")}
+    print(f"\nCoarse filter ({label} weights, {torch.get_num_threads()} CPU threads, torch {torch.__version__}); "
+          f"CPU = process time of all threads; vs SIFT = time / pycolmap exhaustive matching time per pair\n")
+    print("| device | method | grid | ms / pair (wall) | ms / pair (CPU) | vs naive (wall) | vs SIFT wall | vs SIFT CPU |")
+    print("|---|---|---|---|---|---|---|---|")
+    for d, m, g, ms, cpu in rows:
+        ref = naive_ms.get((d, g))
+        ratio = f"{ref / ms:.1f}x faster" if ref and g else ""
+        vs_sift = f"{ms / sift[0]:.2f} | {cpu / sift[1]:.2f}" if sift and d == "cpu" else " | "
+        print(f"| {d} | {m} | {f'{g}x{g}' if g else '-'} | {ms:.1f} | {cpu:.1f} | {ratio} | {vs_sift} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

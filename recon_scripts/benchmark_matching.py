@@ -1,0 +1,338 @@
+"""Benchmark of the matchers on real pairs from ../shared/data (issue 8; not a timed test).
+
+For every related pair (same scene: sacre_coeur_hloc, lund_door_gtsfm, lightglue_assets, WxBS
+appearance/illumination categories) it reports the COLMAP-verified inliers (pycolmap
+estimate_two_view_geometry, default options, >= 15 inliers) of raw, guided, guided_epipolar and
+guided_homography, whether the verified geometry agrees with the reference correspondences where
+there are some (WxBS hand-labelled corrs.txt; lund_door's reference model), and the wall time of
+raw vs guided (coarse extraction of both images + coarse match + eq. 1) on the same pair.
+On pairs of unrelated images (different scenes) it reports the share that verifies per matcher:
+guided matching must not manufacture geometry more often than raw matching.
+
+    python recon_scripts/benchmark_matching.py [--pairs_per_set 3] [--unrelated 24] [--json out.json]
+    python recon_scripts/benchmark_matching.py --sweep   # guided options grid on the same pairs
+
+Markdown tables go to stdout, everything to --json. SIFT (pycolmap, COLMAP's defaults) is cached in
+--cache_dir, so reruns only pay for matching.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import time
+from functools import partial
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import torch
+
+from colmap_guided import verify
+from colmap_guided.log import logger
+from colmap_guided.matchers import get_matcher
+from colmap_guided.matchers.base import ImageData
+from colmap_guided.matchers.guided import GuidedMatcher
+from colmap_guided.paths import shared_data_dir
+
+BASELINES = ["raw", "guided", "guided_epipolar", "guided_homography"]
+WXBS_RELATED = ["WGABS", "WGALBS", "WGLBS", "WLABS"]  # appearance / illumination changes
+MAX_IMAGE_SIZE = 3200  # COLMAP feature_extractor's default
+MAX_NUM_FEATURES = 8192
+
+
+# ------------------------------------------------------------------------------------------------
+# Features and pairs
+# ------------------------------------------------------------------------------------------------
+
+
+def sift_image(path: Path, cache_dir: Path) -> ImageData:
+    """COLMAP SIFT of one image (uint8 descriptors as in the database), cached as .npz."""
+    data = shared_data_dir()
+    key = str(path.relative_to(data)).replace("/", "__")
+    cache = cache_dir / f"{key}.npz"
+    if cache.exists():
+        z = np.load(cache)
+        kp, desc, (w, h) = z["keypoints"], z["descriptors"], z["size"]
+    else:
+        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if gray is None:
+            raise FileNotFoundError(path)
+        h, w = gray.shape
+        scale = min(1.0, MAX_IMAGE_SIZE / max(h, w))
+        small = gray if scale == 1.0 else cv2.resize(gray, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
+        options = pycolmap.FeatureExtractionOptions()
+        options.sift.max_num_features = MAX_NUM_FEATURES
+        kp, desc = pycolmap.Sift(options).extract(np.ascontiguousarray(small))
+        kp = kp.copy()
+        kp[:, :2] *= np.array([w / small.shape[1], h / small.shape[0]], np.float32)  # corner-origin: exact
+        kp[:, 2] /= scale
+        desc = np.clip(np.round(desc * 512), 0, 255).astype(np.uint8)  # COLMAP's database encoding
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        np.savez(cache, keypoints=kp, descriptors=desc, size=np.array([w, h]))
+    return ImageData(key, 0, path, kp.astype(np.float32), desc, int(w), int(h))
+
+
+def wxbs_corrs(pair_dir: Path) -> np.ndarray:
+    return np.loadtxt(pair_dir / "corrs.txt").reshape(-1, 4)
+
+
+def lund_door_corrs(name_a: str, name_b: str) -> np.ndarray:
+    """Reference correspondences of two lund_door images: 2D observations of shared 3D points."""
+    rec = pycolmap.Reconstruction(shared_data_dir() / "lund_door_gtsfm" / "colmap_ground_truth")
+    by_name = {im.name: im for im in rec.images.values()}
+    obs = []
+    for name in (name_a, name_b):
+        im = by_name[name]
+        obs.append({p.point3D_id: p.xy for p in im.points2D if p.has_point3D()})
+    common = sorted(set(obs[0]) & set(obs[1]))
+    return np.array([[*obs[0][i], *obs[1][i]] for i in common], np.float64).reshape(-1, 4)
+
+
+def related_pairs(per_set: int) -> list[dict]:
+    """Same-scene pairs: consecutive images of each set, plus WxBS A/L pairs with reference corrs."""
+    data = shared_data_dir()
+    pairs = []
+    for name in ("sacre_coeur_hloc", "lund_door_gtsfm"):
+        images = sorted((data / name / "images").iterdir())
+        for a, b in list(itertools.pairwise(images))[:per_set]:
+            corrs = lund_door_corrs(a.name, b.name) if name == "lund_door_gtsfm" else None
+            pairs.append({"set": name, "a": a, "b": b, "corrs": corrs})
+    lg = data / "lightglue_assets" / "images"
+    for a, b in (("DSC_0410.JPG", "DSC_0411.JPG"), ("sacre_coeur1.jpg", "sacre_coeur2.jpg")):
+        pairs.append({"set": "lightglue_assets", "a": lg / a, "b": lg / b, "corrs": None})
+    for category in WXBS_RELATED:
+        for pair_dir in sorted((data / "wxbs_v1.1" / category).iterdir())[:per_set]:
+            a, b = (next(pair_dir.glob(f"{stem}.*[!t]")) for stem in ("01", "02"))  # .png or .jpg, not .txt
+            pairs.append({"set": f"wxbs/{category}", "a": a, "b": b, "corrs": wxbs_corrs(pair_dir)})
+    return pairs
+
+
+def unrelated_pairs(count: int, seed: int = 0) -> list[dict]:
+    """Pairs of photos of different places (scenes chosen so no two show the same landmark)."""
+    data = shared_data_dir()
+    groups = {
+        "sacre_coeur": sorted((data / "sacre_coeur_hloc" / "images").iterdir()),
+        "lund_door": sorted((data / "lund_door_gtsfm" / "images").iterdir()),
+        "lund_street": sorted((data / "opensfm_lund" / "images").iterdir()),
+        "alamo": sorted((data / "gtsfm_1dsfm_sample" / "images").iterdir()),
+        "dsc_building": sorted((data / "lightglue_assets" / "images").glob("DSC_*")),
+    }
+    for landmark in ("london_bridge", "piazza_san_marco", "st_pauls_cathedral", "united_states_capitol"):
+        groups[landmark] = sorted((data / "phototourism_superglue" / "images").glob(f"{landmark}_*"))
+    rng = np.random.default_rng(seed)
+    combos = list(itertools.combinations(sorted(groups), 2))
+    rng.shuffle(combos)
+    pairs = []
+    for k, (ga, gb) in enumerate(itertools.islice(itertools.cycle(combos), count)):
+        a = groups[ga][rng.integers(len(groups[ga]))]
+        b = groups[gb][rng.integers(len(groups[gb]))]
+        pairs.append({"set": f"{ga}|{gb}", "a": a, "b": b, "corrs": None})
+    return pairs
+
+
+# ------------------------------------------------------------------------------------------------
+# Verification
+# ------------------------------------------------------------------------------------------------
+
+
+def default_camera(image: ImageData) -> pycolmap.Camera:
+    """COLMAP's camera for a photo without EXIF focal: SIMPLE_RADIAL, f = 1.2 * max(w, h)."""
+    return pycolmap.Camera.create_from_model_id(
+        0, pycolmap.CameraModelId.SIMPLE_RADIAL, 1.2 * max(image.width, image.height), image.width, image.height
+    )
+
+
+def verify_matches(a: ImageData, b: ImageData, matches: np.ndarray) -> pycolmap.TwoViewGeometry:
+    """COLMAP's two-view verification with the pipeline's options (defaults, >= 15 inliers)."""
+    return verify.verify_pair(default_camera(a), a.keypoints, default_camera(b), b.keypoints, matches, verify.two_view_options())
+
+
+def reference_error(geometry: pycolmap.TwoViewGeometry, corrs: np.ndarray | None) -> float | None:
+    """Median error (px) of the reference correspondences under the verified geometry: symmetric
+    epipolar distance for F (or E), symmetric transfer error for a planar / panoramic H."""
+    if corrs is None or len(geometry.inlier_matches) == 0:
+        return None
+    xa = np.concatenate([corrs[:, :2], np.ones((len(corrs), 1))], 1)
+    xb = np.concatenate([corrs[:, 2:], np.ones((len(corrs), 1))], 1)
+    F = np.asarray(geometry.F)
+    if np.any(F):
+        lb, la = xa @ F.T, xb @ F
+        alg = np.abs((xb * lb).sum(1))
+        d = 0.5 * (alg / np.linalg.norm(lb[:, :2], axis=1) + alg / np.linalg.norm(la[:, :2], axis=1))
+        return float(np.median(d))
+    H = np.asarray(geometry.H)
+    if not np.any(H):
+        return None
+    pb, pa = xa @ H.T, xb @ np.linalg.inv(H).T
+    d = 0.5 * (np.linalg.norm(pb[:, :2] / pb[:, 2:] - corrs[:, 2:], axis=1) + np.linalg.norm(pa[:, :2] / pa[:, 2:] - corrs[:, :2], axis=1))
+    return float(np.median(d))
+
+
+# ------------------------------------------------------------------------------------------------
+# Runs
+# ------------------------------------------------------------------------------------------------
+
+
+def best_time(fn, repeat: int):
+    """Result of ``fn()`` and its fastest wall time over ``repeat`` runs (robust on a shared CPU)."""
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - start)
+    return out, min(times)
+
+
+def extract_coarse(matcher: GuidedMatcher, a: ImageData, b: ImageData) -> None:
+    """Coarse features of both images from their files (the cache emptied first)."""
+    matcher.release(a.name), matcher.release(b.name)
+    matcher.features(a), matcher.features(b)
+
+
+def run_pair(pair: dict, matchers: dict, cache_dir: Path, max_ref_err: float, repeat: int) -> dict:
+    a, b = sift_image(pair["a"], cache_dir), sift_image(pair["b"], cache_dir)
+    row = {"set": pair["set"], "a": str(pair["a"].relative_to(shared_data_dir())), "b": str(pair["b"].relative_to(shared_data_dir())),
+           "num_keypoints": [len(a.keypoints), len(b.keypoints)]}
+    for name, matcher in matchers.items():
+        timing = {}
+        if isinstance(matcher, GuidedMatcher):
+            _, timing["coarse_extract_s"] = best_time(partial(extract_coarse, matcher, a, b), repeat)
+            flows, timing["coarse_match_s"] = best_time(partial(matcher.coarse_flows, a, b), repeat)
+            matches, timing["eq1_s"] = best_time(partial(matcher.match_flows, a, b, flows), repeat)
+            matcher.release(a.name), matcher.release(b.name)
+            timing["total_s"] = timing["coarse_extract_s"] + timing["coarse_match_s"] + timing["eq1_s"]
+        else:
+            matches, timing["total_s"] = best_time(partial(matcher.match, a, b), repeat)
+        geometry = verify_matches(a, b, matches)
+        err = reference_error(geometry, pair["corrs"])
+        row[name] = {
+            "matches": len(matches),
+            "inliers": len(geometry.inlier_matches),
+            "config": pycolmap.TwoViewGeometryConfiguration(geometry.config).name,
+            "ref_err_px": err,
+            "correct": None if pair["corrs"] is None or err is None else err < max_ref_err,
+            **timing,
+        }
+    return row
+
+
+def sweep(pairs: list[dict], unrelated: list[dict], guided: GuidedMatcher, cache_dir: Path, max_ref_err: float) -> list[dict]:
+    """Verified inliers (related) and verified share (unrelated) over a grid of guided options."""
+    grid = {
+        "ratio": [None, 0.9, 0.95],
+        "max_fb_cells": [None, 2.0],
+        "window_cells": [1.0, 2.0],
+    }
+    combos = [dict(zip(grid, values)) for values in itertools.product(*grid.values())]
+    raw = get_matcher("raw", {"device": str(guided.device)})
+    results = {json.dumps(c): {"related_inliers": [], "related_correct": [], "related_wrong": [], "unrelated_inliers": []} for c in ["raw", *combos]}
+    for kind, plist in (("related", pairs), ("unrelated", unrelated)):
+        for pair in plist:
+            a, b = sift_image(pair["a"], cache_dir), sift_image(pair["b"], cache_dir)
+            flows = guided.coarse_flows(a, b)
+            for combo in ["raw", *combos]:
+                matches = raw.match(a, b) if combo == "raw" else guided.match_flows(a, b, flows, **combo)
+                geometry = verify_matches(a, b, matches)
+                r = results[json.dumps(combo)]
+                r[f"{kind}_inliers"].append(len(geometry.inlier_matches))
+                if kind == "related" and pair["corrs"] is not None:
+                    err = reference_error(geometry, pair["corrs"])
+                    r["related_correct"].append(err is not None and err < max_ref_err)
+                    r["related_wrong"].append(len(geometry.inlier_matches) > 0 and not r["related_correct"][-1])
+            guided.release(a.name), guided.release(b.name)
+            logger.info("sweep %s %s done", kind, pair["set"])
+    return [{"conf": json.loads(k), **v} for k, v in results.items()]
+
+
+def sweep_markdown(results: list[dict]) -> str:
+    """One line per option set: related pairs verified / correct, inliers vs raw, unrelated verified."""
+    raw = next(r for r in results if r["conf"] == "raw")
+    keys = [k for k in results[1]["conf"]]
+    out = ["| matcher | " + " | ".join(keys) + " | related verified | correct / wrong (with reference) | median inliers / raw | unrelated verified |",
+           "|---|" + "---|" * (len(keys) + 4)]
+    for r in results:
+        c = r["conf"]
+        conf = "raw | " + " | ".join("–" for _ in keys) if c == "raw" else "guided | " + " | ".join(str(c[k]) for k in keys)
+        ratios = [g / x for g, x in zip(r["related_inliers"], raw["related_inliers"]) if x > 0]
+        out.append(f"| {conf} | {sum(n > 0 for n in r['related_inliers'])}/{len(r['related_inliers'])} | "
+                   f"{sum(r['related_correct'])} / {sum(r['related_wrong'])} of {len(r['related_correct'])} | {np.median(ratios) if ratios else float('nan'):.2f} | "
+                   f"{sum(n > 0 for n in r['unrelated_inliers'])}/{len(r['unrelated_inliers'])} |")
+    return "\n".join(out)
+
+
+def markdown(rows: list[dict], unrelated_rows: list[dict], names: list[str]) -> str:
+    out = ["| set | pair | " + " | ".join(f"{n} inliers" for n in names) + " | raw s | guided s | guided/raw time |",
+           "|---|---|" + "---|" * (len(names) + 3)]
+    for r in rows:
+        cells = []
+        for n in names:
+            c = r[n]
+            mark = "" if c["correct"] is None else (" ✓" if c["correct"] else " ✗")
+            cells.append(f"{c['inliers']}{mark}")
+        pair = f"{Path(r['a']).name}–{Path(r['b']).name}" if not r["set"].startswith("wxbs") else Path(r["a"]).parent.name
+        g = r.get("guided")
+        t = f"{r['raw']['total_s']:.2f} | {g['total_s']:.2f} | {g['total_s'] / r['raw']['total_s']:.1f}×" if g and "raw" in r else "– | – | –"
+        out.append(f"| {r['set']} | {pair} | " + " | ".join(cells) + f" | {t} |")
+    if "guided" in names and "raw" in names:
+        med = {k: np.median([r["guided"][k] for r in rows]) for k in ("coarse_extract_s", "coarse_match_s", "eq1_s", "total_s")}
+        raw_med = np.median([r["raw"]["total_s"] for r in rows])
+        out.append("")
+        out.append(f"Median per pair: raw {raw_med:.2f} s; guided {med['total_s']:.2f} s = coarse features of both images "
+                   f"{med['coarse_extract_s']:.2f} + coarse match {med['coarse_match_s']:.2f} + eq. 1 {med['eq1_s']:.2f} "
+                   f"(median guided/raw time ratio {np.median([r['guided']['total_s'] / r['raw']['total_s'] for r in rows]):.2f}).")
+    out.append("")
+    out.append("Unrelated pairs (different scenes) passing verification (>= 15 inliers):")
+    out.append("")
+    out.append("| matcher | verified / pairs | max inliers |")
+    out.append("|---|---|---|")
+    for n in names:
+        verified = sum(r[n]["inliers"] > 0 for r in unrelated_rows)
+        most = max((r[n]["inliers"] for r in unrelated_rows), default=0)
+        out.append(f"| {n} | {verified}/{len(unrelated_rows)} | {most} |")
+    return "\n".join(out)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--pairs_per_set", type=int, default=3)
+    parser.add_argument("--unrelated", type=int, default=24, help="number of unrelated-image pairs")
+    parser.add_argument("--matchers", nargs="+", default=BASELINES, choices=BASELINES)
+    parser.add_argument("--guided_conf", type=json.loads, default={}, help="JSON overriding the guided matcher's options")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--max_ref_err", type=float, default=5.0, help="px: a verified geometry is correct below this median reference error")
+    parser.add_argument("--cache_dir", type=Path, default=Path("/tmp/colmap_guided_bench_sift"))
+    parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--sweep", action="store_true", help="grid over ratio / forward-backward / window for the guided matcher")
+    parser.add_argument("--repeat", type=int, default=3, help="timings: fastest of this many runs (related pairs)")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: stable timings on a shared machine)")
+    args = parser.parse_args(argv)
+    torch.set_grad_enabled(False)
+    torch.set_num_threads(args.threads)
+
+    pairs = related_pairs(args.pairs_per_set)
+    unrelated = unrelated_pairs(args.unrelated)
+    matchers = {n: get_matcher(n, {"device": args.device, **(args.guided_conf if n == "guided" else {})}) for n in args.matchers}
+    result = {"matchers": {n: m.describe() for n, m in matchers.items()}, "device": args.device, "torch_threads": torch.get_num_threads()}
+    if args.sweep:
+        guided = matchers.get("guided") or get_matcher("guided", {"device": args.device, **args.guided_conf})
+        result["sweep"] = sweep(pairs, unrelated, guided, args.cache_dir, args.max_ref_err)
+        print(sweep_markdown(result["sweep"]))
+    else:
+        rows, unrelated_rows = [], []
+        for pair in pairs:
+            rows.append(run_pair(pair, matchers, args.cache_dir, args.max_ref_err, args.repeat))
+            logger.info("%s %s: %s", pair["set"], pair["a"].name, {n: rows[-1][n]["inliers"] for n in matchers})
+        for pair in unrelated:
+            unrelated_rows.append(run_pair(pair, matchers, args.cache_dir, args.max_ref_err, 1))
+            logger.info("unrelated %s: %s", pair["set"], {n: unrelated_rows[-1][n]["inliers"] for n in matchers})
+        result["related"], result["unrelated"] = rows, unrelated_rows
+        print(markdown(rows, unrelated_rows, list(matchers)))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=1, default=str))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,77 @@
+"""Filter weights: safetensors round trip, config checks, clear errors."""
+
+import json
+
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from colmap_guided.coarse import CoarseMatcher, CoarseNet, load_filter_weights, read_filter_weights, save_filter_weights
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_torch_thread():
+    """As CoarseMatcher does on CPU (num_threads=1); restored for the other test modules."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def make_net(**conf):
+    return CoarseNet({"pretrained": False, **conf})
+
+
+def test_round_trip(tmp_path):
+    torch.manual_seed(0)
+    net = make_net()
+    path = save_filter_weights(net, tmp_path / "f.safetensors", resize_max=400, training={"loss": "epipolar", "iterations": 7})
+    other = make_net()
+    config = load_filter_weights(other, path)
+    for a, b in zip(net.filter.parameters(), other.filter.parameters()):
+        assert torch.equal(a, b)
+    assert config["backbone"] == "efficientnet-lite0" and config["layer"] == "_blocks.10" and config["feature_channels"] == 112
+    assert config["channels"] == [16, 16, 1] and config["kernel_sizes"] == [3, 3, 3] and config["resize_max"] == 400
+    assert config["training"] == {"loss": "epipolar", "iterations": 7}
+
+
+def test_mismatch_is_a_clear_error(tmp_path):
+    path = save_filter_weights(make_net(), tmp_path / "f.safetensors", resize_max=400)
+    with pytest.raises(ValueError, match="channels: weights \\[16, 16, 1\\] vs network \\[8, 1\\]"):
+        load_filter_weights(make_net(channels=(8, 1), kernel_sizes=(3, 3)), path)
+    with pytest.raises(ValueError, match="mutual_after"):
+        load_filter_weights(make_net(mutual_after=False), path)
+    with pytest.raises(ValueError, match="backbone: weights 'efficientnet-lite0' vs network 'resnet101'"):
+        load_filter_weights(make_net(backbone="resnet101"), path)
+
+
+def test_missing_and_foreign_files(tmp_path):
+    with pytest.raises(FileNotFoundError, match="mode='raw'"):
+        read_filter_weights(tmp_path / "absent.safetensors")
+    with pytest.raises(FileNotFoundError):
+        CoarseMatcher({"mode": "filter", "weights": tmp_path / "absent.safetensors"})
+    save_file({"x": torch.zeros(1)}, str(tmp_path / "plain.safetensors"))
+    with pytest.raises(ValueError, match="no coarse-filter config"):
+        read_filter_weights(tmp_path / "plain.safetensors")
+    save_file({"x": torch.zeros(1)}, str(tmp_path / "old.safetensors"), metadata={"config": json.dumps({"format": "v0"})})
+    with pytest.raises(ValueError, match="re-export"):
+        read_filter_weights(tmp_path / "old.safetensors")
+    (tmp_path / "junk.safetensors").write_bytes(b"not a tensor file")
+    with pytest.raises(ValueError, match="not a safetensors file"):
+        read_filter_weights(tmp_path / "junk.safetensors")
+
+
+def test_matcher_loads_filter_weights(tmp_path):
+    torch.manual_seed(1)
+    net = make_net()
+    path = save_filter_weights(net, tmp_path / "f.safetensors", resize_max=512)
+    cm = CoarseMatcher({"mode": "filter", "weights": path, "device": "cpu"})
+    assert cm.impl == "sparse" and cm.weights_config["resize_max"] == 512
+    assert torch.equal(cm.net.filter.weights[1], net.filter.weights[1])
+    with pytest.raises(ValueError, match="trained on efficientnet-lite0"):
+        CoarseMatcher({"mode": "filter", "weights": path, "backbone": "resnet101"})
+
+
+def test_raw_net_has_no_filter_to_save(tmp_path):
+    with pytest.raises(ValueError, match="raw mode"):
+        save_filter_weights(make_net(filter=False), tmp_path / "f.safetensors", resize_max=512)

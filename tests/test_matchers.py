@@ -1,0 +1,306 @@
+"""Raw, guided (eq. 1) and classical guided matching against brute-force references and known geometry."""
+
+import logging
+import warnings
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+import torch
+
+from colmap_guided.coarse import DEFAULT_WEIGHTS
+from colmap_guided.log import logger
+from colmap_guided.matchers import MATCHERS, get_matcher
+from colmap_guided.matchers.base import ImageData
+from colmap_guided.matchers.geometric import (
+    apply_homography,
+    epipolar_distances,
+    keypoint_scales,
+    top_scale_indices,
+)
+from colmap_guided.matchers.guided import guided_match
+from colmap_guided.matchers.raw import mutual_nn_match, normalize_descriptors
+from colmap_guided.paths import shared_data_dir
+
+
+def _unit(x):
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def _reference_mutual(dist: np.ndarray, ratio):
+    """Brute force on a full (N, M) distance matrix, inf = not a candidate: mutual NN + ratio both ways."""
+    matches = []
+    for i in range(dist.shape[0]):
+        row = dist[i]
+        if not np.isfinite(row).any():
+            continue
+        j = int(np.argmin(row))
+        col = dist[:, j]
+        if int(np.argmin(col)) != i:
+            continue
+        if ratio is not None:
+            r2 = np.sort(row)[1] if len(row) > 1 else np.inf
+            c2 = np.sort(col)[1] if len(col) > 1 else np.inf
+            if not (row[j] < ratio * r2 and col[i] < ratio * c2):
+                continue
+        matches.append((i, j))
+    return np.array(matches, dtype=np.int64).reshape(-1, 2)
+
+
+def _pairwise(da, db):
+    return np.sqrt(np.maximum(((da[:, None, :] - db[None]) ** 2).sum(-1), 0))
+
+
+@pytest.mark.parametrize("ratio", [None, 0.8, 0.95])
+def test_raw_equals_bruteforce_numpy(ratio):
+    rng = np.random.default_rng(1)
+    da = _unit(rng.normal(size=(300, 32))).astype(np.float32)
+    db = np.concatenate([da[:120] + 0.05 * rng.normal(size=(120, 32)), rng.normal(size=(140, 32))]).astype(np.float32)
+    db = _unit(db)
+    expected = _reference_mutual(_pairwise(da.astype(np.float64), db.astype(np.float64)), ratio)
+    for chunk in (7, 1024):
+        got = mutual_nn_match(torch.from_numpy(da), torch.from_numpy(db), ratio, chunk_size=chunk).numpy()
+        np.testing.assert_array_equal(got, expected)
+    assert 50 < len(expected) <= 300
+
+
+def test_raw_matcher_on_uint8_descriptors_normalises_them():
+    rng = np.random.default_rng(2)
+    desc_a = rng.integers(0, 120, size=(200, 128), dtype=np.uint8)
+    desc_b = np.clip(desc_a.astype(int) + rng.integers(-4, 5, size=desc_a.shape), 0, 255).astype(np.uint8)[::-1].copy()
+    kp = np.zeros((200, 4), np.float32)
+    for array in (desc_a, desc_b):
+        array.setflags(write=False)  # as pycolmap's database arrays can be
+    a = ImageData("a", 1, None, kp, desc_a, 10, 10)
+    b = ImageData("b", 2, None, kp, desc_b, 10, 10)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = get_matcher("raw", {"device": "cpu"}).match(a, b)
+    assert got.dtype == np.uint32
+    expected = _reference_mutual(_pairwise(_unit(desc_a.astype(np.float64)), _unit(desc_b.astype(np.float64))), 0.8)
+    np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(got[:, 1], 199 - got[:, 0])  # desc_b is desc_a reversed, perturbed
+
+
+def _random_guided_problem(seed, n=900, m=800):
+    g = torch.Generator().manual_seed(seed)
+    ka = torch.rand(n, 2, generator=g) * torch.tensor([640.0, 480.0])
+    kb = torch.rand(m, 2, generator=g) * torch.tensor([600.0, 500.0])
+    da = torch.nn.functional.normalize(torch.randn(n, 24, generator=g), dim=1)
+    db = torch.nn.functional.normalize(torch.randn(m, 24, generator=g), dim=1)
+    db[:300] = torch.nn.functional.normalize(da[:300] + 0.3 * torch.randn(300, 24, generator=g), dim=1)
+    kb[:300] = ka[:300] * 0.9 + 12 + torch.randn(300, 2, generator=g)
+    flow_ab = ka * 0.9 + 12 + 6 * torch.randn(n, 2, generator=g)
+    flow_ba = (kb - 12) / 0.9 + 6 * torch.randn(m, 2, generator=g)
+    flow_ab[:5] = float("nan")  # a coarse match may be missing
+    return ka, da, kb, db, flow_ab, flow_ba
+
+
+@pytest.mark.parametrize("ratio", [None, 0.9])
+def test_guided_equals_bruteforce_eq1(ratio):
+    ka, da, kb, db, fab, fba = _random_guided_problem(0)
+    wa, wb = 20.0, 18.0
+    dist = _pairwise(da.double().numpy(), db.double().numpy())
+    cand_ab = np.linalg.norm(fab.numpy()[:, None] - kb.numpy()[None], axis=-1) < wb  # nan -> False
+    cand_ba = np.linalg.norm(ka.numpy()[:, None] - fba.numpy()[None], axis=-1) < wa
+    got = guided_match(ka, da, kb, db, fab, fba, wa, wb, ratio).numpy()
+    np.testing.assert_array_equal(got, _reference_guided(dist, cand_ab, cand_ba, ratio))
+    assert len(got) > 100
+
+
+def _reference_guided(dist, cand_ab, cand_ba, ratio):
+    """Eq. 1 in both directions by brute force: per-direction candidate sets, mutual, ratio among candidates."""
+    def one_way(d, cand):
+        best, ok = np.zeros(len(d), np.int64), np.zeros(len(d), bool)
+        for i in range(len(d)):
+            c = np.flatnonzero(cand[i])
+            if len(c) == 0:
+                continue
+            order = np.argsort(d[i, c], kind="stable")
+            best[i] = c[order[0]]
+            ok[i] = ratio is None or len(c) == 1 or d[i, c[order[0]]] < ratio * d[i, c[order[1]]]
+        return best, ok
+
+    best_ab, ok_ab = one_way(dist, cand_ab)
+    best_ba, ok_ba = one_way(dist.T, cand_ba.T)
+    return np.array([(i, best_ab[i]) for i in range(len(dist)) if ok_ab[i] and ok_ba[best_ab[i]] and best_ba[best_ab[i]] == i], dtype=np.int64).reshape(-1, 2)
+
+
+def test_guided_chunked_equals_unchunked_window_and_mutual():
+    ka, da, kb, db, fab, fba = _random_guided_problem(3)
+    wa, wb = 25.0, 22.0
+    full = guided_match(ka, da, kb, db, fab, fba, wa, wb, 0.95, max_pairs=1 << 30)
+    for max_pairs in (1, 97, 5000):
+        assert torch.equal(guided_match(ka, da, kb, db, fab, fba, wa, wb, 0.95, max_pairs=max_pairs), full)
+    i, j = full[:, 0], full[:, 1]
+    assert len(full) > 100
+    assert torch.all(torch.linalg.norm(fab[i] - kb[j], dim=1) < wb)  # within W of its coarse match in B
+    assert torch.all(torch.linalg.norm(fba[j] - ka[i], dim=1) < wa)  # and in A
+    assert len(torch.unique(i)) == len(i) and len(torch.unique(j)) == len(j)
+    reverse = guided_match(kb, db, ka, da, fba, fab, wb, wa, 0.95)  # the mutual test is symmetric
+    assert torch.equal(torch.sort(reverse.flip(1)[:, 0]).values, i)
+    assert set(map(tuple, reverse.flip(1).tolist())) == set(map(tuple, full.tolist()))
+
+
+def test_guided_valid_mask_drops_keypoints():
+    ka, da, kb, db, fab, fba = _random_guided_problem(4)
+    valid = torch.arange(len(ka)) % 2 == 0
+    got = guided_match(ka, da, kb, db, fab, fba, 20.0, 20.0, None, valid_ab=valid)
+    assert len(got) > 50 and torch.all(got[:, 0] % 2 == 0)
+
+
+def _sift(gray: np.ndarray):
+    keypoints, descriptors = pycolmap.Sift().extract(np.ascontiguousarray(gray))
+    return keypoints, descriptors
+
+
+def _facade(h=480, w=640, period=(48, 40)):
+    """A periodic facade: identical windows with mullions on a smooth wall, no distinctive detail."""
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    img = 150 + 0.05 * x
+    wy, wx = period
+    window = ((y % wy) > 10) & ((y % wy) < 36) & ((x % wx) > 8) & ((x % wx) < 30)
+    img[window] = 60
+    img[window & ((np.abs((x % wx) - 19) < 1.5) | (np.abs((y % wy) - 23) < 1.5))] = 200
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def _warp(img: np.ndarray, H: np.ndarray):
+    """Warp by H given in COLMAP pixel coordinates; returns the warped image."""
+    shift = np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1]])
+    H_index = np.linalg.inv(shift) @ H @ shift  # OpenCV works on pixel indices (centre = integer)
+    return cv2.warpPerspective(img, H_index, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR, borderValue=128)
+
+
+H_TRUE = np.array([[0.9, 0.08, 30.0], [-0.05, 0.95, 20.0], [1e-4, 5e-5, 1.0]])
+
+
+@pytest.fixture(scope="module")
+def facade_pair():
+    a = _facade()
+    b = _warp(a, H_TRUE)
+    (ka, da), (kb, db) = _sift(a), _sift(b)
+    return ka, da, kb, db
+
+
+def _share_correct(matches, ka, kb, H):
+    pred = apply_homography(torch.tensor(H, dtype=torch.float32), torch.from_numpy(ka[matches[:, 0], :2]))
+    return float((np.linalg.norm(pred.numpy() - kb[matches[:, 1], :2], axis=1) < 3).mean()) if len(matches) else 0.0
+
+
+def test_repeated_structure_confuses_raw_but_not_guided(facade_pair):
+    ka, da, kb, db = facade_pair
+    ta, tb = torch.from_numpy(ka[:, :2]), torch.from_numpy(kb[:, :2])
+    na, nb = normalize_descriptors(da, "cpu"), normalize_descriptors(db, "cpu")
+    raw = mutual_nn_match(na, nb, 0.8).numpy()
+    raw_off = mutual_nn_match(na, nb, None).numpy()
+    H = torch.tensor(H_TRUE, dtype=torch.float32)
+    flow_ab, flow_ba = apply_homography(H, ta), apply_homography(torch.linalg.inv(H), tb)
+    guided = guided_match(ta, na, tb, nb, flow_ab, flow_ba, 16.0, 16.0, 0.8).numpy()
+    raw_correct = len(raw) * _share_correct(raw, ka, kb, H_TRUE)
+    assert raw_correct < 20 and _share_correct(raw_off, ka, kb, H_TRUE) < 0.3  # the period fools nearest neighbours
+    assert len(guided) > 500 and _share_correct(guided, ka, kb, H_TRUE) > 0.9
+    assert np.all(np.linalg.norm(flow_ab.numpy()[guided[:, 0]] - kb[guided[:, 1], :2], axis=1) < 16.0)
+
+
+@pytest.fixture(scope="module")
+def photo_pair(tmp_path_factory):
+    """A real photo and its warp by a known homography, written as files (SIFT at 640 px to stay fast)."""
+    path = shared_data_dir() / "lightglue_assets" / "images" / "sacre_coeur1.jpg"
+    if not path.exists():
+        pytest.skip(f"{path} not available")
+    gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    gray = cv2.resize(gray, (640, round(640 * gray.shape[0] / gray.shape[1])), interpolation=cv2.INTER_AREA)
+    H = np.array([[0.95, 0.05, 15.0], [-0.04, 1.0, 10.0], [5e-5, -4e-5, 1.0]])
+    warped = _warp(gray, H)
+    folder = tmp_path_factory.mktemp("photo_pair")
+    cv2.imwrite(str(folder / "a.png"), gray)
+    cv2.imwrite(str(folder / "b.png"), warped)
+    (ka, da), (kb, db) = _sift(gray), _sift(warped)
+    h, w = gray.shape
+    return ImageData("a.png", 1, folder / "a.png", ka, da, w, h), ImageData("b.png", 2, folder / "b.png", kb, db, w, h), H
+
+
+@pytest.mark.parametrize("name", ["guided_homography", "guided_epipolar"])
+def test_classical_guided_baselines_on_known_homography(photo_pair, name):
+    a, b, H = photo_pair
+    raw = get_matcher("raw", {"device": "cpu"}).match(a, b)
+    matcher = get_matcher(name, {"device": "cpu"})
+    da, db = normalize_descriptors(a.descriptors, "cpu"), normalize_descriptors(b.descriptors, "cpu")
+    model = matcher.seed_model(a, b, da, db)
+    assert model is not None
+    got = matcher.match(a, b).astype(np.int64)
+    assert len(got) >= len(raw) and _share_correct(got, a.keypoints, b.keypoints, H) > 0.9
+    pa, pb = torch.from_numpy(a.keypoints[got[:, 0], :2]), torch.from_numpy(b.keypoints[got[:, 1], :2])
+    model = torch.tensor(model, dtype=torch.float32)
+    if name == "guided_homography":
+        assert torch.all(torch.linalg.norm(apply_homography(model, pa) - pb, dim=1) < matcher.conf["window_px"])
+    else:
+        d_b, d_a = epipolar_distances(model, pa, pb)
+        assert torch.all(d_b.diagonal() < matcher.conf["band_px"]) and torch.all(d_a.diagonal() < matcher.conf["band_px"])
+
+
+def test_epipolar_distance_convention_matches_pycolmap():
+    rng = np.random.default_rng(0)
+    X = rng.uniform([-2, -2, 4], [2, 2, 8], size=(60, 3))
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    R, _ = cv2.Rodrigues(np.array([0.0, 0.2, 0.05]))
+    xa = (K @ X.T).T
+    xb = (K @ (R @ X.T + np.array([[-1.0], [0.1], [0.2]]))).T
+    pa, pb = xa[:, :2] / xa[:, 2:], xb[:, :2] / xb[:, 2:]
+    F = pycolmap.estimate_fundamental_matrix(pa, pb)["F"]
+    d_b, d_a = epipolar_distances(torch.tensor(F), torch.tensor(pa), torch.tensor(pb))
+    assert d_b.diagonal().max() < 1e-3 and d_a.diagonal().max() < 1e-3
+    assert d_b.median() > 10  # unrelated points are far from each other's epipolar lines
+
+
+def test_keypoint_scales_from_affine_and_scale_columns():
+    kp4 = np.array([[0, 0, 2.0, 0.3], [0, 0, 5.0, 1.0], [0, 0, 1.0, 0.0]], np.float32)
+    theta = 0.7
+    rot = np.array([np.cos(theta), -np.sin(theta), np.sin(theta), np.cos(theta)])
+    kp6 = np.concatenate([np.zeros((3, 2)), kp4[:, 2:3] * rot], 1)  # COLMAP affine: scale * rotation
+    np.testing.assert_allclose(keypoint_scales(kp6), kp4[:, 2], rtol=1e-6)
+    np.testing.assert_array_equal(top_scale_indices(kp4, 0.34), [1])
+
+
+def test_registry():
+    assert set(MATCHERS) == {"raw", "guided", "guided_epipolar", "guided_homography"}
+    with pytest.raises(ValueError, match="Unknown matcher"):
+        get_matcher("nope")
+    with pytest.raises(ValueError, match="Unknown raw matcher option"):
+        get_matcher("raw", {"ratoi": 0.8})
+
+
+def test_guided_matcher_end_to_end_on_known_homography(photo_pair):
+    a, b, H = photo_pair
+    matcher = get_matcher("guided", {"device": "cpu", "ratio": 0.9})
+    flows = matcher.coarse_flows(a, b)
+    got = matcher.match_flows(a, b, flows)
+    np.testing.assert_array_equal(matcher.match(a, b), got)  # features reused from the cache
+    assert len(got) > 100 and _share_correct(got.astype(np.int64), a.keypoints, b.keypoints, H) > 0.9
+    i, j = got[:, 0].astype(np.int64), got[:, 1].astype(np.int64)
+    w = matcher.conf["window_cells"]
+    assert np.all(np.linalg.norm(flows.flow_ab[i] - b.keypoints[j, :2], axis=1) < w * flows.cell_b)
+    assert np.all(np.linalg.norm(flows.flow_ba[j] - a.keypoints[i, :2], axis=1) < w * flows.cell_a)
+    assert a.name in matcher.coarse.cache
+    matcher.release(a.name)
+    assert a.name not in matcher.coarse.cache
+
+
+def test_guided_matcher_weights_fallback_is_loud(tmp_path):
+    records = []
+    handler = logging.Handler()
+    handler.emit = records.append
+    logger.addHandler(handler)
+    try:
+        matcher = get_matcher("guided", {"device": "cpu"})
+    finally:
+        logger.removeHandler(handler)
+    warned = [r for r in records if r.levelno == logging.WARNING and "coarse filter" in r.getMessage()]
+    if DEFAULT_WEIGHTS.exists():
+        assert matcher.coarse.conf["mode"] == "filter" and not warned
+    else:
+        assert matcher.coarse.conf["mode"] == "raw" and len(warned) == 1
+    with pytest.raises(FileNotFoundError):
+        get_matcher("guided", {"device": "cpu", "weights": str(tmp_path / "missing.safetensors")})
