@@ -52,6 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     imp.add_argument("--image_path", type=Path, default=None, help="photos folder: sizes for files without image_size")
     _add_common(imp)
 
+    sub.add_parser("coarse", help="coarse matches of two images drawn to a PNG (see `coarse --help`)", add_help=False)
     rep = sub.add_parser("report", help="write OUTPUT/report.html again from report.json, e.g. with raw vs guided matches")
     rep.add_argument("output", type=Path, help="workspace of a reconstruct run (holds report.json)")
     rep.add_argument("--compare", action="append", default=[], metavar="LABEL=DATABASE", help="also draw the same pairs from this database (repeatable)")
@@ -61,6 +62,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["coarse"]:  # the coarse network alone: `coarse IMG_A IMG_B --out flow.png`
+        from .coarse.viz import main as coarse_main
+
+        return coarse_main(argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     set_verbosity(args.verbose, args.quiet)
