@@ -12,13 +12,11 @@ import argparse
 import json
 import shutil
 import tempfile
-import time
 from pathlib import Path
 
-import pycolmap
-
-from colmap_guided import features, mapping, report
+from colmap_guided import features, report
 from colmap_guided.database import num_verified_pairs, open_database
+from colmap_guided.evaluation.registration import run_pycolmap_default
 from colmap_guided.log import set_verbosity
 from colmap_guided.paths import shared_data_dir
 from colmap_guided.reconstruct import reconstruct
@@ -28,22 +26,10 @@ DEFAULT_SETS = ["sacre_coeur_hloc", "sceaux_castle", "opensfm_lund", "phototouri
 
 def run_default(image_path: Path, work: Path, camera_mode: str) -> dict:
     """extract_features + match_exhaustive + incremental_mapping with pycolmap's defaults."""
-    work.mkdir(parents=True)
-    db = work / "database.db"
-    names = features.list_images(image_path)
-    timings = {}
-    start = time.time()
-    pycolmap.extract_features(db, image_path, image_names=names, camera_mode=features.CAMERA_MODES[camera_mode])
-    timings["extract"] = time.time() - start
-    start = time.time()
-    pycolmap.match_exhaustive(db)
-    timings["match+verify"] = time.time() - start
-    start = time.time()
-    models = mapping.incremental_mapping(db, image_path, work / "sparse")
-    timings["map"] = time.time() - start
-    with open_database(db) as database:
+    models, timings = run_pycolmap_default(image_path, work, camera_mode)
+    with open_database(work / "database.db") as database:
         verified = num_verified_pairs(database)
-    return {"timings": timings, "num_verified_pairs": verified, **report.model_statistics(models, names)}
+    return {"timings": timings, "num_verified_pairs": verified, **report.model_statistics(models, features.list_images(image_path))}
 
 
 def main(argv=None):

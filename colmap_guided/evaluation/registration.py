@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from colmap_guided.features import CAMERA_MODES
 from colmap_guided.log import logger
 
 from . import matcher_specs
@@ -172,7 +173,7 @@ def method_slug(method: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.=-]+", "_", method).strip("_")
 
 
-def run_pycolmap_default(image_dir: Path, workspace: Path) -> tuple[dict, dict]:
+def run_pycolmap_default(image_dir: Path, workspace: Path, camera_mode: str = "auto") -> tuple[dict, dict]:
     """pycolmap's default pipeline with default options; returns (models, timings)."""
     workspace = Path(workspace)
     if workspace.exists():
@@ -181,7 +182,7 @@ def run_pycolmap_default(image_dir: Path, workspace: Path) -> tuple[dict, dict]:
     db = workspace / "database.db"
     timings = {}
     start = time.time()
-    pycolmap.extract_features(db, image_dir)
+    pycolmap.extract_features(db, image_dir, camera_mode=CAMERA_MODES[camera_mode])
     timings["extract"] = time.time() - start
     start = time.time()
     pycolmap.match_exhaustive(db)
