@@ -16,7 +16,7 @@ from pathlib import Path
 from . import database as dbio
 from . import features, html_report, mapping, match, report
 from .log import logger
-from .matchers import Matcher, get_matcher
+from .matchers import DEFAULT_MATCHER, Matcher, get_matcher
 
 
 def resolve_paths(scene_dir: Path, image_path: Path | None, output: Path | None) -> tuple[Path, Path]:
@@ -38,7 +38,7 @@ def reconstruct(
     scene_dir: Path,
     image_path: Path | None = None,
     output: Path | None = None,
-    matcher: str = "raw",
+    matcher: str = DEFAULT_MATCHER,
     matcher_conf: dict | None = None,
     pairs_path: Path | None = None,
     feature_conf: dict | None = None,

@@ -128,7 +128,7 @@ def main(argv=None):
     p.add_argument("--max_points", type=int, default=500, help="GT matches per pair")
     p.add_argument("--resize_max", type=int, default=512)
     p.add_argument("--impl", choices=["auto", "dense", "sparse"], default="auto")
-    p.add_argument("--sparse_k", type=int, default=10)
+    p.add_argument("--sparse_k", type=int, default=CoarseMatcher.default_conf["sparse_k"], help="sparse filter: best cells kept per cell (product default)")
     p.add_argument("--backbone", default="efficientnet-lite0")
     p.add_argument("--archival", default=None, help=f"also evaluate with B degraded by a preset of {sorted(archival.PRESETS)}")
     p.add_argument("--no_baselines", action="store_true", help="skip raw correlation and the untrained filter")

@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import pytest
+import torch
 
 from colmap_guided.paths import shared_data_dir
 
@@ -20,3 +21,12 @@ def shared_data() -> Path:
     if not root.is_dir():
         pytest.skip(f"real photo sets not found at {root} (set COLMAP_GUIDED_DATA)")
     return root
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """As CoarseMatcher does on CPU (num_threads=1); restored for the other test modules."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

@@ -10,13 +10,7 @@ from colmap_guided.coarse.model import correlation
 from colmap_guided.paths import shared_data_dir
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """As CoarseMatcher does on CPU (num_threads=1); restored for the other test modules."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

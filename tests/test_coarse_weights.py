@@ -9,13 +9,7 @@ from safetensors.torch import save_file
 from colmap_guided.coarse import CoarseMatcher, CoarseNet, load_filter_weights, read_filter_weights, save_filter_weights
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_torch_thread():
-    """As CoarseMatcher does on CPU (num_threads=1); restored for the other test modules."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def make_net(**conf):

@@ -114,3 +114,13 @@ def test_matches_are_stored_as_pair_indices_into_both_images(raw_run):
 def test_real_photos_sacre_coeur(shared_data, tmp_path):
     result = reconstruct(shared_data / "sacre_coeur_hloc", output=tmp_path / "out", matcher="raw")
     assert result["num_registered"] >= 9 and result["mean_reprojection_error"] < 1.5
+
+
+def test_guided_reconstruction_with_the_shipped_filter(synthetic_scene, tmp_path):
+    """The default matcher (guided, trained filter) registers every image with the true poses."""
+    result = reconstruct(synthetic_scene.image_dir.parent, output=tmp_path / "guided")
+    assert result["matcher"]["name"] == "guided"
+    assert result["matcher"]["coarse"]["conf"]["mode"] == "filter"  # the shipped weights, not the raw fallback
+    assert result["num_registered"] == len(synthetic_scene.names)
+    errors = pose_errors(pycolmap.Reconstruction(str(tmp_path / "guided" / "sparse" / "0")), synthetic_scene)
+    assert max(e[0] for e in errors.values()) < 1.0 and max(e[1] for e in errors.values()) < 0.02, errors
