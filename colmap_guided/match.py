@@ -22,9 +22,6 @@ from .matchers import MATCHERS, get_matcher
 from .matchers.base import ImageData, Matcher
 from .pairs import exhaustive_pairs, read_pairs
 
-default_conf = {"matcher": "raw", "matcher_conf": {}, "verification": {}, "overwrite": False}
-
-
 def _progress(iterable, desc: str, total: int):
     return tqdm(iterable, desc=desc, total=total, unit="pair", disable=None, dynamic_ncols=True, leave=False)
 
@@ -105,17 +102,17 @@ def match_database(
 def verify_pairs(db, images: dict, id_pairs: list[tuple[int, int, str, str]], options) -> int:
     """Two-view geometry of every matched, not yet verified pair (id_a, id_b, name_a, name_b); returns how many."""
     unverified = [p for p in id_pairs if dbio.pair_has_matches(db, p[0], p[1]) and not dbio.pair_is_verified(db, p[0], p[1])]
-    cameras = {}
+    cameras, keypoints = {}, {}  # read once per camera / image, not once per pair
     with colmap_quiet():
         for id_a, id_b, a, b in _progress(unverified, "verify", len(unverified)):
-            kpts = []
             for name in (a, b):
                 image = images[name]
                 if image.camera_id not in cameras:
                     cameras[image.camera_id] = db.read_camera(image.camera_id)
-                kpts.append(np.asarray(db.read_keypoints(image.image_id), np.float32))
+                if name not in keypoints:
+                    keypoints[name] = np.asarray(db.read_keypoints(image.image_id), np.float32)
             matches = dbio.read_pair_matches(db, id_a, id_b)
-            geometry = verify.verify_pair(cameras[images[a].camera_id], kpts[0], cameras[images[b].camera_id], kpts[1], matches, options)
+            geometry = verify.verify_pair(cameras[images[a].camera_id], keypoints[a], cameras[images[b].camera_id], keypoints[b], matches, options)
             dbio.write_pair_geometry(db, id_a, id_b, geometry)
     return len(unverified)
 
