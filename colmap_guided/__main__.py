@@ -75,8 +75,6 @@ def main(argv=None) -> int:
 
     matcher = getattr(args, "matcher", None) or DEFAULT_MATCHER
     try:
-        if getattr(args, "weights", None) is not None:
-            match.check_weights_file(args.weights)
         if args.command == "export":
             from .export import export_h5
 

@@ -88,6 +88,7 @@ def read_image_data(db: pycolmap.Database, image: pycolmap.Image, image_path: Pa
         descriptors=np.asarray(descriptors),
         width=camera.width,
         height=camera.height,
+        camera=camera,
     )
 
 

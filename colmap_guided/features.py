@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import logging
 import os
 import posixpath
 import time
@@ -26,7 +25,7 @@ from tqdm import tqdm
 from . import database as dbio
 from . import images
 from .database import open_database
-from .log import logger
+from .log import colmap_quiet, logger
 
 IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm", ".webp", ".jp2"}
 CAMERA_MODES = {
@@ -99,20 +98,6 @@ def extraction_options(conf: dict, max_pixels: int | None = None) -> pycolmap.Fe
     options.sift.max_num_features = conf["max_num_features"]
     options.num_threads = extraction_threads(conf, max_pixels)
     return options
-
-
-@contextlib.contextmanager
-def colmap_quiet():
-    """COLMAP's own (glog) log silenced during a pycolmap call, unless our logger shows debug messages."""
-    if logger.isEnabledFor(logging.DEBUG):
-        yield
-        return
-    saved = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = max(saved, 2)
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = saved
 
 
 def _camera_key(image_path: Path, name: str, mode: str):

@@ -1,5 +1,6 @@
 """The package's one logger, and the switch that keeps pycolmap/glog quiet."""
 
+import contextlib
 import logging
 import os
 
@@ -24,3 +25,19 @@ def set_verbosity(verbose: bool = False, quiet: bool = False) -> None:
         pycolmap.logging.minloglevel = level
     except (ImportError, AttributeError):
         pass
+
+
+@contextlib.contextmanager
+def colmap_quiet():
+    """COLMAP's own (glog) log silenced during a pycolmap call, unless our logger shows debug messages."""
+    if logger.isEnabledFor(logging.DEBUG):
+        yield
+        return
+    import pycolmap
+
+    saved = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = max(saved, 2)
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = saved

@@ -11,8 +11,7 @@ from pathlib import Path
 
 import pycolmap
 
-from .features import colmap_quiet
-from .log import logger
+from .log import colmap_quiet, logger
 
 default_conf = {"random_seed": 0, "min_model_size": 3, "num_threads": -1}
 

@@ -16,8 +16,7 @@ from tqdm import tqdm
 
 from . import database as dbio
 from . import verify
-from .features import colmap_quiet
-from .log import logger
+from .log import colmap_quiet, logger
 from .matchers import MATCHERS, get_matcher
 from .matchers.base import ImageData, Matcher
 from .pairs import exhaustive_pairs, read_pairs
@@ -37,7 +36,7 @@ def match_database(
 ) -> dict:
     """Match (exhaustively, or the pairs of ``pairs_path``) and verify; return statistics for the report."""
     matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
-    verification_conf = {**getattr(matcher, "verification_conf", {}), **(verification_conf or {})}
+    verification_conf = {**matcher.verification_conf, **(verification_conf or {})}
     options = verify.two_view_options(verification_conf)
     stats = {"matcher": matcher.describe(), "verification": {**verify.default_conf, **verification_conf}}
     with dbio.open_database(database_path) as db:
@@ -123,23 +122,6 @@ def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pairs", type=Path, default=None, help="pairs file (name_a name_b per line); exhaustive if omitted")
     parser.add_argument("--weights", type=Path, default=None, help="coarse filter weights (guided matcher)")
     parser.add_argument("--device", default=None, help="torch device for matching (cpu, cuda)")
-
-
-def check_weights_file(path: Path) -> None:
-    """A --weights file that exists and is a readable safetensors/torch file, else a one-line error."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"--weights {path}: no such file; pass the path of the coarse filter weights (.safetensors), or leave --weights out.")
-    if path.suffix == ".safetensors":
-        try:
-            from safetensors import safe_open
-
-            with safe_open(str(path), framework="pt") as f:
-                list(f.keys())
-        except Exception as err:  # noqa: BLE001 - safetensors raises its own error types
-            raise ValueError(f"--weights {path} is not a readable safetensors file ({type(err).__name__}); download or train it again.") from None
-    elif path.stat().st_size == 0:
-        raise ValueError(f"--weights {path} is empty; download or train it again.")
 
 
 def matcher_conf_from_args(args, matcher: str) -> dict:

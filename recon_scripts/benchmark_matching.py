@@ -2,8 +2,8 @@
 
 For every related pair (same scene: sacre_coeur_hloc, lund_door_gtsfm, lightglue_assets, WxBS
 appearance/illumination categories) it reports the COLMAP-verified inliers (pycolmap
-estimate_two_view_geometry, default options, >= 15 inliers) of raw, guided, guided_epipolar and
-guided_homography, whether the verified geometry agrees with the reference correspondences where
+estimate_two_view_geometry, the pipeline's options: >= 15 inliers, guided >= its min_inliers) of raw, guided, guided_epipolar,
+guided_homography and guided_colmap (COLMAP's own guided_matching), whether the verified geometry agrees with the reference correspondences where
 there are some (WxBS hand-labelled corrs.txt; lund_door's reference model), and the wall time of
 raw vs guided (coarse extraction of both images + coarse match + eq. 1) on the same pair.
 On pairs of unrelated images (different scenes) it reports the share that verifies per matcher:
@@ -34,10 +34,11 @@ from colmap_guided import verify
 from colmap_guided.log import logger
 from colmap_guided.matchers import get_matcher
 from colmap_guided.matchers.base import ImageData
+from colmap_guided.matchers.colmap import default_camera
 from colmap_guided.matchers.guided import GuidedMatcher
 from colmap_guided.paths import shared_data_dir
 
-BASELINES = ["raw", "guided", "guided_epipolar", "guided_homography"]
+BASELINES = ["raw", "guided", "guided_epipolar", "guided_homography", "guided_colmap"]
 WXBS_RELATED = ["WGABS", "WGALBS", "WGLBS", "WLABS"]  # appearance / illumination changes
 MAX_IMAGE_SIZE = 3200  # COLMAP feature_extractor's default
 MAX_NUM_FEATURES = 8192
@@ -138,16 +139,10 @@ def unrelated_pairs(count: int, seed: int = 0) -> list[dict]:
 # ------------------------------------------------------------------------------------------------
 
 
-def default_camera(image: ImageData) -> pycolmap.Camera:
-    """COLMAP's camera for a photo without EXIF focal: SIMPLE_RADIAL, f = 1.2 * max(w, h)."""
-    return pycolmap.Camera.create_from_model_id(
-        0, pycolmap.CameraModelId.SIMPLE_RADIAL, 1.2 * max(image.width, image.height), image.width, image.height
-    )
-
-
-def verify_matches(a: ImageData, b: ImageData, matches: np.ndarray) -> pycolmap.TwoViewGeometry:
-    """COLMAP's two-view verification with the pipeline's options (defaults, >= 15 inliers)."""
-    return verify.verify_pair(default_camera(a), a.keypoints, default_camera(b), b.keypoints, matches, verify.two_view_options())
+def verify_matches(a: ImageData, b: ImageData, matches: np.ndarray, matcher) -> pycolmap.TwoViewGeometry:
+    """COLMAP's two-view verification with the pipeline's options for ``matcher`` (raw: >= 15 inliers, guided: its min_inliers)."""
+    options = verify.two_view_options(matcher.verification_conf)
+    return verify.verify_pair(default_camera(a), a.keypoints, default_camera(b), b.keypoints, matches, options)
 
 
 def reference_error(geometry: pycolmap.TwoViewGeometry, corrs: np.ndarray | None) -> float | None:
@@ -206,7 +201,7 @@ def run_pair(pair: dict, matchers: dict, cache_dir: Path, max_ref_err: float, re
             timing["total_s"] = timing["coarse_extract_s"] + timing["coarse_match_s"] + timing["eq1_s"]
         else:
             matches, timing["total_s"] = best_time(partial(matcher.match, a, b), repeat)
-        geometry = verify_matches(a, b, matches)
+        geometry = verify_matches(a, b, matches, matcher)
         err = reference_error(geometry, pair["corrs"])
         row[name] = {
             "matches": len(matches),
@@ -222,7 +217,7 @@ def run_pair(pair: dict, matchers: dict, cache_dir: Path, max_ref_err: float, re
 def sweep(pairs: list[dict], unrelated: list[dict], guided: GuidedMatcher, cache_dir: Path, max_ref_err: float) -> list[dict]:
     """Verified inliers (related) and verified share (unrelated) over a grid of guided options."""
     grid = {
-        "ratio": [None, 0.9, 0.95],
+        "ratio": [None, 0.8, 0.9, 0.95],
         "max_fb_cells": [None, 2.0],
         "window_cells": [1.0, 2.0],
     }
@@ -235,7 +230,7 @@ def sweep(pairs: list[dict], unrelated: list[dict], guided: GuidedMatcher, cache
             flows = guided.coarse_flows(a, b)
             for combo in ["raw", *combos]:
                 matches = raw.match(a, b) if combo == "raw" else guided.match_flows(a, b, flows, **combo)
-                geometry = verify_matches(a, b, matches)
+                geometry = verify_matches(a, b, matches, raw if combo == "raw" else guided)
                 r = results[json.dumps(combo)]
                 r[f"{kind}_inliers"].append(len(geometry.inlier_matches))
                 if kind == "related" and pair["corrs"] is not None:

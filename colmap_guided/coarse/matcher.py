@@ -37,6 +37,9 @@ def load_image(path: str | Path, grayscale: bool = False) -> np.ndarray:
         return np.asarray(im.convert("L" if grayscale else "RGB"))
 
 
+PRECISIONS = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
+
+
 @dataclass
 class CoarseFeatures:
     """Backbone features of one image: L2-normalised (C, h, w) on the matcher's device + geometry."""
@@ -61,6 +64,7 @@ class CoarseMatcher:
         "sparse_radius": 1,  # sparse filter: also the (2r+1)^2 cells around each cell's best match
         "raw_temperature": 0.02,  # raw mode: softmax temperature of the scores
         "cache_path": None,  # optional .h5 file caching backbone features across runs
+        "precision": "float32",  # dense filter: 'float32' | 'float16' | 'bfloat16' (autocast; README: accuracy)
         "num_threads": 1,  # CPU: torch.set_num_threads(n) at construction (process-wide!); None: leave as is
     }
 
@@ -77,6 +81,9 @@ class CoarseMatcher:
         if impl not in ("dense", "sparse"):
             raise ValueError(f"impl must be 'dense', 'sparse' or 'auto', got {conf['impl']!r}")
         self.impl = impl
+        if conf["precision"] not in PRECISIONS:
+            raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {conf['precision']!r}")
+        self.dtype = PRECISIONS[conf["precision"]]
         if self.device.type == "cpu" and conf["num_threads"] is not None and torch.get_num_threads() != conf["num_threads"]:
             # The sparse filter is hundreds of small ops; on shared cores every OpenMP barrier waits for
             # a descheduled thread. On the 2-core dev machine (load ~5-10) one thread was 3-8x faster
@@ -170,7 +177,7 @@ class CoarseMatcher:
 
     def match(self, fa: CoarseFeatures, fb: CoarseFeatures) -> CoarseResult:
         """Coarse matches and flow of one pair (A = fa, B = fb)."""
-        grid = self.net.match(fa.features, fb.features, self.impl, self.conf["sparse_k"], self.conf["sparse_radius"])
+        grid = self.net.match(fa.features, fb.features, self.impl, self.conf["sparse_k"], self.conf["sparse_radius"], self.dtype)
         return CoarseResult(fa.geometry, fb.geometry, grid)
 
     def match_pairs(self, pairs: list[tuple[CoarseFeatures, CoarseFeatures]]) -> list[CoarseResult]:
@@ -183,7 +190,7 @@ class CoarseMatcher:
             groups.setdefault((tuple(fa.features.shape), tuple(fb.features.shape)), []).append(i)
         for idx in groups.values():
             grids = self.net.match_batch(torch.stack([pairs[i][0].features for i in idx]),
-                                         torch.stack([pairs[i][1].features for i in idx]))
+                                         torch.stack([pairs[i][1].features for i in idx]), self.dtype)
             for i, grid in zip(idx, grids):
                 results[i] = CoarseResult(pairs[i][0].geometry, pairs[i][1].geometry, grid)
         return results

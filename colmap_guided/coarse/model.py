@@ -250,22 +250,25 @@ class CoarseNet(nn.Module):
         return {"corr": corr, "volume": volume, "s_ab": s_ab, "s_ba": s_ba}
 
     @torch.no_grad()
-    def match(self, feat_a: torch.Tensor, feat_b: torch.Tensor, impl: str = "dense", k: int = 3, radius: int = 1) -> GridMatches:
+    def match(self, feat_a: torch.Tensor, feat_b: torch.Tensor, impl: str = "dense", k: int = 3, radius: int = 1,
+              dtype: torch.dtype = torch.float32) -> GridMatches:
         """Coarse matches of one pair of features (C, hA, wA), (C, hB, wB). ``impl``: 'dense' (whole
         volume; GPU) or 'sparse' (filter on ``sparse_support(k, radius)``; CPU). Raw mode ignores it."""
         if impl not in ("dense", "sparse"):
             raise ValueError(f"impl must be 'dense' or 'sparse', got {impl!r}")
         if impl == "sparse" and self.filter is not None:
             return self.match_sparse(correlation(feat_a[None], feat_b[None])[0], k, radius)
-        return self.match_batch(feat_a[None], feat_b[None])[0]
+        return self.match_batch(feat_a[None], feat_b[None], dtype)[0]
 
     @torch.no_grad()
-    def match_batch(self, feat_a: torch.Tensor, feat_b: torch.Tensor) -> list[GridMatches]:
-        """Dense coarse matches of a batch of same-size pairs (B, C, hA, wA), (B, C, hB, wB)."""
-        corr = correlation(feat_a, feat_b)
+    def match_batch(self, feat_a: torch.Tensor, feat_b: torch.Tensor, dtype: torch.dtype = torch.float32) -> list[GridMatches]:
+        """Dense coarse matches of a batch of same-size pairs (B, C, hA, wA), (B, C, hB, wB). ``dtype``
+        float16/bfloat16 runs correlation and filter under autocast (GPU); argmax and scores in float32."""
+        with torch.autocast(feat_a.device.type, dtype=dtype, enabled=dtype != torch.float32):
+            corr = correlation(feat_a, feat_b)
+            volume = corr / self.conf["raw_temperature"] if self.filter is None else self.filter_volume(corr)
         _, ha, wa, hb, wb = corr.shape
-        volume = corr / self.conf["raw_temperature"] if self.filter is None else self.filter_volume(corr)
-        return [_dense_matches(v.reshape(ha * wa, hb * wb)) for v in volume]
+        return [_dense_matches(v.float().reshape(ha * wa, hb * wb)) for v in volume]
 
     def match_sparse(self, corr: torch.Tensor, k: int, radius: int = 0) -> GridMatches:
         """Sparse filter (Sparse-NCNet's idea) on ``sparse_support(corr, k, radius)``; with k ≥ the grid

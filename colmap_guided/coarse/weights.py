@@ -59,15 +59,15 @@ def read_filter_weights(path: str | Path | None = None) -> tuple[dict[str, torch
     path = Path(path) if path else DEFAULT_WEIGHTS
     if not path.is_file():
         raise FileNotFoundError(
-            f"Coarse filter weights not found at {path}: train them (see the training docs) or pass "
-            f"weights=PATH, or use mode='raw' (no filter)"
+            f"Coarse filter weights {path}: no such file; pass the path of trained filter weights (.safetensors), "
+            f"train them (python -m colmap_guided.train), or use mode='raw' (no filter)"
         )
     try:
         with safe_open(str(path), framework="pt") as f:
             meta = f.metadata() or {}
             tensors = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 (safe_open is not a dict)
     except (SafetensorError, OSError) as e:
-        raise ValueError(f"{path} is not a safetensors file ({e}): re-save it with save_filter_weights") from None
+        raise ValueError(f"{path} is not a readable safetensors file ({type(e).__name__}): download or train the filter weights again") from None
     if "config" not in meta:
         raise ValueError(f"{path} has no coarse-filter config in its metadata: re-save it with save_filter_weights")
     config = json.loads(meta["config"])

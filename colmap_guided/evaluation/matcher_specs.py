@@ -25,6 +25,7 @@ DEFAULT_TWO_VIEW_SPECS = (
     "guided:ratio=0.95",
     "guided_epipolar",
     "guided_homography",
+    "guided_colmap",  # COLMAP's own guided_matching option
 )
 
 

@@ -220,16 +220,17 @@ def estimate_geometry(pts1: np.ndarray, pts2: np.ndarray, geometry: str = "F", t
     pts1 = np.ascontiguousarray(np.asarray(pts1, np.float64).reshape(-1, 2))
     pts2 = np.ascontiguousarray(np.asarray(pts2, np.float64).reshape(-1, 2))
     cv2.setRNGSeed(seed)
-    if geometry == "F":
-        if len(pts1) < 8:
-            return None
-        M, mask = cv2.findFundamentalMat(pts1, pts2, cv2.USAC_MAGSAC, threshold_px, confidence, max_iters)
-    elif geometry == "H":
-        if len(pts1) < 4:
-            return None
-        M, mask = cv2.findHomography(pts1, pts2, cv2.USAC_MAGSAC, threshold_px, maxIters=max_iters, confidence=confidence)
-    else:
+    if geometry not in ("F", "H"):
         raise ValueError(f"geometry must be 'F' or 'H', got {geometry!r}")
+    if len(pts1) < (8 if geometry == "F" else 4):
+        return None
+    try:
+        if geometry == "F":
+            M, mask = cv2.findFundamentalMat(pts1, pts2, cv2.USAC_MAGSAC, threshold_px, confidence, max_iters)
+        else:
+            M, mask = cv2.findHomography(pts1, pts2, cv2.USAC_MAGSAC, threshold_px, maxIters=max_iters, confidence=confidence)
+    except cv2.error:  # OpenCV 5 asserts on degenerate samples instead of returning no model
+        return None
     if M is None or mask is None or M.shape != (3, 3):
         return None
     return {"M": M, "inliers": mask.ravel() > 0, "num_inliers": int((mask.ravel() > 0).sum())}

@@ -1,8 +1,9 @@
-"""Matcher registry: ``get_matcher(name, conf)`` for raw, guided, guided_epipolar, guided_homography."""
+"""Matcher registry: ``get_matcher(name, conf)`` for raw, guided, guided_epipolar, guided_homography, guided_colmap."""
 
 from __future__ import annotations
 
 from colmap_guided.matchers.base import ImageData, Matcher
+from colmap_guided.matchers.colmap import ColmapGuidedMatcher
 from colmap_guided.matchers.geometric import (
     EpipolarGuidedMatcher,
     HomographyGuidedMatcher,
@@ -11,7 +12,7 @@ from colmap_guided.matchers.guided import GuidedMatcher
 from colmap_guided.matchers.raw import RawMatcher
 
 MATCHERS: dict[str, type[Matcher]] = {
-    cls.name: cls for cls in (RawMatcher, GuidedMatcher, EpipolarGuidedMatcher, HomographyGuidedMatcher)
+    cls.name: cls for cls in (RawMatcher, GuidedMatcher, EpipolarGuidedMatcher, HomographyGuidedMatcher, ColmapGuidedMatcher)
 }
 DEFAULT_MATCHER = "guided"
 

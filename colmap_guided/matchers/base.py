@@ -23,6 +23,7 @@ class ImageData:
     descriptors: np.ndarray  # (N, D) uint8 (SIFT) or float32
     width: int
     height: int
+    camera: object = None  # pycolmap.Camera of the database, when there is one (COLMAP's guided matching needs it)
     extra: dict = field(default_factory=dict)  # per-matcher caches (e.g. backbone features)
 
 
@@ -31,6 +32,7 @@ class Matcher:
 
     name = "base"
     default_conf: dict = {}
+    verification_conf: dict = {}  # options of verify.two_view_options for this matcher's pairs (e.g. min_num_inliers)
 
     def __init__(self, conf: dict | None = None):
         unknown = set(conf or {}) - set(self.default_conf)

@@ -166,19 +166,18 @@ class GuidedMatcher(Matcher):
         "weights": None,  # coarse filter weights; None = the shipped ones (raw-correlation fallback, with a WARNING)
         "mode": "auto",  # 'auto' | 'filter' (weights required) | 'raw' (correlation only, untrained)
         "coarse": {},  # further CoarseMatcher options (backbone, resize_max, impl, cache_path, ...)
-        # Defaults measured with recon_scripts/benchmark_matching.py --sweep (raw-correlation guidance: no
-        # trained weights yet), 20 same-scene pairs (15 with reference correspondences: lund_door, WxBS)
-        # and 24 pairs of unrelated photos. raw: 8/20 verified, 4 correct / 0 wrong, 0/24 unrelated.
-        # Guided without ratio test: 7/24 unrelated verify at W = 1 cell, 18/24 at 2 cells, 9-11 wrong
-        # geometries. Ratio 0.9 among the candidates, W = 2 cells: 10/20 verified, 5 correct / 0 wrong,
-        # 0/24 unrelated, median verified inliers 0.99x raw. At W = 1 (the paper's, for a trained filter):
-        # 1 wrong. Ratio 0.95 alone: 5 wrong (0-2 with forward-backward <= 2 cells). Forward-backward
-        # <= 2 cells on top of ratio 0.9: no fewer wrong geometries, 0.89x the inliers (so off by default).
-        # With the shipped (trained) filter, ratio 0.9 let 4/10 unrelated pairs of tests/test_matchers_real.py
-        # verify (15-20 inliers) at W = 1 or 2; ratio 0.8 let none, and still beat raw on held-out
-        # pairs (lund_door 2-3: 7763 vs 7599 verified inliers; sacre_coeur: 97 vs 39) at W = 1 (2026-11-23).
+        # Defaults measured with recon_scripts/benchmark_matching.py --sweep, shipped filter, 20 same-scene
+        # pairs (15 with reference correspondences: lund_door, WxBS) and 24 pairs of unrelated photos
+        # (2026-11-23). raw: 8/20 verified, 4 correct / 0 wrong, 0/24 unrelated. Guided without ratio test:
+        # 24/24 unrelated verify (27-59 inliers), so a ratio test among the candidates is required; 0.95:
+        # 23/24, 0.9: 4/24 (15-16 inliers), 0.8: 0/24 with 1.34x raw's verified inliers (median), 5 correct /
+        # 3 wrong geometries (WxBS day/night pairs, 15-20 inliers; the correct ones have 30-8569). W = 2 cells
+        # or forward-backward <= 2 cells: no better. Guided matches follow a smooth flow, so a wrong flow
+        # gathers more chance inliers than unguided matches: guided pairs need ``min_inliers`` = 25 to
+        # verify (COLMAP's 15 for raw), which removes the 3 wrong geometries and keeps every correct one.
         "window_cells": 1.0,  # W of eq. 1 in coarse cells (1 cell = 16 px at the network input scale, as the paper)
         "ratio": 0.8,  # Lowe's ratio among the candidates, both directions; None = off
+        "min_inliers": 25,  # two-view verification of guided pairs: at least this many inliers (COLMAP: 15)
         "max_fb_cells": None,  # drop keypoints whose coarse forward-backward error exceeds this many cells
         "min_score": None,  # drop keypoints whose coarse match score (softmax probability) is below this
         "device": "auto",
@@ -188,6 +187,7 @@ class GuidedMatcher(Matcher):
     def __init__(self, conf: dict | None = None):
         super().__init__(conf)
         self.device = resolve_device(self.conf["device"])
+        self.verification_conf = {"min_num_inliers": self.conf["min_inliers"]}  # read by match.match_database
         coarse_conf = {**self.conf["coarse"], "device": str(self.device), "weights": self.conf["weights"]}
         mode = self.conf["mode"]
         if mode not in ("auto", "filter", "raw"):
