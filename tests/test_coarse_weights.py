@@ -69,3 +69,20 @@ def test_matcher_loads_filter_weights(tmp_path):
 def test_raw_net_has_no_filter_to_save(tmp_path):
     with pytest.raises(ValueError, match="raw mode"):
         save_filter_weights(make_net(filter=False), tmp_path / "f.safetensors", resize_max=512)
+
+
+@pytest.mark.parametrize("name", ["coarse_filter.safetensors", "coarse_filter_permissive.safetensors"])
+def test_shipped_weights_load_and_record_their_training(name):
+    """Both shipped filters load for the default backbone; the permissive one was trained only on the
+    permissively licensed scenes, and neither saw the held-out evaluation scenes."""
+    from colmap_guided.coarse import DEFAULT_WEIGHTS
+    from colmap_guided.train.data import PERMISSIVE_SCENES, VAL_SCENES
+
+    path = DEFAULT_WEIGHTS.parent / name
+    matcher = CoarseMatcher({"weights": str(path), "device": "cpu"})
+    training = matcher.weights_config["training"]
+    assert matcher.weights_config["backbone"] == CoarseMatcher.default_conf["backbone"]
+    assert training["supervision"] == "epipolar" and training["iterations"] == 440
+    assert not set(training["train_scenes"]) & set(VAL_SCENES)
+    if "permissive" in name:
+        assert sorted(training["train_scenes"]) == sorted(PERMISSIVE_SCENES)

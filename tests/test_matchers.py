@@ -318,3 +318,17 @@ def test_guided_matcher_weights_fallback_is_loud(tmp_path):
         assert matcher.coarse.conf["mode"] == "raw" and len(warned) == 1
     with pytest.raises(FileNotFoundError):
         get_matcher("guided", {"device": "cpu", "weights": str(tmp_path / "missing.safetensors")})
+
+
+def test_keep_raw_adds_raw_matches_of_unmatched_keypoints_only(photo_pair):
+    """keep_raw: the guided matches, plus raw matches whose keypoints guidance left unmatched; one-to-one."""
+    a, b, _ = photo_pair
+    guided = get_matcher("guided", {"device": "cpu"})
+    flows = guided.coarse_flows(a, b)
+    only = guided.match_flows(a, b, flows).astype(np.int64)
+    both = guided.match_flows(a, b, flows, keep_raw=True).astype(np.int64)
+    raw = get_matcher("raw", {"device": "cpu"}).match(a, b).astype(np.int64)
+    assert {tuple(m) for m in only} <= {tuple(m) for m in both} <= {tuple(m) for m in only} | {tuple(m) for m in raw}
+    assert len(np.unique(both[:, 0])) == len(both) and len(np.unique(both[:, 1])) == len(both)
+    in_both, ga, gb = {tuple(m) for m in both}, set(only[:, 0]), set(only[:, 1])
+    assert all(tuple(m) in in_both or m[0] in ga or m[1] in gb for m in raw)  # a raw match is kept unless guidance overrules it

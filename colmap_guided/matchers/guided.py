@@ -21,7 +21,7 @@ import torch
 from colmap_guided.coarse import CoarseMatcher
 from colmap_guided.log import logger
 from colmap_guided.matchers.base import ImageData, Matcher
-from colmap_guided.matchers.raw import normalize_descriptors, ratio_pass, resolve_device
+from colmap_guided.matchers.raw import mutual_nn_match, normalize_descriptors, ratio_pass, resolve_device
 
 
 def _nearest_in_window(
@@ -153,6 +153,15 @@ class CoarseFlows:
     cell_b: float
 
 
+def merge_matches(primary: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
+    """``primary`` (K, 2) matches plus those of ``extra`` whose keypoints ``primary`` leaves unmatched in
+    both images: the union stays one-to-one, and ``primary`` wins where the two disagree."""
+    used_a, used_b = set(primary[:, 0].tolist()), set(primary[:, 1].tolist())
+    keep = [k for k, (i, j) in enumerate(extra.tolist()) if i not in used_a and j not in used_b]
+    merged = torch.cat([primary, extra[keep]])
+    return merged[torch.argsort(merged[:, 0], stable=True)]
+
+
 class GuidedMatcher(Matcher):
     """Eq. 1 guided by the coarse network of ``colmap_guided.coarse``.
 
@@ -178,6 +187,7 @@ class GuidedMatcher(Matcher):
         "window_cells": 1.0,  # W of eq. 1 in coarse cells (1 cell = 16 px at the network input scale, as the paper)
         "ratio": 0.8,  # Lowe's ratio among the candidates, both directions; None = off
         "min_inliers": 25,  # two-view verification of guided pairs: at least this many inliers (COLMAP: 15)
+        "keep_raw": False,  # also keep raw matches (mutual NN + ratio) of keypoints that guidance left unmatched
         "max_fb_cells": None,  # drop keypoints whose coarse forward-backward error exceeds this many cells
         "min_score": None,  # drop keypoints whose coarse match score (softmax probability) is below this
         "device": "auto",
@@ -239,11 +249,12 @@ class GuidedMatcher(Matcher):
                 ok &= fb <= conf["max_fb_cells"] * cell
             return torch.from_numpy(ok)
 
+        da, db = normalize_descriptors(a.descriptors, dev), normalize_descriptors(b.descriptors, dev)
         m = guided_match(
             torch.tensor(a.keypoints[:, :2], dtype=torch.float32),
-            normalize_descriptors(a.descriptors, dev),
+            da,
             torch.tensor(b.keypoints[:, :2], dtype=torch.float32),
-            normalize_descriptors(b.descriptors, dev),
+            db,
             torch.tensor(flows.flow_ab, dtype=torch.float32),
             torch.tensor(flows.flow_ba, dtype=torch.float32),
             conf["window_cells"] * flows.cell_a,
@@ -252,8 +263,10 @@ class GuidedMatcher(Matcher):
             valid(flows.score_ab, flows.fb_ab, flows.cell_b),
             valid(flows.score_ba, flows.fb_ba, flows.cell_a),
             conf["max_pairs"],
-        )
-        return m.cpu().numpy().astype(np.uint32)
+        ).cpu()
+        if conf["keep_raw"]:
+            m = merge_matches(m, mutual_nn_match(da, db, conf["ratio"]).cpu())
+        return m.numpy().astype(np.uint32)
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
         return self.match_flows(a, b, self.coarse_flows(a, b))
