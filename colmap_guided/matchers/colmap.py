@@ -29,8 +29,6 @@ def default_camera(image: ImageData) -> pycolmap.Camera:
 def _colmap_features(image: ImageData) -> tuple[pycolmap.FeatureKeypoints, pycolmap.FeatureDescriptors]:
     """The image's keypoints and SIFT descriptors as COLMAP's types, converted once per image."""
     if "colmap_features" not in image.extra:
-        if image.descriptors.dtype != np.uint8:
-            raise ValueError(f"{image.name}: COLMAP's guided matching needs SIFT (uint8) descriptors; use --matcher guided_epipolar for other features.")
         kp = np.asarray(image.keypoints, np.float64)
         if kp.shape[1] >= 6:
             keypoints = [pycolmap.FeatureKeypoint(x=r[0], y=r[1], a11=r[2], a12=r[3], a21=r[4], a22=r[5]) for r in kp]
@@ -65,6 +63,9 @@ class ColmapGuidedMatcher(Matcher):
         self.two_view_options = verify.two_view_options({"max_error": self.conf["max_error"]})
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
+        for image in (a, b):  # before any work: COLMAP's matcher reads only its own SIFT encoding
+            if image.descriptors.dtype != np.uint8:
+                raise ValueError(f"{image.name}: COLMAP's guided matching needs SIFT (uint8) descriptors; use --matcher guided_epipolar for other features.")
         raw = self.raw.match(a, b)
         cam_a, cam_b = a.camera or default_camera(a), b.camera or default_camera(b)
         with colmap_quiet():
