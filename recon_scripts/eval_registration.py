@@ -84,21 +84,17 @@ def main(argv=None) -> int:
                 continue
             results.append(registration.evaluate_scene(scene_dir, methods, extra_conf=extra, resume=args.resume, **tol))
             tables.write_json(args.output / "results.json", {"manifest": str(manifest_path), "methods": methods, "scenes": results})
-    note = tables.machine_note()
-    text = f"### {data.get('name', 'manifest')}: registration ({note['date']}, {note['torch_device']}, {note['cpu_count']} CPUs)\n\n" + registration.markdown_tables(results, methods)
     distractors = sum(len(r["methods"][m].get("distractors_registered", [])) for r in results for m in methods if m in r["methods"])
-    text += f"\n\nDistractors registered, all runs: {distractors} (must be 0)\n"
+    extra_text = f"\n\nDistractors registered, all runs: {distractors} (must be 0)\n"
 
     specs = [m for m in methods if m != "pycolmap"]
     if args.wxbs_max_pairs and specs:
         w = two_view.run_wxbs_benchmark(specs, max_pairs=args.wxbs_max_pairs, categories=WXBS_APPEARANCE, extra_conf=extra)
         tables.write_json(args.output / "wxbs_appearance.json", w)
         rows = [[label, *r["summary"]["share"], f"{r['summary']['mean_matches']:.0f}"] for label, r in w["results"].items()]
-        text += f"\nWxBS appearance-change pairs ({w['config']['num_pairs']} of {', '.join(WXBS_APPEARANCE)}; share of hand-labelled correspondences consistent with the estimated F):\n\n"
-        text += tables.markdown_table(["matcher", "@3 px", "@5 px", "@10 px", "matches"], rows) + "\n"
-    tables.write_json(args.output / "results.json", {"manifest": str(manifest_path), "methods": methods, "machine": note, "scenes": results})
-    (args.output / "results.md").write_text(text, encoding="utf-8")
-    registration.plot_registration(results, methods, args.output / "registered.png")
+        extra_text += f"\nWxBS appearance-change pairs ({w['config']['num_pairs']} of {', '.join(WXBS_APPEARANCE)}; share of hand-labelled correspondences consistent with the estimated F):\n\n"
+        extra_text += tables.markdown_table(["matcher", "@3 px", "@5 px", "@10 px", "matches"], rows) + "\n"
+    text = registration.write_report(args.output, data.get("name", "manifest"), manifest_path, methods, results, extra_text)
     print(text)
     print(f"Results in {args.output}")
     return 0

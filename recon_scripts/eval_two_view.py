@@ -115,25 +115,24 @@ def main(argv=None) -> int:
         return 2
     out = args.output
     note = tables.machine_note()
+
+    def publish(stem: str, result: dict, text: str, plot) -> None:
+        """OUT/stem.json (with the machine), OUT/stem.md and OUT/stem.png; the Markdown printed."""
+        result["machine"] = note
+        tables.write_json(out / f"{stem}.json", result)
+        (out / f"{stem}.md").write_text(text, encoding="utf-8")
+        plot(result, out / f"{stem}.png")
+        print(text)
+
     if not args.no_pose:
         result = two_view.run_pose_benchmark(
             args.scenes, specs, args.max_pairs or None, args.seed, args.min_covisible, args.max_num_features,
             estimator=args.estimator, reference_source=args.reference, cache_dir=args.cache_dir,
         )
-        result["machine"] = note
-        tables.write_json(out / "two_view.json", result)
-        text = f"### Relative pose AUC ({sum(1 for _ in result['pairs'])} pairs; {note['date']}, {note['torch_device']}, {note['cpu_count']} CPUs)\n\n{pose_table(result)}\n\nPer scene:\n\n{pose_scene_table(result)}\n"
-        (out / "two_view.md").write_text(text, encoding="utf-8")
-        plot_pose(result, out / "two_view.png")
-        print(text)
+        publish("two_view", result, f"### Relative pose AUC ({sum(1 for _ in result['pairs'])} pairs; {note['date']}, {note['torch_device']}, {note['cpu_count']} CPUs)\n\n{pose_table(result)}\n\nPer scene:\n\n{pose_scene_table(result)}\n", plot_pose)
     if not args.no_wxbs:
         result = two_view.run_wxbs_benchmark(specs, max_pairs=args.wxbs_max_pairs or None, geometry=args.wxbs_geometry, max_num_features=args.max_num_features, cache_dir=args.cache_dir)
-        result["machine"] = note
-        tables.write_json(out / "wxbs.json", result)
-        text = f"### WxBS ({result['config']['num_pairs']} pairs, {args.wxbs_geometry} by MAGSAC++; {note['date']})\n\n{wxbs_table(result)}\n\nPer category (share @5 px):\n\n{wxbs_category_table(result)}\n"
-        (out / "wxbs.md").write_text(text, encoding="utf-8")
-        plot_wxbs(result, out / "wxbs.png")
-        print(text)
+        publish("wxbs", result, f"### WxBS ({result['config']['num_pairs']} pairs, {args.wxbs_geometry} by MAGSAC++; {note['date']})\n\n{wxbs_table(result)}\n\nPer category (share @5 px):\n\n{wxbs_category_table(result)}\n", plot_wxbs)
     print(f"Results in {out}")
     return 0
 

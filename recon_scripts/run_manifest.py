@@ -24,7 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from colmap_guided.evaluation import manifest as mf  # noqa: E402
-from colmap_guided.evaluation import registration, tables  # noqa: E402
+from colmap_guided.evaluation import registration  # noqa: E402
 from colmap_guided.features import list_images  # noqa: E402
 from colmap_guided.log import logger, set_verbosity  # noqa: E402
 from colmap_guided.paths import REPO_ROOT, shared_data_dir  # noqa: E402
@@ -109,12 +109,7 @@ def main(argv=None) -> int:
             results.append(registration.evaluate_scene(scene_dir, args.methods, extra_conf={"device": args.device, "weights": args.weights}, resume=args.resume))
     if args.layout_only or not results:
         return 0
-    note = tables.machine_note()
-    text = f"### {data.get('name', 'manifest')}: registration ({note['date']}, {note['torch_device']}, {note['cpu_count']} CPUs)\n\n" + registration.markdown_tables(results, args.methods)
-    args.output.mkdir(parents=True, exist_ok=True)
-    tables.write_json(args.output / "results.json", {"manifest": str(args.manifest), "methods": args.methods, "machine": note, "scenes": results})
-    (args.output / "results.md").write_text(text + "\n", encoding="utf-8")
-    registration.plot_registration(results, args.methods, args.output / "registered.png")
+    text = registration.write_report(args.output, data.get("name", "manifest"), args.manifest, args.methods, results)
     print(text)
     print(f"\nResults in {args.output}")
     return 0

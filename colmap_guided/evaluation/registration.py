@@ -310,3 +310,17 @@ def plot_registration(results: list[dict], methods: list[str], path: Path) -> No
         series = {m: [100 * r["methods"].get(m, {}).get("registered_ratio", float("nan")) for r in rs] for m in methods}
         tables.grouped_bars(None, [r["scene"] for r in rs], series, "registered images (%)", f"Registered ratio — {subset} images", (0, 105), ax=ax)
     tables.save_figure(fig, path)
+
+
+def write_report(output: Path, title: str, manifest: Path, methods: list[str], results: list[dict], extra_text: str = "") -> str:
+    """The registration tables under a title with the machine and date, then ``extra_text``, written to
+    OUTPUT/results.md, with OUTPUT/results.json and the OUTPUT/registered.png plot; returns the Markdown."""
+    from . import tables
+
+    note = tables.machine_note()
+    text = f"### {title}: registration ({note['date']}, {note['torch_device']}, {note['cpu_count']} CPUs)\n\n" + markdown_tables(results, methods) + extra_text
+    output.mkdir(parents=True, exist_ok=True)
+    tables.write_json(output / "results.json", {"manifest": str(manifest), "methods": methods, "machine": note, "scenes": results})
+    (output / "results.md").write_text(text + "\n", encoding="utf-8")
+    plot_registration(results, methods, output / "registered.png")
+    return text
