@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -72,16 +74,34 @@ def match_database(
                     backbone_bar.update(1)
             return cache[name]
 
-        with _progress(None, "match", len(todo)) as bar:
-            for index, (id_a, id_b, a, b) in enumerate(id_pairs):
-                if (id_a, id_b) in todo_index:
-                    matches = matcher.match(load(a), load(b))
-                    dbio.write_pair_matches(db, id_a, id_b, matches)
+        # Pairs are matched by ``matcher.pair_workers`` threads (torch releases the GIL), in order, at most
+        # two per worker ahead of the database writes; an image's cache is dropped once its last pair is written.
+        pending: deque = deque()
+
+        def write_done(limit: int) -> None:
+            while len(pending) > limit:
+                index, id_a, id_b, a, b, future = pending.popleft()
+                if future is not None:
+                    dbio.write_pair_matches(db, id_a, id_b, future.result())
                     bar.update(1)
                 for name in (a, b):
                     if last_use[name] == index:
                         cache.pop(name, None)
                         matcher.release(name)
+
+        workers = max(1, int(matcher.pair_workers))
+        with _progress(None, "match", len(todo)) as bar, ThreadPoolExecutor(workers) as pool:
+            try:
+                for index, (id_a, id_b, a, b) in enumerate(id_pairs):
+                    future = pool.submit(matcher.match, load(a), load(b)) if (id_a, id_b) in todo_index else None
+                    pending.append((index, id_a, id_b, a, b, future))
+                    write_done(2 * workers)
+                write_done(0)
+            except BaseException:  # stop the queued pairs; the written ones stay (resumable)
+                for *_, future in pending:
+                    if future is not None:
+                        future.cancel()
+                raise
         if backbone_bar is not None:
             backbone_bar.close()
         stats["match_time"] = time.time() - start

@@ -1,7 +1,7 @@
 """Speed of the coarse network's neighbourhood-consensus filter (issue 6), and pycolmap's exhaustive
 SIFT matching of real pairs measured in the same run as the reference.
 
-    python recon_scripts/benchmark_coarse.py [--grids 25 32] [--sift-images 4] [--repeats 3]
+    python recon_scripts/benchmark_coarse.py [--grids 25 32] [--sift-images 10] [--workers 1 2] [--repeats 3]
 
 Prints a Markdown table of ms per pair at square grids (25x25 and 32x32 by default) for
 - naive: the paper's/NCNet's 4D convolution as a loop of conv3d (reference from tests/test_coarse_conv4d.py),
@@ -11,7 +11,9 @@ Prints a Markdown table of ms per pair at square grids (25x25 and 32x32 by defau
 with ratios vs naive; on CUDA (if present) dense, single and batched, in float32/float16/bfloat16. Features are real (two photos of
 the Sacre Coeur resized square to the grid), so sparse supports have realistic sizes. Filter weights:
 the default trained file if present, else random (the speed does not depend on the values). Then the
-backbone per image, and pycolmap SIFT extraction + exhaustive matching (with verification) per pair.
+backbone per image, and the issue's CPU target on one database of --sift-images sacre_coeur_hloc photos
+(pycolmap SIFT): pycolmap's exhaustive matching + verification vs the guided match stage with 1 and 2
+pair workers, same run, and the guided parts (backbone, coarse, eq. 1) timed serially.
 """
 
 from __future__ import annotations
@@ -68,10 +70,16 @@ def cm_sparse(cm: CoarseMatcher) -> str:
     return f", k={cm.conf['sparse_k']} radius={cm.conf['sparse_radius']}" if cm.impl == "sparse" else ""
 
 
-def sift_reference(images: list[Path]) -> tuple[float, float, float, int]:
-    """pycolmap default SIFT: extraction s/image, exhaustive matching (incl. verification) wall and CPU
-    ms/pair, mean keypoints per image."""
+def match_stage(images: list[Path], workers: list[int]) -> dict:
+    """The issue's CPU target on one database: pycolmap SIFT extraction, then on copies of it
+    pycolmap's exhaustive matching (with verification) and colmap_guided's guided ``match_database``
+    (backbone + coarse + eq. 1 + verification) with each number of pair workers; and, on the same
+    keypoints, the guided matcher's parts serially: backbone per image, coarse match and eq. 1 per pair."""
     import pycolmap
+
+    from colmap_guided import database as dbio
+    from colmap_guided.match import match_database
+    from colmap_guided.matchers import get_matcher
 
     work = Path(tempfile.mkdtemp(prefix="bench_coarse_"))
     try:
@@ -81,17 +89,54 @@ def sift_reference(images: list[Path]) -> tuple[float, float, float, int]:
         db = work / "db.db"
         t = time.perf_counter()
         pycolmap.extract_features(db, work / "images")
-        t_extract = (time.perf_counter() - t) / len(images)
-        t, c = time.perf_counter(), time.process_time()
-        pycolmap.match_exhaustive(db)
-        n_pairs = len(images) * (len(images) - 1) // 2
-        t_match = 1000 * (time.perf_counter() - t) / n_pairs
-        c_match = 1000 * (time.process_time() - c) / n_pairs
-        with pycolmap.Database.open(db) as database:
-            kps = np.mean([database.read_keypoints(im.image_id).shape[0] for im in database.read_all_images()])
-        return t_extract, t_match, c_match, int(kps)
+        out = {"extract_s_per_image": (time.perf_counter() - t) / len(images), "pairs": len(images) * (len(images) - 1) // 2}
+        for name in ["pycolmap"] + [f"guided_{w}" for w in workers]:
+            copy = work / f"{name}.db"
+            shutil.copy(db, copy)
+            t = time.perf_counter()
+            if name == "pycolmap":
+                pycolmap.match_exhaustive(copy)
+            else:
+                match_database(copy, work / "images", matcher=get_matcher("guided", {"workers": int(name.split("_")[1])}))
+            out[name] = 1000 * (time.perf_counter() - t) / out["pairs"]
+            with dbio.open_database(copy) as database:
+                out[f"{name}_verified"] = dbio.database_summary(database)["num_verified_pairs"]
+        matcher = get_matcher("guided", {"workers": 1})
+        with dbio.open_database(db) as database:
+            data = [dbio.read_image_data(database, im, work / "images") for im in dbio.images_by_name(database).values()]
+        out["keypoints"] = int(np.mean([len(d.keypoints) for d in data]))
+        t = time.perf_counter()
+        for d in data:
+            matcher.features(d)
+        out["backbone_ms_per_image"] = 1000 * (time.perf_counter() - t) / len(data)
+        coarse = eq1 = 0.0
+        for i, a in enumerate(data):
+            for b in data[i + 1:]:
+                t = time.perf_counter()
+                flows = matcher.coarse_flows(a, b)
+                coarse, t = coarse + time.perf_counter() - t, time.perf_counter()
+                matcher.match_flows(a, b, flows)
+                eq1 += time.perf_counter() - t
+        out["coarse_ms"], out["eq1_ms"] = 1000 * coarse / out["pairs"], 1000 * eq1 / out["pairs"]
+        return out
     finally:
         shutil.rmtree(work, ignore_errors=True)
+
+
+def print_match_stage(r: dict, n_images: int, workers: list[int]) -> None:
+    ref = r["pycolmap"]
+    print(f"\nMatch stage on one database ({n_images} sacre_coeur_hloc images, {r['pairs']} pairs, {r['keypoints']} SIFT "
+          f"keypoints/image, pycolmap {__import__('pycolmap').__version__}; wall ms per pair, same run):\n")
+    print("| matching + verification | ms / pair | vs pycolmap | verified pairs |")
+    print("|---|---|---|---|")
+    print(f"| pycolmap exhaustive (SIFT matching, all cores) | {ref:.0f} | 1.00 | {r['pycolmap_verified']} |")
+    for w in workers:
+        print(f"| guided `match_database`, {w} pair worker(s) (backbone + coarse + eq. 1 + verification) | "
+              f"{r[f'guided_{w}']:.0f} | {r[f'guided_{w}'] / ref:.2f} | {r[f'guided_{w}_verified']} |")
+    serial = r["coarse_ms"] + r["eq1_ms"]
+    print(f"\nGuided parts, serial, 1 thread: backbone {r['backbone_ms_per_image']:.0f} ms/image; per pair coarse match + flows "
+          f"{r['coarse_ms']:.0f} ms + eq. 1 {r['eq1_ms']:.0f} ms = {serial:.0f} ms ({serial / ref:.2f}x pycolmap's matching + "
+          f"verification). SIFT extraction {r['extract_s_per_image']:.2f} s/image.")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -101,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--no-naive", action="store_true", help="skip the slow naive loop")
     parser.add_argument("--sift-images", type=int, default=10, help="sacre_coeur_hloc images for the SIFT reference (0: skip)")
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="pair workers of the guided match stage rows")
     parser.add_argument("--batch", type=int, default=8, help="pairs per batch for the batched GPU row")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (CoarseMatcher's default num_threads is 1)")
     args = parser.parse_args(argv)
@@ -164,20 +210,18 @@ def main(argv: list[str] | None = None) -> int:
     sift = None
     if args.sift_images >= 2:
         sc = sorted((shared_data_dir() / "sacre_coeur_hloc" / "images").glob("*.jpg"))[: args.sift_images]
-        t_extract, t_match, c_match, kps = sift_reference(sc)
-        sift = (t_match, c_match)
-        print(f"\npycolmap {__import__('pycolmap').__version__} SIFT on {len(sc)} sacre_coeur_hloc images "
-              f"({kps} keypoints/image): extraction {t_extract:.2f} s/image, exhaustive matching + verification "
-              f"{t_match:.1f} ms/pair wall, {c_match:.1f} ms/pair CPU")
+        stage = match_stage(sc, args.workers)
+        sift = stage["pycolmap"]
+        print_match_stage(stage, len(sc), args.workers)
     naive_ms = {(d, g): ms for d, m, g, ms, _ in rows if m.startswith("naive")}
     print(f"\nCoarse filter ({label} weights, {torch.get_num_threads()} CPU threads, torch {torch.__version__}); "
-          f"CPU = process time of all threads; vs SIFT = time / pycolmap exhaustive matching time per pair\n")
-    print("| device | method | grid | ms / pair (wall) | ms / pair (CPU) | vs naive (wall) | vs SIFT wall | vs SIFT CPU |")
-    print("|---|---|---|---|---|---|---|---|")
+          f"CPU = process time of all threads; vs SIFT = wall time / pycolmap's exhaustive matching + verification per pair\n")
+    print("| device | method | grid | ms / pair (wall) | ms / pair (CPU) | vs naive (wall) | vs SIFT (wall) |")
+    print("|---|---|---|---|---|---|---|")
     for d, m, g, ms, cpu in rows:
         ref = naive_ms.get((d, g))
         ratio = f"{ref / ms:.1f}x faster" if ref and g else ""
-        vs_sift = f"{ms / sift[0]:.2f} | {cpu / sift[1]:.2f}" if sift and d == "cpu" else " | "
+        vs_sift = f"{ms / sift:.2f}" if sift and d == "cpu" else ""
         print(f"| {d} | {m} | {f'{g}x{g}' if g else '-'} | {ms:.1f} | {cpu:.1f} | {ratio} | {vs_sift} |")
     return 0
 

@@ -83,10 +83,16 @@ def test_raw_matcher_on_uint8_descriptors_normalises_them():
     np.testing.assert_array_equal(got[:, 1], 199 - got[:, 0])  # desc_b is desc_a reversed, perturbed
 
 
-def _random_guided_problem(seed, n=900, m=800):
+def _random_guided_problem(seed, n=900, m=800, clustered=False):
+    """Random eq. 1 problem; ``clustered`` puts half the keypoints in a few small blobs, as on textured
+    facades, so that many queries share a window (more than one unit of queries per cell)."""
     g = torch.Generator().manual_seed(seed)
     ka = torch.rand(n, 2, generator=g) * torch.tensor([640.0, 480.0])
     kb = torch.rand(m, 2, generator=g) * torch.tensor([600.0, 500.0])
+    if clustered:
+        centres = torch.tensor([[100.0, 100.0], [400.0, 300.0], [250.0, 420.0]])
+        ka[::2] = centres[torch.arange(0, n, 2) % 3] + 15 * torch.rand(len(ka[::2]), 2, generator=g)
+        kb[::2] = ka[: m : 2] * 0.9 + 12 + torch.randn(len(kb[::2]), 2, generator=g)
     da = torch.nn.functional.normalize(torch.randn(n, 24, generator=g), dim=1)
     db = torch.nn.functional.normalize(torch.randn(m, 24, generator=g), dim=1)
     db[:300] = torch.nn.functional.normalize(da[:300] + 0.3 * torch.randn(300, 24, generator=g), dim=1)
@@ -98,15 +104,19 @@ def _random_guided_problem(seed, n=900, m=800):
 
 
 @pytest.mark.parametrize("ratio", [None, 0.9])
-def test_guided_equals_bruteforce_eq1(ratio):
-    ka, da, kb, db, fab, fba = _random_guided_problem(0)
+@pytest.mark.parametrize("clustered", [False, True])
+def test_guided_equals_bruteforce_eq1(ratio, clustered):
+    ka, da, kb, db, fab, fba = _random_guided_problem(0, clustered=clustered)
     wa, wb = 20.0, 18.0
     dist = _pairwise(da.double().numpy(), db.double().numpy())
     cand_ab = np.linalg.norm(fab.numpy()[:, None] - kb.numpy()[None], axis=-1) < wb  # nan -> False
     cand_ba = np.linalg.norm(ka.numpy()[:, None] - fba.numpy()[None], axis=-1) < wa
-    got = guided_match(ka, da, kb, db, fab, fba, wa, wb, ratio).numpy()
-    np.testing.assert_array_equal(got, _reference_guided(dist, cand_ab, cand_ba, ratio))
-    assert len(got) > 100
+    if clustered:
+        assert cand_ab.sum(1).max() > 100  # windows far larger than one unit of queries or one block
+    expected = _reference_guided(dist, cand_ab, cand_ba, ratio)
+    for max_pairs in (1, 5000, 1 << 20):
+        np.testing.assert_array_equal(guided_match(ka, da, kb, db, fab, fba, wa, wb, ratio, max_pairs=max_pairs).numpy(), expected)
+    assert len(expected) > 100
 
 
 def _reference_guided(dist, cand_ab, cand_ba, ratio):

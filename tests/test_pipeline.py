@@ -12,6 +12,7 @@ import pytest
 
 from colmap_guided import database as dbio
 from colmap_guided.match import match_database
+from colmap_guided.matchers import get_matcher
 from colmap_guided.reconstruct import reconstruct
 from colmap_guided.synthetic import pose_errors
 
@@ -93,6 +94,48 @@ def test_colmap_guided_matching_in_the_pipeline_uses_the_database_cameras(raw_ru
     stats = match_database(db, synthetic_scene.image_dir, matcher="guided_colmap")
     assert stats["num_verified_pairs"] >= result["database"]["num_verified_pairs"]
     assert stats["num_inlier_matches"] > result["database"]["num_inlier_matches"]
+
+
+def test_guided_pairs_in_parallel_write_what_one_worker_writes(synthetic_scene, tmp_path):
+    """match_database runs guided pairs in threads (one per core on CPU): same matches and geometries as one."""
+    db_one, db_two = tmp_path / "one.db", tmp_path / "two.db"
+    pycolmap.extract_features(db_one, synthetic_scene.image_dir)
+    db_two.write_bytes(db_one.read_bytes())
+    one = match_database(db_one, synthetic_scene.image_dir, matcher="guided", matcher_conf={"workers": 1})
+    matcher = get_matcher("guided", {"workers": 2})
+    assert matcher.pair_workers == 2
+    two = match_database(db_two, synthetic_scene.image_dir, matcher=matcher)
+    assert all_matches(db_one) == all_matches(db_two) and len(all_matches(db_one)) == 28
+    assert one["num_verified_pairs"] == two["num_verified_pairs"] >= 20
+    assert one["num_inlier_matches"] == two["num_inlier_matches"]
+    with pytest.raises(ValueError, match="workers must be 'auto' or a positive integer"):
+        get_matcher("guided", {"workers": 0})
+
+
+def test_a_matcher_error_with_pairs_in_flight_keeps_the_written_pairs(synthetic_scene, tmp_path):
+    """A pair that fails while others are in flight: the pairs before it are in the database, the error
+    reaches the caller, and a rerun matches only the rest."""
+    from colmap_guided.matchers.raw import RawMatcher
+
+    class FailsOnce(RawMatcher):
+        pair_workers = 2
+        failed = False
+
+        def match(self, a, b):
+            if (a.name, b.name) == tuple(synthetic_scene.names[1:3]) and not FailsOnce.failed:
+                FailsOnce.failed = True
+                raise RuntimeError("pair failed")
+            return super().match(a, b)
+
+    db = tmp_path / "db.db"
+    pycolmap.extract_features(db, synthetic_scene.image_dir)
+    with pytest.raises(RuntimeError, match="pair failed"):
+        match_database(db, synthetic_scene.image_dir, matcher=FailsOnce())
+    written = all_matches(db)
+    assert 0 < len(written) < 28 and tuple(synthetic_scene.names[1:3]) not in written
+    stats = match_database(db, synthetic_scene.image_dir, matcher=FailsOnce())
+    assert stats["num_pairs_matched_now"] == 28 - len(written)
+    assert {k: v for k, v in all_matches(db).items() if k in written} == written and len(all_matches(db)) == 28
 
 
 def test_cli_reconstruct_and_refusal_of_a_foreign_database(synthetic_scene, raw_run, tmp_path):

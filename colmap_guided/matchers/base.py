@@ -33,6 +33,7 @@ class Matcher:
     name = "base"
     default_conf: dict = {}
     verification_conf: dict = {}  # options of verify.two_view_options for this matcher's pairs (e.g. min_num_inliers)
+    pair_workers: int = 1  # pairs that match_database may match at once in threads (``match`` must be thread-safe)
 
     def __init__(self, conf: dict | None = None):
         unknown = set(conf or {}) - set(self.default_conf)

@@ -149,7 +149,7 @@ class HomographyGuidedMatcher(_ShahGuidedMatcher):
 
     name = "guided_homography"
     model = "H"
-    default_conf = {**_COMMON_CONF, "window_px": 20.0, "max_pairs": 1 << 22}
+    default_conf = {**_COMMON_CONF, "window_px": 20.0, "max_pairs": 1 << 20}
 
     def guided(self, a: ImageData, b: ImageData, da: torch.Tensor, db: torch.Tensor, model: torch.Tensor) -> torch.Tensor:
         pa = torch.tensor(a.keypoints[:, :2], dtype=torch.float32, device=self.device)

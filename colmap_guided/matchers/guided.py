@@ -7,12 +7,14 @@ For a keypoint p^A with coarse match m^{A->B}(p^A), the match is
 and symmetrically from B to A; mutual matches are kept, then an optional ratio test computed among
 the candidates. B's keypoints are bucketed in a grid of cell W, so a query compares only the
 keypoints of the 3x3 cells around its coarse match (never the dense N x M matrix); queries sharing a
-cell share one small matrix product, in blocks of at most ``max_pairs`` similarities, so memory is
-bounded for 20k x 20k keypoints, on CPU or GPU.
+cell share their candidates, and all cells go through a few padded batched matrix products of at
+most ``max_pairs`` values each, so memory is bounded for 20k x 20k keypoints, on CPU or GPU. B -> A
+is searched only for the B keypoints that some A keypoint chose (the others cannot be mutual).
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,13 +34,16 @@ def _nearest_in_window(
     window: float,
     valid_q: torch.Tensor,
     max_pairs: int,
+    rows: int = 16,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One direction of eq. 1: for each query, best and second-best candidate within ``window``.
 
     pred: (N, 2) coarse match of each query in the target image; pts_t: (M, 2) target keypoints.
     Target keypoints are bucketed in a grid of cell ``window``; queries whose coarse match falls in
-    the same cell share their candidates (the 3x3 cells around it), so each such group costs one
-    small matrix product, split in row blocks of at most ``max_pairs`` entries.
+    the same cell share their candidates (the 3x3 cells around it). Each cell's queries are cut in
+    units of at most ``rows``; units, sorted by candidate count and padded, go through one batched
+    matrix product per block of at most ``max_pairs`` gathered values, so a few blocks serve
+    thousands of cells (no Python loop per cell) and memory stays bounded.
     Returns best similarity (N,), best target index (N,) and second-best similarity (N,); queries
     without any candidate get similarity -inf.
     """
@@ -69,34 +74,72 @@ def _nearest_in_window(
     group_key, group_size = torch.unique_consecutive(key, return_counts=True)
     gx, gy = group_key % (gw + 2) - 1, group_key // (gw + 2) - 1
     lo, hi = (gx - 1).clamp(min=0), (gx + 1).clamp(max=gw - 1)
-    ranges = []
+    starts, lengths = [], []  # per group and grid row dy: a range of the sorted target order
     for dy in (-1, 0, 1):
         r = gy + dy
-        ok = (r >= 0) & (r < gh)
         s = torch.searchsorted(sorted_cell, r * gw + lo)
         e = torch.searchsorted(sorted_cell, r * gw + hi, right=True)
-        ranges.append(torch.stack([s, torch.where(ok, e, s)], 1))
-    ranges = torch.cat(ranges, 1).tolist()  # per group: (s0, e0, s1, e1, s2, e2)
-    w2 = float(window) ** 2
+        starts.append(s)
+        lengths.append(torch.where((r >= 0) & (r < gh), e - s, 0))
+    starts, lengths = torch.stack(starts, 1), torch.stack(lengths, 1)  # (G, 3)
 
-    first = 0
-    for size, (s0, e0, s1, e1, s2, e2) in zip(group_size.tolist(), ranges):
-        group = queries[first : first + size]
-        first += size
-        cand = torch.cat([order[s0:e0], order[s1:e1], order[s2:e2]])
-        if len(cand) == 0:
-            continue
-        cand_desc, cand_pts = desc_t[cand], pts_t[cand]
-        rows = max(1, max_pairs // len(cand))
-        for r0 in range(0, size, rows):
-            q = group[r0 : r0 + rows]
-            sim = desc_q[q] @ cand_desc.T
-            outside = ((pred[q, None, :] - cand_pts[None]) ** 2).sum(-1) >= w2
-            sim = sim.masked_fill(outside, -torch.inf)
-            top, pos = sim.topk(min(2, len(cand)), dim=1)
-            best[q], best_idx[q] = top[:, 0], cand[pos[:, 0]]
-            if top.shape[1] == 2:
-                second[q] = top[:, 1]
+    # Units: up to ``rows`` queries of one group, sorted by candidate count.
+    n_cand = lengths.sum(1)
+    n_units = (group_size + rows - 1) // rows
+    unit_group = torch.repeat_interleave(torch.arange(len(group_size), device=dev), n_units)
+    unit_first = torch.repeat_interleave(torch.cumsum(n_units, 0) - n_units, n_units)
+    group_first = torch.cumsum(group_size, 0) - group_size
+    unit_start = group_first[unit_group] + (torch.arange(len(unit_group), device=dev) - unit_first) * rows
+    unit_end = (group_first + group_size)[unit_group]
+    by_count = torch.argsort(n_cand[unit_group])
+    by_count = by_count[n_cand[unit_group[by_count]] > 0]
+    unit_group, unit_start, unit_end = unit_group[by_count], unit_start[by_count], unit_end[by_count]
+    starts, lengths, n_cand = starts[unit_group], lengths[unit_group], n_cand[unit_group]
+    counts = n_cand.tolist()
+
+    # Descriptors and positions in sorted order once, so that blocks gather contiguous rows; a last
+    # sentinel row (zero descriptor, infinitely far) pads units to their block's shape.
+    def sorted_rows(x: torch.Tensor, at: torch.Tensor, pad: float) -> torch.Tensor:
+        out = torch.empty(len(at) + 1, x.shape[1], dtype=x.dtype, device=dev)
+        torch.index_select(x, 0, at, out=out[:-1])
+        out[-1] = pad
+        return out
+
+    desc_q, pred = sorted_rows(desc_q, queries, 0.0), sorted_rows(pred, queries, torch.inf)
+    desc_t, pts_t = sorted_rows(desc_t, order, 0.0), sorted_rows(pts_t, order, torch.inf)
+
+    def rows_of(x: torch.Tensor, at: torch.Tensor) -> torch.Tensor:  # x[at], faster on CPU
+        return x.index_select(0, at.flatten()).view(*at.shape, x.shape[1])
+
+    w2 = float(window) ** 2
+    per_cand = rows + desc_q.shape[1] + 4  # values gathered or computed per candidate of a unit
+    found = torch.empty(2, len(counts), rows, device=dev)  # best and second-best similarity per unit row
+    found_at = torch.empty(len(counts), rows, dtype=torch.long, device=dev)  # best's sorted target position
+    i = 0
+    while i < len(counts):  # blocks of units; the block's largest candidate count is its last
+        j = i + 1
+        while j < len(counts) and (j + 1 - i) * counts[j] * per_cand <= max_pairs:
+            j += 1
+        s, ln = starts[i:j], lengths[i:j]
+        col = torch.arange(counts[j - 1], device=dev)[None]
+        l0, l01 = ln[:, :1], ln[:, :1] + ln[:, 1:2]
+        pos = torch.where(col < l0, s[:, :1] + col, torch.where(col < l01, s[:, 1:2] + col - l0, s[:, 2:] + col - l01))
+        pos = torch.where(col < n_cand[i:j, None], pos, m)  # (U, C) candidates in sorted target order; m: sentinel
+        qpos = (unit_start[i:j, None] + torch.arange(rows, device=dev)).clamp_(max=len(queries))  # (U, rows)
+        sim = torch.bmm(rows_of(desc_q, qpos), rows_of(desc_t, pos).transpose(1, 2))
+        pq, pc = rows_of(pred, qpos), rows_of(pts_t, pos)
+        d2 = (pq[..., 0, None] - pc[:, None, :, 0]).square_() + (pq[..., 1, None] - pc[:, None, :, 1]).square_()
+        sim.masked_fill_(d2 >= w2, -torch.inf)  # outside the window (or padding)
+        top, at = sim.max(2)
+        found[0, i:j], found_at[i:j] = top, pos.gather(1, at)
+        found[1, i:j] = sim.scatter_(2, at[..., None], -torch.inf).amax(2)
+        i = j
+    # Unit rows back to queries.
+    row = unit_start[:, None] + torch.arange(rows, device=dev)
+    real = row < unit_end[:, None]
+    q = queries[row[real]]
+    best[q], second[q] = found[0][real], found[1][real]
+    best_idx[q] = order[found_at[real].clamp_(max=m - 1)]  # (a query without candidate: any index, best = -inf)
     return best, best_idx, second
 
 
@@ -112,7 +155,7 @@ def guided_match(
     ratio: float | None = None,
     valid_ab: torch.Tensor | None = None,
     valid_ba: torch.Tensor | None = None,
-    max_pairs: int = 1 << 22,
+    max_pairs: int = 1 << 20,
 ) -> torch.Tensor:
     """Mutual guided matches of eq. 1 given coarse flows in both directions.
 
@@ -131,8 +174,11 @@ def guided_match(
     va = torch.ones(n, dtype=torch.bool, device=dev) if valid_ab is None else valid_ab.to(dev)
     vb = torch.ones(m, dtype=torch.bool, device=dev) if valid_ba is None else valid_ba.to(dev)
     best_ab, idx_ab, second_ab = _nearest_in_window(flow_ab, desc_a, kpts_b, desc_b, window_b, va, max_pairs)
-    best_ba, idx_ba, second_ba = _nearest_in_window(flow_ba, desc_b, kpts_a, desc_a, window_a, vb, max_pairs)
     ok_a = torch.isfinite(best_ab) & ratio_pass(best_ab, second_ab, ratio)
+    # Only B keypoints chosen by some A keypoint can be in a mutual match: B -> A for those alone.
+    chosen = torch.zeros(m, dtype=torch.bool, device=dev)
+    chosen[idx_ab[ok_a]] = True
+    best_ba, idx_ba, second_ba = _nearest_in_window(flow_ba, desc_b, kpts_a, desc_a, window_a, vb & chosen, max_pairs)
     ok_b = torch.isfinite(best_ba) & ratio_pass(best_ba, second_ba, ratio)
     ia = torch.arange(n, device=dev)
     mutual = ok_a & ok_b[idx_ab] & (idx_ba[idx_ab] == ia)
@@ -190,7 +236,8 @@ class GuidedMatcher(Matcher):
         "max_fb_cells": None,  # drop keypoints whose coarse forward-backward error exceeds this many cells
         "min_score": None,  # drop keypoints whose coarse match score (softmax probability) is below this
         "device": "auto",
-        "max_pairs": 1 << 22,  # (query, candidate) similarities per block: bounds memory
+        "workers": "auto",  # pairs matched at once by match_database; 'auto': one per CPU core on CPU with 1 torch thread, else 1
+        "max_pairs": 1 << 20,  # values gathered or computed per block of eq. 1: bounds memory
     }
 
     def __init__(self, conf: dict | None = None):
@@ -214,6 +261,13 @@ class GuidedMatcher(Matcher):
                 self.coarse = CoarseMatcher({**coarse_conf, "mode": "raw"})
         else:
             self.coarse = CoarseMatcher({**coarse_conf, "mode": mode})
+        workers = self.conf["workers"]
+        if workers == "auto":  # a pair is hundreds of small ops on one torch thread: pairs in parallel use the cores
+            cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+            workers = min(8, cores) if self.device.type == "cpu" and torch.get_num_threads() == 1 else 1
+        if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
+            raise ValueError(f"workers must be 'auto' or a positive integer, got {workers!r}")
+        self.pair_workers = workers
 
     def describe(self) -> dict:
         return {**super().describe(), "coarse": self.coarse.describe()}
