@@ -9,7 +9,7 @@ from colmap_guided.paths import shared_data_dir
 
 
 @pytest.fixture(scope="module")
-def photo():
+def photo(shared_data):
     path = shared_data_dir() / "lightglue_assets" / "images" / "sacre_coeur1.jpg"
     if not path.exists():
         candidates = sorted((shared_data_dir() / "sacre_coeur_hloc" / "images").glob("*.jpg"))

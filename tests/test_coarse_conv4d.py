@@ -14,7 +14,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
-def real_corr():
+def real_corr(shared_data):
     """Correlation of two photos of the Sacre Coeur at 128 px (8x6 and 6x8 grids)."""
     images = shared_data_dir() / "lightglue_assets" / "images"
     cm = CoarseMatcher({"mode": "raw", "resize_max": 128, "device": "cpu"})

@@ -30,7 +30,7 @@ def warp_pair(image: np.ndarray):
     return cv2.warpPerspective(image, H, (w, h), flags=cv2.INTER_LINEAR), shift @ H @ np.linalg.inv(shift)
 
 
-def test_raw_mode_on_a_homography(raw):
+def test_raw_mode_on_a_homography(raw, shared_data):
     """Raw correlation (no weights) on a real photo and its known warp: PCK at original pixels (cells are
     32 px here). Measured 2026-11-23: PCK@8/16/32 = 23.5/60.9/77.0 %, 83 % within 16 px among points
     whose forward-backward error is under one cell."""
@@ -53,7 +53,7 @@ def test_raw_mode_on_a_homography(raw):
     assert (err[good] < 16).mean() > (err[~good] < 16).mean()
 
 
-def test_feature_cache(raw, tmp_path):
+def test_feature_cache(raw, tmp_path, shared_data):
     img = load_image(IMAGES / "sacre_coeur2.jpg")
     f1 = raw.extract(img, name="sc2")
     assert raw.extract(None, name="sc2") is f1  # cached: no image needed
@@ -69,7 +69,7 @@ def test_feature_cache(raw, tmp_path):
     np.testing.assert_allclose(f3.features.numpy(), f1.features.numpy(), atol=1e-6)
 
 
-def test_grayscale_input(raw):
+def test_grayscale_input(raw, shared_data):
     rgb = load_image(IMAGES / "sacre_coeur1.jpg")
     gray = load_image(IMAGES / "sacre_coeur1.jpg", grayscale=True)
     assert gray.shape == rgb.shape[:2]
@@ -99,7 +99,7 @@ def test_load_image_ignores_exif_orientation_like_colmap(tmp_path):
         load_image(tmp_path / "absent.jpg")
 
 
-def test_cli_writes_png(tmp_path):
+def test_cli_writes_png(tmp_path, shared_data):
     out = tmp_path / "m.png"
     assert main([str(IMAGES / "DSC_0410.JPG"), str(IMAGES / "DSC_0411.JPG"), "--out", str(out), "--mode", "raw",
                  "--resize-max", "256"]) == 0
@@ -107,7 +107,7 @@ def test_cli_writes_png(tmp_path):
     assert img.shape[0] == 600 and img.shape[1] > 1000 and img.std() > 10
 
 
-def test_match_pairs_batches_like_single_pairs(tmp_path):
+def test_match_pairs_batches_like_single_pairs(tmp_path, shared_data):
     """Dense impl: pairs of equal grid shapes go through the filter as one batch, with the same result."""
     torch.manual_seed(0)
     weights = save_filter_weights(CoarseNet({"pretrained": False}), tmp_path / "f.safetensors", resize_max=128)
@@ -122,7 +122,7 @@ def test_match_pairs_batches_like_single_pairs(tmp_path):
 
 
 @pytest.mark.parametrize("precision", ["float16", "bfloat16"])
-def test_half_precision_dense_filter_keeps_the_matches(precision):
+def test_half_precision_dense_filter_keeps_the_matches(precision, shared_data):
     """The GPU option precision=float16/bfloat16 (autocast; run here on CPU) changes almost no argmax of
     the shipped filter on a real pair. Measured at 384 px: fp16 99.7-100 %, bf16 99.0-99.8 % agreement."""
     conf = {"impl": "dense", "resize_max": 256, "device": "cpu"}

@@ -19,7 +19,7 @@ SMALL = dict(
 
 
 @pytest.fixture(scope="module")
-def small_data(tmp_path_factory):
+def small_data(tmp_path_factory, shared_data):
     return D.CoarseTrainData({**SMALL, "cache_dir": str(tmp_path_factory.mktemp("cache"))})
 
 
@@ -27,7 +27,7 @@ def _dist(F, xa, xb):
     return epipolar_distance(torch.tensor(F)[None], torch.tensor(xa, dtype=torch.float64)[None], torch.tensor(xb, dtype=torch.float64)[None])[0].numpy()
 
 
-def test_sfm_pairs_and_fundamental_matrices():
+def test_sfm_pairs_and_fundamental_matrices(shared_data):
     scene = D.load_scene("strecha_entry_P10", min_shared=30)
     assert len(scene.images) == 10 and len(scene.pairs) > 20
     assert all(p.n_shared >= 30 for p in scene.pairs)
@@ -43,7 +43,7 @@ def test_sfm_pairs_and_fundamental_matrices():
         assert np.median(_dist(D.scale_fundamental(p.F, sa, sb), xa * sa, xb * sb)) < 0.5 * sb.max() + 1e-6
 
 
-def test_pair_mining_counts_shared_tracks():
+def test_pair_mining_counts_shared_tracks(shared_data):
     import pycolmap
 
     rec = pycolmap.Reconstruction(str(D.scene_model_dir("bundler_et")))

@@ -36,7 +36,7 @@ def _fixed_loss(tr, supervision="epipolar"):
 
 
 @pytest.fixture(scope="module")
-def straight(tmp_path_factory):
+def straight(tmp_path_factory, shared_data):
     """An uninterrupted 8-iteration run, and its loss on a fixed batch before and after training."""
     root = tmp_path_factory.mktemp("smoke")
     tr = T.Trainer(root / "run", _conf(root / "features", iterations=8, lr=1e-2))
