@@ -103,8 +103,8 @@ def test_guided_pairs_in_parallel_write_what_one_worker_writes(synthetic_scene, 
     db_two.write_bytes(db_one.read_bytes())
     one = match_database(db_one, synthetic_scene.image_dir, matcher="guided", matcher_conf={"workers": 1})
     matcher = get_matcher("guided", {"workers": 2})
-    assert matcher.pair_workers == 2
     two = match_database(db_two, synthetic_scene.image_dir, matcher=matcher)
+    assert matcher.pair_workers == 2 and two["matcher"]["pair_workers"] == 2  # recorded in report.json
     assert all_matches(db_one) == all_matches(db_two) and len(all_matches(db_one)) == 28
     assert one["num_verified_pairs"] == two["num_verified_pairs"] >= 20
     assert one["num_inlier_matches"] == two["num_inlier_matches"]

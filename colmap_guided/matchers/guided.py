@@ -270,7 +270,7 @@ class GuidedMatcher(Matcher):
         self.pair_workers = workers
 
     def describe(self) -> dict:
-        return {**super().describe(), "coarse": self.coarse.describe()}
+        return {**super().describe(), "pair_workers": self.pair_workers, "coarse": self.coarse.describe()}
 
     def features(self, image: ImageData):
         """Backbone features of ``image`` (cached by name until ``release``)."""
