@@ -108,10 +108,11 @@ def main(argv=None) -> int:
                 pairs_path=args.pairs,
                 feature_conf={"camera_mode": args.camera_mode, "camera_model": args.camera_model},
                 overwrite=args.overwrite,
+                match_options=match.match_options_from_args(args),
             )
             print(summary_text(result))
         elif args.command == "match":
-            stats = match.match_database(args.database_path, args.image_path, args.pairs, matcher, match.matcher_conf_from_args(args, matcher), overwrite=args.overwrite)
+            stats = match.match_database(args.database_path, args.image_path, args.pairs, matcher, match.matcher_conf_from_args(args, matcher), overwrite=args.overwrite, **match.match_options_from_args(args))
             print(f"{stats['num_verified_pairs']}/{stats['num_pairs']} pairs verified, {stats['num_inlier_matches']} inlier matches in {args.database_path}")
     except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as err:
         logger.error("%s", err)

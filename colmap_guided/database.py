@@ -102,13 +102,18 @@ def pair_is_verified(db: pycolmap.Database, id_a: int, id_b: int) -> bool:
 
 def write_pair_matches(db: pycolmap.Database, id_a: int, id_b: int, matches: np.ndarray) -> None:
     """Write one pair's matches atomically, replacing what was there (so reruns never duplicate)."""
-    matches = np.ascontiguousarray(matches, dtype=np.uint32).reshape(-1, 2)
+    write_pairs_matches(db, [(id_a, id_b, matches)])
+
+
+def write_pairs_matches(db: pycolmap.Database, batch: list[tuple[int, int, np.ndarray]]) -> None:
+    """``write_pair_matches`` for a batch of (id_a, id_b, matches) in one transaction."""
     with pycolmap.DatabaseTransaction(db):
-        if db.exists_matches(id_a, id_b):
-            db.delete_matches(id_a, id_b)
-        if db.exists_two_view_geometry(id_a, id_b):
-            db.delete_two_view_geometry(id_a, id_b)
-        db.write_matches(id_a, id_b, matches)
+        for id_a, id_b, matches in batch:
+            if db.exists_matches(id_a, id_b):
+                db.delete_matches(id_a, id_b)
+            if db.exists_two_view_geometry(id_a, id_b):
+                db.delete_two_view_geometry(id_a, id_b)
+            db.write_matches(id_a, id_b, np.ascontiguousarray(matches, dtype=np.uint32).reshape(-1, 2))
 
 
 def write_pair_geometry(db: pycolmap.Database, id_a: int, id_b: int, geometry: pycolmap.TwoViewGeometry) -> None:

@@ -9,8 +9,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections import deque
-from concurrent.futures import ThreadPoolExecutor
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +20,8 @@ from . import verify
 from .log import colmap_quiet, logger
 from .matchers import MATCHERS, get_matcher
 from .matchers.base import ImageData, Matcher
-from .pairs import exhaustive_pairs, read_pairs
+from .executor import EXECUTORS, get_executor
+from .pairs import DEFAULT_NUM_NEIGHBORS, PAIR_MODES, global_descriptors, select_pairs
 
 def _progress(iterable, desc: str, total: int):
     return tqdm(iterable, desc=desc, total=total, unit="pair", disable=None, dynamic_ncols=True, leave=False)
@@ -30,13 +30,20 @@ def _progress(iterable, desc: str, total: int):
 def match_database(
     database_path: Path,
     image_path: Path,
-    pairs_path: Path | None = None,
+    pairs_path: str | Path | None = None,
     matcher: str | Matcher = "raw",
     matcher_conf: dict | None = None,
     verification_conf: dict | None = None,
     overwrite: bool = False,
+    num_neighbors: int = DEFAULT_NUM_NEIGHBORS,
+    executor: str = "local",
+    ray_address: str | None = None,
 ) -> dict:
-    """Match (exhaustively, or the pairs of ``pairs_path``) and verify; return statistics for the report."""
+    """Match the selected pairs and verify them; return statistics for the report.
+
+    ``pairs_path``: a pairs file or a mode of ``pairs.PAIR_MODES`` (None = auto: exhaustive for small sets,
+    retrieval of ``num_neighbors`` per image above). ``executor``: 'local' (threads) or 'ray' (a private local
+    Ray instance, or the cluster at ``ray_address`` / RAY_ADDRESS)."""
     matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
     verification_conf = {**matcher.verification_conf, **(verification_conf or {})}
     options = verify.two_view_options(verification_conf)
@@ -49,61 +56,21 @@ def match_database(
         if overwrite:
             dbio.clear_matches(db)
         names = sorted(images)
-        pairs = read_pairs(pairs_path, names) if pairs_path else exhaustive_pairs(names)
-        id_pairs = [(images[a].image_id, images[b].image_id, a, b) for a, b in pairs]
-
-        cache: dict[str, ImageData] = {}
-        last_use = {}
-        for index, (_, _, a, b) in enumerate(id_pairs):
-            last_use[a] = last_use[b] = index
-
-        todo = [p for p in id_pairs if not dbio.pair_has_matches(db, p[0], p[1])]
-        logger.info("Matching %d pairs with the %s matcher (%d already matched)", len(todo), matcher.name, len(id_pairs) - len(todo))
         start = time.time()
-        todo_index = {(p[0], p[1]) for p in todo}
-        # Matchers with a backbone (guided) compute an image's features at its first pair: a bar of its own.
-        backbone = getattr(matcher, "features", None)
-        num_todo_images = len({name for p in todo for name in p[2:]})
-        backbone_bar = tqdm(desc="backbone", total=num_todo_images, unit="img", disable=None, dynamic_ncols=True, leave=False) if callable(backbone) and todo else None
-
-        def load(name: str) -> ImageData:
-            if name not in cache:
-                cache[name] = dbio.read_image_data(db, images[name], image_path)
-                if backbone_bar is not None:
-                    backbone(cache[name])
-                    backbone_bar.update(1)
-            return cache[name]
-
-        # Pairs are matched by ``matcher.pair_workers`` threads (torch releases the GIL), in order, at most
-        # two per worker ahead of the database writes; an image's cache is dropped once its last pair is written.
-        pending: deque = deque()
-
-        def write_done(limit: int) -> None:
-            while len(pending) > limit:
-                index, id_a, id_b, a, b, future = pending.popleft()
-                if future is not None:
-                    dbio.write_pair_matches(db, id_a, id_b, future.result())
-                    bar.update(1)
-                for name in (a, b):
-                    if last_use[name] == index:
-                        cache.pop(name, None)
-                        matcher.release(name)
-
-        workers = max(1, int(matcher.pair_workers))
-        with _progress(None, "match", len(todo)) as bar, ThreadPoolExecutor(workers) as pool:
+        pairs, mode = select_pairs(pairs_path, names, num_neighbors, lambda ns: _global_descriptors(matcher, image_path, ns))
+        stats["pairs"] = {"mode": mode if mode != "file" else str(pairs_path), "num_neighbors": num_neighbors if mode in ("retrieval", "sequential") else None,
+                          "time": time.time() - start}
+        id_pairs = [(images[a].image_id, images[b].image_id, a, b) for a, b in pairs]
+        todo = [p for p in id_pairs if not dbio.pair_has_matches(db, p[0], p[1])]
+        logger.info("Matching %d %s pairs with the %s matcher (%d already matched)", len(todo), mode, matcher.name, len(id_pairs) - len(todo))
+        start = time.time()
+        if todo:
+            run = get_executor(executor, matcher, ray_address)
             try:
-                for index, (id_a, id_b, a, b) in enumerate(id_pairs):
-                    future = pool.submit(matcher.match, load(a), load(b)) if (id_a, id_b) in todo_index else None
-                    pending.append((index, id_a, id_b, a, b, future))
-                    write_done(2 * workers)
-                write_done(0)
-            except BaseException:  # stop the queued pairs; the written ones stay (resumable)
-                for *_, future in pending:
-                    if future is not None:
-                        future.cancel()
-                raise
-        if backbone_bar is not None:
-            backbone_bar.close()
+                _match_pairs(db, image_path, images, todo, matcher, run)
+            finally:
+                run.close()
+            stats["executor"] = run.describe()
         stats["match_time"] = time.time() - start
         stats["num_pairs"] = len(id_pairs)
         stats["num_pairs_matched_now"] = len(todo)
@@ -116,6 +83,61 @@ def match_database(
         "%d/%d pairs verified, %d inlier matches", stats["num_verified_pairs"], stats["num_pairs"], stats["num_inlier_matches"]
     )
     return stats
+
+
+def _global_descriptors(matcher: Matcher, image_path: Path, names: list[str]) -> np.ndarray:
+    """Retrieval descriptors from the guided matcher's own backbone (an ImageNet backbone for the other matchers)."""
+    from .coarse import CoarseMatcher
+
+    coarse = getattr(matcher, "coarse", None)
+    if not isinstance(coarse, CoarseMatcher):
+        coarse = CoarseMatcher({"mode": "raw", "device": str(getattr(matcher, "device", "auto"))})
+    return global_descriptors(coarse, {name: Path(image_path) / name for name in names})
+
+
+def _match_pairs(db, image_path: Path, images: dict, todo: list[tuple[int, int, str, str]], matcher: Matcher, run) -> None:
+    """Match ``todo`` (id_a, id_b, name_a, name_b) on the executor ``run``; the caller's process is the only
+    database writer (one transaction per batch of finished pairs). An image is read (and, for matchers with
+    a backbone, its features computed) once at its first pair and released after its last one."""
+    remaining = Counter(name for p in todo for name in p[2:])
+    handles: dict[str, object] = {}
+    backbone = getattr(matcher, "features", None)
+    backbone_bar = tqdm(desc="backbone", total=len(remaining), unit="img", disable=None, dynamic_ncols=True, leave=False) if callable(backbone) else None
+
+    def handle(name: str):
+        if name not in handles:
+            image = dbio.read_image_data(db, images[name], image_path)
+            if backbone_bar is not None:
+                backbone(image)
+                backbone_bar.update(1)
+            handles[name] = run.put(image)
+        return handles[name]
+
+    with _progress(None, "match", len(todo)) as bar:
+
+        def write_done() -> None:
+            done = run.wait()
+            errors = [value for _, value in done if isinstance(value, BaseException)]
+            done = [(key, value) for key, value in done if not isinstance(value, BaseException)]
+            dbio.write_pairs_matches(db, [(key[0], key[1], matches) for key, matches in done])
+            bar.update(len(done))
+            if errors:  # the finished pairs are written (resumable); the first error stops the run
+                raise errors[0]
+            for key, _ in done:
+                for name in key[2:]:
+                    remaining[name] -= 1
+                    if remaining[name] == 0:
+                        handles.pop(name, None)
+                        matcher.release(name)
+
+        for key in todo:
+            run.submit(key, handle(key[2]), handle(key[3]))
+            while run.in_flight >= run.capacity:
+                write_done()
+        while run.in_flight:
+            write_done()
+    if backbone_bar is not None:
+        backbone_bar.close()
 
 
 def verify_pairs(db, images: dict, id_pairs: list[tuple[int, int, str, str]], options) -> int:
@@ -139,7 +161,10 @@ def verify_pairs(db, images: dict, id_pairs: list[tuple[int, int, str, str]], op
 def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--matcher", default=None, choices=sorted(MATCHERS), help="raw: mutual NN + ratio; guided: paper eq. 1 (default)")
     parser.add_argument("--ratio", type=float, default=None, help="Lowe ratio threshold (0 disables)")
-    parser.add_argument("--pairs", type=Path, default=None, help="pairs file (name_a name_b per line); exhaustive if omitted")
+    parser.add_argument("--pairs", default="auto", help=f"{'|'.join(PAIR_MODES)} or a pairs file (name_a name_b per line); auto: exhaustive for small sets, retrieval above")
+    parser.add_argument("--num_neighbors", type=int, default=DEFAULT_NUM_NEIGHBORS, help="retrieval / sequential: pairs per image")
+    parser.add_argument("--executor", default="local", choices=EXECUTORS, help="local: threads of this process; ray: a Ray cluster (pip install colmap_guided[ray])")
+    parser.add_argument("--ray_address", default=None, help="Ray cluster to join (default RAY_ADDRESS; none: a private local instance)")
     parser.add_argument("--weights", type=Path, default=None, help="coarse filter weights (guided matcher)")
     parser.add_argument("--device", default=None, help="torch device for matching (cpu, cuda)")
 
@@ -153,3 +178,8 @@ def matcher_conf_from_args(args, matcher: str) -> dict:
     if unknown:
         raise SystemExit(f"error: --{unknown[0]} does not apply to the {matcher} matcher")
     return given
+
+
+def match_options_from_args(args) -> dict:
+    """The pair selection and executor options of ``add_matcher_arguments`` for ``match_database``."""
+    return {"num_neighbors": args.num_neighbors, "executor": args.executor, "ray_address": args.ray_address}

@@ -1,17 +1,86 @@
-"""Which image pairs to match: exhaustive (COLMAP's exhaustive_matcher) or a pairs file.
+"""Which image pairs to match: exhaustive, by image retrieval, sequential, or a pairs file.
 
-A pairs file has one pair per line, ``name_a name_b`` (hloc / COLMAP matches_importer format);
-names that contain spaces are separated by a tab instead, or resolved against the known names.
+- ``exhaustive``: all N(N-1)/2 pairs (COLMAP's exhaustive_matcher).
+- ``retrieval``: each image with its ``num_neighbors`` most similar images by a global descriptor
+  (GeM pooling of the coarse network's backbone features, L2-normalised), symmetric union — the
+  visibility graph that hloc / COLMAP's vocabulary tree build; the coarse matches alone cannot
+  (the paper's §Limitations: they look consistent even between different places).
+- ``sequential``: each image with the ``num_neighbors`` next ones in name order (video, a scanned film).
+- ``auto`` (default): exhaustive up to ``AUTO_EXHAUSTIVE_MAX`` images, retrieval above.
+- a pairs file: one pair per line, ``name_a name_b`` (hloc / COLMAP matches_importer format);
+  names that contain spaces are separated by a tab instead, or resolved against the known names.
 """
 
 from __future__ import annotations
 
 from itertools import combinations
 from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+PAIR_MODES = ("auto", "exhaustive", "retrieval", "sequential")
+# Above this many images ``auto`` picks retrieval (README "Large archives": measured recall vs k).
+AUTO_EXHAUSTIVE_MAX = 40
+DEFAULT_NUM_NEIGHBORS = 10
 
 
 def exhaustive_pairs(names: list[str]) -> list[tuple[str, str]]:
     return list(combinations(sorted(names), 2))
+
+
+def sequential_pairs(names: list[str], num_neighbors: int) -> list[tuple[str, str]]:
+    """Each image with the ``num_neighbors`` images after it in name order."""
+    names = sorted(names)
+    return [(a, names[j]) for i, a in enumerate(names) for j in range(i + 1, min(i + 1 + num_neighbors, len(names)))]
+
+
+def gem(features: np.ndarray, p: float = 3.0) -> np.ndarray:
+    """Generalised-mean pooling (Radenović et al. 2018) of (C, h, w) features → L2-normalised (C,).
+
+    The backbone's last block is linear (signed output): GeM pools the positive part."""
+    x = np.clip(features.reshape(features.shape[0], -1).astype(np.float64), 1e-6, None)
+    d = np.power(np.power(x, p).mean(1), 1.0 / p)
+    return (d / max(np.linalg.norm(d), 1e-12)).astype(np.float32)
+
+
+def retrieval_pairs(names: list[str], descriptors: np.ndarray, num_neighbors: int) -> list[tuple[str, str]]:
+    """Top-``num_neighbors`` neighbours of each image by cosine similarity of ``descriptors`` (N, D),
+    symmetric union, in name order (deterministic: a resumed run selects the same pairs)."""
+    order = np.argsort(names, kind="stable")
+    names, descriptors = [names[i] for i in order], np.asarray(descriptors, np.float32)[order]
+    sim = descriptors @ descriptors.T
+    np.fill_diagonal(sim, -np.inf)
+    k = min(num_neighbors, len(names) - 1)
+    top = np.argsort(-sim, axis=1, kind="stable")[:, :k]
+    keys = {(min(i, int(j)), max(i, int(j))) for i in range(len(names)) for j in top[i]}
+    return [(names[i], names[j]) for i, j in sorted(keys)]
+
+
+def select_pairs(
+    pairs: str | Path | None,
+    names: list[str],
+    num_neighbors: int = DEFAULT_NUM_NEIGHBORS,
+    descriptors: Callable[[list[str]], np.ndarray] | None = None,
+) -> tuple[list[tuple[str, str]], str]:
+    """The pairs to match and the mode used. ``pairs``: a mode of ``PAIR_MODES`` or a pairs file (None = auto);
+    ``descriptors(names)`` returns the global descriptors (N, D) that retrieval needs."""
+    mode = "auto" if pairs is None else str(pairs)
+    if mode not in PAIR_MODES:
+        if not Path(mode).is_file():
+            raise FileNotFoundError(f"--pairs {mode}: no such pairs file; pass a file or one of {', '.join(PAIR_MODES)}.")
+        return read_pairs(Path(mode), names), "file"
+    if num_neighbors < 1:
+        raise ValueError(f"--num_neighbors must be at least 1, got {num_neighbors}.")
+    if mode == "auto":
+        mode = "exhaustive" if len(names) <= AUTO_EXHAUSTIVE_MAX else "retrieval"
+    if mode == "exhaustive" or (mode == "retrieval" and num_neighbors >= len(names) - 1):
+        return exhaustive_pairs(names), mode
+    if mode == "sequential":
+        return sequential_pairs(names, num_neighbors), mode
+    if descriptors is None:
+        raise ValueError("Retrieval pairs need global image descriptors.")
+    return retrieval_pairs(names, descriptors(names), num_neighbors), mode
 
 
 def _split_line(line: str, known: set[str]) -> tuple[str, str] | None:
@@ -50,3 +119,15 @@ def read_pairs(path: Path, names: list[str]) -> list[tuple[str, str]]:
 def write_pairs(path: Path, pairs: list[tuple[str, str]]) -> None:
     sep = lambda a, b: "\t" if (" " in a or " " in b) else " "  # noqa: E731
     Path(path).write_text("".join(f"{a}{sep(a, b)}{b}\n" for a, b in pairs), encoding="utf-8")
+
+
+def global_descriptors(coarse, paths: dict[str, Path], desc: str = "retrieval") -> np.ndarray:
+    """GeM descriptor (N, C) of each image of ``paths`` (name → file), in its order, from the backbone of a
+    ``colmap_guided.coarse.CoarseMatcher``; each image's features are released at once (memory flat in N)."""
+    from tqdm import tqdm
+
+    out = []
+    for name, path in tqdm(paths.items(), desc=desc, unit="img", disable=None, dynamic_ncols=True, leave=False):
+        out.append(gem(coarse.extract_path(path, name).features.float().cpu().numpy()))
+        coarse.release(name)
+    return np.stack(out) if out else np.zeros((0, 0), np.float32)

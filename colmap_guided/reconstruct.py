@@ -40,12 +40,15 @@ def reconstruct(
     output: Path | None = None,
     matcher: str = DEFAULT_MATCHER,
     matcher_conf: dict | None = None,
-    pairs_path: Path | None = None,
+    pairs_path: str | Path | None = None,
     feature_conf: dict | None = None,
     verification_conf: dict | None = None,
     mapping_conf: dict | None = None,
     overwrite: bool = False,
+    match_options: dict | None = None,
 ) -> dict:
+    """``pairs_path``: a pairs file or auto|exhaustive|retrieval|sequential; ``match_options``: further
+    keyword arguments of ``match.match_database`` (num_neighbors, executor, ray_address)."""
     image_path, output = resolve_paths(scene_dir, image_path, output)
     image_names = features.list_images(image_path)
     # The matcher first: a missing or broken --weights file fails now, not after the extraction.
@@ -69,7 +72,7 @@ def reconstruct(
             "a reconstruction needs at least 2 overlapping photos of the landmark; add photos and run again."
         )
 
-    match_stats = match.match_database(database_path, image_path, pairs_path, matcher, None, verification_conf)
+    match_stats = match.match_database(database_path, image_path, pairs_path, matcher, None, verification_conf, **(match_options or {}))
     timings["match"] = match_stats.pop("match_time")
     timings["verify"] = match_stats.pop("verify_time")
 
@@ -87,7 +90,7 @@ def reconstruct(
         "sparse_path": str(sparse_path),
         "report_path": str(output / "report.json"),
         "matcher": match_stats.pop("matcher"),
-        "options": {"features": {**features.default_conf, **(feature_conf or {})}, "verification": match_stats.pop("verification"), "mapping": {**mapping.default_conf, **(mapping_conf or {})}, "pairs": str(pairs_path) if pairs_path else "exhaustive"},
+        "options": {"features": {**features.default_conf, **(feature_conf or {})}, "verification": match_stats.pop("verification"), "mapping": {**mapping.default_conf, **(mapping_conf or {})}, "pairs": match_stats.pop("pairs")},
         "model": stats,
         "eras": report.era_ratios(eras, stats["registered_images"], image_names) if eras else {},
         "database": match_stats,

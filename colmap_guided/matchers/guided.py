@@ -273,13 +273,18 @@ class GuidedMatcher(Matcher):
         return {**super().describe(), "pair_workers": self.pair_workers, "coarse": self.coarse.describe()}
 
     def features(self, image: ImageData):
-        """Backbone features of ``image`` (cached by name until ``release``)."""
+        """Backbone features of ``image`` (cached by name until ``release``, and in ``image.extra``: an image
+        sent to another process carries them, so the worker needs neither the photo nor the backbone pass)."""
+        key = f"coarse/{self.coarse.conf['backbone']}/{self.coarse.conf['backbone_weights']}/{self.coarse.conf['resize_max']}"
+        if key in image.extra:
+            return image.extra[key]
         feats = self.coarse.extract_path(image.path, image.name)
         if (feats.geometry.width, feats.geometry.height) != (image.width, image.height):
             raise ValueError(
                 f"{image.path} is {feats.geometry.width}x{feats.geometry.height} pixels but its keypoints are for "
                 f"{image.width}x{image.height}: the image file is not the one the features were extracted from."
             )
+        image.extra[key] = feats
         return feats
 
     def coarse_flows(self, a: ImageData, b: ImageData) -> CoarseFlows:
