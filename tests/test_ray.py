@@ -1,0 +1,111 @@
+"""Matching on a real local Ray cluster (issue 15): same database as the local executor, and a killed run resumes.
+
+Skipped without Ray (``pip install -e '.[ray]'``). One cluster for the module (~5 s to start), with HOME
+and RAY_TMPDIR in a temporary folder (Ray writes its auth token and session files there).
+"""
+
+import os
+import shutil
+import signal
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import time
+
+import pycolmap
+import pytest
+
+from colmap_guided import database as dbio
+from colmap_guided.match import match_database
+
+ray = pytest.importorskip("ray")
+
+from test_pipeline import all_matches  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():
+    """A private local cluster of 2 CPUs; yields (address, environment for a process that joins it)."""
+    root = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # short: Ray's unix sockets live below it
+    saved = {k: os.environ.get(k) for k in ("HOME", "RAY_TMPDIR")}
+    os.environ.update(HOME=root, RAY_TMPDIR=root)
+    try:
+        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        yield ray.get_runtime_context().gcs_address, dict(os.environ)
+    finally:
+        ray.shutdown()
+        for k, v in saved.items():
+            os.environ.pop(k, None) if v is None else os.environ.__setitem__(k, v)
+        shutil.rmtree(root, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def local_database(synthetic_scene, tmp_path_factory):
+    db = tmp_path_factory.mktemp("local") / "db.db"
+    pycolmap.extract_features(db, synthetic_scene.image_dir)
+    stats = match_database(db, synthetic_scene.image_dir, matcher="guided", executor="local")
+    return db, stats
+
+
+def geometries(database_path):
+    with dbio.open_database(database_path) as db:
+        ids, inliers = db.read_two_view_geometry_num_inliers()
+        return dict(zip(map(int, ids), map(int, inliers)))
+
+
+def registered(database_path, image_path, out):
+    options = pycolmap.IncrementalPipelineOptions()
+    options.random_seed, options.num_threads = 0, 1
+    models = pycolmap.incremental_mapping(str(database_path), str(image_path), str(out), options)
+    return sorted(image.name for image in max(models.values(), key=lambda m: m.num_reg_images()).images.values() if image.has_pose)
+
+
+def fresh_database(synthetic_scene, local_db, path):
+    """The local run's database without matches: the same keypoints (extraction is not under test)."""
+    shutil.copy(local_db, path)
+    with dbio.open_database(path) as db:
+        dbio.clear_matches(db)
+    return path
+
+
+def test_ray_matches_and_registrations_equal_the_local_run(ray_cluster, local_database, synthetic_scene, tmp_path):
+    local_db, local_stats = local_database
+    db = fresh_database(synthetic_scene, local_db, tmp_path / "db.db")
+    stats = match_database(db, synthetic_scene.image_dir, matcher="guided", executor="ray")
+    assert stats["executor"] == {"name": "ray", "workers": 2} and stats["num_pairs_matched_now"] == 28
+    assert all_matches(db) == all_matches(local_db) and len(all_matches(db)) == 28
+    assert geometries(db) == geometries(local_db)
+    assert stats["num_verified_pairs"] == local_stats["num_verified_pairs"] > 20
+    assert registered(db, synthetic_scene.image_dir, tmp_path / "ray") == registered(local_db, synthetic_scene.image_dir, tmp_path / "local") == sorted(synthetic_scene.names)
+
+
+def test_a_killed_ray_run_resumes(ray_cluster, local_database, synthetic_scene, tmp_path):
+    """The CLI on the cluster, killed (SIGKILL) once pairs are written: the database holds whole pairs
+    only, and the same command again matches the rest into the local run's database."""
+    address, env = ray_cluster
+    local_db, _ = local_database
+    db = fresh_database(synthetic_scene, local_db, tmp_path / "db.db")
+    cmd = [sys.executable, "-m", "colmap_guided", "match", "--database_path", str(db), "--image_path", str(synthetic_scene.image_dir),
+           "--matcher", "guided", "--executor", "ray", "--ray_address", address, "-q"]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    deadline = time.time() + 120
+    written = 0
+    while time.time() < deadline and proc.poll() is None and written == 0:
+        time.sleep(0.02)
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as conn:
+            written = conn.execute("SELECT COUNT(*) FROM matches").fetchone()[0]
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    partial = all_matches(db)
+    assert 0 < len(partial) < 28, proc.stdout.read().decode()
+    assert {k: v for k, v in all_matches(local_db).items() if k in partial} == partial
+    stats = match_database(db, synthetic_scene.image_dir, matcher="guided", executor="ray", ray_address=address)
+    assert stats["num_pairs_matched_now"] == 28 - len(partial)
+    assert all_matches(db) == all_matches(local_db) and geometries(db) == geometries(local_db)
+
+
+def test_ray_address_without_ray_executor_is_refused(synthetic_scene, local_database, tmp_path):
+    local_db, _ = local_database
+    with pytest.raises(ValueError, match="--ray_address applies to --executor ray"):
+        match_database(fresh_database(synthetic_scene, local_db, tmp_path / "db.db"), synthetic_scene.image_dir, matcher="raw", ray_address="127.0.0.1:1")
