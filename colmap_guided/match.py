@@ -19,7 +19,7 @@ from . import database as dbio
 from . import verify
 from .log import colmap_quiet, logger
 from .matchers import MATCHERS, get_matcher
-from .matchers.base import ImageData, Matcher
+from .matchers.base import Matcher
 from .executor import EXECUTORS, get_executor
 from .pairs import DEFAULT_NUM_NEIGHBORS, PAIR_MODES, global_descriptors, select_pairs
 
@@ -91,7 +91,7 @@ def _global_descriptors(matcher: Matcher, image_path: Path, names: list[str]) ->
 
     coarse = getattr(matcher, "coarse", None)
     if not isinstance(coarse, CoarseMatcher):
-        coarse = CoarseMatcher({"mode": "raw", "device": str(getattr(matcher, "device", "auto"))})
+        coarse = CoarseMatcher({"mode": "raw", "device": str(getattr(matcher, "device", "auto")), "num_threads": None})
     return global_descriptors(coarse, {name: Path(image_path) / name for name in names})
 
 
