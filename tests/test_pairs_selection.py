@@ -71,3 +71,17 @@ def test_reconstruct_with_retrieval_pairs_registers_every_image(synthetic_scene,
     assert result["options"]["pairs"]["mode"] == "retrieval" and result["options"]["pairs"]["num_neighbors"] == 3
     assert result["database"]["num_pairs"] < 28
     assert result["num_registered"] == len(synthetic_scene.names)
+
+
+def test_ray_executor_without_ray_says_how_to_install_it(synthetic_scene, tmp_path, monkeypatch):
+    import sys
+
+    import pycolmap
+
+    from colmap_guided.match import match_database
+
+    db = tmp_path / "db.db"
+    pycolmap.extract_features(db, synthetic_scene.image_dir)
+    monkeypatch.setitem(sys.modules, "ray", None)  # as if Ray were not installed
+    with pytest.raises(RuntimeError, match=r"--executor ray needs Ray: pip install 'colmap_guided\[ray\]'"):
+        match_database(db, synthetic_scene.image_dir, matcher="raw", executor="ray")
