@@ -80,7 +80,16 @@ def summary_text(report: dict) -> str:
             lines.append(f"  ... and {len(reasons) - 10} more (report.json, skipped_images)")
     times = ", ".join(f"{k} {v:.1f} s" for k, v in report["timings"].items())
     lines.append(f"Time: {times}")
-    lines.append(f"Model: {report['sparse_path']}/0   Report: {report['report_path']}")
+    if s["num_models"]:
+        lines.append(f"Model: {report['sparse_path']}/0   Report: {report['report_path']}")
+    else:
+        db = report.get("database") or {}
+        verified = f" ({db['num_verified_pairs']} of {db['num_pairs']} photo pairs verified)" if "num_pairs" in db else ""
+        lines.append(
+            f"No model was made{verified}: mapping found no starting pair it could trust. Try --camera_mode single "
+            "if the photos come from one camera, or add photos taken between the existing ones."
+        )
+        lines.append(f"Report: {report['report_path']}")
     if report.get("html_report_path"):
         lines.append(f"Open in a browser: {report['html_report_path']}")
     return "\n".join(lines)

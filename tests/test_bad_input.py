@@ -20,7 +20,7 @@ from PIL import Image
 
 from colmap_guided import images
 from colmap_guided.__main__ import main
-from colmap_guided.log import logger, set_verbosity
+from colmap_guided.log import set_verbosity
 from colmap_guided.reconstruct import reconstruct
 from colmap_guided.report import summary_text
 from colmap_guided.synthetic import render_scene
@@ -245,14 +245,11 @@ def test_bad_and_odd_photos_end_to_end(tmp_path, capfd):
 
 
 def _cli(argv: list[str], capfd) -> tuple[int, str, str]:
-    """main() in this process; our logger's handler pointed at the (captured) stderr of now."""
-    saved = [h.setStream(sys.stderr) for h in logger.handlers]
+    """main() in this process; our logger writes to the stderr of the moment, which capfd captures."""
     try:
         code = main([str(a) for a in argv])
     finally:
         set_verbosity(False, False)
-        for h, stream in zip(logger.handlers, saved):
-            h.setStream(stream)
     out, err = capfd.readouterr()
     return code, out, err
 
@@ -303,3 +300,19 @@ def test_single_image_one_line_and_verbose_shows_colmap_log(tmp_path, capfd):
     code, _, err = _cli(["reconstruct", folder, "--output", tmp_path / "out2", "--matcher", "raw"], capfd)  # extracts again
     assert code == 2 and "Only 1 usable image" in _one_error_line(err)
     assert not GLOG_LINE.search(err), "COLMAP's log must be quiet by default"
+
+
+def test_no_model_is_said_plainly_with_what_to_try(tmp_path, capfd):
+    """Photos that share nothing: no pair verifies, mapping starts no model, and the summary says so
+    instead of pointing at a sparse/0 that does not exist."""
+    folder = tmp_path / "unrelated"
+    folder.mkdir()
+    for seed in range(3):
+        Image.fromarray(_texture(240, 320, seed=seed)).save(folder / f"photo_{seed}.png")
+    code, out, _ = _cli(["reconstruct", folder, "--output", tmp_path / "out", "--matcher", "raw"], capfd)
+    assert code == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text(encoding="utf-8"))
+    assert report["model"]["num_models"] == 0 and report["num_registered"] == 0
+    assert not (tmp_path / "out" / "sparse" / "0").exists()
+    assert "No model was made" in out and "--camera_mode single" in out
+    assert "sparse/0" not in out
