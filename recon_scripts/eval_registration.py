@@ -22,12 +22,10 @@ import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from colmap_guided.evaluation import manifest as mf  # noqa: E402
-from colmap_guided.evaluation import matcher_specs, proxy, registration, tables, two_view  # noqa: E402
-from colmap_guided.log import logger, set_verbosity  # noqa: E402
-from colmap_guided.paths import REPO_ROOT  # noqa: E402
+from colmap_guided.evaluation import manifest as mf
+from colmap_guided.evaluation import matcher_specs, proxy, registration, tables, two_view
+from colmap_guided.log import logger, set_verbosity
+from colmap_guided.paths import REPO_ROOT
 
 DEFAULT_PROXY = REPO_ROOT / "outputs" / "historical_proxy"
 WXBS_APPEARANCE = ("WGABS", "WLABS", "WGALBS")

@@ -20,12 +20,10 @@ import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from colmap_guided.evaluation import matcher_specs, tables, two_view  # noqa: E402
-from colmap_guided.evaluation.reference import TWO_VIEW_SCENES  # noqa: E402
-from colmap_guided.log import logger, set_verbosity  # noqa: E402
-from colmap_guided.paths import REPO_ROOT  # noqa: E402
+from colmap_guided.evaluation import matcher_specs, tables, two_view
+from colmap_guided.evaluation.reference import TWO_VIEW_SCENES
+from colmap_guided.log import logger, set_verbosity
+from colmap_guided.paths import REPO_ROOT
 
 
 def pose_table(result: dict) -> str:

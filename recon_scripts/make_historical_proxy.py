@@ -13,10 +13,8 @@ import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from colmap_guided.evaluation import proxy  # noqa: E402
-from colmap_guided.paths import REPO_ROOT  # noqa: E402
+from colmap_guided.evaluation import proxy
+from colmap_guided.paths import REPO_ROOT
 
 DEFAULT_OUTPUT = REPO_ROOT / "outputs" / "historical_proxy"
 
