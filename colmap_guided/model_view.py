@@ -142,7 +142,7 @@ VIEW_CSS = """
 .model-buttons { float: right; white-space: nowrap; } .model-buttons button { font: inherit; font-size: 0.85em; margin-left: 0.4em; }
 """
 
-# Orbit (drag), zoom (wheel), pan (shift-drag), hover/click a camera for its photo. Points go through a depth
+# Orbit (drag), zoom (wheel), pan (shift-drag), hover/click a camera for its photo (or open page.html#photo=NAME). Points go through a depth
 # buffer into an ImageData (no sort, fast for 100k); frusta and labels are drawn on top.
 VIEW_JS = """
 (function () {
@@ -244,6 +244,12 @@ VIEW_JS = """
   document.getElementById('model-top').onclick = () => { v = Object.assign({}, home, {pitch: 1.55, yaw: 0}); fit(); redraw(); };
   window.addEventListener('resize', () => { setup(); draw(); });
   setup(); fit(); home = Object.assign({}, v); draw();
+  let wanted = null; try { wanted = decodeURIComponent(location.hash.replace(/^#photo=/, '')); } catch (err) { /* a malformed link: no photo */ }
+  const linked = location.hash.startsWith('#photo=') ? D.cameras.findIndex(c => c.name === wanted) : -1;
+  if (linked >= 0) {  // report.html#photo=NAME opens with that photo shown
+    const q = project(D.cameras[linked].c), b = cv.getBoundingClientRect();
+    pinned = linked; draw(); show(linked, {clientX: b.left + q[0] / r, clientY: b.top + q[1] / r});
+  }
 })();
 """
 

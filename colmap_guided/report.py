@@ -93,7 +93,7 @@ def explain_unregistered(
         candidates: dict[str, list[tuple[int, str]]] = {}
         for table, pairs_counts in ((verified, db.read_two_view_geometry_num_inliers()), (candidates, db.read_num_matches())):
             for pair_id, count in zip(*pairs_counts):
-                if count <= 0:
+                if count <= 0 and table is verified:
                     continue
                 a, b = (by_id[int(i)] for i in pycolmap.pair_id_to_image_pair(pair_id))
                 table.setdefault(a, []).append((int(count), b))
@@ -108,17 +108,21 @@ def explain_unregistered(
         other = next((k for k in models if k != largest and name in in_model[k]), None)
         if not pairs and keypoints[name] < MIN_KEYPOINTS:
             stage = "features"
-            reason = f"Only {keypoints[name]} distinctive points were found in the photo (a blank, blurred, very dark or very small image), too few to match it with the others."
+            found = f"Only {keypoints[name]}" if keypoints[name] else "No"
+            reason = f"{found} distinctive points were found in the photo (a blank, blurred, very dark or very small image): too few to match it with the others."
         elif not pairs:
             stage = "matching"
             tried = sorted(candidates.get(name, []), key=lambda t: (-t[0], t[1]))
-            if tried:
+            if tried and tried[0][0] >= min_num_inliers:
                 reason = (
-                    f"No other photo shares enough details with it: of its {len(tried)} candidate pairs, none passed the geometry check. "
-                    f"The best, with {tried[0][1]}, had {tried[0][0]} tentative matches, but fewer than {min_num_inliers} of them fit one consistent pair of camera positions."
+                    f"None of the {len(tried)} photos it was compared with shares enough details with it. The best, {tried[0][1]}, had {tried[0][0]} "
+                    f"tentative matches, but fewer than {min_num_inliers} of them fit one consistent pair of camera positions (the others are chance look-alikes)."
                 )
+            elif tried:
+                count = f"only {tried[0][0]} tentative match{'es' if tried[0][0] != 1 else ''}" if tried[0][0] else "no tentative match"
+                reason = f"None of the {len(tried)} photos it was compared with shares enough details with it: the best, {tried[0][1]}, had {count}, and at least {min_num_inliers} must fit one consistent pair of camera positions."
             else:
-                reason = "No other photo shares any detail with it: not a single tentative match was found."
+                reason = "It was compared with no other photo (the pairs list leaves it out)."
             entry.update(best_candidate=tried[0][1] if tried else None, best_candidate_matches=tried[0][0] if tried else 0)
         elif other is not None:
             stage = "separate model"
