@@ -232,51 +232,51 @@ def _why_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
 def _load_model(report: dict):
     """The largest model (sparse/0) of a report, or None."""
     path = Path(report.get("sparse_path") or "") / "0"
-    if not report.get("sparse_path") or not (path / "images.bin").is_file() and not (path / "images.txt").is_file():
+    if not report.get("sparse_path") or not ((path / "images.bin").is_file() or (path / "images.txt").is_file()):
         return None
     import pycolmap
 
     return pycolmap.Reconstruction(str(path))
 
 
-def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: bool = True, model=None) -> str:
-    """The page. ``model``: the largest pycolmap.Reconstruction (default: read from report's sparse_path/0)."""
+def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: bool = True, reconstruction=None) -> str:
+    """The page. ``reconstruction``: the largest pycolmap.Reconstruction (default: read from report's sparse_path/0)."""
     from . import model_view
     from .report import read_manifest
 
-    model_stats = report["model"]
+    model = report["model"]
     image_path = Path(report.get("image_path", "."))
     esc = html.escape
     matcher = report.get("matcher", {})
     matcher_name = matcher.get("name", "?") if isinstance(matcher, dict) else str(matcher)
-    model = model if model is not None else _load_model(report)
+    rec = reconstruction if reconstruction is not None else _load_model(report)
     eras = read_manifest(Path(report["manifest_path"])) if report.get("manifest_path") else {}
     out = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
         f"<title>Reconstruction report: {esc(str(report.get('scene', '')))}</title><style>{CSS}{model_view.VIEW_CSS}</style></head><body>",
         f"<h1>{esc(str(report.get('scene', 'Reconstruction')))}</h1>",
         f"<p class='sub'>{esc(matcher_name)} matching, COLMAP incremental mapping &middot; {datetime.datetime.now():%Y-%m-%d %H:%M} &middot; photos: {esc(str(image_path))}</p>",
-        f"<p><span class='big'>{100 * model_stats['registered_ratio']:.0f}&nbsp;%</span> &nbsp; {model_stats['num_registered']} of {model_stats['num_images']} images are placed in the largest 3D model"
-        + (f" ({model_stats['num_models']} models in all)" if model_stats.get("num_models", 1) > 1 else "") + ".</p>",
+        f"<p><span class='big'>{100 * model['registered_ratio']:.0f}&nbsp;%</span> &nbsp; {model['num_registered']} of {model['num_images']} images are placed in the largest 3D model"
+        + (f" ({model['num_models']} models in all)" if model.get("num_models", 1) > 1 else "") + ".</p>",
     ]
-    if model is not None and model.num_reg_images():
+    if rec is not None and rec.num_reg_images():
         out.append("<h2>The 3D model</h2>")
-        out.append(model_view.view_html(model, eras, image_path if thumbnails else None))
+        out.append(model_view.view_html(rec, eras, image_path if thumbnails else None))
         out.append("<h2>Where the photos were taken from</h2>")
         out.append("<p>Seen from above: the points of the model, each photo's position (dot) and the direction it looks in (arrow).</p>")
-        out.append(f"<img src='{model_view.photo_map(model, eras)}' alt='map of the camera positions'>")
+        out.append(f"<img src='{model_view.photo_map(rec, eras)}' alt='map of the camera positions'>")
     out += [
         "<h2>Registered images</h2>",
         "<table><tr><th>images</th><th>registered</th><th>ratio</th></tr>",
-        f"<tr><td>all</td><td class='num'>{model_stats['num_registered']}/{model_stats['num_images']}</td><td class='num'>{100 * model_stats['registered_ratio']:.0f} %</td></tr>",
+        f"<tr><td>all</td><td class='num'>{model['num_registered']}/{model['num_images']}</td><td class='num'>{100 * model['registered_ratio']:.0f} %</td></tr>",
     ]
     for era, r in (report.get("eras") or {}).items():
         out.append(f"<tr><td>{esc(era)}</td><td class='num'>{r['num_registered']}/{r['num_images']}</td><td class='num'>{100 * r['registered_ratio']:.0f} %</td></tr>")
     out.append("</table>")
     out.append(f"<img src='{ratio_plot(report)}' alt='registered images per era'>")
     out.append(
-        f"<p>3D points: {model_stats['num_points3D']} &middot; mean track length {model_stats['mean_track_length']:.2f} &middot; "
-        f"mean reprojection error {model_stats['mean_reprojection_error']:.2f} px</p>"
+        f"<p>3D points: {model['num_points3D']} &middot; mean track length {model['mean_track_length']:.2f} &middot; "
+        f"mean reprojection error {model['mean_reprojection_error']:.2f} px</p>"
     )
     timings = report.get("timings") or {}
     if timings:
@@ -308,11 +308,11 @@ def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: boo
     return "\n".join(out)
 
 
-def write_html_report(path: Path, report: dict, panels: list[Panel] | None = None, model=None) -> Path:
+def write_html_report(path: Path, report: dict, panels: list[Panel] | None = None, reconstruction=None) -> Path:
     """Write the page atomically (a partial file never replaces a good one)."""
     path = Path(path)
     tmp = path.with_suffix(".html.partial")
-    tmp.write_text(render_html(report, panels, model=model), encoding="utf-8")
+    tmp.write_text(render_html(report, panels, reconstruction=reconstruction), encoding="utf-8")
     tmp.replace(path)
     return path
 

@@ -79,9 +79,12 @@ def _cameras(rec: pycolmap.Reconstruction, origin, axes, radius) -> list[dict]:
         rays = np.c_[np.asarray(camera.cam_from_img(corners)), np.ones(4)]
         rays *= FRUSTUM * radius / np.linalg.norm(rays, axis=1).max()
         world = (rays - t) @ rot  # R^T (p - t)
-        to_view = lambda p: np.round((np.asarray(p) - origin) @ axes.T / radius, 4).tolist()  # noqa: E731
-        out.append({"name": image.name, "c": to_view(image.projection_center()), "f": to_view(world)})
+        out.append({"name": image.name, "c": _to_view(image.projection_center(), origin, axes, radius), "f": _to_view(world, origin, axes, radius)})
     return out
+
+
+def _to_view(points, origin, axes, radius) -> list:
+    return np.round((np.asarray(points) - origin) @ axes.T / radius, 4).tolist()
 
 
 def view_data(rec: pycolmap.Reconstruction, eras: dict[str, str] | None = None, image_path: Path | None = None, max_points: int = MAX_POINTS) -> dict:

@@ -17,6 +17,7 @@ import pycolmap
 import pytest
 from PIL import Image
 
+from colmap_guided import database as dbio
 from colmap_guided import html_report, model_view, report
 from colmap_guided.mapping import load_models
 from colmap_guided.reconstruct import reconstruct
@@ -159,6 +160,30 @@ def test_each_photo_that_did_not_register_says_where_and_why(run_with_strangers)
     for entry in why.values():
         assert html.escape(entry["reason"]) in page and html.escape(entry["suggestion"]) in page
     assert "Not registered (stage where it dropped out): blank.png (features), unrelated.jpg (matching)" in report.summary_text(result)
+
+
+def test_later_stages_are_told_apart(run_with_strangers):
+    """A photo with verified pairs that the mapper left out (``mapping``), or placed in a smaller model."""
+    result, out, _ = run_with_strangers
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    names = sorted(rec.images[i].name for i in rec.reg_image_ids())
+    left_out = pycolmap.Reconstruction(rec)
+    left_out.deregister_frame(rec.find_image_with_name(names[0]).frame_id)
+    alone = pycolmap.Reconstruction(rec)  # a second, smaller model that holds names[0] and names[1] only
+    for name in names[2:]:
+        alone.deregister_frame(rec.find_image_with_name(name).frame_id)
+    database = out / "database.db"
+    everyone = names + ["blank.png", "unrelated.jpg"]
+    mapping_stage = report.explain_unregistered(database, {0: left_out}, everyone, {})[names[0]]
+    separate = report.explain_unregistered(database, {0: left_out, 1: alone}, everyone, {})[names[0]]
+    with dbio.open_database(database) as db:
+        image_id = db.read_image_with_name(names[0]).image_id
+        pair_ids, counts = db.read_two_view_geometry_num_inliers()
+        mine = {pair_id: n for pair_id, n in zip(pair_ids, counts) if n > 0 and image_id in pycolmap.pair_id_to_image_pair(pair_id)}
+    assert mapping_stage["stage"] == "mapping" and mapping_stage["verified_pairs"] == len(mine) > 0
+    assert mapping_stage["best_inliers"] == max(mine.values()) and mapping_stage["best_pair"] in names[1:]
+    assert mapping_stage["best_pair"] in mapping_stage["suggestion"]
+    assert separate["stage"] == "separate model" and separate["model"] == 1 and "sparse/1" in separate["reason"]
 
 
 def test_model_is_exported_for_other_tools(run_with_strangers):
