@@ -1,4 +1,5 @@
 """hloc-compatible h5 files from a COLMAP database, and back: guided matches for hloc or other front-ends.
+Also the model for other tools (``export_model``: PLY points and COLMAP's text format, beside the model).
 
     python -m colmap_guided export --database_path DB --output DIR    # DIR/features.h5, matches.h5, pairs.txt
     python -m colmap_guided import --database_path NEW.db --features DIR/features.h5 --matches DIR/matches.h5
@@ -34,6 +35,27 @@ from . import database as dbio
 from . import verify
 from .log import logger
 from .pairs import write_pairs
+
+
+def export_model(rec: pycolmap.Reconstruction, model_path: Path) -> dict:
+    """MODEL/points3D.ply (pycolmap's export_PLY: MeshLab, CloudCompare) and MODEL/text/ (COLMAP text format).
+
+    Written inside the model's folder (sparse/0 stays a model folder: COLMAP reads its .bin files), each
+    through a temporary name, so a killed run never leaves a half-written file. Returns their paths.
+    """
+    import shutil
+
+    model_path = Path(model_path)
+    ply, text = model_path / "points3D.ply", model_path / "text"
+    rec.export_PLY(str(model_path / "points3D.ply.partial"))
+    (model_path / "points3D.ply.partial").replace(ply)
+    partial = model_path / "text.partial"
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir()
+    rec.write_text(str(partial))
+    shutil.rmtree(text, ignore_errors=True)
+    partial.rename(text)
+    return {"ply": str(ply), "text": str(text)}
 
 
 def names_to_pair(name0: str, name1: str, separator: str = "/") -> str:
