@@ -29,6 +29,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from colmap_guided.images import read_image
 from colmap_guided.log import logger
 
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # ITU-R BT.601, RGB order
@@ -277,11 +278,11 @@ def main(argv=None):
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     for i, path in enumerate(args.images):
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            logger.warning("Cannot read %s, skipped.", path)
+        try:
+            rgb = read_image(path)
+        except ValueError as err:
+            logger.warning("%s Skipped.", err)
             continue
-        rgb = bgr[..., ::-1]
         if args.preset:
             out = apply_preset(rgb, args.preset, seed=args.seed + i)
         else:

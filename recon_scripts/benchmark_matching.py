@@ -31,6 +31,7 @@ import pycolmap
 import torch
 
 from colmap_guided import verify
+from colmap_guided.images import read_image
 from colmap_guided.log import logger
 from colmap_guided.matchers import get_matcher
 from colmap_guided.matchers.base import ImageData
@@ -58,9 +59,7 @@ def sift_image(path: Path, cache_dir: Path) -> ImageData:
         z = np.load(cache)
         kp, desc, (w, h) = z["keypoints"], z["descriptors"], z["size"]
     else:
-        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if gray is None:
-            raise FileNotFoundError(path)
+        gray = cv2.cvtColor(read_image(path), cv2.COLOR_RGB2GRAY)  # COLMAP's frame (EXIF orientation not applied)
         h, w = gray.shape
         scale = min(1.0, MAX_IMAGE_SIZE / max(h, w))
         small = gray if scale == 1.0 else cv2.resize(gray, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)

@@ -1,12 +1,12 @@
 """CoarseMatcher: the coarse matching network as the guided matcher uses it.
 
     cm = CoarseMatcher({"mode": "raw"})            # or the default mode='filter' with trained weights
-    fa = cm.extract(load_image(path_a), name="a")  # backbone once per image, cached by name
+    fa = cm.extract_path(path_a, name="a")         # backbone once per image, cached by name
     res = cm.match(fa, fb)                          # CoarseResult
     xy_b, score, fb_err = res.flow_ab(xy_a)
 
-Images are read the way COLMAP reads them (``load_image``: stored pixel order, EXIF orientation NOT
-applied — pycolmap 4.2.1 checked), so keypoints and the coarse flow share one frame.
+Files are read by ``colmap_guided.images.read_image`` (the project's one reader: COLMAP's frame, EXIF
+orientation NOT applied, 16-bit scaled), so keypoints and the coarse flow share one frame and pixels.
 """
 
 from __future__ import annotations
@@ -17,25 +17,14 @@ from pathlib import Path
 import h5py
 import numpy as np
 import torch
-from PIL import Image
 
 from colmap_guided.coarse.backbone import BACKBONES
 from colmap_guided.coarse.flow import CoarseResult
 from colmap_guided.coarse.geometry import ImageGeometry, as_rgb, resize_geometry, resize_image
 from colmap_guided.coarse.model import CoarseNet
 from colmap_guided.coarse.weights import DEFAULT_WEIGHTS, load_filter_weights, net_conf_from_config, read_filter_weights
+from colmap_guided.images import read_image
 from colmap_guided.log import logger
-
-
-def load_image(path: str | Path, grayscale: bool = False) -> np.ndarray:
-    """Image file → uint8 HxWx3 RGB (or HxW gray) in its stored pixel order, as COLMAP's reader sees
-    it: the EXIF orientation tag is ignored (pycolmap 4.2.1's feature extraction does not rotate)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"Image not found: {path}")
-    with Image.open(path) as im:
-        return np.asarray(im.convert("L" if grayscale else "RGB"))
-
 
 PRECISIONS = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
 
@@ -50,7 +39,7 @@ class CoarseFeatures:
 
 
 class CoarseMatcher:
-    """Coarse matches and flow between images (paper §3.1, §4.1), with a per-image feature cache."""
+    """Coarse matches and flow between images (paper §4.1), with a per-image feature cache."""
 
     default_conf = {
         "backbone": "efficientnet-lite0",
@@ -136,11 +125,11 @@ class CoarseMatcher:
         return feats
 
     def extract_path(self, path: str | Path, name: str | None = None) -> CoarseFeatures:
-        """``extract(load_image(path), name)``, reading the file only on a cache miss."""
+        """``extract(read_image(path), name)``, reading the file only on a cache miss."""
         key = name or str(path)
         if key in self.cache:
             return self.cache[key]
-        return self.extract(load_image(path), key)
+        return self.extract(read_image(path), key)
 
     def release(self, name: str) -> None:
         """Drop image ``name`` from the in-memory cache."""

@@ -44,7 +44,8 @@ def draw_coarse_matches(image_a: np.ndarray, image_b: np.ndarray, result: Coarse
 
 
 def main(argv: list[str] | None = None) -> int:
-    from colmap_guided.coarse.matcher import CoarseMatcher, load_image
+    from colmap_guided.coarse.matcher import CoarseMatcher
+    from colmap_guided.images import read_image
 
     parser = argparse.ArgumentParser(prog="python -m colmap_guided.coarse", description="Coarse matches of two images, drawn to a PNG.")
     parser.add_argument("image_a", type=Path)
@@ -68,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
             cm = CoarseMatcher({**conf, "mode": "raw"})
     else:
         cm = CoarseMatcher({**conf, "mode": args.mode})
-    img_a, img_b = load_image(args.image_a), load_image(args.image_b)
+    img_a, img_b = read_image(args.image_a), read_image(args.image_b)
     t0 = time.perf_counter()
     fa, fb = cm.extract(img_a), cm.extract(img_b)
     t1 = time.perf_counter()

@@ -30,6 +30,7 @@ import numpy as np
 
 from colmap_guided import archival
 from colmap_guided.features import list_images
+from colmap_guided.images import read_image
 from colmap_guided.log import logger
 from colmap_guided.paths import shared_data_dir, shared_dir
 
@@ -55,13 +56,6 @@ LOOKS = {"damaged": ("", HISTORICAL_PRESETS), "realistic": ("_realistic", REALIS
 
 def _seed(*parts) -> int:
     return zlib.crc32("/".join(str(p) for p in parts).encode())
-
-
-def _read_rgb(path: Path) -> np.ndarray:
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise ValueError(f"cannot read {path}")
-    return np.ascontiguousarray(bgr[..., ::-1])
 
 
 def _resize(rgb: np.ndarray, max_size: int | None) -> tuple[np.ndarray, float]:
@@ -124,7 +118,7 @@ def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int
     entries = []
     k = 0
     for name in names:
-        rgb, scale = _resize(_read_rgb(src / name), max_size)
+        rgb, scale = _resize(read_image(src / name), max_size)
         out_name = str(Path(name).with_suffix(".jpg").as_posix())
         entry = {"name": out_name, "source": f"{key}/images/{name}", "ref_name": name, "scale": scale}
         if name in hist:
@@ -139,7 +133,7 @@ def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int
     for i, dkey in enumerate(distractor_sources(key, pool, n_distractors, seed)):
         dnames = list_images(data_dir / dkey / "images")
         dname = dnames[int(np.random.default_rng(_seed("pick", key, dkey, seed)).integers(len(dnames)))]
-        rgb, scale = _resize(_read_rgb(data_dir / dkey / "images" / dname), max_size)
+        rgb, scale = _resize(read_image(data_dir / dkey / "images" / dname), max_size)
         out_name = f"distractor_{dkey.split('/')[-1]}_{Path(dname).stem}.jpg"
         entry = {"name": out_name, "era": "distractor", "source": f"{dkey}/images/{dname}", "scale": scale}
         if i % 2 == 0:  # half of the distractors look archival too
