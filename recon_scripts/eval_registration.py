@@ -69,7 +69,8 @@ def main(argv=None) -> int:
     if not scenes:
         logger.error("%s lists no scene with images (LTLL: pass --root and --scan).", manifest_path)
         return 2
-    methods = [m for m in args.methods if m == "pycolmap" or matcher_specs.available_specs([m])]
+    methods = args.methods
+    matcher_specs.parse_specs([m for m in methods if m != "pycolmap"])  # ValueError now, not after hours
     extra = {"device": args.device, "weights": args.weights}
     tol = {"max_rotation_deg": args.max_rotation_deg, "max_center_frac": args.max_center_frac}
     results = []
