@@ -20,7 +20,7 @@ from . import database as dbio
 from . import verify
 from .log import colmap_quiet, logger
 from .matchers import MATCHERS, get_matcher
-from .matchers.base import ImageData, Matcher
+from .matchers.base import ImageData, Matcher, scoped_torch_threads
 from .pairs import exhaustive_pairs, read_pairs
 
 def _progress(iterable, desc: str, total: int):
@@ -90,7 +90,7 @@ def match_database(
                         matcher.release(name)
 
         workers = max(1, int(matcher.pair_workers))
-        with _progress(None, "match", len(todo)) as bar, ThreadPoolExecutor(workers) as pool:
+        with scoped_torch_threads(matcher.torch_threads), _progress(None, "match", len(todo)) as bar, ThreadPoolExecutor(workers) as pool:
             try:
                 for index, (id_a, id_b, a, b) in enumerate(id_pairs):
                     future = pool.submit(matcher.match, load(a), load(b)) if (id_a, id_b) in todo_index else None

@@ -24,7 +24,6 @@ from colmap_guided.coarse.geometry import ImageGeometry, as_rgb, resize_geometry
 from colmap_guided.coarse.model import CoarseNet
 from colmap_guided.coarse.weights import DEFAULT_WEIGHTS, load_filter_weights, net_conf_from_config, read_filter_weights
 from colmap_guided.images import read_image
-from colmap_guided.log import logger
 
 PRECISIONS = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
 
@@ -54,7 +53,7 @@ class CoarseMatcher:
         "raw_temperature": 0.02,  # raw mode: softmax temperature of the scores
         "cache_path": None,  # optional .h5 file caching backbone features across runs
         "precision": "float32",  # dense filter: 'float32' | 'float16' | 'bfloat16' (autocast; README: accuracy)
-        "num_threads": 1,  # CPU: torch.set_num_threads(n) at construction (process-wide!); None: leave as is
+        "num_threads": 1,  # CPU: torch threads the pipeline sets while matching (restored after); None: leave as is
     }
 
     def __init__(self, conf: dict | None = None):
@@ -73,12 +72,10 @@ class CoarseMatcher:
         if conf["precision"] not in PRECISIONS:
             raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {conf['precision']!r}")
         self.dtype = PRECISIONS[conf["precision"]]
-        if self.device.type == "cpu" and conf["num_threads"] is not None and torch.get_num_threads() != conf["num_threads"]:
-            # The sparse filter is hundreds of small ops; on shared cores every OpenMP barrier waits for
-            # a descheduled thread. On the 2-core dev machine (load ~5-10) one thread was 3-8x faster
-            # than two for the sparse filter and 2.4x faster for the backbone (README.md).
-            logger.debug("torch CPU threads: %d -> %d (CoarseMatcher num_threads)", torch.get_num_threads(), conf["num_threads"])
-            torch.set_num_threads(conf["num_threads"])
+        # The sparse filter is hundreds of small ops; on shared cores every OpenMP barrier waits for a
+        # descheduled thread. On the 2-core dev machine (load ~5-10) one thread was 3-8x faster than two
+        # for the sparse filter and 2.4x faster for the backbone (README.md). Set around matching only.
+        self.torch_threads = conf["num_threads"] if self.device.type == "cpu" else None
         net_conf = {"backbone": conf["backbone"], "backbone_weights": conf["backbone_weights"],
                     "raw_temperature": conf["raw_temperature"], "filter": conf["mode"] == "filter"}
         self.weights_config = None

@@ -24,7 +24,7 @@ import numpy as np
 from colmap_guided import database as dbio
 from colmap_guided import features
 from colmap_guided.log import logger
-from colmap_guided.matchers.base import ImageData
+from colmap_guided.matchers.base import ImageData, scoped_torch_threads
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
 
 from . import matcher_specs, metrics
@@ -124,24 +124,25 @@ def run_specs(specs, pairs: list[tuple[str, str]], images: dict[str, ImageData])
             continue
         local: dict[str, ImageData] = {}
         res = {spec.label: ([], []) for spec in group}
-        for a, b in pairs:
-            for n in (a, b):
-                if n not in local:
-                    local[n] = _fresh(images[n])
-            if shared:
-                start = time.time()
-                flows = matcher.coarse_flows(local[a], local[b])
-                t_flow = time.time() - start
-                for spec in group:
+        with scoped_torch_threads(matcher.torch_threads):  # as match_database
+            for a, b in pairs:
+                for n in (a, b):
+                    if n not in local:
+                        local[n] = _fresh(images[n])
+                if shared:
                     start = time.time()
-                    m = matcher.match_flows(local[a], local[b], flows, **{k: spec.conf[k] for k in FLOW_OVERRIDES if k in spec.conf})
-                    res[spec.label][0].append(np.asarray(m, np.int64).reshape(-1, 2))
-                    res[spec.label][1].append(t_flow + time.time() - start)
-            else:
-                start = time.time()
-                m = matcher.match(local[a], local[b])
-                res[first.label][0].append(np.asarray(m, np.int64).reshape(-1, 2))
-                res[first.label][1].append(time.time() - start)
+                    flows = matcher.coarse_flows(local[a], local[b])
+                    t_flow = time.time() - start
+                    for spec in group:
+                        start = time.time()
+                        m = matcher.match_flows(local[a], local[b], flows, **{k: spec.conf[k] for k in FLOW_OVERRIDES if k in spec.conf})
+                        res[spec.label][0].append(np.asarray(m, np.int64).reshape(-1, 2))
+                        res[spec.label][1].append(t_flow + time.time() - start)
+                else:
+                    start = time.time()
+                    m = matcher.match(local[a], local[b])
+                    res[first.label][0].append(np.asarray(m, np.int64).reshape(-1, 2))
+                    res[first.label][1].append(time.time() - start)
         for n in local:
             matcher.release(n)
         out.update(res)
