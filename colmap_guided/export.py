@@ -194,8 +194,7 @@ def _new_camera(grp: h5py.Group, name: str, image_path: Path | None) -> pycolmap
         width, height = image_size(Path(image_path) / name)
     else:
         raise ValueError(f"features.h5 has no image_size for {name!r}: pass --image_path so the camera size can be read from the photo.")
-    # COLMAP's default camera for a photo without EXIF focal length (feature_extractor does the same).
-    return pycolmap.Camera.create_from_model_name(0, "SIMPLE_RADIAL", 1.2 * max(width, height), width, height)
+    return verify.default_camera(width, height)
 
 
 def _add_image(db: pycolmap.Database, name: str, camera: pycolmap.Camera) -> int:

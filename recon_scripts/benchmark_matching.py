@@ -35,7 +35,6 @@ from colmap_guided.images import read_image
 from colmap_guided.log import logger
 from colmap_guided.matchers import get_matcher
 from colmap_guided.matchers.base import ImageData
-from colmap_guided.matchers.colmap import default_camera
 from colmap_guided.matchers.guided import GuidedMatcher
 from colmap_guided.paths import shared_data_dir
 
@@ -141,7 +140,7 @@ def unrelated_pairs(count: int, seed: int = 0) -> list[dict]:
 def verify_matches(a: ImageData, b: ImageData, matches: np.ndarray, matcher) -> pycolmap.TwoViewGeometry:
     """COLMAP's two-view verification with the pipeline's options for ``matcher`` (raw: >= 15 inliers, guided: its min_inliers)."""
     options = verify.two_view_options(matcher.verification_conf)
-    return verify.verify_pair(default_camera(a), a.keypoints, default_camera(b), b.keypoints, matches, options)
+    return verify.verify_pair(verify.default_camera(a.width, a.height), a.keypoints, verify.default_camera(b.width, b.height), b.keypoints, matches, options)
 
 
 def reference_error(geometry: pycolmap.TwoViewGeometry, corrs: np.ndarray | None) -> float | None:

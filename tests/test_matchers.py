@@ -373,3 +373,23 @@ def test_matching_uses_one_torch_thread_and_leaves_the_process_as_it_was(synthet
         assert guided.torch_threads == 1 and guided.pair_workers == min(8, cores)
         match_database(db, synthetic_scene.image_dir, matcher=Recording())
         assert Recording.seen == {1} and torch.get_num_threads() == 3
+
+
+def test_default_camera_is_the_one_colmaps_feature_extractor_writes(synthetic_scene, tmp_path):
+    """verify.default_camera (the camera of a pair without a database: guided_colmap, imports of plain
+    hloc files, benchmarks) equals the camera pycolmap's extractor writes for a photo without EXIF focal."""
+    import pycolmap
+    from PIL import Image
+
+    from colmap_guided import verify
+
+    (tmp_path / "images").mkdir()
+    with Image.open(synthetic_scene.image_dir / synthetic_scene.names[0]) as im:  # its EXIF focal dropped
+        Image.fromarray(np.asarray(im)[:, :400]).save(tmp_path / "images" / "plain.png")
+    db = tmp_path / "db.db"
+    pycolmap.extract_features(db, tmp_path / "images")
+    with pycolmap.Database.open(str(db)) as database:
+        (camera,) = database.read_all_cameras()
+    ours = verify.default_camera(camera.width, camera.height)
+    assert ours.model == camera.model and ours.width == camera.width and ours.height == camera.height
+    np.testing.assert_allclose(ours.params, camera.params)
