@@ -90,8 +90,9 @@ def test_shipped_weights_load_and_record_their_training(name):
 
 def test_every_file_beside_the_weights_is_installed():
     """The model card, the weights and the training curve it shows are package data (a wheel has them)."""
-    import tomllib
     from fnmatch import fnmatchcase
+
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
 
     from colmap_guided.paths import REPO_ROOT
 
