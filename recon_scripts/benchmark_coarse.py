@@ -163,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stage-rounds", type=int, default=5, help="interleaved repetitions of the match stage runs")
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="pair workers of the guided match stage rows")
     parser.add_argument("--batch", type=int, default=8, help="pairs per batch for the batched GPU row")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (CoarseMatcher's default num_threads is 1)")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: as the pipeline matches on CPU, CoarseMatcher num_threads)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 

@@ -133,7 +133,7 @@ def main(argv=None):
     p.add_argument("--backbone", default="efficientnet-lite0")
     p.add_argument("--archival", default=None, help=f"also evaluate with B degraded by a preset of {sorted(archival.PRESETS)}")
     p.add_argument("--no_baselines", action="store_true", help="skip raw correlation and the untrained filter")
-    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: as the pipeline matches on CPU)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--verbose", action="store_true")
     args = p.parse_args(argv)
