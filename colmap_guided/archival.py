@@ -3,7 +3,8 @@
 The paper trains on MegaDepth (modern internet photos) and evaluates on LTLL (historical photos of
 landmarks, §5). No historical multi-view collection is available offline, so training images are
 degraded with effects typical of old prints and scans: grayscale, sepia toning, faded contrast, blur,
-film grain, JPEG artefacts, vignetting, scratches and dust, and an optional crop.
+film grain, JPEG artefacts, vignetting, scratches and dust, and an optional crop. The named looks
+range from realistic prints (``realistic_*``) to harshly damaged ones (``damaged_scan``, ``old_postcard``).
 
 Every effect takes and returns an RGB float32 image in [0, 1] and draws its randomness only from the
 ``numpy.random.Generator`` it is given, so a result is fully determined by (image, seed, strength).
@@ -28,6 +29,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from colmap_guided.images import read_image
 from colmap_guided.log import logger
 
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # ITU-R BT.601, RGB order
@@ -146,12 +148,30 @@ def scratches(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) 
         thick = max(1, int(round(size / 1000.0 * rng.uniform(0.8, 2.0))))
         target = mask_bright if rng.random() < 0.6 else mask_dark
         cv2.line(target, (int(x0), int(y0)), (int(x1), int(y1)), float(rng.uniform(0.4, 0.9)), thick, cv2.LINE_AA)
+    _dust_specks(mask_bright, mask_dark, rng, strength)
+    return _apply_masks(img, mask_bright, mask_dark)
+
+
+def dust(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
+    """Dust specks alone, bright or dark (a print kept well: no scratches)."""
+    mask_bright = np.zeros(img.shape[:2], np.float32)
+    mask_dark = np.zeros(img.shape[:2], np.float32)
+    _dust_specks(mask_bright, mask_dark, rng, strength)
+    return _apply_masks(img, mask_bright, mask_dark)
+
+
+def _dust_specks(mask_bright: np.ndarray, mask_dark: np.ndarray, rng: np.random.Generator, strength: float) -> None:
+    h, w = mask_bright.shape
+    size = max(h, w)
     n_dust = int(rng.integers(20, 60) * strength * (size / 1000.0) ** 2) + 5
     for _ in range(n_dust):
         c = (int(rng.uniform(0, w)), int(rng.uniform(0, h)))
         radius = max(1, int(round(size / 1000.0 * rng.exponential(1.5))))
         target = mask_dark if rng.random() < 0.6 else mask_bright
         cv2.circle(target, c, radius, float(rng.uniform(0.5, 1.0)), -1, cv2.LINE_AA)
+
+
+def _apply_masks(img: np.ndarray, mask_bright: np.ndarray, mask_dark: np.ndarray) -> np.ndarray:
     out = img + mask_bright[..., None] * (1.0 - img)
     return out * (1.0 - mask_dark[..., None])
 
@@ -165,10 +185,12 @@ EFFECTS: dict[str, Callable[[np.ndarray, np.random.Generator, float], np.ndarray
     "jpeg": jpeg,
     "vignette": vignette,
     "scratches": scratches,
+    "dust": dust,
 }
 # Physical order of a degradation chain: toning of the print, ageing, optics, then the scan.
-_ORDER = ["grayscale", "sepia", "fade", "vignette", "blur", "grain", "scratches", "jpeg"]
-# Probability of each effect when ``degrade`` picks a random subset (colour: gray xor sepia xor none).
+_ORDER = ["grayscale", "sepia", "fade", "vignette", "blur", "grain", "scratches", "dust", "jpeg"]
+# Probability of each effect when ``degrade`` picks a random subset (colour: gray xor sepia xor none);
+# dust has none: it is part of scratches there, so the training augmentation draws as before.
 _PROB = {"fade": 0.6, "vignette": 0.5, "blur": 0.5, "grain": 0.6, "scratches": 0.3, "jpeg": 0.5}
 
 PRESETS: dict[str, dict] = {
@@ -178,6 +200,10 @@ PRESETS: dict[str, dict] = {
     "faded_colour": {"effects": ["fade", "blur", "jpeg"], "strength": 1.0},
     "damaged_scan": {"effects": ["grayscale", "fade", "vignette", "blur", "grain", "scratches", "jpeg"], "strength": 1.0},
     "old_postcard": {"effects": ["sepia", "blur", "grain", "scratches", "jpeg"], "strength": 1.2},
+    # Realistic prints, kept well: moderate fading, soft focus, fine grain, dust.
+    "realistic_bw": {"effects": ["grayscale", "fade", "blur", "grain", "dust"], "strength": 0.5},
+    "realistic_sepia": {"effects": ["sepia", "fade", "vignette", "blur", "grain", "dust"], "strength": 0.5},
+    "realistic_colour": {"effects": ["fade", "blur", "grain", "dust"], "strength": 0.5},
 }
 
 
@@ -252,11 +278,11 @@ def main(argv=None):
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     for i, path in enumerate(args.images):
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            logger.warning("Cannot read %s, skipped.", path)
+        try:
+            rgb = read_image(path)
+        except ValueError as err:
+            logger.warning("%s Skipped.", err)
             continue
-        rgb = bgr[..., ::-1]
         if args.preset:
             out = apply_preset(rgb, args.preset, seed=args.seed + i)
         else:

@@ -65,15 +65,6 @@ def check_image_folder(db: pycolmap.Database, image_path: Path) -> None:
             )
 
 
-def keypoint_scales(keypoints: np.ndarray) -> np.ndarray:
-    """Scale of COLMAP keypoints: column 2 of (x, y, scale, orientation), sqrt|det A| of affine (x, y, a11, a12, a21, a22)."""
-    if keypoints.shape[1] == 6:
-        return np.sqrt(np.abs(keypoints[:, 2] * keypoints[:, 5] - keypoints[:, 3] * keypoints[:, 4]))
-    if keypoints.shape[1] >= 3:
-        return keypoints[:, 2].copy()
-    return np.ones(len(keypoints), np.float32)
-
-
 def read_image_data(db: pycolmap.Database, image: pycolmap.Image, image_path: Path) -> ImageData:
     camera = db.read_camera(image.camera_id)
     keypoints = np.asarray(db.read_keypoints(image.image_id), np.float32)

@@ -7,9 +7,9 @@ image once its last pair is matched): it ``put``s each image once, ``submit``s p
 Ray (``pip install colmap_guided[ray]``): the driver puts each image's keypoints, descriptors and
 backbone features in the object store once; one actor per cluster CPU holds a copy of the matcher (the
 coarse network loads once per worker, from the driver's object, so workers need neither the photos nor
-the weights file) and runs on one torch thread. Without an address (``--ray_address`` or
-``RAY_ADDRESS``) a private local instance is started and stopped — never a running cluster joined by
-accident. Clusters started by ``ray start`` use token authentication by default: the driver needs the
+the weights file) and runs on the matcher's torch threads (one if it leaves them as they are; Ray reuses
+its worker processes). Without an address (``--ray_address`` or ``RAY_ADDRESS``) a private local
+instance is started and stopped — never a running cluster joined by accident. Clusters started by ``ray start`` use token authentication by default: the driver needs the
 cluster's token (``RAY_AUTH_TOKEN`` or ``~/.ray/auth_token``).
 """
 
@@ -65,7 +65,7 @@ def _pair_worker_class():
 
     @ray.remote(num_cpus=1)
     class PairWorker:
-        """One matcher per worker process (loaded once), one torch thread (Ray reuses its workers)."""
+        """One matcher per worker process (loaded once), on ``threads`` torch threads."""
 
         def __init__(self, matcher: Matcher, threads: int):
             import torch
@@ -106,7 +106,7 @@ class RayExecutor:
             cpus = int(ray.cluster_resources().get("CPU", 1))
             worker_class = _pair_worker_class()
             shipped = ray.put(matcher)
-            self.workers = [worker_class.remote(shipped, 1) for _ in range(max(1, cpus))]
+            self.workers = [worker_class.remote(shipped, matcher.torch_threads or 1) for _ in range(max(1, cpus))]
         except BaseException:
             self.close()
             raise

@@ -1,4 +1,5 @@
 """hloc-compatible h5 files from a COLMAP database, and back: guided matches for hloc or other front-ends.
+Also the model for other tools (``export_model``: PLY points and COLMAP's text format, beside the model).
 
     python -m colmap_guided export --database_path DB --output DIR    # DIR/features.h5, matches.h5, pairs.txt
     python -m colmap_guided import --database_path NEW.db --features DIR/features.h5 --matches DIR/matches.h5
@@ -34,6 +35,27 @@ from . import database as dbio
 from . import verify
 from .log import logger
 from .pairs import write_pairs
+
+
+def export_model(rec: pycolmap.Reconstruction, model_path: Path) -> dict:
+    """MODEL/points3D.ply (pycolmap's export_PLY: MeshLab, CloudCompare) and MODEL/text/ (COLMAP text format).
+
+    Written inside the model's folder (sparse/0 stays a model folder: COLMAP reads its .bin files), each
+    through a temporary name, so a killed run never leaves a half-written file. Returns their paths.
+    """
+    import shutil
+
+    model_path = Path(model_path)
+    ply, text = model_path / "points3D.ply", model_path / "text"
+    rec.export_PLY(str(model_path / "points3D.ply.partial"))
+    (model_path / "points3D.ply.partial").replace(ply)
+    partial = model_path / "text.partial"
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir()
+    rec.write_text(str(partial))
+    shutil.rmtree(text, ignore_errors=True)
+    partial.rename(text)
+    return {"ply": str(ply), "text": str(text)}
 
 
 def names_to_pair(name0: str, name1: str, separator: str = "/") -> str:
@@ -172,8 +194,7 @@ def _new_camera(grp: h5py.Group, name: str, image_path: Path | None) -> pycolmap
         width, height = image_size(Path(image_path) / name)
     else:
         raise ValueError(f"features.h5 has no image_size for {name!r}: pass --image_path so the camera size can be read from the photo.")
-    # COLMAP's default camera for a photo without EXIF focal length (feature_extractor does the same).
-    return pycolmap.Camera.create_from_model_name(0, "SIMPLE_RADIAL", 1.2 * max(width, height), width, height)
+    return verify.default_camera(width, height)
 
 
 def _add_image(db: pycolmap.Database, name: str, camera: pycolmap.Camera) -> int:

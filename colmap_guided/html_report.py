@@ -3,8 +3,9 @@
     write_html_report(path, report, panels)   # report: the dict of report.json
     panels = match_panels({"guided": db_a, "raw": db_b}, image_path)   # raw vs guided on the same pairs
 
-It shows the registered ratio (all images and per era), a plot, the images that were not registered and
-the ones that were skipped (with the reason), and drawings of the verified (inlier) matches of a few pairs.
+It shows the registered ratio, the largest model in 3D (points and cameras, ``model_view``), a map of where
+the photos were taken from, the ratio per era, each photo that was not registered with the stage where it
+dropped out and why (``report.explain_unregistered``), and drawings of the verified matches of a few pairs.
 A panel is ``(title, image_a, image_b, matches)``: images as paths or uint8 RGB arrays, ``matches`` an
 (M, 4) array of x_a, y_a, x_b, y_b in COLMAP pixel coordinates (pixel centre = +0.5, EXIF rotation not
 applied, as ``images.read_image``).
@@ -36,10 +37,9 @@ h1 { font-size: 1.7em; margin-bottom: 0.2em; } h2 { border-bottom: 1px solid #cc
 .big { font-size: 2.4em; font-weight: bold; color: #2d5f2e; }
 table { border-collapse: collapse; margin: 0.5em 0; } td, th { border: 1px solid #ddd; padding: 0.25em 0.7em; text-align: left; }
 th { background: #f1efe6; } td.num { text-align: right; font-variant-numeric: tabular-nums; }
-.grid { display: flex; flex-wrap: wrap; gap: 8px; } .grid figure { margin: 0; width: 168px; font-size: 0.75em; word-break: break-all; }
-.grid img { max-width: 160px; max-height: 160px; border: 1px solid #ccc; display: block; }
 figure.pair { margin: 1em 0; } figure.pair img { max-width: 100%; border: 1px solid #ccc; }
 .warn { color: #8a3b12; } .muted { color: #888; }
+table.why td { vertical-align: top; font-size: 0.9em; } table.why img { max-width: 120px; max-height: 120px; }
 """
 
 
@@ -191,34 +191,82 @@ def ratio_plot(report: dict) -> str:
     return _figure_png(fig)
 
 
-def _thumb_grid(names: list[str], image_path: Path, reasons: dict[str, str] | None = None, limit: int = 60) -> str:
-    items = []
-    for name in names[:limit]:
-        caption = html.escape(name) + (f"<br><span class='warn'>{html.escape(reasons[name])}</span>" if reasons and name in reasons else "")
-        try:
-            thumb, _, _ = images.read_thumbnail(Path(image_path) / name, 160)
-            img = f"<img src='{_encode_jpeg(thumb, 80)}' alt='{html.escape(name)}'>"
-        except Exception:  # noqa: BLE001 - an unreadable photo is listed without a picture
-            img = "<div class='muted'>(no preview)</div>"
-        items.append(f"<figure>{img}<figcaption>{caption}</figcaption></figure>")
-    more = f"<p class='muted'>... and {len(names) - limit} more (see report.json).</p>" if len(names) > limit else ""
-    return f"<div class='grid'>{''.join(items)}</div>{more}"
+STAGE_WORDS = {
+    "reading": "reading the file",
+    "features": "finding details",
+    "matching": "matching with other photos",
+    "separate model": "joining the model",
+    "mapping": "placing it in the model",
+}
 
 
-def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: bool = True) -> str:
+def _why_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
+    """Each photo that is not in the model: its thumbnail, the stage where it dropped out, why, and what to do."""
+    esc = html.escape
+    skipped = report.get("skipped_images") or {}
+    skipped = skipped if isinstance(skipped, dict) else dict.fromkeys(skipped, "unreadable")
+    why = dict(report.get("unregistered") or {})
+    for name, reason in skipped.items():  # a report.json written before the explanations
+        why.setdefault(name, {"stage": "reading", "reason": f"The file could not be used: {reason}.", "suggestion": ""})
+    names = list(report["model"].get("unregistered_images") or [])
+    names += [n for n in why if n not in names]
+    out = [f"<h2>Photos not registered, and why ({len(names)})</h2>"]
+    if not names:
+        return out + ["<p>None: every photo is in the model.</p>"]
+    out.append("<table class='why'><tr><th></th><th>photo</th><th>dropped out at</th><th>why</th><th>what to do</th></tr>")
+    for i, name in enumerate(names):
+        entry = why.get(name, {"stage": "", "reason": "Too few matches with the other photos (a different view, era or landmark).", "suggestion": ""})
+        img = ""
+        if thumbnails and i < 60 and entry["stage"] != "reading":
+            try:
+                img = f"<img src='{_encode_jpeg(images.read_thumbnail(image_path / name, 120)[0], 75)}' alt='{esc(name)}'>"
+            except Exception:  # noqa: BLE001 - a photo moved away since the run is listed without a picture
+                img = ""
+        stage = STAGE_WORDS.get(entry["stage"], entry["stage"])
+        cls = " class='warn'" if entry["stage"] == "reading" else ""
+        out.append(f"<tr><td>{img}</td><td>{esc(name)}</td><td{cls}>{esc(stage)}</td><td>{esc(entry['reason'])}</td><td>{esc(entry['suggestion'])}</td></tr>")
+    out.append("</table>")
+    return out
+
+
+def _load_model(report: dict):
+    """The largest model (sparse/0) of a report, or None."""
+    path = Path(report.get("sparse_path") or "") / "0"
+    if not report.get("sparse_path") or not ((path / "images.bin").is_file() or (path / "images.txt").is_file()):
+        return None
+    import pycolmap
+
+    return pycolmap.Reconstruction(str(path))
+
+
+def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: bool = True, reconstruction=None) -> str:
+    """The page. ``reconstruction``: the largest pycolmap.Reconstruction (default: read from report's sparse_path/0)."""
+    from . import model_view
+    from .report import read_manifest
+
     model = report["model"]
     image_path = Path(report.get("image_path", "."))
     esc = html.escape
     matcher = report.get("matcher", {})
     matcher_name = matcher.get("name", "?") if isinstance(matcher, dict) else str(matcher)
+    rec = reconstruction if reconstruction is not None else _load_model(report)
+    eras = read_manifest(Path(report["manifest_path"])) if report.get("manifest_path") else {}
     out = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
-        f"<title>Reconstruction report: {esc(str(report.get('scene', '')))}</title><style>{CSS}</style></head><body>",
+        f"<title>Reconstruction report: {esc(str(report.get('scene', '')))}</title><style>{CSS}{model_view.VIEW_CSS}</style></head><body>",
         f"<h1>{esc(str(report.get('scene', 'Reconstruction')))}</h1>",
         f"<p class='sub'>{esc(matcher_name)} matching, COLMAP incremental mapping &middot; {datetime.datetime.now():%Y-%m-%d %H:%M} &middot; photos: {esc(str(image_path))}</p>",
-        "<h2>Registered images</h2>",
         f"<p><span class='big'>{100 * model['registered_ratio']:.0f}&nbsp;%</span> &nbsp; {model['num_registered']} of {model['num_images']} images are placed in the largest 3D model"
         + (f" ({model['num_models']} models in all)" if model.get("num_models", 1) > 1 else "") + ".</p>",
+    ]
+    if rec is not None and rec.num_reg_images():
+        out.append("<h2>The 3D model</h2>")
+        out.append(model_view.view_html(rec, eras, image_path if thumbnails else None))
+        out.append("<h2>Where the photos were taken from</h2>")
+        out.append("<p>Seen from above: the points of the model, each photo's position (dot) and the direction it looks in (arrow).</p>")
+        out.append(f"<img src='{model_view.photo_map(rec, eras)}' alt='map of the camera positions'>")
+    out += [
+        "<h2>Registered images</h2>",
         "<table><tr><th>images</th><th>registered</th><th>ratio</th></tr>",
         f"<tr><td>all</td><td class='num'>{model['num_registered']}/{model['num_images']}</td><td class='num'>{100 * model['registered_ratio']:.0f} %</td></tr>",
     ]
@@ -233,21 +281,7 @@ def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: boo
     timings = report.get("timings") or {}
     if timings:
         out.append("<p class='muted'>Time: " + ", ".join(f"{esc(k)} {v:.1f} s" for k, v in timings.items()) + "</p>")
-
-    unregistered = model.get("unregistered_images") or []
-    skipped = report.get("skipped_images") or {}
-    skipped = skipped if isinstance(skipped, dict) else dict.fromkeys(skipped, "unreadable")
-    unregistered = [n for n in unregistered if n not in skipped]
-    out.append(f"<h2>Images not registered ({len(unregistered)})</h2>")
-    if unregistered:
-        out.append("<p>These photos were read but could not be placed in the model: too few matches with the others (a different view, era or landmark).</p>")
-        out.append(_thumb_grid(unregistered, image_path) if thumbnails else "<ul>" + "".join(f"<li>{esc(n)}</li>" for n in unregistered) + "</ul>")
-    else:
-        out.append("<p>None.</p>")
-    if skipped:
-        out.append(f"<h2 class='warn'>Skipped images ({len(skipped)})</h2><table><tr><th>image</th><th>why, and what to do</th></tr>")
-        out.extend(f"<tr><td>{esc(n)}</td><td>{esc(r)}</td></tr>" for n, r in skipped.items())
-        out.append("</table>")
+    out += _why_table(report, image_path, thumbnails)
 
     out.append("<h2>Matches of a few pairs</h2>")
     if panels:
@@ -267,18 +301,18 @@ def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: boo
         out.append("<h2>Details</h2><table>")
         out.extend(f"<tr><td>{esc(str(k))}</td><td class='num'>{esc(str(v))}</td></tr>" for k, v in database.items())
         out.append("</table>")
-    for key in ("database_path", "sparse_path", "report_path"):
-        if report.get(key):
-            out.append(f"<p class='muted'>{esc(key.replace('_', ' '))}: {esc(str(report[key]))}</p>")
+    exports = report.get("exports") or {}
+    paths = {**{k: report.get(k) for k in ("database_path", "sparse_path", "report_path")}, "points (PLY, for MeshLab or CloudCompare)": exports.get("ply"), "model in COLMAP's text format": exports.get("text")}
+    out.extend(f"<p class='muted'>{esc(key.replace('_', ' '))}: {esc(str(value))}</p>" for key, value in paths.items() if value)
     out.append("</body></html>")
     return "\n".join(out)
 
 
-def write_html_report(path: Path, report: dict, panels: list[Panel] | None = None) -> Path:
+def write_html_report(path: Path, report: dict, panels: list[Panel] | None = None, reconstruction=None) -> Path:
     """Write the page atomically (a partial file never replaces a good one)."""
     path = Path(path)
     tmp = path.with_suffix(".html.partial")
-    tmp.write_text(render_html(report, panels), encoding="utf-8")
+    tmp.write_text(render_html(report, panels, reconstruction=reconstruction), encoding="utf-8")
     tmp.replace(path)
     return path
 

@@ -3,10 +3,28 @@
 import contextlib
 import logging
 import os
+import sys
+
+
+class _CurrentStderrHandler(logging.StreamHandler):
+    """Writes to whatever sys.stderr is when a record is emitted, not the one of import time,
+    so a redirected or captured stderr (a script's, pytest's) receives the messages."""
+
+    def __init__(self):
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value):
+        pass
+
 
 logger = logging.getLogger("colmap_guided")
-if not logger.handlers:
-    _handler = logging.StreamHandler()
+if not any(isinstance(h, _CurrentStderrHandler) for h in logger.handlers):
+    _handler = _CurrentStderrHandler()
     _handler.setFormatter(logging.Formatter("[%(asctime)s %(name)s %(levelname)s] %(message)s", "%H:%M:%S"))
     logger.addHandler(_handler)
     logger.setLevel(logging.INFO)

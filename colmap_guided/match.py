@@ -19,7 +19,7 @@ from . import database as dbio
 from . import verify
 from .log import colmap_quiet, logger
 from .matchers import MATCHERS, get_matcher
-from .matchers.base import Matcher
+from .matchers.base import Matcher, scoped_torch_threads
 from .executor import EXECUTORS, get_executor
 from .pairs import DEFAULT_NUM_NEIGHBORS, PAIR_MODES, global_descriptors, select_pairs
 
@@ -57,7 +57,8 @@ def match_database(
             dbio.clear_matches(db)
         names = sorted(images)
         start = time.time()
-        pairs, mode = select_pairs(pairs_path, names, num_neighbors, lambda ns: _global_descriptors(matcher, image_path, ns))
+        with scoped_torch_threads(matcher.torch_threads):  # the backbone of retrieval, as in matching
+            pairs, mode = select_pairs(pairs_path, names, num_neighbors, lambda ns: _global_descriptors(matcher, image_path, ns))
         stats["pairs"] = {"mode": mode if mode != "file" else str(pairs_path), "num_neighbors": num_neighbors if mode in ("retrieval", "sequential") else None,
                           "time": time.time() - start}
         id_pairs = [(images[a].image_id, images[b].image_id, a, b) for a, b in pairs]
@@ -67,7 +68,8 @@ def match_database(
         if todo:
             run = get_executor(executor, matcher, ray_address)
             try:
-                _match_pairs(db, image_path, images, todo, matcher, run)
+                with scoped_torch_threads(matcher.torch_threads):
+                    _match_pairs(db, image_path, images, todo, matcher, run)
             finally:
                 run.close()
             stats["executor"] = run.describe()

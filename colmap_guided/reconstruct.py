@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from . import database as dbio
-from . import features, html_report, mapping, match, report
+from . import export, features, html_report, mapping, match, report
 from .log import logger
 from .matchers import DEFAULT_MATCHER, Matcher, get_matcher
 
@@ -95,12 +95,15 @@ def reconstruct(
         "eras": report.era_ratios(eras, stats["registered_images"], image_names) if eras else {},
         "database": match_stats,
         "skipped_images": extraction["skipped"],
+        "manifest_path": str(Path(scene_dir).resolve() / "manifest.json") if eras else None,
+        "exports": export.export_model(models[0], sparse_path / "0") if models else {},
         "timings": timings,
         **{k: stats[k] for k in ("num_images", "num_registered", "registered_ratio", "num_points3D", "mean_track_length", "mean_reprojection_error")},
     }
+    result["unregistered"] = report.explain_unregistered(database_path, models, image_names, extraction["skipped"], result["options"]["verification"]["min_num_inliers"])
     result["html_report_path"] = str(output / "report.html")
     try:
-        html_report.write_html_report(output / "report.html", result, html_report.match_panels({result["matcher"]["name"]: database_path}, image_path))
+        html_report.write_html_report(output / "report.html", result, html_report.match_panels({result["matcher"]["name"]: database_path}, image_path), models.get(0))
     except Exception as err:  # noqa: BLE001 - the reconstruction is done; a failed page must not hide it
         logger.warning("Could not write the HTML report (%s); report.json is complete.", err)
         result.pop("html_report_path")

@@ -52,6 +52,98 @@ def era_ratios(eras: dict[str, str], registered: list[str], image_names: list[st
     return out
 
 
+MIN_KEYPOINTS = 100  # fewer SIFT keypoints than this: too little detail to match (blank, blurred, tiny scan)
+SUGGEST = {
+    "reading": "Check that the file opens in an image viewer; convert it to JPEG or scan it again, and run again.",
+    "features": "Use a sharper, larger or better exposed scan of this photo.",
+    "matching": "Check that it shows the landmark; if it does, add photos taken between its viewpoint (and date) and the others', so that each step shares details with the next.",
+    "mapping": "Add photos taken between this one and {best}, from nearby viewpoints, so that more of its details are also seen in photos of the model.",
+    "separate model": "Add photos that show what both groups see, so that the two models join.",
+}
+
+
+def explain_unregistered(
+    database_path: Path, models: dict[int, pycolmap.Reconstruction], image_names: list[str], skipped: dict[str, str], min_num_inliers: int = 15
+) -> dict[str, dict]:
+    """Why each photo outside the largest model dropped out, in plain words: {name: {stage, reason, suggestion, evidence}}.
+
+    Stages, in pipeline order: ``reading`` (skipped: the file could not be used), ``features`` (fewer than
+    MIN_KEYPOINTS keypoints and no verified pair), ``matching`` (no pair passed two-view verification),
+    ``separate model`` (registered, but in a smaller model) and ``mapping`` (verified pairs, yet the mapper
+    could not place it). Evidence: verified pairs (two_view_geometries with inliers), the best one and its
+    inliers, how many of the verified partners are in the model, and the best unverified candidate.
+    """
+    from . import database as dbio
+
+    largest = max(models, key=lambda k: models[k].num_reg_images(), default=None)
+    in_model = {k: {rec.images[i].name for i in rec.reg_image_ids()} for k, rec in models.items()}
+    registered = in_model.get(largest, set())
+    todo = [name for name in image_names if name not in registered]
+    out: dict[str, dict] = {}
+    for name in todo:
+        if name in skipped:
+            reason, _, hint = skipped[name].partition("; ")
+            out[name] = {"stage": "reading", "reason": f"The file could not be used: {reason}.", "suggestion": (hint[:1].upper() + hint[1:] + ".") if hint else SUGGEST["reading"]}
+    if len(out) == len(todo):
+        return out
+    with dbio.open_database(database_path) as db:
+        by_id = {im.image_id: im.name for im in db.read_all_images()}
+        ids = {n: i for i, n in by_id.items()}
+        verified: dict[str, list[tuple[int, str]]] = {}
+        candidates: dict[str, list[tuple[int, str]]] = {}
+        for table, pairs_counts in ((verified, db.read_two_view_geometry_num_inliers()), (candidates, db.read_num_matches())):
+            for pair_id, count in zip(*pairs_counts):
+                if count <= 0 and table is verified:
+                    continue
+                a, b = (by_id[int(i)] for i in pycolmap.pair_id_to_image_pair(pair_id))
+                table.setdefault(a, []).append((int(count), b))
+                table.setdefault(b, []).append((int(count), a))
+        keypoints = {n: db.num_keypoints_for_image(ids[n]) if n in ids and db.exists_keypoints(ids[n]) else 0 for n in todo if n not in out}
+    for name in todo:
+        if name in out:
+            continue
+        pairs = sorted(verified.get(name, []), key=lambda t: (-t[0], t[1]))
+        best_inliers, best = pairs[0] if pairs else (0, None)
+        entry = {"verified_pairs": len(pairs), "best_pair": best, "best_inliers": best_inliers, "num_keypoints": keypoints[name]}
+        other = next((k for k in models if k != largest and name in in_model[k]), None)
+        if not pairs and keypoints[name] < MIN_KEYPOINTS:
+            stage = "features"
+            found = f"Only {keypoints[name]}" if keypoints[name] else "No"
+            reason = f"{found} distinctive points were found in the photo (a blank, blurred, very dark or very small image): too few to match it with the others."
+        elif not pairs:
+            stage = "matching"
+            tried = sorted(candidates.get(name, []), key=lambda t: (-t[0], t[1]))
+            if tried and tried[0][0] >= min_num_inliers:
+                reason = (
+                    f"None of the {len(tried)} photos it was compared with shares enough details with it. The best, {tried[0][1]}, had {tried[0][0]} "
+                    f"tentative matches, but fewer than {min_num_inliers} of them fit one consistent pair of camera positions (the others are chance look-alikes)."
+                )
+            elif tried:
+                count = f"only {tried[0][0]} tentative match{'es' if tried[0][0] != 1 else ''}" if tried[0][0] else "no tentative match"
+                reason = f"None of the {len(tried)} photos it was compared with shares enough details with it: the best, {tried[0][1]}, had {count}, and at least {min_num_inliers} must fit one consistent pair of camera positions."
+            else:
+                reason = "It was compared with no other photo (the pairs list leaves it out)."
+            entry.update(best_candidate=tried[0][1] if tried else None, best_candidate_matches=tried[0][0] if tried else 0)
+        elif other is not None:
+            stage = "separate model"
+            reason = (
+                f"It was placed, with {len(in_model[other]) - 1} other photo(s), in a separate smaller model (sparse/{other}): "
+                f"no chain of matched photos links that group to the main model. Its best match is {best} ({best_inliers} verified matches)."
+            )
+            entry["model"] = other
+        else:
+            stage = "mapping"
+            linked = sum(partner in registered for _, partner in pairs)
+            reason = (
+                f"It matched {len(pairs)} photo(s), {linked} of them in the model; the best, {best}, with {best_inliers} matches that agree with one geometry. "
+                "Still, the mapper could not fix its position from them: too few of those matches fall on points of the 3D model"
+                + (" (none of the photos it matched is in the model)." if not linked else ".")
+            )
+        entry.update(stage=stage, reason=reason, suggestion=SUGGEST[stage].format(best=best))
+        out[name] = entry
+    return {name: out[name] for name in todo}
+
+
 def write_report(path: Path, report: dict) -> None:
     tmp = Path(path).with_suffix(".json.partial")
     tmp.write_text(json.dumps(report, indent=2, default=str), encoding="utf-8")
@@ -70,8 +162,9 @@ def summary_text(report: dict) -> str:
     skipped = report.get("skipped_images") or {}
     unregistered = [name for name in s["unregistered_images"] if name not in skipped]
     if unregistered:
-        shown = ", ".join(unregistered[:10]) + (" ..." if len(unregistered) > 10 else "")
-        lines.append(f"Not registered: {shown}")
+        why = report.get("unregistered") or {}
+        shown = ", ".join(name + (f" ({why[name]['stage']})" if name in why else "") for name in unregistered[:10]) + (" ..." if len(unregistered) > 10 else "")
+        lines.append(f"Not registered (stage where it dropped out): {shown}")
     if skipped:
         reasons = skipped if isinstance(skipped, dict) else dict.fromkeys(skipped, "unreadable")
         lines.append(f"Skipped {len(reasons)} image(s):")
@@ -80,7 +173,18 @@ def summary_text(report: dict) -> str:
             lines.append(f"  ... and {len(reasons) - 10} more (report.json, skipped_images)")
     times = ", ".join(f"{k} {v:.1f} s" for k, v in report["timings"].items())
     lines.append(f"Time: {times}")
-    lines.append(f"Model: {report['sparse_path']}/0   Report: {report['report_path']}")
+    if s["num_models"]:
+        lines.append(f"Model: {report['sparse_path']}/0   Report: {report['report_path']}")
+    else:
+        db = report.get("database") or {}
+        verified = f" ({db['num_verified_pairs']} of {db['num_pairs']} photo pairs verified)" if "num_pairs" in db else ""
+        lines.append(
+            f"No model was made{verified}: mapping found no starting pair it could trust. Try --camera_mode single "
+            "if the photos come from one camera, or add photos taken between the existing ones."
+        )
+        lines.append(f"Report: {report['report_path']}")
+    if (report.get("exports") or {}).get("ply"):
+        lines.append(f"Points for MeshLab/CloudCompare: {report['exports']['ply']}")
     if report.get("html_report_path"):
         lines.append(f"Open in a browser: {report['html_report_path']}")
     return "\n".join(lines)

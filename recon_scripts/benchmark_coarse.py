@@ -30,9 +30,10 @@ import cv2
 import numpy as np
 import torch
 
-from colmap_guided.coarse import DEFAULT_WEIGHTS, CoarseMatcher, CoarseNet, load_image, save_filter_weights
+from colmap_guided.coarse import DEFAULT_WEIGHTS, CoarseMatcher, CoarseNet, save_filter_weights
 from colmap_guided.coarse.matcher import PRECISIONS
 from colmap_guided.coarse.model import correlation, soft_mutual_nn
+from colmap_guided.images import read_image
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
 
 
@@ -60,7 +61,7 @@ def timed(fn, repeats: int, sync=lambda: None, warmup: bool = True) -> tuple[flo
 
 
 def square_features(net: CoarseNet, path: Path, grid: int, device) -> torch.Tensor:
-    img = cv2.resize(load_image(path), (16 * grid, 16 * grid), interpolation=cv2.INTER_AREA)
+    img = cv2.resize(read_image(path), (16 * grid, 16 * grid), interpolation=cv2.INTER_AREA)
     x = torch.from_numpy(img).permute(2, 0, 1)[None].float().to(device)
     with torch.no_grad():
         return net.extract_features(net.normalize(x))[0]
@@ -162,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stage-rounds", type=int, default=5, help="interleaved repetitions of the match stage runs")
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="pair workers of the guided match stage rows")
     parser.add_argument("--batch", type=int, default=8, help="pairs per batch for the batched GPU row")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (CoarseMatcher's default num_threads is 1)")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: as the pipeline matches on CPU, CoarseMatcher num_threads)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
@@ -209,11 +210,11 @@ def main(argv: list[str] | None = None) -> int:
                     rows.append((device.type, f"sparse k={k} radius={r} match (corr+filter+argmax)", grid,
                                  *timed(lambda: net.match(fa, fb, "sparse", k, r), args.repeats, sync)))
                 rows.append((device.type, "raw mode match (corr+argmax)", grid, *timed(lambda: raw.match(fa, fb), args.repeats, sync)))
-        img = torch.from_numpy(cv2.resize(load_image(pair[0]), (512, 368))).permute(2, 0, 1)[None].float().to(device)
+        img = torch.from_numpy(cv2.resize(read_image(pair[0]), (512, 368))).permute(2, 0, 1)[None].float().to(device)
         with torch.no_grad():
             times = timed(lambda: net.extract_features(net.normalize(img)), args.repeats, sync)
         rows.append((device.type, "backbone Lite0 per image (512x368)", 0, *times))
-        fa, fb = (cm.extract(load_image(p)) for p in pair)
+        fa, fb = (cm.extract(read_image(p)) for p in pair)
         rows.append((device.type, f"CoarseMatcher.match, real pair 32x23 / 24x32 (default: {cm.impl}{cm_sparse(cm)})", 0,
                      *timed(lambda: cm.match(fa, fb), args.repeats, sync)))
         if device.type == "cpu":

@@ -31,10 +31,10 @@ import pycolmap
 import torch
 
 from colmap_guided import verify
+from colmap_guided.images import read_image
 from colmap_guided.log import logger
 from colmap_guided.matchers import get_matcher
 from colmap_guided.matchers.base import ImageData
-from colmap_guided.matchers.colmap import default_camera
 from colmap_guided.matchers.guided import GuidedMatcher
 from colmap_guided.paths import shared_data_dir
 
@@ -58,9 +58,7 @@ def sift_image(path: Path, cache_dir: Path) -> ImageData:
         z = np.load(cache)
         kp, desc, (w, h) = z["keypoints"], z["descriptors"], z["size"]
     else:
-        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if gray is None:
-            raise FileNotFoundError(path)
+        gray = cv2.cvtColor(read_image(path), cv2.COLOR_RGB2GRAY)  # COLMAP's frame (EXIF orientation not applied)
         h, w = gray.shape
         scale = min(1.0, MAX_IMAGE_SIZE / max(h, w))
         small = gray if scale == 1.0 else cv2.resize(gray, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
@@ -142,7 +140,7 @@ def unrelated_pairs(count: int, seed: int = 0) -> list[dict]:
 def verify_matches(a: ImageData, b: ImageData, matches: np.ndarray, matcher) -> pycolmap.TwoViewGeometry:
     """COLMAP's two-view verification with the pipeline's options for ``matcher`` (raw: >= 15 inliers, guided: its min_inliers)."""
     options = verify.two_view_options(matcher.verification_conf)
-    return verify.verify_pair(default_camera(a), a.keypoints, default_camera(b), b.keypoints, matches, options)
+    return verify.verify_pair(verify.default_camera(a.width, a.height), a.keypoints, verify.default_camera(b.width, b.height), b.keypoints, matches, options)
 
 
 def reference_error(geometry: pycolmap.TwoViewGeometry, corrs: np.ndarray | None) -> float | None:

@@ -27,9 +27,10 @@ import torch
 from tqdm import tqdm
 
 from colmap_guided import archival
-from colmap_guided.coarse.matcher import CoarseMatcher, load_image
+from colmap_guided.coarse.matcher import CoarseMatcher
 from colmap_guided.coarse.model import CoarseNet
 from colmap_guided.coarse.weights import save_filter_weights
+from colmap_guided.images import read_image
 from colmap_guided.log import logger, set_verbosity
 from colmap_guided.train.data import VAL_SCENES, load_scene
 
@@ -64,7 +65,7 @@ def evaluate(matcher: CoarseMatcher, pairs, archival_preset: str | None, desc: s
         fa = matcher.extract_path(path_a, str(path_a))
         key_b = str(path_b) + (f"#{archival_preset}" if archival_preset else "")
         if key_b not in matcher.cache:
-            img_b = load_image(path_b)
+            img_b = read_image(path_b)
             if archival_preset:
                 img_b = archival.apply_preset(img_b, archival_preset, seed=archival_seed(path_b))
             matcher.extract(img_b, key_b)
@@ -132,7 +133,7 @@ def main(argv=None):
     p.add_argument("--backbone", default="efficientnet-lite0")
     p.add_argument("--archival", default=None, help=f"also evaluate with B degraded by a preset of {sorted(archival.PRESETS)}")
     p.add_argument("--no_baselines", action="store_true", help="skip raw correlation and the untrained filter")
-    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: as the pipeline matches on CPU)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--verbose", action="store_true")
     args = p.parse_args(argv)

@@ -22,12 +22,10 @@ import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from colmap_guided.evaluation import manifest as mf  # noqa: E402
-from colmap_guided.evaluation import matcher_specs, proxy, registration, tables, two_view  # noqa: E402
-from colmap_guided.log import logger, set_verbosity  # noqa: E402
-from colmap_guided.paths import REPO_ROOT  # noqa: E402
+from colmap_guided.evaluation import manifest as mf
+from colmap_guided.evaluation import matcher_specs, proxy, registration, tables, two_view
+from colmap_guided.log import logger, set_verbosity
+from colmap_guided.paths import REPO_ROOT
 
 DEFAULT_PROXY = REPO_ROOT / "outputs" / "historical_proxy"
 WXBS_APPEARANCE = ("WGABS", "WLABS", "WGALBS")
@@ -71,7 +69,8 @@ def main(argv=None) -> int:
     if not scenes:
         logger.error("%s lists no scene with images (LTLL: pass --root and --scan).", manifest_path)
         return 2
-    methods = [m for m in args.methods if m == "pycolmap" or matcher_specs.available_specs([m])]
+    methods = args.methods
+    matcher_specs.parse_specs([m for m in methods if m != "pycolmap"])  # ValueError now, not after hours
     extra = {"device": args.device, "weights": args.weights}
     tol = {"max_rotation_deg": args.max_rotation_deg, "max_center_frac": args.max_center_frac}
     results = []

@@ -10,8 +10,8 @@ essential matrix by OpenCV RANSAC at 1 px / mean focal; AUC of max(R, t) angular
 WxBS: F by MAGSAC++, share of hand-labelled correspondences within 3/5/10 px.
 
 Writes OUTPUT/two_view.{md,json,png} and OUTPUT/wxbs.{md,json,png}; prints the Markdown tables.
-Matcher variants: ``name[:key=value,...]`` (see colmap_guided/evaluation/matcher_specs.py); variants whose
-matcher is not in the registry, or cannot run, are skipped with a warning.
+Matcher variants: ``name[:key=value,...]`` (see colmap_guided/evaluation/matcher_specs.py); a variant whose
+matcher is not in the registry, or cannot run, stops the script with its error.
 """
 
 from __future__ import annotations
@@ -20,12 +20,10 @@ import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from colmap_guided.evaluation import matcher_specs, tables, two_view  # noqa: E402
-from colmap_guided.evaluation.reference import TWO_VIEW_SCENES  # noqa: E402
-from colmap_guided.log import logger, set_verbosity  # noqa: E402
-from colmap_guided.paths import REPO_ROOT  # noqa: E402
+from colmap_guided.evaluation import matcher_specs, tables, two_view
+from colmap_guided.evaluation.reference import TWO_VIEW_SCENES
+from colmap_guided.log import set_verbosity
+from colmap_guided.paths import REPO_ROOT
 
 
 def pose_table(result: dict) -> str:
@@ -109,10 +107,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     set_verbosity(False, args.quiet)
     extra = {"device": args.device, "weights": args.weights}
-    specs = matcher_specs.available_specs(args.matchers, extra)
-    if not specs:
-        logger.error("No matcher variant can run.")
-        return 2
+    specs = matcher_specs.parse_specs(args.matchers, extra)
     out = args.output
     note = tables.machine_note()
 

@@ -13,10 +13,8 @@ import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from colmap_guided.evaluation import proxy  # noqa: E402
-from colmap_guided.paths import REPO_ROOT  # noqa: E402
+from colmap_guided.evaluation import proxy
+from colmap_guided.paths import REPO_ROOT
 
 DEFAULT_OUTPUT = REPO_ROOT / "outputs" / "historical_proxy"
 
@@ -29,10 +27,11 @@ def main(argv=None) -> int:
     parser.add_argument("--max_size", type=int, default=1024, help="long side of every image (0 = keep)")
     parser.add_argument("--crop", type=float, default=0.1, help="historical images keep >= 1 - crop of each side")
     parser.add_argument("--max_images", type=int, default=0, help="first N images of each set (0 = all)")
+    parser.add_argument("--looks", nargs="+", default=list(proxy.LOOKS), choices=list(proxy.LOOKS), help="realistic prints (<scene>_realistic) and/or damaged ones (<scene>)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     path = proxy.build_proxy(
-        args.output, args.sources, seed=args.seed, n_distractors=args.distractors, max_size=args.max_size or None, crop=args.crop, max_images=args.max_images or None
+        args.output, args.sources, looks=args.looks, seed=args.seed, n_distractors=args.distractors, max_size=args.max_size or None, crop=args.crop, max_images=args.max_images or None
     )
     print(f"Proxy manifest: {path}")
     return 0

@@ -1,6 +1,11 @@
 """Render OUTPUT/report.html in headless Chromium and save a screenshot PNG (checks the page really renders).
 
     python recon_scripts/render_report_screenshot.py OUTPUT/report.html [--out shot.png] [--size 1200,1600]
+    python recon_scripts/render_report_screenshot.py --demo /tmp/demo_scene --photo view_007.jpg --size 1400,1600 --out docs/report_demo.png
+
+``--demo DIR`` first makes the README's demo: the synthetic scene (12 views), a manifest that marks every
+third view "historical" (those photos toned sepia, as old prints are), and a view of another building (the
+synthetic scene of another seed) that cannot register; then reconstructs it with the default matcher.
 
 Chromium comes from Debian (`apt-get install chromium`); the page is opened from the file system with the
 network off, so the screenshot also proves the page needs nothing from outside (images are embedded).
@@ -15,6 +20,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from urllib.parse import quote
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 
@@ -27,8 +33,8 @@ def find_chromium() -> str | None:
     return None
 
 
-def screenshot(html_path: Path, out_png: Path, size: tuple[int, int] = (1200, 1600), timeout: float = 120.0) -> Path:
-    """Screenshot of ``html_path`` (a local file) at ``size`` pixels; raises RuntimeError when it fails."""
+def screenshot(html_path: Path, out_png: Path, size: tuple[int, int] = (1200, 1600), timeout: float = 120.0, photo: str | None = None) -> Path:
+    """Screenshot of ``html_path`` (a local file) at ``size`` pixels, with the 3D view showing ``photo``; raises RuntimeError when it fails."""
     browser = find_chromium()
     if browser is None:
         raise RuntimeError("No Chromium found: install it (Debian: apt-get install chromium) to check the page renders.")
@@ -43,6 +49,7 @@ def screenshot(html_path: Path, out_png: Path, size: tuple[int, int] = (1200, 16
             "--headless",
             "--no-sandbox",
             "--disable-gpu",
+            "--disable-quic",
             "--no-first-run",
             "--disable-background-networking",
             "--disable-component-update",
@@ -51,7 +58,7 @@ def screenshot(html_path: Path, out_png: Path, size: tuple[int, int] = (1200, 16
             f"--user-data-dir={profile}",
             f"--screenshot={out_png}",
             f"--window-size={size[0]},{size[1]}",
-            html_path.as_uri(),
+            html_path.as_uri() + (f"#photo={quote(photo, safe='')}" if photo else ""),
         ]
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     if not out_png.is_file() or out_png.stat().st_size == 0:
@@ -60,16 +67,59 @@ def screenshot(html_path: Path, out_png: Path, size: tuple[int, int] = (1200, 16
     return out_png
 
 
+def make_demo(scene_dir: Path) -> Path:
+    """The demo scene with eras and one photo of another building, reconstructed; returns its report.html."""
+    import json
+
+    import numpy as np
+    from PIL import Image
+
+    import colmap_guided  # noqa: F401 - before pycolmap (see colmap_guided/__init__.py)
+    from colmap_guided.reconstruct import reconstruct
+    from colmap_guided.synthetic import render_scene
+
+    scene_dir = Path(scene_dir)
+    info = render_scene(scene_dir, num_images=12, width=1024, height=768)
+    eras = {name: "historical" if i % 3 == 1 else "modern" for i, name in enumerate(info.names)}
+    for name, era in eras.items():
+        if era == "historical":  # a sepia print: luminance mapped between dark brown and cream
+            grey = np.asarray(Image.open(info.image_dir / name).convert("L"), np.float32)[:, :, None] / 255
+            toned = (1 - grey) * np.array([40, 28, 18]) + grey * np.array([238, 222, 190])
+            Image.fromarray(toned.astype(np.uint8)).save(info.image_dir / name, quality=90)
+    other = render_scene(scene_dir.with_name(scene_dir.name + "_other"), num_images=2, width=1024, height=768, seed=7)
+    (info.image_dir / "other_building.jpg").write_bytes((other.image_dir / other.names[0]).read_bytes())
+    eras["other_building.jpg"] = "historical"
+    (scene_dir / "manifest.json").write_text(json.dumps({"images": [{"name": n, "era": e} for n, e in eras.items()]}, indent=1))
+    return Path(reconstruct(scene_dir, overwrite=True)["html_report_path"])
+
+
+def small_png(path: Path, max_bytes: int = 300_000) -> Path:
+    """Re-save a screenshot with fewer colours until it is under ``max_bytes`` (for the README)."""
+    from PIL import Image
+
+    image = Image.open(path).convert("RGB")
+    for colors in (256, 128, 64):
+        if path.stat().st_size <= max_bytes:
+            break
+        image.quantize(colors, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(path, optimize=True)
+    return path
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("html", type=Path)
+    parser.add_argument("html", type=Path, nargs="?", help="a report.html (not with --demo)")
+    parser.add_argument("--demo", type=Path, default=None, help="make the demo scene in this folder, reconstruct it and take its screenshot")
     parser.add_argument("--out", type=Path, default=None, help="PNG path (default: next to the page, report_screenshot.png)")
-    parser.add_argument("--size", default="1200,1600", help="window width,height in pixels")
+    parser.add_argument("--size", default="1400,1000", help="window width,height in pixels")
+    parser.add_argument("--photo", default=None, help="show this photo in the 3D view (the page opened as report.html#photo=NAME)")
     args = parser.parse_args(argv)
+    if (args.html is None) == (args.demo is None):
+        parser.error("pass a report.html or --demo DIR")
     width, height = (int(v) for v in args.size.split(","))
-    out = args.out or Path(args.html).with_name(Path(args.html).stem + "_screenshot.png")
     try:
-        print(screenshot(args.html, out, (width, height)))
+        html = make_demo(args.demo) if args.demo else args.html
+        out = args.out or Path(html).with_name(Path(html).stem + "_screenshot.png")
+        print(small_png(screenshot(html, out, (width, height), photo=args.photo)))
     except (RuntimeError, subprocess.TimeoutExpired) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1

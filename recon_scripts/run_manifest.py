@@ -21,13 +21,11 @@ import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from colmap_guided.evaluation import manifest as mf  # noqa: E402
-from colmap_guided.evaluation import registration  # noqa: E402
-from colmap_guided.features import list_images  # noqa: E402
-from colmap_guided.log import logger, set_verbosity  # noqa: E402
-from colmap_guided.paths import REPO_ROOT, shared_data_dir  # noqa: E402
+from colmap_guided.evaluation import manifest as mf
+from colmap_guided.evaluation import registration
+from colmap_guided.features import list_images
+from colmap_guided.log import logger, set_verbosity
+from colmap_guided.paths import REPO_ROOT, shared_data_dir
 
 
 def shared_manifest(data_dir: Path | None = None) -> dict:

@@ -3,7 +3,6 @@
 from pathlib import Path
 
 import pytest
-import torch
 
 from colmap_guided.paths import shared_data_dir
 
@@ -25,8 +24,9 @@ def shared_data() -> Path:
 
 @pytest.fixture(scope="module")
 def one_torch_thread():
-    """As CoarseMatcher does on CPU (num_threads=1); restored for the other test modules."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+    """Tests that call the coarse network directly run it as match_database does on CPU (one torch
+    thread, CoarseMatcher num_threads=1): faster on shared cores; restored for the other test modules."""
+    from colmap_guided.matchers.base import scoped_torch_threads
+
+    with scoped_torch_threads(1):
+        yield

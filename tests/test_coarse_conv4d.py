@@ -4,9 +4,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from colmap_guided.coarse import CoarseMatcher, load_image
+from colmap_guided.coarse import CoarseMatcher
 from colmap_guided.coarse.conv4d import SparseNeighbourhood, conv4d, kernel_offsets, sparse_conv4d
 from colmap_guided.coarse.model import correlation
+from colmap_guided.images import read_image
 from colmap_guided.paths import shared_data_dir
 
 
@@ -18,7 +19,7 @@ def real_corr(shared_data):
     """Correlation of two photos of the Sacre Coeur at 128 px (8x6 and 6x8 grids)."""
     images = shared_data_dir() / "lightglue_assets" / "images"
     cm = CoarseMatcher({"mode": "raw", "resize_max": 128, "device": "cpu"})
-    fa, fb = (cm.extract(load_image(images / n)).features for n in ("sacre_coeur1.jpg", "sacre_coeur2.jpg"))
+    fa, fb = (cm.extract(read_image(images / n)).features for n in ("sacre_coeur1.jpg", "sacre_coeur2.jpg"))
     return correlation(fa[None], fb[None])[0]
 
 

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from colmap_guided.coarse import CoarseMatcher, CoarseNet, load_image, save_filter_weights
+from colmap_guided.coarse import CoarseMatcher, CoarseNet, save_filter_weights
 from colmap_guided.coarse.viz import main
+from colmap_guided.images import read_image
 from colmap_guided.paths import shared_data_dir
 
 IMAGES = shared_data_dir() / "lightglue_assets" / "images"
@@ -34,7 +35,7 @@ def test_raw_mode_on_a_homography(raw, shared_data):
     """Raw correlation (no weights) on a real photo and its known warp: PCK at original pixels (cells are
     32 px here). Measured 2026-11-23: PCK@8/16/32 = 23.5/60.9/77.0 %, 83 % within 16 px among points
     whose forward-backward error is under one cell."""
-    a = load_image(IMAGES / "sacre_coeur1.jpg")
+    a = read_image(IMAGES / "sacre_coeur1.jpg")
     b, H = warp_pair(a)
     res = raw.match(raw.extract(a), raw.extract(b))
     ys, xs = np.mgrid[4:a.shape[0]:8, 4:a.shape[1]:8]
@@ -54,7 +55,7 @@ def test_raw_mode_on_a_homography(raw, shared_data):
 
 
 def test_feature_cache(raw, tmp_path, shared_data):
-    img = load_image(IMAGES / "sacre_coeur2.jpg")
+    img = read_image(IMAGES / "sacre_coeur2.jpg")
     f1 = raw.extract(img, name="sc2")
     assert raw.extract(None, name="sc2") is f1  # cached: no image needed
     raw.release("sc2")
@@ -70,8 +71,9 @@ def test_feature_cache(raw, tmp_path, shared_data):
 
 
 def test_grayscale_input(raw, shared_data):
-    rgb = load_image(IMAGES / "sacre_coeur1.jpg")
-    gray = load_image(IMAGES / "sacre_coeur1.jpg", grayscale=True)
+    cv2 = pytest.importorskip("cv2")
+    rgb = read_image(IMAGES / "sacre_coeur1.jpg")
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     assert gray.shape == rgb.shape[:2]
     fg, fc = raw.extract(gray), raw.extract(rgb)
     assert fg.features.shape == fc.features.shape and fg.geometry == fc.geometry
@@ -79,31 +81,34 @@ def test_grayscale_input(raw, shared_data):
     assert res.matches.mutual_ab.mean() > 0.5  # same photo, gray vs colour: mostly the identity
 
 
-def test_load_image_ignores_exif_orientation_like_colmap(tmp_path):
-    """COLMAP's reader (pycolmap 4.2.1) keeps the stored pixel order of a JPEG whose EXIF says 'rotate
-    90°'; load_image must do the same so keypoints and coarse flow share one frame."""
-    pycolmap = pytest.importorskip("pycolmap")
+def test_extract_path_reads_16bit_grey_and_exif_rotated_files_like_colmap(raw, tmp_path):
+    """A 16-bit grey scan gives the network the same input as its 8-bit copy (Pillow's convert("RGB")
+    saturated I;16: almost white), and a JPEG tagged 'rotate 90°' is read in its stored frame (COLMAP's
+    keypoints), not as a viewer shows it."""
+    cv2 = pytest.importorskip("cv2")
     from PIL import Image
 
-    arr = np.zeros((60, 100, 3), np.uint8)
-    arr[:10, :20] = 255
-    im = Image.fromarray(arr)
-    exif = im.getexif()
+    rng = np.random.default_rng(0)
+    grey = cv2.resize(rng.integers(0, 256, (12, 16), dtype=np.uint8), (256, 192), interpolation=cv2.INTER_CUBIC)
+    cv2.imwrite(str(tmp_path / "grey8.png"), grey)
+    cv2.imwrite(str(tmp_path / "grey16.png"), grey.astype(np.uint16) * 257)
+    f8, f16 = (raw.extract_path(tmp_path / n) for n in ("grey8.png", "grey16.png"))
+    np.testing.assert_allclose(f16.features.numpy(), f8.features.numpy(), atol=1e-4)
+
+    exif = Image.Exif()
     exif[0x0112] = 6
-    im.save(tmp_path / "rot.jpg", exif=exif.tobytes(), quality=95)
-    ours = load_image(tmp_path / "rot.jpg")
-    theirs = pycolmap.Bitmap.read(str(tmp_path / "rot.jpg"), True).to_array()
-    assert ours.shape == theirs.shape == (60, 100, 3)
-    assert ours[:10, :20].mean() > 200 and np.abs(ours.astype(int) - theirs.astype(int)).mean() < 2
-    with pytest.raises(FileNotFoundError):
-        load_image(tmp_path / "absent.jpg")
+    Image.fromarray(np.dstack([grey] * 3)).save(tmp_path / "rot.jpg", exif=exif.tobytes(), quality=95)
+    geo = raw.extract_path(tmp_path / "rot.jpg").geometry
+    assert (geo.width, geo.height) == (256, 192)
+    with pytest.raises(ValueError, match="Cannot read image"):
+        raw.extract_path(tmp_path / "absent.jpg")
 
 
 def test_cli_writes_png(tmp_path, shared_data):
     out = tmp_path / "m.png"
     assert main([str(IMAGES / "DSC_0410.JPG"), str(IMAGES / "DSC_0411.JPG"), "--out", str(out), "--mode", "raw",
                  "--resize-max", "256"]) == 0
-    img = load_image(out)
+    img = read_image(out)
     assert img.shape[0] == 600 and img.shape[1] > 1000 and img.std() > 10
 
 
@@ -112,7 +117,7 @@ def test_match_pairs_batches_like_single_pairs(tmp_path, shared_data):
     torch.manual_seed(0)
     weights = save_filter_weights(CoarseNet({"pretrained": False}), tmp_path / "f.safetensors", resize_max=128)
     cm = CoarseMatcher({"mode": "filter", "weights": weights, "impl": "dense", "resize_max": 128, "device": "cpu"})
-    f = [cm.extract(load_image(IMAGES / n), n) for n in ("sacre_coeur1.jpg", "DSC_0410.JPG", "DSC_0411.JPG")]
+    f = [cm.extract(read_image(IMAGES / n), n) for n in ("sacre_coeur1.jpg", "DSC_0410.JPG", "DSC_0411.JPG")]
     pairs = [(f[0], f[1]), (f[0], f[2]), (f[1], f[0])]
     assert f[1].features.shape == f[2].features.shape  # the first two pairs form one batch
     for batched, (fa, fb) in zip(cm.match_pairs(pairs), pairs):
@@ -127,7 +132,7 @@ def test_half_precision_dense_filter_keeps_the_matches(precision, shared_data):
     the shipped filter on a real pair. Measured at 384 px: fp16 99.7-100 %, bf16 99.0-99.8 % agreement."""
     conf = {"impl": "dense", "resize_max": 256, "device": "cpu"}
     full, half = CoarseMatcher(conf), CoarseMatcher({**conf, "precision": precision})
-    fa, fb = (full.extract(load_image(IMAGES / n)) for n in ("sacre_coeur1.jpg", "sacre_coeur2.jpg"))
+    fa, fb = (full.extract(read_image(IMAGES / n)) for n in ("sacre_coeur1.jpg", "sacre_coeur2.jpg"))
     m32, m16 = full.match(fa, fb).matches, half.match(fa, fb).matches
     assert (m32.ab == m16.ab).mean() > 0.97 and (m32.ba == m16.ba).mean() > 0.97
     np.testing.assert_allclose(m16.score_ab, m32.score_ab, atol=0.15)

@@ -141,12 +141,18 @@ def test_compare_poses_flags_wrong_registrations_after_similarity_alignment():
     assert compare_poses({"a": est["im0"]}, {"a": ref["im0"]})["a"]["ok"] is None
 
 
-def test_matcher_specs_parse_and_skip_unknown():
+def test_matcher_specs_parse_and_refuse_unknown():
+    """An unknown matcher or option stops the benchmark (no table silently missing a row)."""
     spec = matcher_specs.parse_spec("guided:ratio=none,window_cells=1.5,weights=a/b.safetensors")
     assert spec.name == "guided" and spec.conf == {"ratio": None, "window_cells": 1.5, "weights": "a/b.safetensors"}
     assert matcher_specs.parse_spec("raw").conf == {}
-    specs = matcher_specs.available_specs(["raw:ratio=0.9", "no_such_matcher", "raw:no_such_option=1"], {"device": "cpu"})
-    assert [s.label for s in specs] == ["raw:ratio=0.9"] and specs[0].conf == {"ratio": 0.9, "device": "cpu"}
+    specs = matcher_specs.parse_specs(["raw:ratio=0.9", "guided_epipolar"], {"device": "cpu"})
+    assert [s.label for s in specs] == ["raw:ratio=0.9", "guided_epipolar"] and specs[0].conf == {"ratio": 0.9, "device": "cpu"}
+    with pytest.raises(ValueError, match="not in the registry"):
+        matcher_specs.parse_specs(["raw", "no_such_matcher"])
+    with pytest.raises(ValueError, match="no option mutual"):
+        matcher_specs.parse_specs(list(matcher_specs.DEFAULT_TWO_VIEW_SPECS) + ["raw:ratio=0.8,mutual=false"])
+    matcher_specs.parse_specs(matcher_specs.DEFAULT_TWO_VIEW_SPECS)  # every default row can run
     with pytest.raises(ValueError):
         matcher_specs.parse_spec("raw:ratio")
 

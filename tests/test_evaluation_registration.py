@@ -31,18 +31,21 @@ def tiny_proxy(tmp_path_factory):
 
 def test_proxy_scene_layout_and_determinism(tiny_proxy, tmp_path):
     data = mf.load_manifest(tiny_proxy)
-    (scene,) = data["scenes"]
-    eras = [im["era"] for im in scene["images"]]
-    assert eras.count("historical") == 2 and eras.count("modern") == 2 and eras.count("distractor") == 2
+    assert [(s["name"], s["look"]) for s in data["scenes"]] == [("strecha_entry_P10", "damaged"), ("strecha_entry_P10_realistic", "realistic")]
+    for scene in data["scenes"]:
+        eras = [im["era"] for im in scene["images"]]
+        assert eras.count("historical") == 2 and eras.count("modern") == 2 and eras.count("distractor") == 2
+    for name, presets in (("strecha_entry_P10", proxy.HISTORICAL_PRESETS), ("strecha_entry_P10_realistic", proxy.REALISTIC_PRESETS)):
+        one = json.loads((tiny_proxy.parent / name / "manifest.json").read_text())
+        assert one["reference"]["path"].endswith("strecha_entry_P10/colmap")
+        for im in one["images"]:
+            img = cv2.imread(str(tiny_proxy.parent / name / "images" / im["name"]))
+            assert img is not None and max(img.shape[:2]) <= 480
+            if im["era"] == "historical":
+                assert im["preset"] in presets
+            if im["era"] == "distractor":
+                assert not im["source"].startswith("train/strecha")
     one = json.loads((tiny_proxy.parent / "strecha_entry_P10" / "manifest.json").read_text())
-    assert one["reference"]["path"].endswith("strecha_entry_P10/colmap")
-    for im in one["images"]:
-        img = cv2.imread(str(tiny_proxy.parent / "strecha_entry_P10" / "images" / im["name"]))
-        assert img is not None and max(img.shape[:2]) <= 480
-        if im["era"] == "historical":
-            assert im["preset"] in proxy.HISTORICAL_PRESETS
-        if im["era"] == "distractor":
-            assert not im["source"].startswith("train/strecha")
     again = proxy.build_proxy(tmp_path / "again", sources=["train/strecha_entry_P10"], n_distractors=2, max_size=480, max_images=4)
     for im in one["images"]:
         a = (tiny_proxy.parent / "strecha_entry_P10" / "images" / im["name"]).read_bytes()

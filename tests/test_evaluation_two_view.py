@@ -79,11 +79,16 @@ def test_wxbs_ground_truth_correspondences_score_high(shared_data):
 
 
 def test_eval_two_view_script_in_process(shared_data, sift_cache, tmp_path, capsys):
-    """The script on one pair (features cached by the test above) and one WxBS pair."""
+    """The script on one pair (features cached by the test above) and one WxBS pair; a matcher it cannot
+    run stops it before any work (a table never loses a row silently)."""
     out = tmp_path / "out"
-    argv = ["--scenes", "train/strecha_entry_P10", "--max_pairs", "1", "--matchers", "raw:ratio=0.8", "no_such_matcher",
+    argv = ["--scenes", "train/strecha_entry_P10", "--max_pairs", "1", "--matchers", "raw:ratio=0.8",
             "--wxbs_max_pairs", "1", "--cache_dir", str(sift_cache), "--output", str(out), "-q"]
-    assert load_script("eval_two_view").main(argv) == 0
+    script = load_script("eval_two_view")
+    with pytest.raises(ValueError, match="no_such_matcher"):
+        script.main([*argv, "--matchers", "raw:ratio=0.8", "no_such_matcher"])
+    assert not out.exists()
+    assert script.main(argv) == 0
     text = capsys.readouterr().out
     assert "| raw:ratio=0.8 |" in text and "AUC@5°" in text and "WxBS" in text
     for name in ("two_view.json", "two_view.md", "two_view.png", "wxbs.json", "wxbs.md", "wxbs.png"):
@@ -99,7 +104,7 @@ def test_eval_two_view_script_in_process(shared_data, sift_cache, tmp_path, caps
 def test_eval_two_view_script(shared_data, tmp_path):
     out = tmp_path / "out"
     cmd = [sys.executable, str(REPO_ROOT / "recon_scripts" / "eval_two_view.py"), "--scenes", "train/strecha_entry_P10", "--max_pairs", "1",
-           "--matchers", "raw:ratio=0.8", "no_such_matcher", "--wxbs_max_pairs", "1", "--cache_dir", str(tmp_path / "cache"), "--output", str(out), "-q"]
+           "--matchers", "raw:ratio=0.8", "--wxbs_max_pairs", "1", "--cache_dir", str(tmp_path / "cache"), "--output", str(out), "-q"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "| raw:ratio=0.8 |" in proc.stdout and "AUC@5°" in proc.stdout

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import shutil
-import sys
 
 import h5py
 import numpy as np
@@ -13,7 +12,7 @@ import pytest
 from colmap_guided.__main__ import main
 from colmap_guided.export import export_h5, import_h5, names_to_pair
 from colmap_guided.features import extract_features
-from colmap_guided.log import logger, set_verbosity
+from colmap_guided.log import set_verbosity
 from colmap_guided.mapping import incremental_mapping
 from colmap_guided.match import match_database
 from colmap_guided.synthetic import render_scene
@@ -146,7 +145,6 @@ def test_import_of_plain_hloc_files_default_cameras_then_verification(matched, t
 
 
 def test_cli_export_import(matched, tmp_path, capfd):
-    saved = [h.setStream(sys.stderr) for h in logger.handlers]
     try:
         assert main(["export", "--database_path", str(matched["database"]), "--output", str(tmp_path / "h5")]) == 0
         assert main(["export", "--database_path", str(matched["database"]), "--output", str(tmp_path / "h5")]) == 2
@@ -156,6 +154,4 @@ def test_cli_export_import(matched, tmp_path, capfd):
         assert "No features file" in capfd.readouterr().err
     finally:
         set_verbosity(False, False)
-        for h, stream in zip(logger.handlers, saved):
-            h.setStream(stream)
     assert_same_database(matched["database"], tmp_path / "cli.db")

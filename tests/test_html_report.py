@@ -1,20 +1,26 @@
-"""report.html: self-contained, says what a historian needs, draws matches where they are, renders in Chromium."""
+"""report.html: self-contained, shows the model it was made from, says why a photo did not register, draws matches where they are, renders in Chromium."""
 
 from __future__ import annotations
 
 import base64
+import html
 import io
+import json
 import re
+import shutil
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
+import pycolmap
 import pytest
 from PIL import Image
 
-from colmap_guided import html_report
+from colmap_guided import database as dbio
+from colmap_guided import html_report, model_view, report
+from colmap_guided.mapping import load_models
 from colmap_guided.reconstruct import reconstruct
-from colmap_guided.synthetic import render_scene
 
 REPO = Path(__file__).resolve().parent.parent
 PAIR_FIGURE = re.compile(r"<figure class='pair'><figcaption>[^<]*</figcaption><img src='data:(image/jpeg);base64,([A-Za-z0-9+/=]+)'")
@@ -86,12 +92,131 @@ def test_page_is_self_contained_and_lists_what_matters(tmp_path):
     assert first[5:15, 150:190].max() < 40 and first[85:95, 220:260].max() < 40
 
 
-def test_reconstruct_writes_the_page(tmp_path):
-    render_scene(tmp_path / "scene", num_images=4, width=400, height=300)
-    result = reconstruct(tmp_path / "scene", output=tmp_path / "out", matcher="raw")
-    page = (tmp_path / "out" / "report.html").read_text(encoding="utf-8")
-    assert result["html_report_path"] == str(tmp_path / "out" / "report.html")
+@pytest.fixture(scope="module")
+def run_with_strangers(synthetic_scene, tmp_path_factory):
+    """The synthetic scene plus a photo of something else (smooth noise) and a blank one; a manifest with eras."""
+    scene = tmp_path_factory.mktemp("strangers") / "scene"
+    shutil.copytree(synthetic_scene.image_dir, scene / "images")
+    small = np.random.default_rng(1).integers(0, 255, (60, 80, 3), dtype=np.uint8)
+    Image.fromarray(cv2.resize(small, (640, 480), interpolation=cv2.INTER_CUBIC)).save(scene / "images" / "unrelated.jpg")
+    Image.fromarray(np.tile(np.linspace(90, 110, 640)[None, :, None], (480, 1, 3)).astype(np.uint8)).save(scene / "images" / "blank.png")
+    eras = {name: "historical" if i % 3 == 0 else "modern" for i, name in enumerate(synthetic_scene.names)}
+    (scene / "manifest.json").write_text(json.dumps({"images": [{"name": n, "era": e} for n, e in eras.items()]}))
+    out = tmp_path_factory.mktemp("strangers_out")
+    result = reconstruct(scene, output=out, matcher="raw")
+    return result, out, eras
+
+
+def _model_data(page: str) -> dict:
+    found = re.search(r"<script type='application/json' id='model-data'>(.*?)</script>", page, re.S)
+    assert found, "the page has no 3D view"
+    return json.loads(found.group(1))  # the page writes "</" as "<\/" (valid JSON)
+
+
+def test_page_shows_the_model_it_was_made_from(run_with_strangers, synthetic_scene):
+    result, out, eras = run_with_strangers
+    page = (out / "report.html").read_text(encoding="utf-8")
+    assert result["html_report_path"] == str(out / "report.html")
+    assert not re.search(r"(src|href)=['\"](?!data:)", page) and "http://" not in page and "https://" not in page
     assert "verified matches" in page and page.count("<figure class='pair'>") == 3
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    data = _model_data(page)
+    # Every point of the model (fewer than MAX_POINTS here), at its place, and every registered camera.
+    assert data["num_points_total"] == data["num_points_shown"] == rec.num_points3D() == result["num_points3D"] > 500
+    assert f"all {rec.num_points3D():,} points" in page
+    shown = model_view.decode_points(data)
+    xyz = np.array([p.xyz for p in rec.points3D.values()])
+    step = np.linalg.norm(np.array(data["quant"]["step"])) * data["frame"]["radius"]
+    assert shown.shape == xyz.shape
+    assert np.abs(np.sort(shown, axis=0) - np.sort(xyz, axis=0)).max() < step
+    names = sorted(im.name for im in rec.images.values() if im.has_pose)
+    assert [c["name"] for c in data["cameras"]] == names == sorted(synthetic_scene.names)
+    frame = data["frame"]
+    for cam in data["cameras"]:
+        centre = np.array(cam["c"]) * frame["radius"] @ np.array(frame["axes"]) + np.array(frame["origin"])
+        assert np.linalg.norm(centre - rec.find_image_with_name(cam["name"]).projection_center()) < 1e-3 * frame["radius"]
+        assert cam["era"] == eras[cam["name"]] and cam["thumb"].startswith("data:image/jpeg;base64,")
+    assert set(data["colors_by_era"]) == {"historical", "modern"}
+    # The up direction: the photos were taken upright, so the cameras' up vectors agree with it.
+    up = np.array(frame["axes"])[2]
+    assert all(-rec.images[i].cam_from_world().rotation.matrix()[1] @ up > 0.9 for i in rec.reg_image_ids())
+    # A large model is shown by a sample, and the page says so.
+    sample = model_view.view_data(rec, eras, max_points=100)
+    assert sample["num_points_shown"] == 100 and len(model_view.decode_points(sample)) == 100 and sample["num_points_total"] == rec.num_points3D()
+    assert f"100 of the {rec.num_points3D():,} points" in model_view.view_html(rec, eras, max_points=100)
+
+
+def test_each_photo_that_did_not_register_says_where_and_why(run_with_strangers):
+    result, out, _ = run_with_strangers
+    assert result["model"]["unregistered_images"] == ["blank.png", "unrelated.jpg"]
+    saved = json.loads((out / "report.json").read_text(encoding="utf-8"))
+    why = saved["unregistered"]
+    assert why == result["unregistered"] and set(why) == {"blank.png", "unrelated.jpg"}
+    assert why["blank.png"]["stage"] == "features" and why["blank.png"]["num_keypoints"] < report.MIN_KEYPOINTS
+    stranger = why["unrelated.jpg"]
+    assert stranger["stage"] == "matching" and stranger["verified_pairs"] == 0 and stranger["best_pair"] is None
+    assert stranger["num_keypoints"] > 500 and stranger["best_candidate"] in result["model"]["registered_images"]
+    page = (out / "report.html").read_text(encoding="utf-8")
+    for entry in why.values():
+        assert html.escape(entry["reason"]) in page and html.escape(entry["suggestion"]) in page
+    assert "Not registered (stage where it dropped out): blank.png (features), unrelated.jpg (matching)" in report.summary_text(result)
+
+
+def test_later_stages_are_told_apart(run_with_strangers):
+    """A photo with verified pairs that the mapper left out (``mapping``), or placed in a smaller model."""
+    result, out, _ = run_with_strangers
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    names = sorted(rec.images[i].name for i in rec.reg_image_ids())
+    left_out = pycolmap.Reconstruction(rec)
+    left_out.deregister_frame(rec.find_image_with_name(names[0]).frame_id)
+    alone = pycolmap.Reconstruction(rec)  # a second, smaller model that holds names[0] and names[1] only
+    for name in names[2:]:
+        alone.deregister_frame(rec.find_image_with_name(name).frame_id)
+    database = out / "database.db"
+    everyone = names + ["blank.png", "unrelated.jpg"]
+    mapping_stage = report.explain_unregistered(database, {0: left_out}, everyone, {})[names[0]]
+    separate = report.explain_unregistered(database, {0: left_out, 1: alone}, everyone, {})[names[0]]
+    with dbio.open_database(database) as db:
+        image_id = db.read_image_with_name(names[0]).image_id
+        pair_ids, counts = db.read_two_view_geometry_num_inliers()
+        mine = {pair_id: n for pair_id, n in zip(pair_ids, counts) if n > 0 and image_id in pycolmap.pair_id_to_image_pair(pair_id)}
+    assert mapping_stage["stage"] == "mapping" and mapping_stage["verified_pairs"] == len(mine) > 0
+    assert mapping_stage["best_inliers"] == max(mine.values()) and mapping_stage["best_pair"] in names[1:]
+    assert mapping_stage["best_pair"] in mapping_stage["suggestion"]
+    assert separate["stage"] == "separate model" and separate["model"] == 1 and "sparse/1" in separate["reason"]
+
+
+def test_model_is_exported_for_other_tools(run_with_strangers):
+    result, out, _ = run_with_strangers
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    ply = Path(result["exports"]["ply"])
+    assert ply == out / "sparse" / "0" / "points3D.ply"
+    header = ply.read_bytes().split(b"end_header")[0].decode("ascii")
+    assert header.startswith("ply") and f"element vertex {rec.num_points3D()}" in header
+    text = pycolmap.Reconstruction(result["exports"]["text"])
+    assert (text.num_points3D(), text.num_reg_images()) == (rec.num_points3D(), rec.num_reg_images())
+    assert (Path(result["exports"]["text"]) / "points3D.txt").is_file()
+    models = load_models(out / "sparse")  # the exports beside the model leave sparse/N readable as before
+    assert list(models) == [0] and models[0].num_points3D() == rec.num_points3D()
+
+
+def test_model_view_draws_in_headless_chromium(run_with_strangers, tmp_path):
+    sys.path.insert(0, str(REPO / "recon_scripts"))
+    from render_report_screenshot import find_chromium, screenshot
+
+    if find_chromium() is None:
+        pytest.skip("Chromium is not installed (Debian: apt-get install chromium)")
+    _, out, _ = run_with_strangers
+    shot = np.asarray(Image.open(screenshot(out / "report.html", tmp_path / "shot.png", (1200, 900))).convert("RGB")).astype(int)
+    # The canvas's dark background, many coloured points on it, and frusta in both era colours.
+    dark = (np.abs(shot - np.array([29, 31, 36])).sum(axis=2) < 6)
+    rows, cols = np.nonzero(dark)
+    assert dark.sum() > 100_000, "the 3D view is not drawn"
+    view = shot[rows.min() : rows.max(), cols.min() : cols.max()]
+    assert (np.abs(view - np.array([29, 31, 36])).sum(axis=2) > 60).sum() > 2000
+    for hex_color in model_view.ERA_COLORS.values():
+        rgb = np.array([int(hex_color[i : i + 2], 16) for i in (1, 3, 5)])
+        assert (np.abs(view - rgb).sum(axis=2) < 40).sum() > 30, hex_color
 
 
 @pytest.mark.slow

@@ -342,3 +342,54 @@ def test_keep_raw_adds_raw_matches_of_unmatched_keypoints_only(photo_pair):
     assert len(np.unique(both[:, 0])) == len(both) and len(np.unique(both[:, 1])) == len(both)
     in_both, ga, gb = {tuple(m) for m in both}, set(only[:, 0]), set(only[:, 1])
     assert all(tuple(m) in in_both or m[0] in ga or m[1] in gb for m in raw)  # a raw match is kept unless guidance overrules it
+
+
+def test_matching_uses_one_torch_thread_and_leaves_the_process_as_it_was(synthetic_scene, tmp_path):
+    """A library changes no global state: building a guided matcher leaves torch's thread count alone;
+    match_database matches with the matcher's torch_threads (1 on CPU, the pipeline's speed) and restores
+    it. The pair workers still count on one torch thread per pair."""
+    import os
+
+    import pycolmap
+
+    from colmap_guided.match import match_database
+    from colmap_guided.matchers.base import scoped_torch_threads
+    from colmap_guided.matchers.raw import RawMatcher
+
+    class Recording(RawMatcher):
+        torch_threads = 1
+        seen: set = set()
+
+        def match(self, a, b):
+            Recording.seen.add(torch.get_num_threads())
+            return super().match(a, b)
+
+    db = tmp_path / "db.db"
+    pycolmap.extract_features(db, synthetic_scene.image_dir)
+    with scoped_torch_threads(3):  # a process that uses 3 threads
+        guided = get_matcher("guided", {"device": "cpu"})
+        assert torch.get_num_threads() == 3
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        assert guided.torch_threads == 1 and guided.pair_workers == min(8, cores)
+        match_database(db, synthetic_scene.image_dir, matcher=Recording())
+        assert Recording.seen == {1} and torch.get_num_threads() == 3
+
+
+def test_default_camera_is_the_one_colmaps_feature_extractor_writes(synthetic_scene, tmp_path):
+    """verify.default_camera (the camera of a pair without a database: guided_colmap, imports of plain
+    hloc files, benchmarks) equals the camera pycolmap's extractor writes for a photo without EXIF focal."""
+    import pycolmap
+    from PIL import Image
+
+    from colmap_guided import verify
+
+    (tmp_path / "images").mkdir()
+    with Image.open(synthetic_scene.image_dir / synthetic_scene.names[0]) as im:  # its EXIF focal dropped
+        Image.fromarray(np.asarray(im)[:, :400]).save(tmp_path / "images" / "plain.png")
+    db = tmp_path / "db.db"
+    pycolmap.extract_features(db, tmp_path / "images")
+    with pycolmap.Database.open(str(db)) as database:
+        (camera,) = database.read_all_cameras()
+    ours = verify.default_camera(camera.width, camera.height)
+    assert ours.model == camera.model and ours.width == camera.width and ours.height == camera.height
+    np.testing.assert_allclose(ours.params, camera.params)

@@ -24,11 +24,8 @@ def _image_data(path, image_id):
 
 
 def _verified_inliers(a, b, matches, matcher):
-    def camera(im):
-        return pycolmap.Camera.create_from_model_id(0, pycolmap.CameraModelId.SIMPLE_RADIAL, 1.2 * max(im.width, im.height), im.width, im.height)
-
     options = verify.two_view_options(matcher.verification_conf)  # as the pipeline verifies this matcher's pairs
-    geometry = verify.verify_pair(camera(a), a.keypoints, camera(b), b.keypoints, matches, options)
+    geometry = verify.verify_pair(verify.default_camera(a.width, a.height), a.keypoints, verify.default_camera(b.width, b.height), b.keypoints, matches, options)
     return len(geometry.inlier_matches)
 
 
@@ -77,8 +74,7 @@ def test_guided_never_verifies_a_wrong_geometry_on_day_night_pairs(matchers, pai
     folder = shared_data_dir() / "wxbs_v1.1" / pair
     a, b = (_image_data(next(folder.glob(f"{stem}.*[!t]")), i) for i, stem in ((1, "01"), (2, "02")))
     options = verify.two_view_options(guided.verification_conf)
-    camera = lambda im: pycolmap.Camera.create_from_model_id(0, pycolmap.CameraModelId.SIMPLE_RADIAL, 1.2 * max(im.width, im.height), im.width, im.height)  # noqa: E731
-    geometry = verify.verify_pair(camera(a), a.keypoints, camera(b), b.keypoints, guided.match(a, b), options)
+    geometry = verify.verify_pair(verify.default_camera(a.width, a.height), a.keypoints, verify.default_camera(b.width, b.height), b.keypoints, guided.match(a, b), options)
     if len(geometry.inlier_matches) == 0:
         assert pair != "WGABS/petrzin", "the right geometry of petrzin should verify"
         return

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from colmap_guided.images import read_image
 from colmap_guided.train import data as D
 from colmap_guided.train.losses import epipolar_distance
 
@@ -61,7 +62,7 @@ def test_synthetic_homography_pair_is_exact(small_data):
     key = next(k for k in small_data.views if k.startswith("syn/"))
     view = small_data.views[key]
     im = small_data.scenes[view.scene].images[view.name]
-    photo = D.read_rgb(im.path).astype(np.float32)
+    photo = read_image(im.path).astype(np.float32)
     warped = D.warp_image(photo.astype(np.uint8), view.H, view.geometry.width, view.geometry.height).astype(np.float32)
     rng = np.random.default_rng(0)
     pts = np.stack([rng.uniform(0, im.width, 4000), rng.uniform(0, im.height, 4000)], 1)

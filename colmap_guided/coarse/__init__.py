@@ -1,10 +1,10 @@
-"""Coarse matching network (paper §3.1, §4.3): backbone features → 4D correlation → symmetric
+"""Coarse matching network (paper §4.1, §4.3): backbone features → 4D correlation → symmetric
 neighbourhood-consensus filter → coarse matches and pixel flow. See ``matcher.CoarseMatcher``."""
 
 from colmap_guided.coarse.backbone import BACKBONES, build_backbone
 from colmap_guided.coarse.flow import CoarseResult
 from colmap_guided.coarse.geometry import ImageGeometry, resize_geometry
-from colmap_guided.coarse.matcher import CoarseFeatures, CoarseMatcher, load_image
+from colmap_guided.coarse.matcher import CoarseFeatures, CoarseMatcher
 from colmap_guided.coarse.model import CoarseNet, GridMatches, NeighConsensus
 from colmap_guided.coarse.weights import DEFAULT_WEIGHTS, load_filter_weights, read_filter_weights, save_filter_weights
 
@@ -20,7 +20,6 @@ __all__ = [
     "NeighConsensus",
     "build_backbone",
     "load_filter_weights",
-    "load_image",
     "read_filter_weights",
     "resize_geometry",
     "save_filter_weights",

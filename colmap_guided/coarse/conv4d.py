@@ -1,4 +1,4 @@
-"""4D convolutions for the neighbourhood-consensus filter (paper §3.1, NCNet), dense and sparse.
+"""4D convolutions for the neighbourhood-consensus filter (paper §4.1, NCNet), dense and sparse.
 
 Both use PyTorch's convention (cross-correlation, zero 'same' padding, odd kernels) and the weight
 layout (C_out, C_in / groups, kI, kJ, kK, kL), so the same weights run in either.

@@ -1,4 +1,4 @@
-"""Pixel-level coarse flow m^{A→B}, m^{B→A} from grid matches (paper §3.1: "bilinear interpolation of
+"""Pixel-level coarse flow m^{A→B}, m^{B→A} from grid matches (paper §4.1: "bilinear interpolation of
 the feature matches of its four nearest features"), in original image pixels."""
 
 from __future__ import annotations

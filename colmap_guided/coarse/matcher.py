@@ -1,12 +1,12 @@
 """CoarseMatcher: the coarse matching network as the guided matcher uses it.
 
     cm = CoarseMatcher({"mode": "raw"})            # or the default mode='filter' with trained weights
-    fa = cm.extract(load_image(path_a), name="a")  # backbone once per image, cached by name
+    fa = cm.extract_path(path_a, name="a")         # backbone once per image, cached by name
     res = cm.match(fa, fb)                          # CoarseResult
     xy_b, score, fb_err = res.flow_ab(xy_a)
 
-Images are read the way COLMAP reads them (``load_image``: stored pixel order, EXIF orientation NOT
-applied — pycolmap 4.2.1 checked), so keypoints and the coarse flow share one frame.
+Files are read by ``colmap_guided.images.read_image`` (the project's one reader: COLMAP's frame, EXIF
+orientation NOT applied, 16-bit scaled), so keypoints and the coarse flow share one frame and pixels.
 """
 
 from __future__ import annotations
@@ -17,25 +17,13 @@ from pathlib import Path
 import h5py
 import numpy as np
 import torch
-from PIL import Image
 
 from colmap_guided.coarse.backbone import BACKBONES
 from colmap_guided.coarse.flow import CoarseResult
 from colmap_guided.coarse.geometry import ImageGeometry, as_rgb, resize_geometry, resize_image
 from colmap_guided.coarse.model import CoarseNet
 from colmap_guided.coarse.weights import DEFAULT_WEIGHTS, load_filter_weights, net_conf_from_config, read_filter_weights
-from colmap_guided.log import logger
-
-
-def load_image(path: str | Path, grayscale: bool = False) -> np.ndarray:
-    """Image file → uint8 HxWx3 RGB (or HxW gray) in its stored pixel order, as COLMAP's reader sees
-    it: the EXIF orientation tag is ignored (pycolmap 4.2.1's feature extraction does not rotate)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"Image not found: {path}")
-    with Image.open(path) as im:
-        return np.asarray(im.convert("L" if grayscale else "RGB"))
-
+from colmap_guided.images import read_image
 
 PRECISIONS = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
 
@@ -50,7 +38,7 @@ class CoarseFeatures:
 
 
 class CoarseMatcher:
-    """Coarse matches and flow between images (paper §3.1, §4.1), with a per-image feature cache."""
+    """Coarse matches and flow between images (paper §4.1), with a per-image feature cache."""
 
     default_conf = {
         "backbone": "efficientnet-lite0",
@@ -65,7 +53,7 @@ class CoarseMatcher:
         "raw_temperature": 0.02,  # raw mode: softmax temperature of the scores
         "cache_path": None,  # optional .h5 file caching backbone features across runs
         "precision": "float32",  # dense filter: 'float32' | 'float16' | 'bfloat16' (autocast; README: accuracy)
-        "num_threads": 1,  # CPU: torch.set_num_threads(n) at construction (process-wide!); None: leave as is
+        "num_threads": 1,  # CPU: torch threads the pipeline sets while matching (restored after); None: leave as is
     }
 
     def __init__(self, conf: dict | None = None):
@@ -84,12 +72,10 @@ class CoarseMatcher:
         if conf["precision"] not in PRECISIONS:
             raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {conf['precision']!r}")
         self.dtype = PRECISIONS[conf["precision"]]
-        if self.device.type == "cpu" and conf["num_threads"] is not None and torch.get_num_threads() != conf["num_threads"]:
-            # The sparse filter is hundreds of small ops; on shared cores every OpenMP barrier waits for
-            # a descheduled thread. On the 2-core dev machine (load ~5-10) one thread was 3-8x faster
-            # than two for the sparse filter and 2.4x faster for the backbone (README.md).
-            logger.debug("torch CPU threads: %d -> %d (CoarseMatcher num_threads)", torch.get_num_threads(), conf["num_threads"])
-            torch.set_num_threads(conf["num_threads"])
+        # The sparse filter is hundreds of small ops; on shared cores every OpenMP barrier waits for a
+        # descheduled thread. On the 2-core dev machine (load ~5-10) one thread was 3-8x faster than two
+        # for the sparse filter and 2.4x faster for the backbone (README.md). Set around matching only.
+        self.torch_threads = conf["num_threads"] if self.device.type == "cpu" else None
         net_conf = {"backbone": conf["backbone"], "backbone_weights": conf["backbone_weights"],
                     "raw_temperature": conf["raw_temperature"], "filter": conf["mode"] == "filter"}
         self.weights_config = None
@@ -136,11 +122,11 @@ class CoarseMatcher:
         return feats
 
     def extract_path(self, path: str | Path, name: str | None = None) -> CoarseFeatures:
-        """``extract(load_image(path), name)``, reading the file only on a cache miss."""
+        """``extract(read_image(path), name)``, reading the file only on a cache miss."""
         key = name or str(path)
         if key in self.cache:
             return self.cache[key]
-        return self.extract(load_image(path), key)
+        return self.extract(read_image(path), key)
 
     def release(self, name: str) -> None:
         """Drop image ``name`` from the in-memory cache."""

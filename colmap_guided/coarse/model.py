@@ -1,4 +1,4 @@
-"""The coarse matching network (paper §3.1, built on NCNet): features → 4D correlation → symmetric
+"""The coarse matching network (paper §4.1, built on NCNet): features → 4D correlation → symmetric
 4D neighbourhood-consensus filter → s^{A→B}, s^{B→A} → coarse matches.
 
 Volumes are laid out (B, hA, wA, hB, wB): ``volume[n, i, j, k, l]`` relates cell (row i, col j) of A
@@ -38,7 +38,7 @@ from colmap_guided.coarse.conv4d import SparseNeighbourhood, conv4d, sparse_conv
 
 
 def correlation(feat_a: torch.Tensor, feat_b: torch.Tensor) -> torch.Tensor:
-    """c_ijkl = <fA_ij, fB_kl> (paper §3.1) of (B, C, hA, wA) and (B, C, hB, wB) → (B, hA, wA, hB, wB)."""
+    """c_ijkl = <fA_ij, fB_kl> (paper §4.1) of (B, C, hA, wA) and (B, C, hB, wB) → (B, hA, wA, hB, wB)."""
     return torch.einsum("ncij,nckl->nijkl", feat_a, feat_b)
 
 
@@ -106,7 +106,7 @@ class NeighConsensus(nn.Module):
 
 @dataclass
 class GridMatches:
-    """Coarse matches on the feature grids of one pair (argmax of s^{A→B} / s^{B→A}, paper §3.1)."""
+    """Coarse matches on the feature grids of one pair (argmax of s^{A→B} / s^{B→A}, paper §4.1)."""
 
     ab: np.ndarray  # (hA * wA,) int64: index of the matched B cell of each A cell
     score_ab: np.ndarray  # (hA * wA,) float32: s^{A→B} at the match (softmax probability)
@@ -177,7 +177,7 @@ def sparse_support(c2: torch.Tensor, shape: tuple[int, int, int, int], k: int, r
 
 
 class CoarseNet(nn.Module):
-    """Backbone + correlation + neighbourhood-consensus filter (paper §3.1, §4.3).
+    """Backbone + correlation + neighbourhood-consensus filter (paper §4.1, §4.3).
 
     Training API (dense, differentiable w.r.t. the filter, and the backbone if unfrozen):
         feats = net.extract_features(net.normalize(images))   # (B, C, h, w), L2-normalised; cacheable

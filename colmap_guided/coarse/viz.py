@@ -44,7 +44,10 @@ def draw_coarse_matches(image_a: np.ndarray, image_b: np.ndarray, result: Coarse
 
 
 def main(argv: list[str] | None = None) -> int:
-    from colmap_guided.coarse.matcher import CoarseMatcher, load_image
+    import torch
+
+    from colmap_guided.coarse.matcher import CoarseMatcher
+    from colmap_guided.images import read_image
 
     parser = argparse.ArgumentParser(prog="python -m colmap_guided.coarse", description="Coarse matches of two images, drawn to a PNG.")
     parser.add_argument("image_a", type=Path)
@@ -68,7 +71,9 @@ def main(argv: list[str] | None = None) -> int:
             cm = CoarseMatcher({**conf, "mode": "raw"})
     else:
         cm = CoarseMatcher({**conf, "mode": args.mode})
-    img_a, img_b = load_image(args.image_a), load_image(args.image_b)
+    img_a, img_b = read_image(args.image_a), read_image(args.image_b)
+    if cm.torch_threads is not None:  # a command line owns its process: the pipeline's CPU threads
+        torch.set_num_threads(cm.torch_threads)
     t0 = time.perf_counter()
     fa, fb = cm.extract(img_a), cm.extract(img_b)
     t1 = time.perf_counter()

@@ -176,11 +176,6 @@ def essential_from_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return tx @ np.asarray(R, float)
 
 
-def epipolar_error_normalized(k1: np.ndarray, k2: np.ndarray, E: np.ndarray) -> np.ndarray:
-    """Symmetric epipolar distance (RMS of both point-to-line distances) in normalised coordinates."""
-    return symmetric_epipolar_distance(k1, k2, E)
-
-
 # ------------------------------------------------------------------------------------------- WxBS
 def _homogeneous(x: np.ndarray) -> np.ndarray:
     x = np.asarray(x, np.float64).reshape(-1, 2)

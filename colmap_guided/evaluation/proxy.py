@@ -3,8 +3,10 @@
 No historical multi-view collection (LTLL) is available offline, so each source set of ../shared/data
 becomes a proxy scene:
 - a deterministic half of its images (seeded permutation) is degraded with ``colmap_guided.archival``
-  (the named looks of ``archival.PRESETS`` in turn — B&W print, sepia print, faded colour, damaged scan,
-  old postcard — plus a random crop keeping >= 90 % of each side): era ``historical``;
+  (named presets in turn, plus a random crop keeping >= 90 % of each side): era ``historical``. Two
+  looks, each a scene of its own: ``damaged`` (OUT/<scene>: B&W print, sepia print, faded colour,
+  damaged scan, old postcard) and ``realistic`` (OUT/<scene>_realistic: prints kept well, with moderate
+  fading, soft focus, fine grain and dust);
 - the other half is kept as is: era ``modern``;
 - a few images of OTHER, unrelated scenes are added (half of them degraded too): era ``distractor``;
   they must never register.
@@ -28,6 +30,7 @@ import numpy as np
 
 from colmap_guided import archival
 from colmap_guided.features import list_images
+from colmap_guided.images import read_image
 from colmap_guided.log import logger
 from colmap_guided.paths import shared_data_dir, shared_dir
 
@@ -46,17 +49,13 @@ SAME_LANDMARK = (
     {"train/vggsfm_british_museum", "phototourism_superglue"},
 )
 HISTORICAL_PRESETS = ("bw_print", "sepia_print", "faded_colour", "damaged_scan", "old_postcard")
+REALISTIC_PRESETS = ("realistic_bw", "realistic_sepia", "realistic_colour")
+# Each look is a proxy scene of its own: <scene> (damaged prints) and <scene>_realistic.
+LOOKS = {"damaged": ("", HISTORICAL_PRESETS), "realistic": ("_realistic", REALISTIC_PRESETS)}
 
 
 def _seed(*parts) -> int:
     return zlib.crc32("/".join(str(p) for p in parts).encode())
-
-
-def _read_rgb(path: Path) -> np.ndarray:
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise ValueError(f"cannot read {path}")
-    return np.ascontiguousarray(bgr[..., ::-1])
 
 
 def _resize(rgb: np.ndarray, max_size: int | None) -> tuple[np.ndarray, float]:
@@ -100,8 +99,11 @@ def distractor_sources(key: str, pool=DISTRACTOR_POOL, n: int = 3, seed: int = 0
     return [allowed[i] for i in order[:n]]
 
 
-def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int = 0, n_distractors: int = 3, max_size: int | None = 1024, crop: float = 0.1, max_images: int | None = None, pool=DISTRACTOR_POOL) -> Path:
-    """One proxy scene from the set ``key`` of ../shared/data; returns OUT/<scene>."""
+def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int = 0, n_distractors: int = 3, max_size: int | None = 1024, crop: float = 0.1, max_images: int | None = None, pool=DISTRACTOR_POOL, look: str = "damaged") -> Path:
+    """One proxy scene from the set ``key`` of ../shared/data in one of ``LOOKS``; returns OUT/<scene>."""
+    if look not in LOOKS:
+        raise ValueError(f"unknown proxy look {look!r}; known: {sorted(LOOKS)}")
+    suffix, presets = LOOKS[look]
     data_dir = Path(data_dir) if data_dir else shared_data_dir()
     out_dir = _check_out(out_dir)
     src = data_dir / key / "images"
@@ -109,18 +111,18 @@ def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int
     if max_images:
         names = names[:max_images]
     hist = historical_half(names, key, seed)
-    scene = key.split("/")[-1]
+    scene = key.split("/")[-1] + suffix
     scene_dir = out_dir / scene
     if (scene_dir / "images").exists():
         shutil.rmtree(scene_dir / "images")
     entries = []
     k = 0
     for name in names:
-        rgb, scale = _resize(_read_rgb(src / name), max_size)
+        rgb, scale = _resize(read_image(src / name), max_size)
         out_name = str(Path(name).with_suffix(".jpg").as_posix())
         entry = {"name": out_name, "source": f"{key}/images/{name}", "ref_name": name, "scale": scale}
         if name in hist:
-            preset = HISTORICAL_PRESETS[k % len(HISTORICAL_PRESETS)]
+            preset = presets[k % len(presets)]
             k += 1
             rgb, offset = _degrade(rgb, preset, _seed(key, name, seed), crop)
             entry.update(era="historical", preset=preset, crop_offset=list(offset))
@@ -131,11 +133,11 @@ def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int
     for i, dkey in enumerate(distractor_sources(key, pool, n_distractors, seed)):
         dnames = list_images(data_dir / dkey / "images")
         dname = dnames[int(np.random.default_rng(_seed("pick", key, dkey, seed)).integers(len(dnames)))]
-        rgb, scale = _resize(_read_rgb(data_dir / dkey / "images" / dname), max_size)
+        rgb, scale = _resize(read_image(data_dir / dkey / "images" / dname), max_size)
         out_name = f"distractor_{dkey.split('/')[-1]}_{Path(dname).stem}.jpg"
         entry = {"name": out_name, "era": "distractor", "source": f"{dkey}/images/{dname}", "scale": scale}
         if i % 2 == 0:  # half of the distractors look archival too
-            preset = HISTORICAL_PRESETS[(k + i) % len(HISTORICAL_PRESETS)]
+            preset = presets[(k + i) % len(presets)]
             rgb, offset = _degrade(rgb, preset, _seed(key, dkey, dname, seed), crop)
             entry.update(preset=preset, crop_offset=list(offset))
         _write_jpg(scene_dir / "images" / out_name, rgb)
@@ -144,7 +146,7 @@ def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int
     one = {
         "scene": scene, "subset": "all", "source": key,
         "reference": {"type": "colmap", "path": str(ref), "kind": "reference" if ref and ref.name == "colmap_ground_truth" else "pseudo_gt"} if ref else None,
-        "build": {"seed": seed, "max_size": max_size, "crop": crop, "n_distractors": n_distractors},
+        "build": {"seed": seed, "max_size": max_size, "crop": crop, "n_distractors": n_distractors, "look": look},
         "images": entries,
     }
     (scene_dir / "manifest.json").write_text(json.dumps(one, indent=1) + "\n", encoding="utf-8")
@@ -153,15 +155,16 @@ def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int
     return scene_dir
 
 
-def build_proxy(out_dir: Path, sources=DEFAULT_SOURCES, **kwargs) -> Path:
-    """All proxy scenes + OUT/proxy_manifest.json (multi-scene schema); returns the manifest path."""
+def build_proxy(out_dir: Path, sources=DEFAULT_SOURCES, looks=tuple(LOOKS), **kwargs) -> Path:
+    """All proxy scenes, one per source and look, + OUT/proxy_manifest.json (multi-scene schema);
+    returns the manifest path."""
     out_dir = _check_out(out_dir)
     scenes = []
-    for key in sources:
-        scene_dir = build_scene(key, out_dir, **kwargs)
+    for key, look in ((key, look) for look in looks for key in sources):
+        scene_dir = build_scene(key, out_dir, look=look, **kwargs)
         one = json.loads((scene_dir / "manifest.json").read_text())
         scenes.append({
-            "name": one["scene"], "path": one["scene"], "image_dir": "images", "source": key,
+            "name": one["scene"], "path": one["scene"], "image_dir": "images", "source": key, "look": one["build"]["look"],
             "reference": {"type": "colmap", "path": one["reference"]["path"]} if one.get("reference") else None,
             "images": [{k: v for k, v in im.items() if k in ("name", "era", "ref_name")} for im in one["images"]],
         })

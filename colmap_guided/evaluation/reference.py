@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
-from PIL import Image
 
+from colmap_guided.images import image_size
 from colmap_guided.paths import shared_data_dir
 
 # Scenes with real reference cameras; they are held out of training for the reported model.
@@ -65,11 +65,6 @@ class RefScene:
         va, vb = self.views[a], self.views[b]
         R = vb.R @ va.R.T
         return R, vb.t - R @ va.t
-
-
-def image_size(path: Path) -> tuple[int, int]:
-    with Image.open(path) as im:
-        return im.size  # (width, height)
 
 
 def _observations(rec: pycolmap.Reconstruction) -> dict[str, set]:

@@ -206,10 +206,8 @@ def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict |
         from colmap_guided.mapping import load_models
         from colmap_guided.reconstruct import reconstruct
 
-        spec = matcher_specs.available_specs([method], extra_conf)
-        if not spec:
-            raise ValueError(f"matcher {method!r} is not available")
-        result = reconstruct(scene_dir, output=workspace, matcher=spec[0].name, matcher_conf=spec[0].conf, overwrite=True)
+        (spec,) = matcher_specs.parse_specs([method], extra_conf)
+        result = reconstruct(scene_dir, output=workspace, matcher=spec.name, matcher_conf=spec.conf, overwrite=True)
         models = load_models(Path(result["sparse_path"]))
         largest = largest_model(models)
         info = {"timings": result["timings"], "num_models": result["model"]["num_models"], "matcher": result["matcher"]}
@@ -252,10 +250,6 @@ def era_counts(images: list[dict]) -> dict:
     for im in images:
         out[im["era"]] = out.get(im["era"], 0) + 1
     return out
-
-
-def read_scene_manifest(scene_dir: Path) -> dict:
-    return json.loads((Path(scene_dir) / "manifest.json").read_text(encoding="utf-8"))
 
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from colmap_guided import database as dbio
 from colmap_guided import features
 from colmap_guided.log import logger
-from colmap_guided.matchers.base import ImageData
+from colmap_guided.matchers.base import ImageData, scoped_torch_threads
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
 
 from . import matcher_specs, metrics
@@ -83,24 +83,15 @@ def sift_features(image_dir: Path, names: list[str], cache_dir: Path, max_num_fe
 
 
 def _as_specs(specs, extra_conf: dict | None = None) -> list:
-    """Spec strings (filtered by the registry) or MatcherSpec objects, as a list."""
+    """Spec strings (checked against the registry) or MatcherSpec objects, as a list."""
     specs = list(specs or [])
     texts = [s for s in specs if isinstance(s, str)]
-    return [s for s in specs if not isinstance(s, str)] + matcher_specs.available_specs(texts, extra_conf) if texts else specs
+    return [s for s in specs if not isinstance(s, str)] + matcher_specs.parse_specs(texts, extra_conf) if texts else specs
 
 
 def _fresh(image: ImageData) -> ImageData:
     """The same image with an empty per-matcher cache (matchers never share their caches)."""
     return dataclasses.replace(image, extra={})
-
-
-class MatcherUnavailable(RuntimeError):
-    """A registered matcher that cannot run here (not implemented yet, missing weights...)."""
-
-
-def _run_matcher(spec, pairs: list[tuple[str, str]], images: dict[str, ImageData]) -> tuple[list[np.ndarray], list[float]]:
-    """Matches of each pair with one matcher variant; per-pair wall time (cache reused across pairs)."""
-    return _run_specs([spec], pairs, images)[spec.label]
 
 
 # Options of eq. 1 that a matcher with ``coarse_flows``/``match_flows`` (the guided matcher) applies after
@@ -114,10 +105,10 @@ def _group_key(spec) -> str:
     return spec.name + json.dumps({k: v for k, v in sorted(spec.conf.items()) if k not in FLOW_OVERRIDES}, default=str)
 
 
-def _run_specs(specs, pairs: list[tuple[str, str]], images: dict[str, ImageData]) -> dict[str, tuple[list[np.ndarray], list[float]]]:
+def run_specs(specs, pairs: list[tuple[str, str]], images: dict[str, ImageData]) -> dict[str, tuple[list[np.ndarray], list[float]]]:
     """Matches and per-pair times of several variants. A variant's time is what it would cost alone
-    (coarse match + eq. 1 for grouped guided variants). Raises MatcherUnavailable for the first variant
-    that cannot run; use ``run_specs_tolerant`` to skip such variants instead."""
+    (coarse match + eq. 1 for grouped guided variants). A variant that cannot run raises: a benchmark
+    table never loses a row silently."""
     groups: dict[str, list] = {}
     for spec in specs:
         groups.setdefault(_group_key(spec), []).append(spec)
@@ -125,22 +116,19 @@ def _run_specs(specs, pairs: list[tuple[str, str]], images: dict[str, ImageData]
     for group in groups.values():
         first = group[0]
         base = dataclasses.replace(first, conf={k: v for k, v in first.conf.items() if k not in FLOW_OVERRIDES})
-        try:
-            matcher = matcher_specs.build(base if len(group) > 1 else first)
-        except (NotImplementedError, FileNotFoundError, ImportError) as err:
-            raise MatcherUnavailable(f"{first.label}: {err!r}") from err
+        matcher = matcher_specs.build(base if len(group) > 1 else first)
         shared = len(group) > 1 and hasattr(matcher, "coarse_flows") and hasattr(matcher, "match_flows")
         if len(group) > 1 and not shared:
             for spec in group:
-                out.update(_run_specs([spec], pairs, images))
+                out.update(run_specs([spec], pairs, images))
             continue
         local: dict[str, ImageData] = {}
         res = {spec.label: ([], []) for spec in group}
-        for a, b in pairs:
-            for n in (a, b):
-                if n not in local:
-                    local[n] = _fresh(images[n])
-            try:
+        with scoped_torch_threads(matcher.torch_threads):  # as match_database
+            for a, b in pairs:
+                for n in (a, b):
+                    if n not in local:
+                        local[n] = _fresh(images[n])
                 if shared:
                     start = time.time()
                     flows = matcher.coarse_flows(local[a], local[b])
@@ -155,25 +143,9 @@ def _run_specs(specs, pairs: list[tuple[str, str]], images: dict[str, ImageData]
                     m = matcher.match(local[a], local[b])
                     res[first.label][0].append(np.asarray(m, np.int64).reshape(-1, 2))
                     res[first.label][1].append(time.time() - start)
-            except NotImplementedError as err:
-                raise MatcherUnavailable(f"{first.label}: match() is not implemented") from err
         for n in local:
             matcher.release(n)
         out.update(res)
-    return out
-
-
-def run_specs_tolerant(specs, pairs, images) -> dict[str, tuple[list[np.ndarray], list[float]]]:
-    """``_run_specs`` per group of variants, skipping (with a warning) those that cannot run."""
-    groups: dict[str, list] = {}
-    for spec in specs:
-        groups.setdefault(_group_key(spec), []).append(spec)
-    out = {}
-    for group in groups.values():
-        try:
-            out.update(_run_specs(group, pairs, images))
-        except MatcherUnavailable as err:
-            logger.warning("Skipped %s", err)
     return out
 
 
@@ -240,11 +212,9 @@ def run_pose_benchmark(
         feats = sift_features(ref.image_dir, names, Path(cache_dir) / f"sift{max_num_features}" / key.replace("/", "__"), max_num_features)
         images[key] = feats
         all_pairs += [p for p in pairs if p["a"] in feats and p["b"] in feats]
-    per_key = {key: run_specs_tolerant(specs, [(p["a"], p["b"]) for p in all_pairs if p["scene"] == key], images[key]) for key in scenes}
+    per_key = {key: run_specs(specs, [(p["a"], p["b"]) for p in all_pairs if p["scene"] == key], images[key]) for key in scenes}
     results = {}
     for spec in specs:
-        if not all(spec.label in per_key[key] for key in scenes):
-            continue
         records = []
         for key in scenes:
             pairs = [p for p in all_pairs if p["scene"] == key]
@@ -314,11 +284,9 @@ def run_wxbs_benchmark(
     names = sorted({p["a"] for p in pairs} | {p["b"] for p in pairs})
     images = sift_features(root, names, Path(cache_dir) / f"sift{max_num_features}" / "wxbs", max_num_features)
     pairs = [p for p in pairs if p["a"] in images and p["b"] in images]
-    matched = run_specs_tolerant(specs, [(p["a"], p["b"]) for p in pairs], images)
+    matched = run_specs(specs, [(p["a"], p["b"]) for p in pairs], images)
     results = {}
     for spec in specs:
-        if spec.label not in matched:
-            continue
         matches, times = matched[spec.label]
         records = []
         for p, m, t in zip(pairs, matches, times):

@@ -6,6 +6,7 @@ pixel (col, row) is (col + 0.5, row + 0.5). Keypoints are in the original image'
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,6 +35,7 @@ class Matcher:
     default_conf: dict = {}
     verification_conf: dict = {}  # options of verify.two_view_options for this matcher's pairs (e.g. min_num_inliers)
     pair_workers: int = 1  # pairs that match_database may match at once in threads (``match`` must be thread-safe)
+    torch_threads: int | None = None  # torch CPU threads while match_database runs (set, then restored); None: as is
 
     def __init__(self, conf: dict | None = None):
         unknown = set(conf or {}) - set(self.default_conf)
@@ -50,3 +52,22 @@ class Matcher:
     def describe(self) -> dict:
         """What the report records about this matcher."""
         return {"name": self.name, "conf": self.conf}
+
+
+@contextlib.contextmanager
+def scoped_torch_threads(threads: int | None):
+    """torch's (process-wide) CPU thread count set to ``threads`` inside the block, restored after it.
+    A library call must not leave global state changed; None leaves it as it is."""
+    if threads is None:
+        yield
+        return
+    import torch
+
+    saved = torch.get_num_threads()
+    if saved != threads:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != saved:
+            torch.set_num_threads(saved)

@@ -19,13 +19,6 @@ from colmap_guided.matchers.base import ImageData, Matcher
 from colmap_guided.matchers.raw import RawMatcher
 
 
-def default_camera(image: ImageData) -> pycolmap.Camera:
-    """COLMAP's camera for a photo without EXIF focal: SIMPLE_RADIAL, f = 1.2 * max(w, h)."""
-    return pycolmap.Camera.create_from_model_id(
-        0, pycolmap.CameraModelId.SIMPLE_RADIAL, 1.2 * max(image.width, image.height), image.width, image.height
-    )
-
-
 def _colmap_features(image: ImageData) -> tuple[pycolmap.FeatureKeypoints, pycolmap.FeatureDescriptors]:
     """The image's keypoints and SIFT descriptors as COLMAP's types, converted once per image."""
     if "colmap_features" not in image.extra:
@@ -67,7 +60,7 @@ class ColmapGuidedMatcher(Matcher):
             if image.descriptors.dtype != np.uint8:
                 raise ValueError(f"{image.name}: COLMAP's guided matching needs SIFT (uint8) descriptors; use --matcher guided_epipolar for other features.")
         raw = self.raw.match(a, b)
-        cam_a, cam_b = a.camera or default_camera(a), b.camera or default_camera(b)
+        cam_a, cam_b = (im.camera or verify.default_camera(im.width, im.height) for im in (a, b))
         with colmap_quiet():
             geometry = verify.verify_pair(cam_a, a.keypoints, cam_b, b.keypoints, raw, self.two_view_options)
             if len(geometry.inlier_matches) == 0:

@@ -261,10 +261,11 @@ class GuidedMatcher(Matcher):
                 self.coarse = CoarseMatcher({**coarse_conf, "mode": "raw"})
         else:
             self.coarse = CoarseMatcher({**coarse_conf, "mode": mode})
+        self.torch_threads = self.coarse.torch_threads
         workers = self.conf["workers"]
         if workers == "auto":  # a pair is hundreds of small ops on one torch thread: pairs in parallel use the cores
             cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-            workers = min(8, cores) if self.device.type == "cpu" and torch.get_num_threads() == 1 else 1
+            workers = min(8, cores) if self.device.type == "cpu" and (self.torch_threads or torch.get_num_threads()) == 1 else 1
         if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
             raise ValueError(f"workers must be 'auto' or a positive integer, got {workers!r}")
         self.pair_workers = workers

@@ -28,7 +28,6 @@ with a seed derived from the image name) are cached in an HDF5 file, and every d
 
 from __future__ import annotations
 
-import json
 import zlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -43,6 +42,7 @@ from tqdm import tqdm
 from colmap_guided import archival
 from colmap_guided.coarse.backbone import BACKBONES, build_backbone
 from colmap_guided.coarse.geometry import ImageGeometry, resize_geometry, resize_image, stack_padded
+from colmap_guided.images import read_image
 from colmap_guided.log import logger
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
 
@@ -71,16 +71,6 @@ def all_scenes() -> list[str]:
     """Every scene with a model: the 20 training scenes and lund_door's reference model."""
     train = sorted(p.parent.name for p in (shared_data_dir() / "train").glob("*/colmap"))
     return train + (["lund_door_gtsfm"] if scene_model_dir("lund_door_gtsfm").exists() else [])
-
-
-def scene_licence(scene: str) -> str:
-    """Licence line of a scene from its _source.json (for model cards)."""
-    path = scene_model_dir(scene).parent / "_source.json"
-    try:
-        meta = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return "unknown (no _source.json)"
-    return str(meta.get("licence") or meta.get("license") or "unknown")
 
 
 # ----------------------------------------------------------------------------------------- geometry
@@ -247,13 +237,6 @@ def random_epipole(width: int, height: int, rng: np.random.Generator) -> np.ndar
         return np.array([np.cos(angle), np.sin(angle), 0.0])
     r = rng.uniform(0.0, 2.0) * max(width, height)
     return np.array([width / 2 + r * np.cos(angle), height / 2 + r * np.sin(angle), 1.0])
-
-
-def read_rgb(path: Path) -> np.ndarray:
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise FileNotFoundError(f"Cannot read image {path}")
-    return np.ascontiguousarray(bgr[..., ::-1])
 
 
 def variant_seed(*keys) -> int:
@@ -450,7 +433,7 @@ class CoarseTrainData:
         """The resized uint8 RGB network input of a view (deterministic: seeds come from the key)."""
         view = self.views[key]
         im = self.scenes[view.scene].images[view.name]
-        rgb = read_rgb(im.path)
+        rgb = read_image(im.path)
         if (rgb.shape[1], rgb.shape[0]) != (im.width, im.height):
             raise ValueError(f"{im.path} is {rgb.shape[1]}x{rgb.shape[0]}, its model says {im.width}x{im.height}")
         kind, k = key.split("/")[0], int(key.rsplit("/", 1)[1][1:])

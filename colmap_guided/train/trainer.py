@@ -67,7 +67,7 @@ def pck_errors(s_ab: torch.Tensor, s_ba: torch.Tensor, sample: PairSample) -> np
     ba = s_ba.reshape(na, nb).argmax(0).cpu().numpy()
     if len(sample.pts_a) == 0:
         return np.zeros(0)
-    # m^{A→B}: bilinear interpolation of the matches of the four nearest cells (coarse.flow, §3.1)
+    # m^{A→B}: bilinear interpolation of the matches of the four nearest cells (coarse.flow, §4.1)
     flow_ab, _ = interpolate_grid(ga, gb.cell_centers()[ab], sample.pts_a)
     flow_ba, _ = interpolate_grid(gb, ga.cell_centers()[ba], sample.pts_b)
     e_ab = np.linalg.norm(flow_ab - sample.pts_b, axis=1)

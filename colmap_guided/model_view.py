@@ -1,0 +1,319 @@
+"""The model in report.html: an interactive 3D view of the points and cameras, and a map of the photos.
+
+    frame = ground_frame(rec)                        # up = the photos' mean up direction, origin, scale
+    html = view_html(rec, eras, image_path)          # <canvas> + its data + a small viewer script
+    uri = photo_map(rec, eras)                       # PNG data URI: camera positions and directions from above
+
+The viewer is our own (a canvas 2D point splatter with a depth buffer, ~100 lines of JavaScript), not
+plotly's offline HTML: plotly would add ~3.5 MB of script to every page and WebGL, which headless or
+old browsers may lack; a 2D canvas works everywhere, offline, and a page with 30,000 points stays under
+a megabyte. Points are stored as uint16 coordinates (6 bytes) and RGB (3 bytes), base64 in a JSON block.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+MAX_POINTS = 30000  # points drawn in the 3D view; a larger model is shown by an even random sample
+MAX_THUMBS = 300  # cameras that show their photo on hover (160 px JPEGs, ~6 KB each)
+FRUSTUM = 0.07  # frustum depth in units of the model's radius
+ERA_COLORS = {"historical": "#f0a030", "modern": "#3a8ee6"}  # amber / blue: visible on dark and light
+OTHER_COLORS = ("#3a8ee6", "#e05a8a", "#4fb86b", "#a070e0")  # for a model without eras, or other era names
+
+
+def era_colors(eras: dict[str, str], names: list[str]) -> dict[str, str]:
+    """Colour of each era present among ``names`` ("photo" when there is no manifest)."""
+    present = sorted({eras.get(name, "photo") for name in names})
+    others = iter(OTHER_COLORS)
+    return {era: ERA_COLORS.get(era) or next(others, "#888888") for era in present}
+
+
+def ground_frame(rec: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray, float]:
+    """(origin, axes (3, 3) rows x, y, up, radius): a frame with z up in which the model is shown.
+
+    Up is the mean up direction of the photos (photos are taken upright; COLMAP's model_orientation_aligner
+    does the same, "IMAGE-ORIENTATION"); when they disagree (scans rotated by 90 degrees) it is the normal
+    of the camera centres' best plane. x is the points' main horizontal direction (PCA); the origin is the
+    median point, the radius the 95th (points) or 90th (cameras) percentile of their distances to it,
+    whichever is larger.
+    """
+    images = [rec.images[i] for i in rec.reg_image_ids()]
+    centres = np.array([im.projection_center() for im in images]).reshape(-1, 3)
+    xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+    ups = -np.array([im.cam_from_world().rotation.matrix()[1] for im in images]).reshape(-1, 3)  # image y points down
+    up = ups.mean(axis=0) if len(ups) else np.array([0.0, 0.0, 1.0])
+    if np.linalg.norm(up) < 0.5 and len(centres) >= 3:
+        normal = np.linalg.svd(centres - centres.mean(axis=0))[2][2]
+        up = normal if normal @ up >= 0 else -normal
+    up = up / max(np.linalg.norm(up), 1e-12)
+    origin = np.median(xyz, axis=0) if len(xyz) else (centres.mean(axis=0) if len(centres) else np.zeros(3))
+    flat = (xyz if len(xyz) >= 2 else centres) - origin
+    flat = flat - np.outer(flat @ up, up)
+    x = np.linalg.svd(flat, full_matrices=False)[2][0] if len(flat) >= 2 else np.array([1.0, 0.0, 0.0])
+    x = x - (x @ up) * up
+    if np.linalg.norm(x) < 1e-9:  # degenerate: any horizontal direction
+        x = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    axes = np.stack([x, np.cross(up, x), up])
+    # The photos (a few, far out) count as much as the points: the first view shows them all.
+    dist = [np.percentile(np.linalg.norm(p - origin, axis=1), q) for p, q in ((xyz, 95), (centres, 90)) if len(p)]
+    radius = float(max(max(dist, default=1.0), 1e-9))
+    return origin, axes, radius
+
+
+def _cameras(rec: pycolmap.Reconstruction, origin, axes, radius) -> list[dict]:
+    """Per registered image: name, centre and the 4 far corners of its frustum, in the display frame."""
+    out = []
+    for image_id in sorted(rec.reg_image_ids(), key=lambda i: rec.images[i].name):
+        image = rec.images[image_id]
+        camera = rec.cameras[image.camera_id]
+        pose = image.cam_from_world()
+        rot, t = pose.rotation.matrix(), np.asarray(pose.translation)
+        corners = np.array([[0, 0], [camera.width, 0], [camera.width, camera.height], [0, camera.height]], np.float64)
+        rays = np.c_[np.asarray(camera.cam_from_img(corners)), np.ones(4)]
+        rays *= FRUSTUM * radius / np.linalg.norm(rays, axis=1).max()
+        world = (rays - t) @ rot  # R^T (p - t)
+        out.append({"name": image.name, "c": _to_view(image.projection_center(), origin, axes, radius), "f": _to_view(world, origin, axes, radius)})
+    return out
+
+
+def _to_view(points, origin, axes, radius) -> list:
+    return np.round((np.asarray(points) - origin) @ axes.T / radius, 4).tolist()
+
+
+def view_data(rec: pycolmap.Reconstruction, eras: dict[str, str] | None = None, image_path: Path | None = None, max_points: int = MAX_POINTS) -> dict:
+    """What the viewer draws (and what a test reads back): points, cameras, eras and the display frame."""
+    from .html_report import _encode_jpeg
+    from .images import read_thumbnail
+
+    eras = eras or {}
+    origin, axes, radius = ground_frame(rec)
+    ids = np.array(sorted(rec.points3D), np.int64)
+    if len(ids) > max_points:  # an even random sample, the same for the same model
+        ids = np.sort(np.random.default_rng(0).choice(ids, max_points, replace=False))
+    xyz = np.array([rec.points3D[i].xyz for i in ids]).reshape(-1, 3)
+    rgb = np.array([rec.points3D[i].color for i in ids], np.uint8).reshape(-1, 3)
+    view = (xyz - origin) @ axes.T / radius
+    lo = view.min(axis=0) if len(view) else np.zeros(3)
+    step = np.maximum((view.max(axis=0) - lo) / 65535, 1e-9) if len(view) else np.ones(3)
+    quant = np.round((view - lo) / step).astype("<u2")
+    cameras = _cameras(rec, origin, axes, radius)
+    for i, cam in enumerate(cameras):
+        cam["era"] = eras.get(cam["name"], "photo")
+        cam["thumb"] = None
+        if image_path is not None and i < MAX_THUMBS:
+            try:
+                cam["thumb"] = _encode_jpeg(read_thumbnail(Path(image_path) / cam["name"], 160)[0], 75)
+            except Exception:  # noqa: BLE001 - a photo moved away since the run: the camera stays, without preview
+                pass
+    centre = np.mean([c["c"][:2] for c in cameras], axis=0) if cameras else np.zeros(2)
+    return {
+        "num_points_total": rec.num_points3D(),
+        "num_points_shown": len(ids),
+        "points": base64.b64encode(quant.tobytes()).decode("ascii"),
+        "colors": base64.b64encode(rgb.tobytes()).decode("ascii"),
+        "quant": {"lo": lo.tolist(), "step": step.tolist()},
+        "frame": {"origin": origin.tolist(), "axes": axes.tolist(), "radius": radius},
+        "cameras": cameras,
+        "colors_by_era": era_colors(eras, [c["name"] for c in cameras]),
+        # First view: from where most photos were taken, a little above.
+        "yaw": float(np.arctan2(centre[0], centre[1]) + np.pi) if np.linalg.norm(centre) > 1e-6 else -0.6,
+        # The eye's distance to the centre: beyond the farthest camera, so that every camera is in front of it.
+        "dist": float(max(3.0, 1.5 * max((np.linalg.norm(c["c"]) for c in cameras), default=0.0))),
+    }
+
+
+def decode_points(data: dict) -> np.ndarray:
+    """World coordinates of the points a page shows (the inverse of view_data's encoding)."""
+    quant = np.frombuffer(base64.b64decode(data["points"]), "<u2").reshape(-1, 3).astype(np.float64)
+    view = quant * np.array(data["quant"]["step"]) + np.array(data["quant"]["lo"])
+    frame = data["frame"]
+    return view * frame["radius"] @ np.array(frame["axes"]) + np.array(frame["origin"])
+
+
+VIEW_CSS = """
+#model-box { position: relative; } #model-view { width: 100%; height: 560px; display: block; background: #1d1f24; border-radius: 4px; cursor: grab; }
+#model-tip { position: absolute; display: none; background: #fff; border: 1px solid #999; padding: 4px; font-size: 0.8em; pointer-events: none; max-width: 170px; word-break: break-all; }
+#model-tip img { display: block; max-width: 160px; max-height: 160px; }
+.legend i { display: inline-block; width: 0.9em; height: 0.9em; border-radius: 2px; margin: 0 0.3em 0 1em; vertical-align: -0.1em; }
+.model-buttons { float: right; white-space: nowrap; } .model-buttons button { font: inherit; font-size: 0.85em; margin-left: 0.4em; }
+"""
+
+# Orbit (drag), zoom (wheel), pan (shift-drag), hover/click a camera for its photo (or open page.html#photo=NAME). Points go through a depth
+# buffer into an ImageData (no sort, fast for 100k); frusta and labels are drawn on top.
+VIEW_JS = """
+(function () {
+  const D = JSON.parse(document.getElementById('model-data').textContent);
+  const bytes = s => Uint8Array.from(atob(s), c => c.charCodeAt(0));
+  const Q = new Uint16Array(bytes(D.points).buffer), RGB = bytes(D.colors), n = Q.length / 3;
+  const P = new Float32Array(3 * n);
+  for (let i = 0; i < 3 * n; i++) P[i] = D.quant.lo[i % 3] + Q[i] * D.quant.step[i % 3];
+  const cv = document.getElementById('model-view'), ctx = cv.getContext('2d'), tip = document.getElementById('model-tip');
+  let v = {yaw: D.yaw, pitch: 0.45, zoom: 1, px: 0, py: 0}, home = null, hover = -1, pinned = -1, drag = null, W = 0, H = 0, r = 1;
+  function setup() { r = window.devicePixelRatio || 1; W = cv.clientWidth * r; H = cv.clientHeight * r; cv.width = W; cv.height = H; }
+  function project(p) {  // display frame (z up) -> [screen x, screen y, depth], device pixels
+    const cy = Math.cos(v.yaw), sy = Math.sin(v.yaw), cp = Math.cos(v.pitch), sp = Math.sin(v.pitch);
+    const x = cy * p[0] - sy * p[1], y = sy * p[0] + cy * p[1], z = p[2];
+    const d = cp * y - sp * z + D.dist, F = 0.8 * Math.min(W, H) * v.zoom;
+    return [W / 2 + v.px * r + F * x / d, H / 2 + v.py * r - F * (sp * y + cp * z) / d, d];
+  }
+  function fit() {  // zoom and pan so that all cameras and 96 % of the points fill the canvas
+    const xs = [], ys = [], cx = [], cy = [];
+    for (let i = 0; i < n; i += Math.ceil(n / 3000)) { const q = project([P[3 * i], P[3 * i + 1], P[3 * i + 2]]); if (q[2] > 0.05) { xs.push(q[0]); ys.push(q[1]); } }
+    D.cameras.forEach(c => { const q = project(c.c); if (q[2] > 0.05) { cx.push(q[0]); cy.push(q[1]); } });
+    xs.sort((a, b) => a - b); ys.sort((a, b) => a - b);
+    const k = Math.floor(0.02 * xs.length), m = xs.length - 1 - k;
+    const x0 = Math.min(...cx, xs.length ? xs[k] : Infinity), x1 = Math.max(...cx, xs.length ? xs[m] : -Infinity);
+    const y0 = Math.min(...cy, ys.length ? ys[k] : Infinity), y1 = Math.max(...cy, ys.length ? ys[m] : -Infinity);
+    if (!(x1 > x0 && y1 > y0)) return;
+    const f = Math.min(0.85 * W / (x1 - x0), 0.8 * H / (y1 - y0));  // screen offsets scale with zoom: exact in one step
+    v.zoom *= f; v.px = (v.px * r - ((x0 + x1) / 2 - W / 2)) * f / r; v.py = (v.py * r - ((y0 + y1) / 2 - H / 2)) * f / r;
+  }
+  function draw() {
+    const img = ctx.createImageData(W, H), px = img.data, zb = new Float32Array(W * H).fill(Infinity);
+    for (let i = 0; i < W * H; i++) { px[4 * i] = 29; px[4 * i + 1] = 31; px[4 * i + 2] = 36; px[4 * i + 3] = 255; }
+    const s = Math.max(1, Math.round((n < 3000 ? 3 : n < 30000 ? 2 : 1.5) * r)), p = [0, 0, 0];
+    for (let i = 0; i < n; i++) {
+      p[0] = P[3 * i]; p[1] = P[3 * i + 1]; p[2] = P[3 * i + 2];
+      const q = project(p);
+      if (q[2] < 0.05) continue;
+      const x0 = Math.round(q[0]), y0 = Math.round(q[1]);
+      for (let dy = 0; dy < s; dy++) for (let dx = 0; dx < s; dx++) {
+        const x = x0 + dx, y = y0 + dy;
+        if (x < 0 || y < 0 || x >= W || y >= H || zb[y * W + x] <= q[2]) continue;
+        zb[y * W + x] = q[2]; const k = 4 * (y * W + x);
+        px[k] = RGB[3 * i]; px[k + 1] = RGB[3 * i + 1]; px[k + 2] = RGB[3 * i + 2];
+      }
+    }
+    ctx.putImageData(img, 0, 0);
+    ctx.font = (11 * r) + 'px sans-serif'; ctx.lineJoin = 'round';
+    D.cameras.forEach((c, i) => {
+      const o = project(c.c), f = c.f.map(project);
+      if (o[2] < 0.05 || f.some(q => q[2] < 0.05)) return;
+      ctx.strokeStyle = D.colors_by_era[c.era]; ctx.lineWidth = (i === hover || i === pinned ? 3 : 1.3) * r;
+      ctx.beginPath();
+      f.forEach(q => { ctx.moveTo(o[0], o[1]); ctx.lineTo(q[0], q[1]); });
+      ctx.moveTo(f[3][0], f[3][1]); f.forEach(q => ctx.lineTo(q[0], q[1]));
+      ctx.stroke();
+      if (D.cameras.length <= 40 || i === hover || i === pinned) {
+        ctx.fillStyle = '#eee'; ctx.fillText(c.name, o[0] + 5 * r, o[1] - 5 * r);
+      }
+    });
+  }
+  function nearest(e) {
+    const b = cv.getBoundingClientRect(), mx = (e.clientX - b.left) * r, my = (e.clientY - b.top) * r;
+    let best = -1, bd = 14 * r;
+    D.cameras.forEach((c, i) => { const q = project(c.c); const d = Math.hypot(q[0] - mx, q[1] - my); if (q[2] > 0.05 && d < bd) { bd = d; best = i; } });
+    return best;
+  }
+  function show(i, e) {
+    if (i < 0) { tip.style.display = 'none'; return; }
+    const c = D.cameras[i], b = cv.getBoundingClientRect();
+    tip.replaceChildren();
+    if (c.thumb) { const im = document.createElement('img'); im.src = c.thumb; tip.appendChild(im); }
+    tip.appendChild(document.createTextNode(c.name + (c.era !== 'photo' ? ' (' + c.era + ')' : '')));
+    tip.style.left = Math.min(e.clientX - b.left + 14, b.width - 180) + 'px'; tip.style.top = (e.clientY - b.top + 14) + 'px';
+    tip.style.display = 'block';
+  }
+  let queued = false;
+  function redraw() { if (!queued) { queued = true; requestAnimationFrame(() => { queued = false; draw(); }); } }
+  cv.addEventListener('mousedown', e => { drag = {x: e.clientX, y: e.clientY, moved: false, pan: e.shiftKey || e.button !== 0}; e.preventDefault(); });
+  cv.addEventListener('contextmenu', e => e.preventDefault());
+  window.addEventListener('mouseup', e => {
+    if (drag && !drag.moved && e.target === cv) { const i = nearest(e); pinned = i === pinned ? -1 : i; show(pinned, e); redraw(); }
+    drag = null;
+  });
+  window.addEventListener('mousemove', e => {
+    if (drag) {
+      const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
+      if (Math.abs(dx) + Math.abs(dy) > 2) drag.moved = true;
+      if (drag.pan) { v.px += dx; v.py += dy; } else { v.yaw -= 0.008 * dx; v.pitch = Math.max(-1.55, Math.min(1.55, v.pitch + 0.008 * dy)); }
+      drag.x = e.clientX; drag.y = e.clientY; redraw(); return;
+    }
+    if (e.target !== cv || pinned >= 0) return;
+    const i = nearest(e);
+    if (i !== hover) { hover = i; redraw(); }
+    show(i, e);
+  });
+  cv.addEventListener('wheel', e => { const f = Math.exp(-0.0015 * e.deltaY); v.zoom *= f; v.px *= f; v.py *= f; e.preventDefault(); redraw(); }, {passive: false});
+  cv.addEventListener('dblclick', () => { v = Object.assign({}, home); redraw(); });
+  document.getElementById('model-home').onclick = () => { v = Object.assign({}, home); redraw(); };
+  document.getElementById('model-top').onclick = () => { v = Object.assign({}, home, {pitch: 1.55, yaw: 0}); fit(); redraw(); };
+  window.addEventListener('resize', () => { setup(); draw(); });
+  setup(); fit(); home = Object.assign({}, v); draw();
+  let wanted = null; try { wanted = decodeURIComponent(location.hash.replace(/^#photo=/, '')); } catch (err) { /* a malformed link: no photo */ }
+  const linked = location.hash.startsWith('#photo=') ? D.cameras.findIndex(c => c.name === wanted) : -1;
+  if (linked >= 0) {  // report.html#photo=NAME opens with that photo shown
+    const q = project(D.cameras[linked].c), b = cv.getBoundingClientRect();
+    pinned = linked; draw(); show(linked, {clientX: b.left + q[0] / r, clientY: b.top + q[1] / r});
+  }
+})();
+"""
+
+
+def view_html(rec: pycolmap.Reconstruction, eras: dict[str, str] | None = None, image_path: Path | None = None, max_points: int = MAX_POINTS) -> str:
+    """The 3D view: a legend, the canvas, its data (JSON) and the viewer script; nothing loaded from outside."""
+    data = view_data(rec, eras, image_path, max_points)
+    legend = "".join(f"<i style='background:{color}'></i>{html.escape(era)}" for era, color in data["colors_by_era"].items())
+    shown, total = data["num_points_shown"], data["num_points_total"]
+    note = f"all {total:,} points" if shown == total else f"{shown:,} of the {total:,} points (an even random sample, to keep this page small)"
+    payload = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
+    return (
+        f"<p class='legend'><span class='model-buttons'><button id='model-home'>Reset view</button><button id='model-top'>From above</button></span>"
+        f"{len(data['cameras'])} cameras:{legend}</p>"
+        "<div id='model-box'><canvas id='model-view'></canvas><div id='model-tip'></div></div>"
+        f"<p class='muted'>Showing {note}, coloured from the photos. Drag to turn, wheel to zoom, shift-drag to move, "
+        "double-click to reset; point at a camera (or click it) to see its photo.</p>"
+        f"<script type='application/json' id='model-data'>{payload}</script><script>{VIEW_JS}</script>"
+    )
+
+
+def photo_map(rec: pycolmap.Reconstruction, eras: dict[str, str] | None = None) -> str:
+    """Top-down map (PNG data URI): points in grey-scale of their colour, each camera's position and viewing direction."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .html_report import _figure_png
+
+    eras = eras or {}
+    origin, axes, radius = ground_frame(rec)
+    xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+    rgb = np.array([p.color for p in rec.points3D.values()], np.float64).reshape(-1, 3) / 255
+    if len(xyz) > 50000:
+        keep = np.random.default_rng(0).choice(len(xyz), 50000, replace=False)
+        xyz, rgb = xyz[keep], rgb[keep]
+    ground = (xyz - origin) @ axes.T
+    images = sorted((rec.images[i] for i in rec.reg_image_ids()), key=lambda im: im.name)
+    centres = (np.array([im.projection_center() for im in images]).reshape(-1, 3) - origin) @ axes.T
+    dirs = np.array([im.viewing_direction() for im in images]).reshape(-1, 3) @ axes.T
+    colors = era_colors(eras, [im.name for im in images])
+    fig, ax = plt.subplots(figsize=(7.5, 6.5))
+    ax.scatter(ground[:, 0], ground[:, 1], s=4 if len(ground) < 5000 else 1.5, c=rgb, linewidths=0)
+    arrow = 0.25 * radius
+    for era, color in colors.items():
+        sel = np.array([eras.get(im.name, "photo") == era for im in images], bool)
+        flat = dirs[sel, :2] / np.maximum(np.linalg.norm(dirs[sel, :2], axis=1, keepdims=True), 1e-9)
+        ax.quiver(centres[sel, 0], centres[sel, 1], flat[:, 0] * arrow, flat[:, 1] * arrow, color=color, angles="xy", scale_units="xy", scale=1, width=0.004)
+        ax.scatter(centres[sel, 0], centres[sel, 1], s=30, color=color, edgecolors="#222", linewidths=0.6, label=era, zorder=3)
+    if len(images) <= 40:
+        for im, c in zip(images, centres):
+            ax.annotate(Path(im.name).stem, c[:2], xytext=(4, 4), textcoords="offset points", fontsize=7, color="#333")
+    both = np.concatenate([ground[:, :2], centres[:, :2]]) if len(ground) else centres[:, :2]
+    lo = np.minimum(np.percentile(both, 1, axis=0), centres[:, :2].min(axis=0, initial=np.inf))
+    hi = np.maximum(np.percentile(both, 99, axis=0), centres[:, :2].max(axis=0, initial=-np.inf))
+    pad = 0.08 * (hi - lo).max()
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.legend(loc="upper right", fontsize=8, frameon=True)
+    return _figure_png(fig)
