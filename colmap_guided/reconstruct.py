@@ -50,6 +50,7 @@ def reconstruct(
     image_names = features.list_images(image_path)
     # The matcher first: a missing or broken --weights file fails now, not after the extraction.
     matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
+    feature_conf = features.check_conf(feature_conf)  # also a missing --aliked_weights file
     if overwrite and output.exists():
         shutil.rmtree(output)
     output.mkdir(parents=True, exist_ok=True)
@@ -87,7 +88,7 @@ def reconstruct(
         "sparse_path": str(sparse_path),
         "report_path": str(output / "report.json"),
         "matcher": match_stats.pop("matcher"),
-        "options": {"features": {**features.default_conf, **(feature_conf or {})}, "verification": match_stats.pop("verification"), "mapping": {**mapping.default_conf, **(mapping_conf or {})}, "pairs": str(pairs_path) if pairs_path else "exhaustive"},
+        "options": {"features": feature_conf, "verification": match_stats.pop("verification"), "mapping": {**mapping.default_conf, **(mapping_conf or {})}, "pairs": str(pairs_path) if pairs_path else "exhaustive"},
         "model": stats,
         "eras": report.era_ratios(eras, stats["registered_images"], image_names) if eras else {},
         "database": match_stats,
