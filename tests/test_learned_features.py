@@ -1,5 +1,6 @@
 """ALIKED features (paper §4.4): extraction, the database as pycolmap stores them, matching and mapping on them."""
 
+import shutil
 import subprocess
 import sys
 
@@ -11,6 +12,7 @@ import torch
 from colmap_guided import database as dbio
 from colmap_guided import learned_features as lf
 from colmap_guided.features import extract_features
+from colmap_guided.match import match_database
 from colmap_guided.reconstruct import reconstruct
 
 
@@ -24,19 +26,28 @@ def aliked():
     return model, device, path
 
 
+@pytest.fixture(scope="module")
+def aliked_run(aliked, synthetic_scene, tmp_path_factory):
+    """reconstruct --features aliked --matcher raw on the synthetic scene (8 photos)."""
+    out = tmp_path_factory.mktemp("aliked_raw")
+    result = reconstruct(synthetic_scene.image_dir.parent, output=out, matcher="raw", feature_conf={"type": "aliked", "aliked": {"weights": str(aliked[2])}})
+    return result, out
+
+
 def test_extraction_keypoints_inside_unit_descriptors_deterministic(aliked, synthetic_scene):
     model, device, _ = aliked
-    conf = {**lf.default_conf, "max_num_keypoints": 500}
+    conf = {**lf.default_conf, "max_num_keypoints": 300, "max_image_size": 320}
     path = synthetic_scene.image_dir / synthetic_scene.names[0]
     kp, desc = lf.extract_image(model, device, path, conf)
     kp2, desc2 = lf.extract_image(model, device, path, conf)
-    width, height = pycolmap.Bitmap.read(str(path), False).width, pycolmap.Bitmap.read(str(path), False).height
-    assert 100 < len(kp) <= 500 and kp.shape[1] == 6 and desc.shape == (len(kp), 128) and desc.dtype == np.float32
-    assert (kp[:, 0] > 0).all() and (kp[:, 0] < width).all() and (kp[:, 1] > 0).all() and (kp[:, 1] < height).all()
+    bitmap = pycolmap.Bitmap.read(str(path), False)
+    assert max(bitmap.width, bitmap.height) > 320  # keypoints come back in the photo's own pixels
+    assert 100 < len(kp) <= 300 and kp.shape[1] == 6 and desc.shape == (len(kp), 128) and desc.dtype == np.float32
+    assert (kp[:, 0] > 0).all() and (kp[:, 0] < bitmap.width).all() and (kp[:, 1] > 0).all() and (kp[:, 1] < bitmap.height).all()
+    assert kp[:, 0].max() > 0.8 * bitmap.width and kp[:, 1].max() > 0.8 * bitmap.height
     np.testing.assert_allclose(np.linalg.norm(desc, axis=1), 1.0, atol=1e-5)
     np.testing.assert_array_equal(kp, kp2)
     np.testing.assert_array_equal(desc, desc2)
-    assert len(np.unique(np.round(kp[:, :2]), axis=0)) == len(kp)  # NMS: one keypoint per location
 
 
 def test_deformable_conv_samples_the_shifted_pixel():
@@ -52,45 +63,57 @@ def test_deformable_conv_samples_the_shifted_pixel():
     torch.testing.assert_close(out[..., 1:-2, 1:-3], ref[..., 1:-2, 1:-3], atol=1e-5, rtol=1e-5)
 
 
-def test_database_holds_aliked_as_pycolmap_does(aliked, synthetic_scene, tmp_path):
-    _, _, path = aliked
-    db_path = tmp_path / "database.db"
-    names = synthetic_scene.names[:2]
-    out = extract_features(db_path, synthetic_scene.image_dir, names, {"type": "aliked", "aliked": {"weights": str(path), "max_num_keypoints": 300}})
-    assert out["num_extracted"] == 2 and not out["skipped"]
-    model, device = lf.load_model({**lf.default_conf, "weights": str(path), "max_num_keypoints": 300})
-    with dbio.open_database(db_path) as db:
-        images = dbio.images_by_name(db)
-        assert sorted(images) == sorted(names) and db.num_cameras() >= 1
-        for name in names:
-            image = images[name]
-            stored = db.read_descriptors(image.image_id)
-            assert stored.type == pycolmap.FeatureExtractorType.ALIKED_N16ROT
-            assert stored.data.dtype == np.uint8 and stored.data.shape[1] == 128 * 4  # float32 bytes, as COLMAP's extractor
-            kp, desc = lf.extract_image(model, device, synthetic_scene.image_dir / name, {**lf.default_conf, "max_num_keypoints": 300})
-            np.testing.assert_array_equal(stored.to_float().data, desc)
-            np.testing.assert_array_equal(np.asarray(db.read_keypoints(image.image_id)), kp)
-            data = dbio.read_image_data(db, image, synthetic_scene.image_dir)
-            assert data.descriptors.dtype == np.float32 and data.descriptors.shape == (len(kp), 128)
-    # A second run finds everything done; SIFT into the same database is refused.
-    assert extract_features(db_path, synthetic_scene.image_dir, names, {"type": "aliked", "aliked": {"weights": str(path)}})["num_extracted"] == 0
-    with pytest.raises(dbio.DatabaseError, match="ALIKED_N16ROT features"):
-        extract_features(db_path, synthetic_scene.image_dir, names, {"type": "sift"})
-
-
-@pytest.mark.parametrize("matcher", ["raw", "guided"])
-def test_reconstruct_with_aliked_registers_the_synthetic_scene(aliked, synthetic_scene, tmp_path, matcher):
-    _, _, path = aliked
-    result = reconstruct(synthetic_scene.image_dir.parent, output=tmp_path / matcher, matcher=matcher, feature_conf={"type": "aliked", "aliked": {"weights": str(path)}})
+def test_reconstruct_with_aliked_registers_the_synthetic_scene(aliked_run, synthetic_scene):
+    result, _ = aliked_run
     assert result["num_registered"] == len(synthetic_scene.names) == 8
     assert result["options"]["features"]["type"] == "aliked"
     assert result["mean_reprojection_error"] < 1.5
 
 
-def test_colmap_guided_matcher_refuses_aliked_in_one_line(aliked, synthetic_scene, tmp_path):
-    _, _, path = aliked
-    with pytest.raises(ValueError, match="SIFT"):
-        reconstruct(synthetic_scene.image_dir.parent, output=tmp_path / "gc", matcher="guided_colmap", feature_conf={"type": "aliked", "aliked": {"weights": str(path), "max_num_keypoints": 200}})
+def test_database_holds_aliked_as_pycolmap_does(aliked, aliked_run, synthetic_scene):
+    model, device, path = aliked
+    result, out = aliked_run
+    db_path = out / "database.db"
+    with dbio.open_database(db_path) as db:
+        images = dbio.images_by_name(db)
+        assert sorted(images) == sorted(synthetic_scene.names)
+        for name, image in images.items():
+            stored = db.read_descriptors(image.image_id)
+            assert stored.type == pycolmap.FeatureExtractorType.ALIKED_N16ROT
+            assert stored.data.dtype == np.uint8 and stored.data.shape == (db.read_keypoints(image.image_id).shape[0], 128 * 4)  # float32 bytes, as COLMAP's extractor
+            assert 0 < len(stored.data) <= 2048
+        name = synthetic_scene.names[0]
+        kp, desc = lf.extract_image(model, device, synthetic_scene.image_dir / name, lf.default_conf)
+        np.testing.assert_array_equal(db.read_descriptors(images[name].image_id).to_float().data, desc)
+        np.testing.assert_array_equal(np.asarray(db.read_keypoints(images[name].image_id)), kp)
+        data = dbio.read_image_data(db, images[name], synthetic_scene.image_dir)
+        assert data.descriptors.dtype == np.float32 and data.descriptors.shape == (len(kp), 128)
+    # A rerun finds everything done; SIFT into the same database is refused.
+    names = synthetic_scene.names
+    assert extract_features(db_path, synthetic_scene.image_dir, names, {"type": "aliked", "aliked": {"weights": str(path)}})["num_extracted"] == 0
+    with pytest.raises(dbio.DatabaseError, match="ALIKED_N16ROT features"):
+        extract_features(db_path, synthetic_scene.image_dir, names, {"type": "sift"})
+
+
+def copy_features(out, tmp_path):
+    """The run's database without matches: the extraction of another run on the same photos."""
+    (tmp_path / "ws").mkdir()
+    shutil.copy(out / "database.db", tmp_path / "ws" / "database.db")
+    with dbio.open_database(tmp_path / "ws" / "database.db") as db:
+        dbio.clear_matches(db)
+    return tmp_path / "ws"
+
+
+def test_guided_matching_on_aliked_registers_the_synthetic_scene(aliked, aliked_run, synthetic_scene, tmp_path):
+    ws = copy_features(aliked_run[1], tmp_path)
+    result = reconstruct(synthetic_scene.image_dir.parent, output=ws, matcher="guided", feature_conf={"type": "aliked", "aliked": {"weights": str(aliked[2])}})
+    assert result["num_registered"] == 8 and result["database"]["num_verified_pairs"] >= 7
+
+
+def test_colmap_guided_matcher_refuses_aliked_in_one_line(aliked_run, synthetic_scene, tmp_path):
+    ws = copy_features(aliked_run[1], tmp_path)
+    with pytest.raises(ValueError, match="needs SIFT"):
+        match_database(ws / "database.db", synthetic_scene.image_dir, matcher="guided_colmap")
 
 
 def test_bad_weights_path_is_one_line_before_any_work(synthetic_scene, tmp_path):
