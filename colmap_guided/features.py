@@ -44,6 +44,11 @@ default_conf = {
     "type": "sift",  # 'sift' (COLMAP's extractor) or 'aliked' (learned_features.py, paper §4.4)
     "aliked": {},  # ALIKED options (learned_features.default_conf)
 }
+# Lowe's ratio of the raw and guided matchers on ALIKED (reconstruct's default unless --ratio is given): 0.9
+# verified more related pairs than SIFT's 0.8 and no unrelated one (recon_scripts/benchmark_aliked.py,
+# 2026-11-30: sacre_coeur_hloc raw 43 vs 34 pairs, phototourism_superglue raw 3/13 vs 0/13 registered, 0 of
+# its 60 different-landmark pairs verified either way).
+ALIKED_RATIO = 0.9
 FEATURE_TYPES = {"sift": pycolmap.FeatureExtractorType.SIFT, "aliked": pycolmap.FeatureExtractorType.ALIKED_N16ROT}
 # COLMAP's CPU SIFT needs about this many bytes per pixel of the (downscaled) image it works on
 # (measured, pycolmap 4.2.1: 3.0 GB peak for one 3200x3200 image, 0.34 GB for 780x1063).
