@@ -294,7 +294,13 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
     start = time.time()
     done = 0
     with dbio.open_database(database_path) as db:
-        todo = [image for name, image in dbio.images_by_name(db).items() if name in set(image_names) and not db.exists_keypoints(image.image_id)]
+        by_name = dbio.images_by_name(db)
+        for name in new:
+            if name not in by_name:
+                skipped[name] = "COLMAP could not read it (unsupported variant of the format); convert it to JPEG"
+                logger.warning("Skipped %s: %s.", name, skipped[name])
+        wanted = set(image_names)
+        todo = [image for name, image in by_name.items() if name in wanted and not db.exists_keypoints(image.image_id)]
         if todo:
             logger.info("Extracting ALIKED for %d images (%d already in the database)", len(todo), len(image_names) - len(todo) - len(skipped))
         for image in tqdm(todo, desc="extract", unit="img", disable=None, dynamic_ncols=True, leave=False):
