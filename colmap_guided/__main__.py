@@ -27,6 +27,8 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--output", type=Path, default=None, help="workspace (default SCENE_DIR/colmap_guided)")
     rec.add_argument("--camera_mode", default=features.default_conf["camera_mode"], choices=sorted(features.CAMERA_MODES), help="camera grouping (default auto, as COLMAP)")
     rec.add_argument("--camera_model", default=features.default_conf["camera_model"])
+    rec.add_argument("--features", default=features.default_conf["type"], choices=sorted(features.FEATURE_TYPES), help="sift (COLMAP's, default) or aliked (learned, paper §4.4)")
+    rec.add_argument("--aliked_weights", type=Path, default=None, help="aliked-n16rot.pth (default: $COLMAP_GUIDED_ALIKED_WEIGHTS or ../shared/weights)")
     rec.add_argument("--overwrite", action="store_true", help="delete the workspace and start fresh")
     match.add_matcher_arguments(rec)
     _add_common(rec)
@@ -106,7 +108,7 @@ def main(argv=None) -> int:
                 matcher=matcher,
                 matcher_conf=match.matcher_conf_from_args(args, matcher),
                 pairs_path=args.pairs,
-                feature_conf={"camera_mode": args.camera_mode, "camera_model": args.camera_model},
+                feature_conf={"camera_mode": args.camera_mode, "camera_model": args.camera_model, "type": args.features, "aliked": {"weights": str(args.aliked_weights)} if args.aliked_weights else {}},
                 overwrite=args.overwrite,
                 match_options=match.match_options_from_args(args),
             )

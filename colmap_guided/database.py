@@ -65,10 +65,29 @@ def check_image_folder(db: pycolmap.Database, image_path: Path) -> None:
             )
 
 
+def descriptor_array(descriptors: pycolmap.FeatureDescriptors) -> np.ndarray:
+    """(N, D) descriptors as their extractor made them: uint8 for SIFT (and untyped databases), float32
+    for learned features (COLMAP stores those as the bytes of float32 rows)."""
+    if descriptors.type in (pycolmap.FeatureExtractorType.SIFT, pycolmap.FeatureExtractorType.UNDEFINED):
+        return np.asarray(descriptors.data)
+    return np.asarray(descriptors.to_float().data, np.float32)
+
+
+def check_feature_type(path: Path, expected: pycolmap.FeatureExtractorType) -> None:
+    """Refuse to add features of another kind to a database (SIFT and ALIKED cannot be matched together)."""
+    with open_database(path) as db:
+        for image in db.read_all_images():
+            if db.exists_descriptors(image.image_id):
+                kind = db.read_descriptors(image.image_id).type
+                if kind != expected and {kind, expected} != {pycolmap.FeatureExtractorType.SIFT, pycolmap.FeatureExtractorType.UNDEFINED}:
+                    raise DatabaseError(f"{path} holds {kind.name} features ({image.name}), not {expected.name}: pass another --output, or --overwrite to start a new database.")
+                return
+
+
 def read_image_data(db: pycolmap.Database, image: pycolmap.Image, image_path: Path) -> ImageData:
     camera = db.read_camera(image.camera_id)
     keypoints = np.asarray(db.read_keypoints(image.image_id), np.float32)
-    descriptors = db.read_descriptors(image.image_id).data
+    descriptors = descriptor_array(db.read_descriptors(image.image_id))
     if len(keypoints) != len(descriptors):
         raise DatabaseError(f"Image {image.name}: {len(keypoints)} keypoints but {len(descriptors)} descriptors; rerun feature extraction (--overwrite).")
     return ImageData(
@@ -76,7 +95,7 @@ def read_image_data(db: pycolmap.Database, image: pycolmap.Image, image_path: Pa
         image_id=image.image_id,
         path=(Path(image_path) / image.name).resolve(),
         keypoints=keypoints.reshape(-1, keypoints.shape[1] if keypoints.ndim == 2 else 2),
-        descriptors=np.asarray(descriptors),
+        descriptors=descriptors,
         width=camera.width,
         height=camera.height,
         camera=camera,

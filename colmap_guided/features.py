@@ -41,7 +41,15 @@ default_conf = {
     "max_image_size": 3200,  # COLMAP feature_extractor's --SiftExtraction.max_image_size default
     "max_num_features": 8192,
     "num_threads": "auto",  # extraction threads: 'auto' = as many as the free memory allows (see below), or N
+    "type": "sift",  # 'sift' (COLMAP's extractor) or 'aliked' (learned_features.py, paper §4.4)
+    "aliked": {},  # ALIKED options (learned_features.default_conf)
 }
+# Lowe's ratio of the raw and guided matchers on ALIKED (reconstruct's default unless --ratio is given): 0.9
+# verified more related pairs than SIFT's 0.8 and no unrelated one (recon_scripts/benchmark_aliked.py,
+# 2026-11-30: sacre_coeur_hloc raw 43 vs 34 pairs, phototourism_superglue raw 3/13 vs 0/13 registered, 0 of
+# its 60 different-landmark pairs verified either way).
+ALIKED_RATIO = 0.9
+FEATURE_TYPES = {"sift": pycolmap.FeatureExtractorType.SIFT, "aliked": pycolmap.FeatureExtractorType.ALIKED_N16ROT}
 # COLMAP's CPU SIFT needs about this many bytes per pixel of the (downscaled) image it works on
 # (measured, pycolmap 4.2.1: 3.0 GB peak for one 3200x3200 image, 0.34 GB for 780x1063).
 SIFT_BYTES_PER_PIXEL = 300
@@ -147,6 +155,25 @@ def _sift_pixels(image_path: Path, names: list[str], conf: dict) -> int | None:
     return max(pixels) if pixels else None
 
 
+def check_conf(conf: dict | None) -> dict:
+    """``conf`` over ``default_conf``, validated (unknown keys, camera mode, feature type, ALIKED options)."""
+    unknown = set(conf or {}) - set(default_conf) - {"image_checks"}
+    if unknown:
+        raise ValueError(f"Unknown feature option(s) {sorted(unknown)}; known: {sorted(default_conf)}")
+    conf = {**default_conf, **(conf or {})}
+    if conf["camera_mode"] not in CAMERA_MODES:
+        raise ValueError(f"Unknown camera_mode {conf['camera_mode']!r}; choose one of {sorted(CAMERA_MODES)}.")
+    if conf["type"] not in FEATURE_TYPES:
+        raise ValueError(f"Unknown feature type {conf['type']!r}; choose one of {sorted(FEATURE_TYPES)}.")
+    if conf["type"] != "aliked" and conf["aliked"]:
+        raise ValueError(f"ALIKED options ({', '.join(sorted(conf['aliked']))}) apply to --features aliked only.")
+    if conf["type"] == "aliked":
+        from . import learned_features
+
+        learned_features.weights_path(learned_features.check_conf(conf["aliked"]))
+    return conf
+
+
 def extract_features(database_path: Path, image_path: Path, image_names: list[str] | None = None, conf: dict | None = None, check: bool = True) -> dict:
     """Extract SIFT for the images not yet in the database (a rerun continues where it stopped).
 
@@ -156,11 +183,17 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
     folder in ``per_folder``, same EXIF camera and size in ``auto``, all in ``single``) are extracted
     onto that camera.
     """
-    conf = {**default_conf, **(conf or {})}
-    if conf["camera_mode"] not in CAMERA_MODES:
-        raise ValueError(f"Unknown camera_mode {conf['camera_mode']!r}; choose one of {sorted(CAMERA_MODES)}.")
+    conf = check_conf(conf)
     image_path, database_path = Path(image_path), Path(database_path)
     image_names = image_names if image_names is not None else list_images(image_path)
+    if database_path.exists():
+        dbio.check_feature_type(database_path, FEATURE_TYPES[conf["type"]])
+    if conf["type"] == "aliked":
+        from . import learned_features
+
+        if database_path.exists():
+            dbio.remove_orphans(database_path)
+        return learned_features.extract_features(database_path, image_path, image_names, conf["aliked"], CAMERA_MODES[conf["camera_mode"]], conf["camera_model"], check)
     done: dict[str, int] = {}
     if database_path.exists():
         orphans = dbio.remove_orphans(database_path)

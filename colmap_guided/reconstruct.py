@@ -52,6 +52,9 @@ def reconstruct(
     image_path, output = resolve_paths(scene_dir, image_path, output)
     image_names = features.list_images(image_path)
     # The matcher first: a missing or broken --weights file fails now, not after the extraction.
+    feature_conf = features.check_conf(feature_conf)  # also a missing --aliked_weights file
+    if feature_conf["type"] == "aliked" and matcher in ("raw", "guided") and "ratio" not in (matcher_conf or {}):
+        matcher_conf = {**(matcher_conf or {}), "ratio": features.ALIKED_RATIO}
     matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
     if overwrite and output.exists():
         shutil.rmtree(output)
@@ -90,7 +93,7 @@ def reconstruct(
         "sparse_path": str(sparse_path),
         "report_path": str(output / "report.json"),
         "matcher": match_stats.pop("matcher"),
-        "options": {"features": {**features.default_conf, **(feature_conf or {})}, "verification": match_stats.pop("verification"), "mapping": {**mapping.default_conf, **(mapping_conf or {})}, "pairs": match_stats.pop("pairs")},
+        "options": {"features": feature_conf, "verification": match_stats.pop("verification"), "mapping": {**mapping.default_conf, **(mapping_conf or {})}, "pairs": match_stats.pop("pairs")},
         "model": stats,
         "eras": report.era_ratios(eras, stats["registered_images"], image_names) if eras else {},
         "database": match_stats,

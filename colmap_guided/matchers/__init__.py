@@ -1,4 +1,4 @@
-"""Matcher registry: ``get_matcher(name, conf)`` for raw, guided, guided_epipolar, guided_homography, guided_colmap."""
+"""Matcher registry: ``get_matcher(name, conf)`` for raw, guided, guided_epipolar, guided_homography, guided_colmap, lightglue."""
 
 from __future__ import annotations
 
@@ -11,8 +11,10 @@ from colmap_guided.matchers.geometric import (
 from colmap_guided.matchers.guided import GuidedMatcher
 from colmap_guided.matchers.raw import RawMatcher
 
+from colmap_guided.matchers.lightglue import LightGlueMatcher
+
 MATCHERS: dict[str, type[Matcher]] = {
-    cls.name: cls for cls in (RawMatcher, GuidedMatcher, EpipolarGuidedMatcher, HomographyGuidedMatcher, ColmapGuidedMatcher)
+    cls.name: cls for cls in (RawMatcher, GuidedMatcher, EpipolarGuidedMatcher, HomographyGuidedMatcher, ColmapGuidedMatcher, LightGlueMatcher)
 }
 DEFAULT_MATCHER = "guided"
 

@@ -109,6 +109,7 @@ class RawMatcher(Matcher):
         "ratio": 0.8,  # Lowe's ratio on Euclidean descriptor distance, both directions; None = off
         "device": "auto",  # 'auto' = CUDA when available, else CPU; or any torch device string
         "chunk_size": 1024,  # rows of A per similarity block: memory ~ chunk_size * len(B) floats
+        "min_similarity": None,  # also drop matches whose descriptors' cosine similarity is below this (learned features); None = off
     }
 
     def __init__(self, conf: dict | None = None):
@@ -119,4 +120,6 @@ class RawMatcher(Matcher):
         da = normalize_descriptors(a.descriptors, self.device)
         db = normalize_descriptors(b.descriptors, self.device)
         m = mutual_nn_match(da, db, self.conf["ratio"], self.conf["chunk_size"])
+        if self.conf["min_similarity"] is not None:
+            m = m[(da[m[:, 0]] * db[m[:, 1]]).sum(1) >= self.conf["min_similarity"]]
         return m.cpu().numpy().astype(np.uint32)

