@@ -1,6 +1,6 @@
-"""The whole pipeline: images → SIFT → pairs → (guided) matching → verification → mapping → report.
+"""The whole pipeline: images → SIFT → pairs → (guided) matching → verification → mapping → model check → report.
 
-    python -m colmap_guided reconstruct SCENE_DIR [--matcher guided|raw|...] [--output DIR]
+    python -m colmap_guided reconstruct SCENE_DIR [--matcher guided|raw|...] [--mapper incremental|global|hierarchical] [--output DIR]
 
 Photos are read from SCENE_DIR/images (or --image_path) and never written to. Everything the run makes
 goes to the workspace (SCENE_DIR/colmap_guided, or --output): database.db, sparse/N, report.json, report.html.
@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from . import database as dbio
-from . import features, html_report, mapping, match, report
+from . import features, html_report, mapping, match, model_check, report
 from .log import logger
 from .matchers import DEFAULT_MATCHER, Matcher, get_matcher
 
@@ -47,6 +47,7 @@ def reconstruct(
     overwrite: bool = False,
 ) -> dict:
     image_path, output = resolve_paths(scene_dir, image_path, output)
+    mapping_conf = mapping.check_conf(mapping_conf)  # a wrong option fails now, not after matching
     image_names = features.list_images(image_path)
     # The matcher first: a missing or broken --weights file fails now, not after the extraction.
     matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
@@ -75,10 +76,13 @@ def reconstruct(
 
     start = time.time()
     sparse_path = output / "sparse"
-    models = mapping.incremental_mapping(database_path, image_path, sparse_path, mapping_conf)
+    models = mapping.run_mapping(database_path, image_path, sparse_path, mapping_conf)
     timings["map"] = time.time() - start
 
     stats = report.model_statistics(models, image_names)
+    checked = model_check.check_models(models)
+    for problem in checked["problems"]:
+        logger.warning("Model check: %s", problem)
     eras = report.read_manifest(Path(scene_dir) / "manifest.json")
     result = {
         "scene": Path(scene_dir).resolve().name,
@@ -87,8 +91,9 @@ def reconstruct(
         "sparse_path": str(sparse_path),
         "report_path": str(output / "report.json"),
         "matcher": match_stats.pop("matcher"),
-        "options": {"features": {**features.default_conf, **(feature_conf or {})}, "verification": match_stats.pop("verification"), "mapping": {**mapping.default_conf, **(mapping_conf or {})}, "pairs": str(pairs_path) if pairs_path else "exhaustive"},
+        "options": {"features": {**features.default_conf, **(feature_conf or {})}, "verification": match_stats.pop("verification"), "mapping": mapping_conf, "pairs": str(pairs_path) if pairs_path else "exhaustive"},
         "model": stats,
+        "model_check": checked,
         "eras": report.era_ratios(eras, stats["registered_images"], image_names) if eras else {},
         "database": match_stats,
         "skipped_images": extraction["skipped"],

@@ -330,13 +330,13 @@ def test_guided_matcher_weights_fallback_is_loud(tmp_path):
         get_matcher("guided", {"device": "cpu", "weights": str(tmp_path / "missing.safetensors")})
 
 
-def test_keep_raw_adds_raw_matches_of_unmatched_keypoints_only(photo_pair):
-    """keep_raw: the guided matches, plus raw matches whose keypoints guidance left unmatched; one-to-one."""
+def test_raw_merge_adds_raw_matches_of_unmatched_keypoints_only(photo_pair):
+    """raw_matches="merge": the guided matches, plus raw matches whose keypoints guidance left unmatched; one-to-one."""
     a, b, _ = photo_pair
-    guided = get_matcher("guided", {"device": "cpu"})
+    guided = get_matcher("guided", {"device": "cpu", "raw_matches": None})
     flows = guided.coarse_flows(a, b)
     only = guided.match_flows(a, b, flows).astype(np.int64)
-    both = guided.match_flows(a, b, flows, keep_raw=True).astype(np.int64)
+    both = guided.match_flows(a, b, flows, raw_matches="merge").astype(np.int64)
     raw = get_matcher("raw", {"device": "cpu"}).match(a, b).astype(np.int64)
     assert {tuple(m) for m in only} <= {tuple(m) for m in both} <= {tuple(m) for m in only} | {tuple(m) for m in raw}
     assert len(np.unique(both[:, 0])) == len(both) and len(np.unique(both[:, 1])) == len(both)

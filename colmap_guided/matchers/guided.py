@@ -21,8 +21,10 @@ import numpy as np
 import torch
 
 from colmap_guided.coarse import CoarseMatcher
-from colmap_guided.log import logger
+from colmap_guided import verify
+from colmap_guided.log import colmap_quiet, logger
 from colmap_guided.matchers.base import ImageData, Matcher
+from colmap_guided.matchers.colmap import default_camera
 from colmap_guided.matchers.raw import mutual_nn_match, normalize_descriptors, ratio_pass, resolve_device
 
 
@@ -232,7 +234,11 @@ class GuidedMatcher(Matcher):
         "window_cells": 1.0,  # W of eq. 1 in coarse cells (1 cell = 16 px at the network input scale, as the paper)
         "ratio": 0.8,  # Lowe's ratio among the candidates, both directions; None = off
         "min_inliers": 25,  # two-view verification of guided pairs: at least this many inliers (COLMAP: 15)
-        "keep_raw": False,  # also keep raw matches (mutual NN + ratio) of keypoints that guidance left unmatched
+        # Raw matches (mutual NN + ratio) beside the guided ones, for pairs where the coarse flow is wrong:
+        # 'verified': verify both (the pipeline's verification, >= min_inliers) and keep the verified inliers
+        # of each side that verifies, the union when both do, the guided matches when neither does;
+        # 'merge': add raw matches of keypoints that guidance left unmatched, unverified; None: guided only.
+        "raw_matches": "verified",
         "max_fb_cells": None,  # drop keypoints whose coarse forward-backward error exceeds this many cells
         "min_score": None,  # drop keypoints whose coarse match score (softmax probability) is below this
         "device": "auto",
@@ -246,6 +252,8 @@ class GuidedMatcher(Matcher):
         self.verification_conf = {"min_num_inliers": self.conf["min_inliers"]}  # read by match.match_database
         coarse_conf = {**self.conf["coarse"], "device": str(self.device), "weights": self.conf["weights"]}
         mode = self.conf["mode"]
+        if self.conf["raw_matches"] not in (None, "merge", "verified"):
+            raise ValueError(f"raw_matches must be None, 'merge' or 'verified', got {self.conf['raw_matches']!r}")
         if mode not in ("auto", "filter", "raw"):
             raise ValueError(f"mode must be 'auto', 'filter' or 'raw', got {mode!r}")
         if mode == "auto":
@@ -317,9 +325,26 @@ class GuidedMatcher(Matcher):
             valid(flows.score_ba, flows.fb_ba, flows.cell_a),
             conf["max_pairs"],
         ).cpu()
-        if conf["keep_raw"]:
+        if conf["raw_matches"] == "merge":
             m = merge_matches(m, mutual_nn_match(da, db, conf["ratio"]).cpu())
+        elif conf["raw_matches"] == "verified":
+            m = self.verified_union(a, b, m, mutual_nn_match(da, db, conf["ratio"]).cpu())
         return m.numpy().astype(np.uint32)
+
+    def verified_union(self, a: ImageData, b: ImageData, guided: torch.Tensor, raw: torch.Tensor) -> torch.Tensor:
+        """Never lose what raw matching finds: each side's verified inliers, their union when both verify
+        (guided wins where they disagree; the final verification keeps the larger consensus); the guided
+        matches when neither verifies. Verification as the pipeline's, with this matcher's min_inliers."""
+        options = verify.two_view_options(self.verification_conf)
+        cam_a, cam_b = a.camera or default_camera(a), b.camera or default_camera(b)
+        inliers = []
+        with colmap_quiet():
+            for m in (guided, raw):
+                geometry = verify.verify_pair(cam_a, a.keypoints, cam_b, b.keypoints, m.numpy().astype(np.uint32), options)
+                inliers.append(torch.from_numpy(np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2)))
+        if not len(inliers[0]) and not len(inliers[1]):
+            return guided
+        return merge_matches(*inliers)
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
         return self.match_flows(a, b, self.coarse_flows(a, b))
