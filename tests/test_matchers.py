@@ -342,3 +342,31 @@ def test_raw_merge_adds_raw_matches_of_unmatched_keypoints_only(photo_pair):
     assert len(np.unique(both[:, 0])) == len(both) and len(np.unique(both[:, 1])) == len(both)
     in_both, ga, gb = {tuple(m) for m in both}, set(only[:, 0]), set(only[:, 1])
     assert all(tuple(m) in in_both or m[0] in ga or m[1] in gb for m in raw)  # a raw match is kept unless guidance overrules it
+
+
+def test_raw_matches_verified_never_loses_what_raw_matching_verifies(photo_pair):
+    """raw_matches='verified' (default): with the coarse flow wrong across the whole pair (shifted by 120 px),
+    guided matching alone verifies little, and the matcher keeps the raw side's verified inliers instead;
+    with the right flow it verifies at least as many inliers as the better side."""
+    import dataclasses
+
+    from colmap_guided import verify
+    from colmap_guided.matchers.colmap import default_camera
+
+    a, b, _ = photo_pair
+    guided = get_matcher("guided", {"device": "cpu"})
+    assert guided.conf["raw_matches"] == "verified"
+    options = verify.two_view_options(guided.verification_conf)
+
+    def inliers(matches):
+        return len(verify.verify_pair(default_camera(a), a.keypoints, default_camera(b), b.keypoints, matches, options).inlier_matches)
+
+    raw = inliers(get_matcher("raw", {"device": "cpu"}).match(a, b))
+    right = guided.coarse_flows(a, b)
+    wrong = dataclasses.replace(right, flow_ab=right.flow_ab + 120.0, flow_ba=right.flow_ba - 120.0)
+    guided_only = {name: inliers(guided.match_flows(a, b, flows, raw_matches=None)) for name, flows in (("right", right), ("wrong", wrong))}
+    assert guided_only["wrong"] < raw / 4 and raw > 100
+    assert inliers(guided.match_flows(a, b, wrong)) >= raw
+    assert inliers(guided.match_flows(a, b, right)) >= max(raw, guided_only["right"])
+    with pytest.raises(ValueError, match="raw_matches must be"):
+        get_matcher("guided", {"device": "cpu", "raw_matches": "union"})

@@ -235,8 +235,8 @@ class GuidedMatcher(Matcher):
         "ratio": 0.8,  # Lowe's ratio among the candidates, both directions; None = off
         "min_inliers": 25,  # two-view verification of guided pairs: at least this many inliers (COLMAP: 15)
         # Raw matches (mutual NN + ratio) beside the guided ones, for pairs where the coarse flow is wrong:
-        # 'verified': verify both (the pipeline's verification, >= min_inliers) and keep the verified inliers
-        # of each side that verifies, the union when both do, the guided matches when neither does;
+        # 'verified': verify guided, raw and (when both verify) the union of their inliers, keep the one
+        # with the most verified inliers (the pipeline's verification, >= min_inliers);
         # 'merge': add raw matches of keypoints that guidance left unmatched, unverified; None: guided only.
         "raw_matches": "verified",
         "max_fb_cells": None,  # drop keypoints whose coarse forward-backward error exceeds this many cells
@@ -328,23 +328,28 @@ class GuidedMatcher(Matcher):
         if conf["raw_matches"] == "merge":
             m = merge_matches(m, mutual_nn_match(da, db, conf["ratio"]).cpu())
         elif conf["raw_matches"] == "verified":
-            m = self.verified_union(a, b, m, mutual_nn_match(da, db, conf["ratio"]).cpu())
+            m = self.verified_best(a, b, m, mutual_nn_match(da, db, conf["ratio"]).cpu())
         return m.numpy().astype(np.uint32)
 
-    def verified_union(self, a: ImageData, b: ImageData, guided: torch.Tensor, raw: torch.Tensor) -> torch.Tensor:
-        """Never lose what raw matching finds: each side's verified inliers, their union when both verify
-        (guided wins where they disagree; the final verification keeps the larger consensus); the guided
-        matches when neither verifies. Verification as the pipeline's, with this matcher's min_inliers."""
+    def verified_best(self, a: ImageData, b: ImageData, guided: torch.Tensor, raw: torch.Tensor) -> torch.Tensor:
+        """Never lose what raw matching finds: verify the guided and the raw matches (the pipeline's
+        verification, this matcher's min_inliers) and, when both verify, the union of their inliers; return
+        the candidate with the most verified inliers (guided on ties). Verification is deterministic, so the
+        pipeline's own verification of the returned matches finds the same inliers."""
         options = verify.two_view_options(self.verification_conf)
         cam_a, cam_b = a.camera or default_camera(a), b.camera or default_camera(b)
-        inliers = []
+
+        def inliers(m: torch.Tensor) -> torch.Tensor:
+            geometry = verify.verify_pair(cam_a, a.keypoints, cam_b, b.keypoints, m.numpy().astype(np.uint32), options)
+            return torch.from_numpy(np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2))
+
         with colmap_quiet():
-            for m in (guided, raw):
-                geometry = verify.verify_pair(cam_a, a.keypoints, cam_b, b.keypoints, m.numpy().astype(np.uint32), options)
-                inliers.append(torch.from_numpy(np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2)))
-        if not len(inliers[0]) and not len(inliers[1]):
-            return guided
-        return merge_matches(*inliers)
+            candidates = [guided, raw]
+            found = [inliers(m) for m in candidates]
+            if len(found[0]) and len(found[1]):
+                candidates.append(merge_matches(*found))
+                found.append(inliers(candidates[-1]))
+        return candidates[max(range(len(found)), key=lambda k: (len(found[k]), -k))]
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
         return self.match_flows(a, b, self.coarse_flows(a, b))
