@@ -1,12 +1,15 @@
 """Mapping (incremental / global / hierarchical, seeded, thin view graphs) and the model check (issue 17)."""
 
+import json
+import subprocess
+import sys
+
 import numpy as np
 import pycolmap
 import pytest
 
 from colmap_guided.mapping import MAPPERS, check_conf, run_mapping
 from colmap_guided.model_check import check_models
-from colmap_guided.reconstruct import reconstruct
 from colmap_guided.synthetic import pose_errors
 
 NUM_FRAMES = 12
@@ -78,16 +81,26 @@ def test_mapping_conf_is_strict():
         check_conf({"mapper": "glomap"})
 
 
-def test_global_mapping_in_the_pipeline(synthetic_scene, tmp_path):
-    """Global mapping from reconstruct: true poses. It leaves out view_007, whose only strong pair is planar
-    (149 inliers to view_006; 17 to view_005), where incremental mapping registers all 8."""
-    result = reconstruct(synthetic_scene.image_dir.parent, output=tmp_path / "out", matcher="raw", mapping_conf={"mapper": "global", "num_threads": 1})
+def test_cli_global_mapping(synthetic_scene, tmp_path):
+    """`reconstruct --mapper global --seed 3 --threads 1`: true poses, the options in report.json. Global
+    mapping leaves out view_007, whose only strong pair is planar (149 inliers to view_006; 17 to
+    view_005), where incremental mapping registers all 8."""
+    out = tmp_path / "out"
+    run = subprocess.run(
+        [sys.executable, "-m", "colmap_guided", "reconstruct", str(synthetic_scene.image_dir.parent), "--output", str(out),
+         "--matcher", "raw", "--mapper", "global", "--seed", "3", "--threads", "1", "--quiet"],
+        capture_output=True, text=True,
+    )
+    assert run.returncode == 0, run.stderr
+    result = json.loads((out / "report.json").read_text())
     assert result["num_registered"] >= len(synthetic_scene.names) - 1
-    errors = pose_errors(pycolmap.Reconstruction(str(tmp_path / "out" / "sparse" / "0")), synthetic_scene)
+    errors = pose_errors(pycolmap.Reconstruction(str(out / "sparse" / "0")), synthetic_scene)
     registered = [e for e in errors.values() if np.isfinite(e[0])]
     assert len(registered) == result["num_registered"] and max(e[0] for e in registered) < 1.0, errors
-    assert result["options"]["mapping"]["mapper"] == "global" and result["options"]["mapping"]["random_seed"] == 0
+    assert {k: result["options"]["mapping"][k] for k in ("mapper", "random_seed", "num_threads")} == {"mapper": "global", "random_seed": 3, "num_threads": 1}
     assert result["model_check"]["ok"], result["model_check"]
+    bad = subprocess.run([sys.executable, "-m", "colmap_guided", "reconstruct", str(tmp_path), "--mapper", "glomap"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "invalid choice: 'glomap'" in bad.stderr
 
 
 @pytest.fixture()
@@ -97,9 +110,8 @@ def lund_door(shared_data) -> pycolmap.Reconstruction:
 
 def test_model_check_passes_a_real_model_and_flags_a_corrupted_focal(lund_door):
     assert check_models({0: lund_door}) == {"ok": True, "problems": [], "conf": check_models({})["conf"]}
-    camera = next(iter(lund_door.cameras.values()))
+    camera = next(iter(lund_door.cameras.values()))  # the model's own camera object: edited in place
     camera.params = [camera.params[0] * 1000, *camera.params[1:]]  # 2.4 million px: an orthographic camera
-    lund_door.update_camera(camera) if hasattr(lund_door, "update_camera") else None
     checked = check_models({0: lund_door})
     assert not checked["ok"]
     focal = [p for p in checked["problems"] if "focal length" in p]
@@ -112,4 +124,4 @@ def test_model_check_flags_a_pose_jump(lund_door):
     turn = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([np.sin(np.pi / 4), 0, 0, np.cos(np.pi / 4)])), np.zeros(3))  # 90° about x
     frame.rig_from_world = turn * frame.rig_from_world
     problems = check_models({0: lund_door})["problems"]
-    assert any(p.startswith("sparse/0: pose jump: DSC_0005.JPG looks 90°") or ("pose jump" in p and "DSC_0005.JPG" in p) for p in problems), problems
+    assert any("pose jump" in p and "DSC_0005.JPG" in p for p in problems), problems
