@@ -45,11 +45,15 @@ def check_conf(conf: dict | None) -> dict:
     return conf
 
 
+def _pipeline_options(options, conf: dict):
+    """The options that incremental and global pipelines share, set from ``conf``."""
+    for key in ("num_threads", "min_model_size", "min_num_matches"):
+        setattr(options, key, conf[key])
+    return options
+
+
 def _incremental_options(conf: dict) -> pycolmap.IncrementalPipelineOptions:
-    options = pycolmap.IncrementalPipelineOptions()
-    options.num_threads = conf["num_threads"]
-    options.min_model_size = conf["min_model_size"]
-    options.min_num_matches = conf["min_num_matches"]
+    options = _pipeline_options(pycolmap.IncrementalPipelineOptions(), conf)
     options.mapper.init_min_num_inliers = conf["init_min_num_inliers"]
     options.mapper.abs_pose_min_num_inliers = conf["abs_pose_min_num_inliers"]
     for seeded in (options, options.mapper, options.triangulation):
@@ -58,10 +62,7 @@ def _incremental_options(conf: dict) -> pycolmap.IncrementalPipelineOptions:
 
 
 def _global_options(conf: dict) -> pycolmap.GlobalPipelineOptions:
-    options = pycolmap.GlobalPipelineOptions()
-    options.num_threads = conf["num_threads"]
-    options.min_model_size = conf["min_model_size"]
-    options.min_num_matches = conf["min_num_matches"]
+    options = _pipeline_options(pycolmap.GlobalPipelineOptions(), conf)
     mapper = options.mapper
     for seeded in (options, mapper, mapper.rotation_averaging, mapper.global_positioning, mapper.retriangulation):
         seeded.random_seed = conf["random_seed"]
