@@ -61,6 +61,9 @@ def main(argv=None):
         total = sum(stats["timings"].values())
         rows.append((name, seed, label, stats, total, total / base_time))
         results.setdefault(name, {}).setdefault(str(seed), {})[label] = stats
+        print(row_markdown(rows[-1]), flush=True)  # as it comes: a run stopped early keeps its rows
+        args.output.parent.mkdir(parents=True, exist_ok=True)
+        args.output.write_text(json.dumps(results, indent=2, default=str))
 
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.sets:
@@ -99,12 +102,14 @@ def main(argv=None):
     print(f"\nPipeline benchmark, camera_mode={args.camera_mode}, mapping threads {args.threads} (time ratio = total wall time / pycolmap default's, same set and seed round)\n")
     print("| set | seed | pipeline | verified pairs | registered | correct (reference) | model check | 3D points | total s | time ratio |")
     print("|---|---|---|---|---|---|---|---|---|---|")
-    for name, seed, label, stats, total, ratio in rows:
-        correct = "–" if stats["correct"] is None else f"{stats['correct']}"
-        check = "ok" if stats["model_check"]["ok"] else f"{len(stats['model_check']['problems'])} problem(s)"
-        print(f"| {name} | {seed} | {label} | {stats['num_verified_pairs']} | {stats['num_registered']}/{stats['num_images']} | {correct} | {check} | {stats['num_points3D']} | {total:.1f} | {ratio:.2f} |")
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(results, indent=2, default=str))
+    print("\n".join(row_markdown(row) for row in rows))
+
+
+def row_markdown(row: tuple) -> str:
+    name, seed, label, stats, total, ratio = row
+    correct = "–" if stats["correct"] is None else f"{stats['correct']}"
+    check = "ok" if stats["model_check"]["ok"] else f"{len(stats['model_check']['problems'])} problem(s)"
+    return f"| {name} | {seed} | {label} | {stats['num_verified_pairs']} | {stats['num_registered']}/{stats['num_images']} | {correct} | {check} | {stats['num_points3D']} | {total:.1f} | {ratio:.2f} |"
 
 
 if __name__ == "__main__":
