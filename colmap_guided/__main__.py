@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--camera_mode", default=features.default_conf["camera_mode"], choices=sorted(features.CAMERA_MODES), help="camera grouping (default auto, as COLMAP)")
     rec.add_argument("--camera_model", default=features.default_conf["camera_model"])
     rec.add_argument("--overwrite", action="store_true", help="delete the workspace and start fresh")
-    rec.add_argument("--mapper", default=mapping.default_conf["mapper"], choices=mapping.MAPPERS, help="incremental (COLMAP's mapper), global (GLOMAP) or hierarchical (thousands of photos)")
+    rec.add_argument("--mapper", default=mapping.default_conf["mapper"], choices=mapping.MAPPERS, help="auto (global and incremental, the better checked model), incremental (COLMAP's mapper), global (GLOMAP) or hierarchical (thousands of photos)")
     rec.add_argument("--seed", type=int, default=mapping.default_conf["random_seed"], help="random seed of the mapper (-1: unseeded)")
     rec.add_argument("--threads", type=int, default=mapping.default_conf["num_threads"], help="mapping threads (-1: all cores; 1: the same model on every rerun)")
     match.add_matcher_arguments(rec)
