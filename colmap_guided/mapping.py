@@ -127,6 +127,11 @@ def run_mapping(database_path: Path, image_path: Path, sparse_path: Path, conf: 
     return dict(enumerate(ordered))
 
 
+def incremental_mapping(database_path: Path, image_path: Path, sparse_path: Path, conf: dict | None = None) -> dict[int, pycolmap.Reconstruction]:
+    """COLMAP's incremental mapper alone (``run_mapping`` with mapper 'incremental')."""
+    return run_mapping(database_path, image_path, sparse_path, {**(conf or {}), "mapper": "incremental"})
+
+
 def load_models(sparse_path: Path) -> dict[int, pycolmap.Reconstruction]:
     sparse_path = Path(sparse_path)
     if not sparse_path.is_dir():

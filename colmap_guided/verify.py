@@ -17,6 +17,12 @@ default_conf = {
 }
 
 
+def default_camera(width: int, height: int) -> pycolmap.Camera:
+    """COLMAP's camera for a photo without EXIF focal length (feature_extractor's default): SIMPLE_RADIAL,
+    f = 1.2 * max(width, height), principal point at the centre."""
+    return pycolmap.Camera.create_from_model_id(0, pycolmap.CameraModelId.SIMPLE_RADIAL, 1.2 * max(width, height), width, height)
+
+
 def two_view_options(conf: dict | None = None) -> pycolmap.TwoViewGeometryOptions:
     conf = {**default_conf, **(conf or {})}
     options = pycolmap.TwoViewGeometryOptions()

@@ -54,7 +54,7 @@ def main(argv=None):
     parser.add_argument("--output", type=Path, default=Path("outputs/benchmark_pipeline.json"))
     args = parser.parse_args(argv)
     set_verbosity(quiet=True)
-    specs = matcher_specs.available_specs(args.matchers)
+    specs = [matcher_specs.parse_spec(text) for text in args.matchers]  # unknown options: the matcher raises
     rows, results = [], {}
 
     def add(name, seed, label, stats, base_time):

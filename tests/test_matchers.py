@@ -351,7 +351,6 @@ def test_raw_matches_verified_never_loses_what_raw_matching_verifies(photo_pair)
     import dataclasses
 
     from colmap_guided import verify
-    from colmap_guided.matchers.colmap import default_camera
 
     a, b, _ = photo_pair
     guided = get_matcher("guided", {"device": "cpu"})
@@ -359,7 +358,8 @@ def test_raw_matches_verified_never_loses_what_raw_matching_verifies(photo_pair)
     options = verify.two_view_options(guided.verification_conf)
 
     def inliers(matches):
-        return len(verify.verify_pair(default_camera(a), a.keypoints, default_camera(b), b.keypoints, matches, options).inlier_matches)
+        cam_a, cam_b = verify.default_camera(a.width, a.height), verify.default_camera(b.width, b.height)
+        return len(verify.verify_pair(cam_a, a.keypoints, cam_b, b.keypoints, matches, options).inlier_matches)
 
     raw = inliers(get_matcher("raw", {"device": "cpu"}).match(a, b))
     right = guided.coarse_flows(a, b)

@@ -24,7 +24,6 @@ from colmap_guided.coarse import CoarseMatcher
 from colmap_guided import verify
 from colmap_guided.log import colmap_quiet, logger
 from colmap_guided.matchers.base import ImageData, Matcher
-from colmap_guided.matchers.colmap import default_camera
 from colmap_guided.matchers.raw import mutual_nn_match, normalize_descriptors, ratio_pass, resolve_device
 
 
@@ -337,7 +336,7 @@ class GuidedMatcher(Matcher):
         the candidate with the most verified inliers (guided on ties). Verification is deterministic, so the
         pipeline's own verification of the returned matches finds the same inliers."""
         options = verify.two_view_options(self.verification_conf)
-        cam_a, cam_b = a.camera or default_camera(a), b.camera or default_camera(b)
+        cam_a, cam_b = (im.camera or verify.default_camera(im.width, im.height) for im in (a, b))
 
         def inliers(m: torch.Tensor) -> torch.Tensor:
             geometry = verify.verify_pair(cam_a, a.keypoints, cam_b, b.keypoints, m.numpy().astype(np.uint32), options)
