@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from colmap_guided.coarse import CoarseMatcher
 from colmap_guided import verify
+from colmap_guided.coarse import CoarseMatcher
 from colmap_guided.log import colmap_quiet, logger
 from colmap_guided.matchers.base import ImageData, Matcher
 from colmap_guided.matchers.raw import mutual_nn_match, normalize_descriptors, ratio_pass, resolve_device
