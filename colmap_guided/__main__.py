@@ -16,12 +16,12 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import features, match
+    from . import features, mapping, match
 
     parser = argparse.ArgumentParser(prog="python -m colmap_guided", description="Guided feature matching for COLMAP (Darmon et al., 3DV 2020).")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    rec = sub.add_parser("reconstruct", help="SIFT, guided matching, verification, incremental mapping and a report for one scene")
+    rec = sub.add_parser("reconstruct", help="SIFT, guided matching, verification, mapping and a report for one scene")
     rec.add_argument("scene_dir", type=Path, help="folder with images/ (or the photos themselves)")
     rec.add_argument("--image_path", type=Path, default=None, help="photos folder (default SCENE_DIR/images)")
     rec.add_argument("--output", type=Path, default=None, help="workspace (default SCENE_DIR/colmap_guided)")
@@ -30,6 +30,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--features", default=features.default_conf["type"], choices=sorted(features.FEATURE_TYPES), help="sift (COLMAP's, default) or aliked (learned, paper §4.4)")
     rec.add_argument("--aliked_weights", type=Path, default=None, help="aliked-n16rot.pth (default: $COLMAP_GUIDED_ALIKED_WEIGHTS or ../shared/weights)")
     rec.add_argument("--overwrite", action="store_true", help="delete the workspace and start fresh")
+    rec.add_argument("--mapper", default=mapping.default_conf["mapper"], choices=mapping.MAPPERS, help="auto (global and incremental, the better checked model), incremental (COLMAP's mapper), global (GLOMAP) or hierarchical (thousands of photos)")
+    rec.add_argument("--seed", type=int, default=mapping.default_conf["random_seed"], help="random seed of the mapper (-1: unseeded)")
+    rec.add_argument("--threads", type=int, default=mapping.default_conf["num_threads"], help="mapping threads (-1: all cores; 1: the same model on every rerun)")
     match.add_matcher_arguments(rec)
     _add_common(rec)
 
@@ -109,6 +112,7 @@ def main(argv=None) -> int:
                 matcher_conf=match.matcher_conf_from_args(args, matcher),
                 pairs_path=args.pairs,
                 feature_conf={"camera_mode": args.camera_mode, "camera_model": args.camera_model, "type": args.features, "aliked": {"weights": str(args.aliked_weights)} if args.aliked_weights else {}},
+                mapping_conf={"mapper": args.mapper, "random_seed": args.seed, "num_threads": args.threads},
                 overwrite=args.overwrite,
                 match_options=match.match_options_from_args(args),
             )

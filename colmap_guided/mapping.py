@@ -1,7 +1,15 @@
-"""Stage 5: COLMAP's incremental mapping on the verified database (pycolmap.incremental_mapping).
+"""Stage 5: mapping the verified database with COLMAP — incremental, global (GLOMAP) or hierarchical.
 
-Models are written to a temporary folder and moved into OUTPUT/sparse/N only when mapping finished,
-so a killed run never leaves a half-written model; a rerun maps again from the (complete) database.
+``mapper``: 'auto' (default: global and incremental mapping both run, the larger largest model that
+passes the model check is kept, global on ties), 'incremental' (pycolmap.incremental_mapping, COLMAP's `mapper`), 'global'
+(pycolmap.global_mapping: rotation averaging + global positioning, then bundle adjustment) or
+'hierarchical' (pycolmap.hierarchical_mapping: the view graph cut into overlapping clusters mapped
+incrementally and merged; for thousands of photos). Seeded by default; with ``num_threads=1`` a rerun
+on the same database gives the same model (more threads: runs may differ slightly).
+
+Models are written to a temporary folder and moved into OUTPUT/sparse/N (largest first) only when
+mapping finished, so a killed run never leaves a half-written model; a rerun maps the (complete)
+database again.
 """
 
 from __future__ import annotations
@@ -11,24 +19,101 @@ from pathlib import Path
 
 import pycolmap
 
+from . import model_check
 from .log import colmap_quiet, logger
 
-default_conf = {"random_seed": 0, "min_model_size": 3, "num_threads": -1}
+MAPPERS = ("auto", "incremental", "global", "hierarchical")
+default_conf = {
+    # 'auto' | 'incremental' | 'global' | 'hierarchical' (module docstring). Measured (recon_scripts/benchmark_pipeline.py,
+    # 2 seeds): global >= incremental on every shared set (sacre_coeur guided 10/10 vs 3/10, opensfm_lund 29/29 vs
+    # 14-24/29), but it drops a photo whose only strong pair is planar (synthetic scene: 7/8, incremental 8/8).
+    "mapper": "auto",
+    "random_seed": 0,  # seeds every random choice of the mapper; -1 = COLMAP's unseeded default
+    "num_threads": -1,  # -1 = all cores; 1 = the same model on every rerun
+    "min_model_size": 3,  # keep models of at least this many images (COLMAP: 10 incremental, 3 global)
+    "min_num_matches": 15,  # a verified pair joins the view graph with at least this many inliers (COLMAP's)
+    # Incremental (and hierarchical) thresholds for thin view graphs; COLMAP's defaults in brackets.
+    "init_min_num_inliers": 50,  # inliers of the initial pair [100]: a ring of ~50-inlier pairs can start a model
+    "abs_pose_min_num_inliers": 15,  # 2D-3D inliers to register a photo [30]: a ring's next photo sees ~25 points
+}
 
 
-def incremental_mapping(database_path: Path, image_path: Path, sparse_path: Path, conf: dict | None = None) -> dict[int, pycolmap.Reconstruction]:
-    conf = {**default_conf, **(conf or {})}
+def check_conf(conf: dict | None) -> dict:
+    """``default_conf`` updated with ``conf``; an unknown key or mapper is a one-line ValueError."""
+    conf = conf or {}
+    unknown = sorted(set(conf) - set(default_conf))
+    if unknown:
+        raise ValueError(f"Unknown mapping option(s) {unknown}; known: {sorted(default_conf)}")
+    conf = {**default_conf, **conf}
+    if conf["mapper"] not in MAPPERS:
+        raise ValueError(f"Unknown mapper {conf['mapper']!r}; choose one of {list(MAPPERS)}.")
+    return conf
+
+
+def _pipeline_options(options, conf: dict):
+    """The options that incremental and global pipelines share, set from ``conf``."""
+    for key in ("num_threads", "min_model_size", "min_num_matches"):
+        setattr(options, key, conf[key])
+    return options
+
+
+def _incremental_options(conf: dict) -> pycolmap.IncrementalPipelineOptions:
+    options = _pipeline_options(pycolmap.IncrementalPipelineOptions(), conf)
+    options.mapper.init_min_num_inliers = conf["init_min_num_inliers"]
+    options.mapper.abs_pose_min_num_inliers = conf["abs_pose_min_num_inliers"]
+    for seeded in (options, options.mapper, options.triangulation):
+        seeded.random_seed = conf["random_seed"]
+    return options
+
+
+def _global_options(conf: dict) -> pycolmap.GlobalPipelineOptions:
+    options = _pipeline_options(pycolmap.GlobalPipelineOptions(), conf)
+    mapper = options.mapper
+    for seeded in (options, mapper, mapper.rotation_averaging, mapper.global_positioning, mapper.retriangulation):
+        seeded.random_seed = conf["random_seed"]
+    return options
+
+
+def _auto(conf: dict, database_path: Path, image_path: Path, out: Path) -> dict[int, pycolmap.Reconstruction]:
+    """Global and incremental mapping; the larger largest model among those passing the model check."""
+    scored = []
+    for mapper in ("global", "incremental"):
+        (out / mapper).mkdir()
+        models = _run({**conf, "mapper": mapper}, database_path, image_path, out / mapper)
+        largest = max(models.values(), key=lambda rec: rec.num_reg_images(), default=None)
+        ok = largest is not None and not model_check.check_model(largest)
+        scored.append(((ok, largest.num_reg_images() if largest else 0), mapper, models))
+        logger.info("%s mapping: %d images in the largest model, model check %s", mapper, scored[-1][0][1], "ok" if ok else "failed")
+    return max(scored, key=lambda item: item[0])[2]  # global first on ties
+
+
+def _run(conf: dict, database_path: Path, image_path: Path, out: Path) -> dict[int, pycolmap.Reconstruction]:
+    args = (str(database_path), str(image_path), str(out))
+    if conf["mapper"] == "auto":
+        return _auto(conf, database_path, image_path, out)
+    if conf["mapper"] == "global":
+        return pycolmap.global_mapping(*args, _global_options(conf))
+    if conf["mapper"] == "hierarchical":
+        options = pycolmap.HierarchicalPipelineOptions()
+        options.num_threads = conf["num_threads"]
+        options.num_workers = 1 if conf["num_threads"] == 1 else -1  # one cluster at a time: reproducible
+        options.incremental_options = _incremental_options(conf)
+        return pycolmap.hierarchical_mapping(*args, options)
+    return pycolmap.incremental_mapping(*args, _incremental_options(conf))
+
+
+def run_mapping(database_path: Path, image_path: Path, sparse_path: Path, conf: dict | None = None) -> dict[int, pycolmap.Reconstruction]:
+    """Map the database with ``conf['mapper']``; models in ``sparse_path``/0, 1, ... largest first."""
+    conf = check_conf(conf)
     sparse_path = Path(sparse_path)
     tmp = sparse_path.with_name(sparse_path.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    options = pycolmap.IncrementalPipelineOptions()
-    options.random_seed = conf["random_seed"]
-    options.min_model_size = conf["min_model_size"]
-    options.num_threads = conf["num_threads"]
-    logger.info("Incremental mapping")
+    if conf["random_seed"] >= 0:
+        pycolmap.set_random_seed(conf["random_seed"])
+    logger.info("%s mapping", conf["mapper"].capitalize())
     with colmap_quiet():
-        models = pycolmap.incremental_mapping(str(database_path), str(image_path), str(tmp), options)
+        models = _run(conf, database_path, image_path, tmp)
     # Largest model first, as sparse/0, like COLMAP users expect to find it.
     ordered = sorted(models.values(), key=lambda rec: rec.num_reg_images(), reverse=True)
     shutil.rmtree(tmp, ignore_errors=True)
@@ -40,6 +125,11 @@ def incremental_mapping(database_path: Path, image_path: Path, sparse_path: Path
         shutil.rmtree(sparse_path)
     tmp.rename(sparse_path)
     return dict(enumerate(ordered))
+
+
+def incremental_mapping(database_path: Path, image_path: Path, sparse_path: Path, conf: dict | None = None) -> dict[int, pycolmap.Reconstruction]:
+    """COLMAP's incremental mapper alone (``run_mapping`` with mapper 'incremental')."""
+    return run_mapping(database_path, image_path, sparse_path, {**(conf or {}), "mapper": "incremental"})
 
 
 def load_models(sparse_path: Path) -> dict[int, pycolmap.Reconstruction]:

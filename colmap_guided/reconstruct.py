@@ -1,6 +1,6 @@
-"""The whole pipeline: images → SIFT → pairs → (guided) matching → verification → mapping → report.
+"""The whole pipeline: images → SIFT → pairs → (guided) matching → verification → mapping → model check → report.
 
-    python -m colmap_guided reconstruct SCENE_DIR [--matcher guided|raw|...] [--output DIR]
+    python -m colmap_guided reconstruct SCENE_DIR [--matcher guided|raw|...] [--mapper incremental|global|hierarchical] [--output DIR]
 
 Photos are read from SCENE_DIR/images (or --image_path) and never written to. Everything the run makes
 goes to the workspace (SCENE_DIR/colmap_guided, or --output): database.db, sparse/N, report.json, report.html.
@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from . import database as dbio
-from . import export, features, html_report, mapping, match, report
+from . import export, features, html_report, mapping, match, model_check, report
 from .log import logger
 from .matchers import DEFAULT_MATCHER, Matcher, get_matcher
 
@@ -50,6 +50,7 @@ def reconstruct(
     """``pairs_path``: a pairs file or auto|exhaustive|retrieval|sequential; ``match_options``: further
     keyword arguments of ``match.match_database`` (num_neighbors, executor, ray_address)."""
     image_path, output = resolve_paths(scene_dir, image_path, output)
+    mapping_conf = mapping.check_conf(mapping_conf)  # a wrong option fails now, not after matching
     image_names = features.list_images(image_path)
     # The matcher first: a missing or broken --weights file fails now, not after the extraction.
     feature_conf = features.check_conf(feature_conf)  # also a missing --aliked_weights file
@@ -81,10 +82,13 @@ def reconstruct(
 
     start = time.time()
     sparse_path = output / "sparse"
-    models = mapping.incremental_mapping(database_path, image_path, sparse_path, mapping_conf)
+    models = mapping.run_mapping(database_path, image_path, sparse_path, mapping_conf)
     timings["map"] = time.time() - start
 
     stats = report.model_statistics(models, image_names)
+    checked = model_check.check_models(models)
+    for problem in checked["problems"]:
+        logger.warning("Model check: %s", problem)
     eras = report.read_manifest(Path(scene_dir) / "manifest.json")
     result = {
         "scene": Path(scene_dir).resolve().name,
@@ -93,8 +97,9 @@ def reconstruct(
         "sparse_path": str(sparse_path),
         "report_path": str(output / "report.json"),
         "matcher": match_stats.pop("matcher"),
-        "options": {"features": feature_conf, "verification": match_stats.pop("verification"), "mapping": {**mapping.default_conf, **(mapping_conf or {})}, "pairs": match_stats.pop("pairs")},
+        "options": {"features": feature_conf, "verification": match_stats.pop("verification"), "mapping": mapping_conf, "pairs": match_stats.pop("pairs")},
         "model": stats,
+        "model_check": checked,
         "eras": report.era_ratios(eras, stats["registered_images"], image_names) if eras else {},
         "database": match_stats,
         "skipped_images": extraction["skipped"],

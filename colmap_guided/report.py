@@ -157,6 +157,9 @@ def summary_text(report: dict) -> str:
         f"Registered {s['num_registered']}/{s['num_images']} images ({100 * s['registered_ratio']:.0f} %) in the largest of {s['num_models']} model(s)",
         f"3D points: {s['num_points3D']}, mean track length {s['mean_track_length']:.2f}, mean reprojection error {s['mean_reprojection_error']:.2f} px",
     ]
+    problems = (report.get("model_check") or {}).get("problems", [])
+    if problems:
+        lines.append(f"WARNING: the model check found {len(problems)} problem(s), e.g. {problems[0]} (all in report.json, model_check)")
     for era, r in report.get("eras", {}).items():
         lines.append(f"  {era}: {r['num_registered']}/{r['num_images']} registered ({100 * r['registered_ratio']:.0f} %)")
     skipped = report.get("skipped_images") or {}

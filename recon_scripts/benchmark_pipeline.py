@@ -1,9 +1,15 @@
-"""Benchmark: pycolmap's default pipeline vs `reconstruct --matcher M` on the same images, in one run.
+"""Benchmark: pycolmap's default pipeline vs `reconstruct` (matcher x mapper x seed) on the same images, in one run.
 
-    python recon_scripts/benchmark_pipeline.py [--sets sacre_coeur_hloc opensfm_lund ...] [--matchers raw guided]
+    python recon_scripts/benchmark_pipeline.py [--sets sacre_coeur_hloc opensfm_lund ...] [--matchers raw guided guided:raw_matches=none]
+        [--mappers incremental global] [--seeds 0 1]
 
-Prints per set: registered images (largest model), 3D points, wall time per stage, and the time ratio of
-each matcher's pipeline to the default one (measured in the same run, same machine). Writes JSON.
+Per set and seed round: pycolmap's default pipeline (extract_features + match_exhaustive +
+incremental_mapping, default options, unseeded: its own run-to-run spread), the same database mapped
+by each --mapper (seeded), and each matcher's `reconstruct`: matched once, then mapped by each mapper
+with each seed (matching and verification are deterministic, so the database is shared). Prints
+registered images (largest model), images whose pose agrees with the set's reference model (where it
+has one: lund_door_gtsfm), the model check, 3D points and the time ratio to the default pipeline of the
+same round (extract + match + verify + that mapping). Writes JSON.
 """
 
 from __future__ import annotations
@@ -12,55 +18,98 @@ import argparse
 import json
 import shutil
 import tempfile
+import time
 from pathlib import Path
 
-from colmap_guided import features, report
+from colmap_guided import features, model_check, report
 from colmap_guided.database import num_verified_pairs, open_database
-from colmap_guided.evaluation.registration import run_pycolmap_default
+from colmap_guided.evaluation import matcher_specs
+from colmap_guided.evaluation.reference import load_colmap_model, reference_model_dir
+from colmap_guided.evaluation.registration import method_slug, run_pycolmap_default, score_registration
 from colmap_guided.log import set_verbosity
+from colmap_guided.mapping import MAPPERS, load_models, run_mapping
 from colmap_guided.paths import shared_data_dir
 from colmap_guided.reconstruct import reconstruct
 
 DEFAULT_SETS = ["sacre_coeur_hloc", "sceaux_castle", "opensfm_lund", "phototourism_superglue", "gtsfm_1dsfm_sample", "lund_door_gtsfm", "opensfm_berlin"]
 
 
-def run_default(image_path: Path, work: Path, camera_mode: str) -> dict:
-    """extract_features + match_exhaustive + incremental_mapping with pycolmap's defaults."""
-    models, timings = run_pycolmap_default(image_path, work, camera_mode)
-    with open_database(work / "database.db") as database:
-        verified = num_verified_pairs(database)
-    return {"timings": timings, "num_verified_pairs": verified, **report.model_statistics(models, features.list_images(image_path))}
+def summarize(models: dict, image_names: list[str], reference, timings: dict, verified: int) -> dict:
+    stats = report.model_statistics(models, image_names)
+    largest = max(models.values(), key=lambda rec: rec.num_reg_images(), default=None)
+    score = score_registration(largest, [{"name": n, "era": "modern"} for n in image_names], reference) if reference else {}
+    checked = model_check.check_models(models)
+    return {"timings": timings, "num_verified_pairs": verified, "correct": score.get("correct"), "wrong": score.get("wrong"),
+            "model_check": checked, **stats}
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sets", nargs="+", default=DEFAULT_SETS)
-    parser.add_argument("--matchers", nargs="+", default=["raw"])
+    parser.add_argument("--matchers", nargs="+", default=["guided"], help="matcher specs, e.g. guided guided:raw_matches=none raw")
+    parser.add_argument("--mappers", nargs="+", default=["incremental", "global"], choices=MAPPERS)
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0])
+    parser.add_argument("--threads", type=int, default=-1, help="mapping threads (1: each seeded run repeats exactly)")
     parser.add_argument("--camera_mode", default="auto")
     parser.add_argument("--output", type=Path, default=Path("outputs/benchmark_pipeline.json"))
     args = parser.parse_args(argv)
     set_verbosity(quiet=True)
+    specs = [matcher_specs.parse_spec(text) for text in args.matchers]  # unknown options: the matcher raises
     rows, results = [], {}
+
+    def add(name, seed, label, stats, base_time):
+        total = sum(stats["timings"].values())
+        rows.append((name, seed, label, stats, total, total / base_time))
+        results.setdefault(name, {}).setdefault(str(seed), {})[label] = stats
+        print(row_markdown(rows[-1]), flush=True)  # as it comes: a run stopped early keeps its rows
+        args.output.parent.mkdir(parents=True, exist_ok=True)
+        args.output.write_text(json.dumps(results, indent=2, default=str))
+
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.sets:
             image_path = shared_data_dir() / name / "images"
-            base = run_default(image_path, Path(tmp) / name / "default", args.camera_mode)
-            base_time = sum(base["timings"].values())
-            results[name] = {"default": base}
-            rows.append((name, "pycolmap default", base, base_time, 1.0))
-            for matcher in args.matchers:
-                res = reconstruct(image_path.parent, image_path=image_path, output=Path(tmp) / name / matcher, matcher=matcher, feature_conf={"camera_mode": args.camera_mode})
-                total = sum(res["timings"].values())
-                results[name][matcher] = {"timings": res["timings"], "num_verified_pairs": res["database"]["num_verified_pairs"], **res["model"]}
-                rows.append((name, matcher, res["model"] | {"num_verified_pairs": res["database"]["num_verified_pairs"]}, total, total / base_time))
-            shutil.rmtree(Path(tmp) / name, ignore_errors=True)
-    print(f"\nPipeline benchmark, camera_mode={args.camera_mode} (time ratio = total wall time / pycolmap default's, same run)\n")
-    print("| set | pipeline | verified pairs | registered | 3D points | reproj. px | total s | time ratio |")
-    print("|---|---|---|---|---|---|---|---|")
-    for name, label, stats, total, ratio in rows:
-        print(f"| {name} | {label} | {stats['num_verified_pairs']} | {stats['num_registered']}/{stats['num_images']} | {stats['num_points3D']} | {stats['mean_reprojection_error']:.2f} | {total:.1f} | {ratio:.2f} |")
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(json.dumps(results, indent=2, default=str))
+            names = features.list_images(image_path)
+            ref_dir = reference_model_dir(name)
+            reference = load_colmap_model(ref_dir) if ref_dir else None
+            work = Path(tmp) / name
+            base_times = {}
+            for seed in args.seeds:
+                models, timings = run_pycolmap_default(image_path, work / f"default_{seed}", args.camera_mode)
+                with open_database(work / f"default_{seed}" / "database.db") as database:
+                    verified = num_verified_pairs(database)
+                base_times[seed] = sum(timings.values())
+                add(name, seed, "pycolmap default", summarize(models, names, reference, timings, verified), base_times[seed])
+                for mapper in args.mappers:  # pycolmap's database, our mapping
+                    start = time.time()
+                    models = run_mapping(work / f"default_{seed}" / "database.db", image_path, work / f"default_{seed}" / mapper, {"mapper": mapper, "random_seed": seed, "num_threads": args.threads})
+                    t = {**{k: v for k, v in timings.items() if k != "map"}, "map": time.time() - start}
+                    add(name, seed, f"pycolmap matching + {mapper}", summarize(models, names, reference, t, verified), base_times[seed])
+            for spec in specs:
+                out = work / method_slug(spec.label)
+                first = {"mapper": args.mappers[0], "random_seed": args.seeds[0], "num_threads": args.threads}
+                res = reconstruct(image_path.parent, image_path=image_path, output=out, matcher=matcher_specs.build(spec), feature_conf={"camera_mode": args.camera_mode}, mapping_conf=first)
+                verified = res["database"]["num_verified_pairs"]
+                for seed in args.seeds:
+                    for mapper in args.mappers:
+                        if (mapper, seed) == (args.mappers[0], args.seeds[0]):
+                            models, timings = load_models(out / "sparse"), res["timings"]
+                        else:
+                            start = time.time()
+                            models = run_mapping(out / "database.db", image_path, out / f"sparse_{mapper}_{seed}", {"mapper": mapper, "random_seed": seed, "num_threads": args.threads})
+                            timings = {**res["timings"], "map": time.time() - start}
+                        add(name, seed, f"{spec.label} + {mapper}", summarize(models, names, reference, timings, verified), base_times[seed])
+            shutil.rmtree(work, ignore_errors=True)
+    print(f"\nPipeline benchmark, camera_mode={args.camera_mode}, mapping threads {args.threads} (time ratio = total wall time / pycolmap default's, same set and seed round)\n")
+    print("| set | seed | pipeline | verified pairs | registered | correct (reference) | model check | 3D points | total s | time ratio |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("\n".join(row_markdown(row) for row in rows))
+
+
+def row_markdown(row: tuple) -> str:
+    name, seed, label, stats, total, ratio = row
+    correct = "–" if stats["correct"] is None else f"{stats['correct']}"
+    check = "ok" if stats["model_check"]["ok"] else f"{len(stats['model_check']['problems'])} problem(s)"
+    return f"| {name} | {seed} | {label} | {stats['num_verified_pairs']} | {stats['num_registered']}/{stats['num_images']} | {correct} | {check} | {stats['num_points3D']} | {total:.1f} | {ratio:.2f} |"
 
 
 if __name__ == "__main__":

@@ -330,13 +330,13 @@ def test_guided_matcher_weights_fallback_is_loud(tmp_path):
         get_matcher("guided", {"device": "cpu", "weights": str(tmp_path / "missing.safetensors")})
 
 
-def test_keep_raw_adds_raw_matches_of_unmatched_keypoints_only(photo_pair):
-    """keep_raw: the guided matches, plus raw matches whose keypoints guidance left unmatched; one-to-one."""
+def test_raw_merge_adds_raw_matches_of_unmatched_keypoints_only(photo_pair):
+    """raw_matches="merge": the guided matches, plus raw matches whose keypoints guidance left unmatched; one-to-one."""
     a, b, _ = photo_pair
-    guided = get_matcher("guided", {"device": "cpu"})
+    guided = get_matcher("guided", {"device": "cpu", "raw_matches": None})
     flows = guided.coarse_flows(a, b)
     only = guided.match_flows(a, b, flows).astype(np.int64)
-    both = guided.match_flows(a, b, flows, keep_raw=True).astype(np.int64)
+    both = guided.match_flows(a, b, flows, raw_matches="merge").astype(np.int64)
     raw = get_matcher("raw", {"device": "cpu"}).match(a, b).astype(np.int64)
     assert {tuple(m) for m in only} <= {tuple(m) for m in both} <= {tuple(m) for m in only} | {tuple(m) for m in raw}
     assert len(np.unique(both[:, 0])) == len(both) and len(np.unique(both[:, 1])) == len(both)
@@ -393,3 +393,31 @@ def test_default_camera_is_the_one_colmaps_feature_extractor_writes(synthetic_sc
     ours = verify.default_camera(camera.width, camera.height)
     assert ours.model == camera.model and ours.width == camera.width and ours.height == camera.height
     np.testing.assert_allclose(ours.params, camera.params)
+
+
+def test_raw_matches_verified_never_loses_what_raw_matching_verifies(photo_pair):
+    """raw_matches='verified' (default): with the coarse flow wrong across the whole pair (shifted by 120 px),
+    guided matching alone verifies little, and the matcher keeps the raw side's verified inliers instead;
+    with the right flow it verifies at least as many inliers as the better side."""
+    import dataclasses
+
+    from colmap_guided import verify
+
+    a, b, _ = photo_pair
+    guided = get_matcher("guided", {"device": "cpu"})
+    assert guided.conf["raw_matches"] == "verified"
+    options = verify.two_view_options(guided.verification_conf)
+
+    def inliers(matches):
+        cam_a, cam_b = verify.default_camera(a.width, a.height), verify.default_camera(b.width, b.height)
+        return len(verify.verify_pair(cam_a, a.keypoints, cam_b, b.keypoints, matches, options).inlier_matches)
+
+    raw = inliers(get_matcher("raw", {"device": "cpu"}).match(a, b))
+    right = guided.coarse_flows(a, b)
+    wrong = dataclasses.replace(right, flow_ab=right.flow_ab + 120.0, flow_ba=right.flow_ba - 120.0)
+    guided_only = {name: inliers(guided.match_flows(a, b, flows, raw_matches=None)) for name, flows in (("right", right), ("wrong", wrong))}
+    assert guided_only["wrong"] < raw / 4 and raw > 100
+    assert inliers(guided.match_flows(a, b, wrong)) >= raw
+    assert inliers(guided.match_flows(a, b, right)) >= max(raw, guided_only["right"])
+    with pytest.raises(ValueError, match="raw_matches must be"):
+        get_matcher("guided", {"device": "cpu", "raw_matches": "union"})

@@ -20,8 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from colmap_guided import verify
 from colmap_guided.coarse import CoarseMatcher
-from colmap_guided.log import logger
+from colmap_guided.log import colmap_quiet, logger
 from colmap_guided.matchers.base import ImageData, Matcher
 from colmap_guided.matchers.raw import mutual_nn_match, normalize_descriptors, ratio_pass, resolve_device
 
@@ -232,7 +233,11 @@ class GuidedMatcher(Matcher):
         "window_cells": 1.0,  # W of eq. 1 in coarse cells (1 cell = 16 px at the network input scale, as the paper)
         "ratio": 0.8,  # Lowe's ratio among the candidates, both directions; None = off
         "min_inliers": 25,  # two-view verification of guided pairs: at least this many inliers (COLMAP: 15)
-        "keep_raw": False,  # also keep raw matches (mutual NN + ratio) of keypoints that guidance left unmatched
+        # Raw matches (mutual NN + ratio) beside the guided ones, for pairs where the coarse flow is wrong:
+        # 'verified': verify guided, raw and (when both verify) the union of their inliers, keep the one
+        # with the most verified inliers (the pipeline's verification, >= min_inliers);
+        # 'merge': add raw matches of keypoints that guidance left unmatched, unverified; None: guided only.
+        "raw_matches": "verified",
         "max_fb_cells": None,  # drop keypoints whose coarse forward-backward error exceeds this many cells
         "min_score": None,  # drop keypoints whose coarse match score (softmax probability) is below this
         "device": "auto",
@@ -246,6 +251,8 @@ class GuidedMatcher(Matcher):
         self.verification_conf = {"min_num_inliers": self.conf["min_inliers"]}  # read by match.match_database
         coarse_conf = {**self.conf["coarse"], "device": str(self.device), "weights": self.conf["weights"]}
         mode = self.conf["mode"]
+        if self.conf["raw_matches"] not in (None, "merge", "verified"):
+            raise ValueError(f"raw_matches must be None, 'merge' or 'verified', got {self.conf['raw_matches']!r}")
         if mode not in ("auto", "filter", "raw"):
             raise ValueError(f"mode must be 'auto', 'filter' or 'raw', got {mode!r}")
         if mode == "auto":
@@ -323,9 +330,31 @@ class GuidedMatcher(Matcher):
             valid(flows.score_ba, flows.fb_ba, flows.cell_a),
             conf["max_pairs"],
         ).cpu()
-        if conf["keep_raw"]:
+        if conf["raw_matches"] == "merge":
             m = merge_matches(m, mutual_nn_match(da, db, conf["ratio"]).cpu())
+        elif conf["raw_matches"] == "verified":
+            m = self.verified_best(a, b, m, mutual_nn_match(da, db, conf["ratio"]).cpu())
         return m.numpy().astype(np.uint32)
+
+    def verified_best(self, a: ImageData, b: ImageData, guided: torch.Tensor, raw: torch.Tensor) -> torch.Tensor:
+        """Never lose what raw matching finds: verify the guided and the raw matches (the pipeline's
+        verification, this matcher's min_inliers) and, when both verify, the union of their inliers; return
+        the candidate with the most verified inliers (guided on ties). Verification is deterministic, so the
+        pipeline's own verification of the returned matches finds the same inliers."""
+        options = verify.two_view_options(self.verification_conf)
+        cam_a, cam_b = (im.camera or verify.default_camera(im.width, im.height) for im in (a, b))
+
+        def inliers(m: torch.Tensor) -> torch.Tensor:
+            geometry = verify.verify_pair(cam_a, a.keypoints, cam_b, b.keypoints, m.numpy().astype(np.uint32), options)
+            return torch.from_numpy(np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2))
+
+        with colmap_quiet():
+            candidates = [guided, raw]
+            found = [inliers(m) for m in candidates]
+            if len(found[0]) and len(found[1]):
+                candidates.append(merge_matches(*found))
+                found.append(inliers(candidates[-1]))
+        return candidates[max(range(len(found)), key=lambda k: (len(found[k]), -k))]
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
         return self.match_flows(a, b, self.coarse_flows(a, b))

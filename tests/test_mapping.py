@@ -1,0 +1,127 @@
+"""Mapping (incremental / global / hierarchical, seeded, thin view graphs) and the model check (issue 17)."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pycolmap
+import pytest
+
+from colmap_guided.mapping import MAPPERS, check_conf, run_mapping
+from colmap_guided.model_check import check_models
+from colmap_guided.synthetic import pose_errors
+
+NUM_FRAMES = 12
+
+
+@pytest.fixture(scope="module")
+def thin_chain(tmp_path_factory) -> str:
+    """A chain of 12 photos in which each point is seen by 3 consecutive photos only: neighbours share 50
+    verified inliers, second neighbours 25 (a thin but correct view graph, like a ring of archival views)."""
+    path = tmp_path_factory.mktemp("thin") / "database.db"
+    options = pycolmap.SyntheticDatasetOptions()
+    options.num_rigs, options.num_cameras_per_rig, options.num_frames_per_rig = 1, 1, NUM_FRAMES
+    options.num_points3D = 25 * NUM_FRAMES
+    options.match_config = pycolmap.SyntheticDatasetMatchConfig.CHAINED
+    pycolmap.set_random_seed(0)
+    with pycolmap.Database.open(str(path)) as db:
+        gt = pycolmap.synthesize_dataset(options, db)
+        ids = sorted(gt.reg_image_ids(), key=lambda i: gt.images[i].name)
+        window = {pid: k % NUM_FRAMES for k, pid in enumerate(sorted(gt.points3D))}  # first photo that sees it
+        for i in range(NUM_FRAMES - 1):
+            a, b = ids[i], ids[i + 1]
+            in_b = {p.point3D_id: k for k, p in enumerate(gt.images[b].points2D) if p.has_point3D()}
+            keep = [(k, in_b[p.point3D_id]) for k, p in enumerate(gt.images[a].points2D)
+                    if p.has_point3D() and p.point3D_id in in_b and window[p.point3D_id] <= i <= window[p.point3D_id] + 1]
+            geometry = db.read_two_view_geometry(a, b)
+            geometry.inlier_matches = np.array(keep, np.uint32)
+            db.delete_matches(a, b)
+            db.delete_two_view_geometry(a, b)
+            db.write_matches(a, b, geometry.inlier_matches)
+            db.write_two_view_geometry(a, b, geometry)
+        inliers = [len(db.read_two_view_geometry(ids[i], ids[i + 1]).inlier_matches) for i in range(1, NUM_FRAMES - 1)]
+    assert set(inliers) == {50}
+    return str(path)
+
+
+def test_colmap_thresholds_break_the_thin_chain(thin_chain, tmp_path):
+    """The test can fail: COLMAP's registration threshold (30 2D-3D inliers) stops at the initial pair."""
+    options = pycolmap.IncrementalPipelineOptions()
+    options.min_model_size, options.num_threads, options.random_seed = 2, 1, 0
+    models = pycolmap.incremental_mapping(thin_chain, str(tmp_path), str(tmp_path), options)
+    assert max((m.num_reg_images() for m in models.values()), default=0) < NUM_FRAMES
+
+
+@pytest.mark.parametrize("mapper", MAPPERS)
+def test_every_mapper_registers_the_thin_chain(thin_chain, tmp_path, mapper):
+    models = run_mapping(thin_chain, tmp_path, tmp_path / "sparse", {"mapper": mapper, "num_threads": 1})
+    assert models[0].num_reg_images() == NUM_FRAMES
+    assert sorted(p.name for p in (tmp_path).iterdir()) == ["sparse"]  # no .partial left
+    assert pycolmap.Reconstruction(str(tmp_path / "sparse" / "0")).num_reg_images() == NUM_FRAMES
+
+
+@pytest.mark.parametrize("mapper", ["incremental", "global"])
+def test_seeded_single_thread_mapping_repeats_exactly(thin_chain, tmp_path, mapper):
+    poses = []
+    for run in range(2):
+        models = run_mapping(thin_chain, tmp_path, tmp_path / f"sparse{run}", {"mapper": mapper, "num_threads": 1, "random_seed": 7})
+        rec = models[0]
+        poses.append({rec.images[i].name: rec.images[i].cam_from_world().matrix() for i in rec.reg_image_ids()})
+    assert poses[0].keys() == poses[1].keys()
+    for name in poses[0]:
+        np.testing.assert_array_equal(poses[0][name], poses[1][name])
+
+
+def test_mapping_conf_is_strict():
+    with pytest.raises(ValueError, match=r"Unknown mapping option\(s\) \['min_modelsize'\]") as err:
+        check_conf({"min_modelsize": 3})
+    assert "\n" not in str(err.value)
+    with pytest.raises(ValueError, match="Unknown mapper 'glomap'"):
+        check_conf({"mapper": "glomap"})
+
+
+def test_cli_global_mapping(synthetic_scene, tmp_path):
+    """`reconstruct --mapper global --seed 3 --threads 1`: true poses, the options in report.json. Global
+    mapping leaves out view_007, whose only strong pair is planar (149 inliers to view_006; 17 to
+    view_005), where incremental mapping registers all 8."""
+    out = tmp_path / "out"
+    run = subprocess.run(
+        [sys.executable, "-m", "colmap_guided", "reconstruct", str(synthetic_scene.image_dir.parent), "--output", str(out),
+         "--matcher", "raw", "--mapper", "global", "--seed", "3", "--threads", "1", "--quiet"],
+        capture_output=True, text=True,
+    )
+    assert run.returncode == 0, run.stderr
+    result = json.loads((out / "report.json").read_text())
+    assert result["num_registered"] >= len(synthetic_scene.names) - 1
+    errors = pose_errors(pycolmap.Reconstruction(str(out / "sparse" / "0")), synthetic_scene)
+    registered = [e for e in errors.values() if np.isfinite(e[0])]
+    assert len(registered) == result["num_registered"] and max(e[0] for e in registered) < 1.0, errors
+    assert {k: result["options"]["mapping"][k] for k in ("mapper", "random_seed", "num_threads")} == {"mapper": "global", "random_seed": 3, "num_threads": 1}
+    assert result["model_check"]["ok"], result["model_check"]
+    bad = subprocess.run([sys.executable, "-m", "colmap_guided", "reconstruct", str(tmp_path), "--mapper", "glomap"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "invalid choice: 'glomap'" in bad.stderr
+
+
+@pytest.fixture()
+def lund_door(shared_data) -> pycolmap.Reconstruction:
+    return pycolmap.Reconstruction(str(shared_data / "lund_door_gtsfm" / "colmap_ground_truth"))
+
+
+def test_model_check_passes_a_real_model_and_flags_a_corrupted_focal(lund_door):
+    assert check_models({0: lund_door}) == {"ok": True, "problems": [], "conf": check_models({})["conf"]}
+    camera = next(iter(lund_door.cameras.values()))  # the model's own camera object: edited in place
+    camera.params = [camera.params[0] * 1000, *camera.params[1:]]  # 2.4 million px: an orthographic camera
+    checked = check_models({0: lund_door})
+    assert not checked["ok"]
+    focal = [p for p in checked["problems"] if "focal length" in p]
+    assert len(focal) == 1 and focal[0].startswith("sparse/0: focal length 2435380 px") and "DSC_0001.JPG" in focal[0]
+
+
+def test_model_check_flags_a_pose_jump(lund_door):
+    image = next(im for im in lund_door.images.values() if im.name == "DSC_0005.JPG")
+    frame = lund_door.frames[image.frame_id]
+    turn = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([np.sin(np.pi / 4), 0, 0, np.cos(np.pi / 4)])), np.zeros(3))  # 90° about x
+    frame.rig_from_world = turn * frame.rig_from_world
+    problems = check_models({0: lund_door})["problems"]
+    assert any("pose jump" in p and "DSC_0005.JPG" in p for p in problems), problems
