@@ -1,7 +1,7 @@
 """Stage 5: mapping the verified database with COLMAP — incremental, global (GLOMAP) or hierarchical.
 
 ``mapper``: 'auto' (default: global and incremental mapping both run, the larger largest model that
-passes the model check is kept, global on ties), 'incremental' (pycolmap.incremental_mapping, COLMAP's `mapper`), 'global'
+passes the model check is kept, incremental on ties), 'incremental' (pycolmap.incremental_mapping, COLMAP's `mapper`), 'global'
 (pycolmap.global_mapping: rotation averaging + global positioning, then bundle adjustment) or
 'hierarchical' (pycolmap.hierarchical_mapping: the view graph cut into overlapping clusters mapped
 incrementally and merged; for thousands of photos). Seeded by default; with ``num_threads=1`` a rerun
@@ -26,7 +26,9 @@ MAPPERS = ("auto", "incremental", "global", "hierarchical")
 default_conf = {
     # 'auto' | 'incremental' | 'global' | 'hierarchical' (module docstring). Measured (recon_scripts/benchmark_pipeline.py,
     # 2 seeds): global >= incremental on every shared set (sacre_coeur guided 10/10 vs 3/10, opensfm_lund 29/29 vs
-    # 14-24/29), but it drops a photo whose only strong pair is planar (synthetic scene: 7/8, incremental 8/8).
+    # 14-24/29), but it drops a photo whose only strong pair is planar (synthetic scene: 7/8, incremental 8/8),
+    # and on a short, nearly straight walk (strecha_entry_P10, 4 photos) it registers all of them on wrong
+    # poses where incremental is right: hence auto, and incremental when both place as many photos.
     "mapper": "auto",
     "random_seed": 0,  # seeds every random choice of the mapper; -1 = COLMAP's unseeded default
     "num_threads": -1,  # -1 = all cores; 1 = the same model on every rerun
@@ -77,14 +79,14 @@ def _global_options(conf: dict) -> pycolmap.GlobalPipelineOptions:
 def _auto(conf: dict, database_path: Path, image_path: Path, out: Path) -> dict[int, pycolmap.Reconstruction]:
     """Global and incremental mapping; the larger largest model among those passing the model check."""
     scored = []
-    for mapper in ("global", "incremental"):
+    for mapper in ("incremental", "global"):
         (out / mapper).mkdir()
         models = _run({**conf, "mapper": mapper}, database_path, image_path, out / mapper)
         largest = max(models.values(), key=lambda rec: rec.num_reg_images(), default=None)
         ok = largest is not None and not model_check.check_model(largest)
         scored.append(((ok, largest.num_reg_images() if largest else 0), mapper, models))
         logger.info("%s mapping: %d images in the largest model, model check %s", mapper, scored[-1][0][1], "ok" if ok else "failed")
-    return max(scored, key=lambda item: item[0])[2]  # global first on ties
+    return max(scored, key=lambda item: item[0])[2]  # incremental (the first) on ties
 
 
 def _run(conf: dict, database_path: Path, image_path: Path, out: Path) -> dict[int, pycolmap.Reconstruction]:
