@@ -40,3 +40,17 @@ def test_workspace_is_never_inside_the_photo_folder(tmp_path):
     assert output == (tmp_path / "photos_colmap_guided").resolve()
     with pytest.raises(ValueError, match="inside the image folder"):
         resolve_paths(tmp_path / "photos", None, tmp_path / "photos" / "out")
+
+
+def test_caches_live_outside_the_package_and_the_repository(monkeypatch, tmp_path):
+    from colmap_guided import paths
+    from colmap_guided.evaluation import two_view
+
+    monkeypatch.delenv("COLMAP_GUIDED_CACHE", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert paths.cache_dir("train_features") == tmp_path / "xdg" / "colmap_guided" / "train_features"
+    monkeypatch.setenv("COLMAP_GUIDED_CACHE", str(tmp_path / "mine"))
+    assert paths.cache_dir("evaluation") == tmp_path / "mine" / "evaluation"
+    package = Path(paths.__file__).resolve().parent
+    for root in (paths.REPO_ROOT, package):
+        assert root not in two_view.DEFAULT_CACHE.resolve().parents

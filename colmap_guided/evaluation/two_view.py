@@ -22,16 +22,16 @@ from pathlib import Path
 import numpy as np
 
 from colmap_guided import database as dbio
-from colmap_guided import features
+from colmap_guided import features, paths
 from colmap_guided.log import logger
 from colmap_guided.matchers.base import ImageData, scoped_torch_threads
-from colmap_guided.paths import REPO_ROOT, shared_data_dir
+from colmap_guided.paths import shared_data_dir
 
 from . import matcher_specs, metrics
 from .reference import RefScene, load_reference
 
 ROTATION_BINS = (0.0, 15.0, 30.0, 60.0, 180.0)
-DEFAULT_CACHE = REPO_ROOT / "cache" / "evaluation"
+DEFAULT_CACHE = paths.cache_dir("evaluation")
 
 
 # ------------------------------------------------------------------------------------------ pairs

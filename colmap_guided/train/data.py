@@ -39,12 +39,12 @@ import pycolmap
 import torch
 from tqdm import tqdm
 
-from colmap_guided import archival
+from colmap_guided import archival, paths
 from colmap_guided.coarse.backbone import BACKBONES, build_backbone
 from colmap_guided.coarse.geometry import ImageGeometry, resize_geometry, resize_image, stack_padded
 from colmap_guided.images import read_image
 from colmap_guided.log import logger
-from colmap_guided.paths import REPO_ROOT, shared_data_dir
+from colmap_guided.paths import shared_data_dir
 
 # Whole scenes held out for validation (the evaluation issue reports on them) ...
 VAL_SCENES = ["strecha_castle", "strecha_entry_P10", "instantngp_fox", "lund_door_gtsfm"]
@@ -362,7 +362,7 @@ class CoarseTrainData:
         "max_matches": 256,  # ground-truth matches kept per pair (point loss, PCK)
         "val_pairs_per_scene": 16,
         "max_cells": None,  # training crop: at most this many cells per grid side (CPU budget), see crop_sample
-        "cache_dir": None,  # default: <repo>/cache/train_features
+        "cache_dir": None,  # default: ~/.cache/colmap_guided/train_features ($COLMAP_GUIDED_CACHE)
     }
 
     def __init__(self, conf: dict | None = None):
@@ -396,7 +396,7 @@ class CoarseTrainData:
                     for k in range(c["n_synthetic"]):
                         self._synthetic_view(im, k)
         self.val_samples = self._make_val_samples()
-        cache_dir = Path(c["cache_dir"]) if c["cache_dir"] else REPO_ROOT / "cache" / "train_features"
+        cache_dir = Path(c["cache_dir"]) if c["cache_dir"] else paths.cache_dir("train_features")
         tag = f"{c['backbone']}_l2_r{c['resolution']}_a{c['archival_strength']:g}_h{c['homography_strength']:g}"
         self.cache = FeatureCache(cache_dir / f"{tag}.h5")
         n_pairs = sum(len(self.scenes[s].pairs) for s in self.train_scenes)
