@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from . import database as dbio
 from . import images
+from .conf import merge_conf
 from .database import open_database
 from .log import colmap_quiet, logger
 
@@ -43,6 +44,7 @@ default_conf = {
     "num_threads": "auto",  # extraction threads: 'auto' = as many as the free memory allows (see below), or N
     "type": "sift",  # 'sift' (COLMAP's extractor) or 'aliked' (learned_features.py, paper §4.4)
     "aliked": {},  # ALIKED options (learned_features.default_conf)
+    "image_checks": None,  # options of images.check_images (None: its defaults)
 }
 # Lowe's ratio of the raw and guided matchers on ALIKED (reconstruct's default unless --ratio is given): 0.9
 # verified more related pairs than SIFT's 0.8 and no unrelated one (recon_scripts/benchmark_aliked.py,
@@ -157,10 +159,7 @@ def _sift_pixels(image_path: Path, names: list[str], conf: dict) -> int | None:
 
 def check_conf(conf: dict | None) -> dict:
     """``conf`` over ``default_conf``, validated (unknown keys, camera mode, feature type, ALIKED options)."""
-    unknown = set(conf or {}) - set(default_conf) - {"image_checks"}
-    if unknown:
-        raise ValueError(f"Unknown feature option(s) {sorted(unknown)}; known: {sorted(default_conf)}")
-    conf = {**default_conf, **(conf or {})}
+    conf = merge_conf(default_conf, conf, "feature")
     if conf["camera_mode"] not in CAMERA_MODES:
         raise ValueError(f"Unknown camera_mode {conf['camera_mode']!r}; choose one of {sorted(CAMERA_MODES)}.")
     if conf["type"] not in FEATURE_TYPES:
@@ -204,7 +203,7 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
     todo = [name for name in image_names if name not in done]
     skipped: dict[str, str] = {}
     if todo and check:
-        todo, skipped = images.check_images(image_path, todo, conf.get("image_checks"))
+        todo, skipped = images.check_images(image_path, todo, conf["image_checks"])
     if not done and not todo:
         reasons = "; ".join(f"{name}: {reason}" for name, reason in list(skipped.items())[:3])
         raise ValueError(f"None of the {len(image_names)} image(s) in {image_path} can be used ({reasons}{' ...' if len(skipped) > 3 else ''}).")

@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from . import database as dbio
 from . import images
+from .conf import merge_conf
 from .log import colmap_quiet, logger
 from .paths import shared_dir
 
@@ -49,10 +50,7 @@ TEMPERATURE = 0.1  # DKD soft-argmax temperature
 
 
 def check_conf(conf: dict | None) -> dict:
-    unknown = set(conf or {}) - set(default_conf)
-    if unknown:
-        raise ValueError(f"Unknown ALIKED option(s) {sorted(unknown)}; known: {sorted(default_conf)}")
-    return {**default_conf, **(conf or {})}
+    return merge_conf(default_conf, conf, "ALIKED")
 
 
 def packaged_weights() -> Path | None:

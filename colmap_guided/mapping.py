@@ -20,6 +20,7 @@ from pathlib import Path
 import pycolmap
 
 from . import model_check
+from .conf import merge_conf
 from .log import colmap_quiet, logger
 
 MAPPERS = ("auto", "incremental", "global", "hierarchical")
@@ -42,11 +43,7 @@ default_conf = {
 
 def check_conf(conf: dict | None) -> dict:
     """``default_conf`` updated with ``conf``; an unknown key or mapper is a one-line ValueError."""
-    conf = conf or {}
-    unknown = sorted(set(conf) - set(default_conf))
-    if unknown:
-        raise ValueError(f"Unknown mapping option(s) {unknown}; known: {sorted(default_conf)}")
-    conf = {**default_conf, **conf}
+    conf = merge_conf(default_conf, conf, "mapping")
     if conf["mapper"] not in MAPPERS:
         raise ValueError(f"Unknown mapper {conf['mapper']!r}; choose one of {list(MAPPERS)}.")
     return conf
@@ -127,11 +124,6 @@ def run_mapping(database_path: Path, image_path: Path, sparse_path: Path, conf: 
         shutil.rmtree(sparse_path)
     tmp.rename(sparse_path)
     return dict(enumerate(ordered))
-
-
-def incremental_mapping(database_path: Path, image_path: Path, sparse_path: Path, conf: dict | None = None) -> dict[int, pycolmap.Reconstruction]:
-    """COLMAP's incremental mapper alone (``run_mapping`` with mapper 'incremental')."""
-    return run_mapping(database_path, image_path, sparse_path, {**(conf or {}), "mapper": "incremental"})
 
 
 def load_models(sparse_path: Path) -> dict[int, pycolmap.Reconstruction]:

@@ -19,6 +19,8 @@ from collections import Counter
 import numpy as np
 import pycolmap
 
+from .conf import merge_conf
+
 default_conf = {
     # 0.1 x the larger side is a ~160° field of view (a fisheye); 20 x is a 720 mm lens on 35 mm film (a 3°
     # field of view). COLMAP's mappers reject [0.1, 10] while registering; 10-20 x is still a real telephoto.
@@ -32,13 +34,6 @@ default_conf = {
     "max_view_angle_deg": 75.0,
     "min_shared_points": 15,  # neighbours sharing fewer 3D points are not compared
 }
-
-
-def _check_conf(conf: dict | None) -> dict:
-    unknown = sorted(set(conf or {}) - set(default_conf))
-    if unknown:
-        raise ValueError(f"Unknown model check option(s) {unknown}; known: {sorted(default_conf)}")
-    return {**default_conf, **(conf or {})}
 
 
 def focal_problems(rec: pycolmap.Reconstruction, conf: dict) -> list[str]:
@@ -108,7 +103,7 @@ def pose_jump_problems(rec: pycolmap.Reconstruction, conf: dict) -> list[str]:
 
 def check_model(rec: pycolmap.Reconstruction, conf: dict | None = None) -> list[str]:
     """Problems of one model, one sentence each; [] for a plausible model."""
-    conf = _check_conf(conf)
+    conf = merge_conf(default_conf, conf, "model check")
     problems = focal_problems(rec, conf)
     for image_id, err in sorted(reprojection_errors(rec).items()):
         if not err <= conf["max_reprojection_error"]:
@@ -118,6 +113,6 @@ def check_model(rec: pycolmap.Reconstruction, conf: dict | None = None) -> list[
 
 def check_models(models: dict[int, pycolmap.Reconstruction], conf: dict | None = None) -> dict:
     """``{"ok", "problems", "conf"}`` for report.json; problems are prefixed with the model's folder sparse/N."""
-    conf = _check_conf(conf)
+    conf = merge_conf(default_conf, conf, "model check")
     problems = [f"sparse/{index}: {p}" for index, rec in sorted(models.items()) for p in check_model(rec, conf)]
     return {"ok": not problems, "problems": problems, "conf": conf}

@@ -67,7 +67,7 @@ def main(argv=None):
                 start = time.time()
                 stats = match_database(db, image_path, mode, matcher, num_neighbors=k or 1)
                 elapsed = time.time() - start
-                models = mapping.incremental_mapping(db, image_path, Path(tmp) / name / f"sparse_{mode}_{k}")
+                models = mapping.run_mapping(db, image_path, Path(tmp) / name / f"sparse_{mode}_{k}", {"mapper": "incremental"})
                 model = report.model_statistics(models, names)
                 results[name][f"{mode}" + (f" k={k}" if k else "")] = {
                     "num_images": len(names), "num_pairs": stats["num_pairs"], "num_verified_pairs": stats["num_verified_pairs"],

@@ -13,7 +13,7 @@ from colmap_guided.__main__ import main
 from colmap_guided.export import export_h5, import_h5, names_to_pair
 from colmap_guided.features import extract_features
 from colmap_guided.log import set_verbosity
-from colmap_guided.mapping import incremental_mapping
+from colmap_guided.mapping import run_mapping
 from colmap_guided.match import match_database
 from colmap_guided.synthetic import render_scene
 
@@ -104,7 +104,7 @@ def test_round_trip_gives_the_same_database_and_it_maps(matched, tmp_path):
     stats = import_h5(tmp_path / "new.db", tmp_path / "h5" / "features.h5", tmp_path / "h5" / "matches.h5")
     assert stats["num_images_added"] == 5 and stats["num_pairs_added"] == 10 and stats["num_pairs_verified"] == 0
     assert_same_database(matched["database"], tmp_path / "new.db")
-    models = incremental_mapping(tmp_path / "new.db", matched["image_path"], tmp_path / "sparse")
+    models = run_mapping(tmp_path / "new.db", matched["image_path"], tmp_path / "sparse", {"mapper": "incremental"})
     assert max(m.num_reg_images() for m in models.values()) == 5
     # Importing again adds nothing and changes nothing.
     again = import_h5(tmp_path / "new.db", tmp_path / "h5" / "features.h5", tmp_path / "h5" / "matches.h5")

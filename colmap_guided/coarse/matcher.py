@@ -23,6 +23,7 @@ from colmap_guided.coarse.flow import CoarseResult
 from colmap_guided.coarse.geometry import ImageGeometry, as_rgb, resize_geometry, resize_image
 from colmap_guided.coarse.model import CoarseNet
 from colmap_guided.coarse.weights import DEFAULT_WEIGHTS, load_filter_weights, net_conf_from_config, read_filter_weights
+from colmap_guided.conf import merge_conf
 from colmap_guided.images import read_image
 
 PRECISIONS = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
@@ -57,10 +58,7 @@ class CoarseMatcher:
     }
 
     def __init__(self, conf: dict | None = None):
-        unknown = set(conf or {}) - set(self.default_conf)
-        if unknown:
-            raise ValueError(f"Unknown CoarseMatcher option(s) {sorted(unknown)}; known: {sorted(self.default_conf)}")
-        self.conf = conf = {**self.default_conf, **(conf or {})}
+        self.conf = conf = merge_conf(self.default_conf, conf, "CoarseMatcher")
         if conf["mode"] not in ("filter", "raw"):
             raise ValueError(f"mode must be 'filter' or 'raw', got {conf['mode']!r}")
         self.device = torch.device("cuda" if conf["device"] == "auto" and torch.cuda.is_available() else

@@ -35,6 +35,7 @@ from torch import nn
 
 from colmap_guided.coarse.backbone import BACKBONES, build_backbone
 from colmap_guided.coarse.conv4d import SparseNeighbourhood, conv4d, sparse_conv4d
+from colmap_guided.conf import merge_conf
 
 
 def correlation(feat_a: torch.Tensor, feat_b: torch.Tensor) -> torch.Tensor:
@@ -200,10 +201,7 @@ class CoarseNet(nn.Module):
 
     def __init__(self, conf: dict | None = None):
         super().__init__()
-        unknown = set(conf or {}) - set(self.default_conf)
-        if unknown:
-            raise ValueError(f"Unknown CoarseNet option(s) {sorted(unknown)}; known: {sorted(self.default_conf)}")
-        self.conf = conf = {**self.default_conf, **(conf or {})}
+        self.conf = conf = merge_conf(self.default_conf, conf, "CoarseNet")
         self.backbone = build_backbone(conf["backbone"], conf["backbone_weights"], conf["pretrained"])
         self.spec = BACKBONES[conf["backbone"]]  # stride, channels, cell_offset of the features
         self.filter = NeighConsensus(tuple(conf["channels"]), tuple(conf["kernel_sizes"])) if conf["filter"] else None

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from colmap_guided.conf import merge_conf
+
 
 @dataclass
 class ImageData:
@@ -38,10 +40,7 @@ class Matcher:
     torch_threads: int | None = None  # torch CPU threads while match_database runs (set, then restored); None: as is
 
     def __init__(self, conf: dict | None = None):
-        unknown = set(conf or {}) - set(self.default_conf)
-        if unknown:
-            raise ValueError(f"Unknown {self.name} matcher option(s) {sorted(unknown)}; known: {sorted(self.default_conf)}")
-        self.conf = {**self.default_conf, **(conf or {})}
+        self.conf = merge_conf(self.default_conf, conf, f"{self.name} matcher")
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
         raise NotImplementedError

@@ -42,6 +42,7 @@ from tqdm import tqdm
 from colmap_guided import archival, paths
 from colmap_guided.coarse.backbone import BACKBONES, build_backbone
 from colmap_guided.coarse.geometry import ImageGeometry, resize_geometry, resize_image, stack_padded
+from colmap_guided.conf import merge_conf
 from colmap_guided.images import read_image
 from colmap_guided.log import logger
 from colmap_guided.paths import shared_data_dir
@@ -366,10 +367,7 @@ class CoarseTrainData:
     }
 
     def __init__(self, conf: dict | None = None):
-        unknown = set(conf or {}) - set(self.default_conf)
-        if unknown:
-            raise ValueError(f"Unknown data option(s) {sorted(unknown)}; known: {sorted(self.default_conf)}")
-        self.conf = c = {**self.default_conf, **(conf or {})}
+        self.conf = c = merge_conf(self.default_conf, conf, "data")
         self.spec = BACKBONES[c["backbone"]]
         val = list(c["val_scenes"])
         train = c["train_scenes"] if c["train_scenes"] is not None else [s for s in all_scenes() if s not in val]

@@ -30,6 +30,7 @@ from colmap_guided.coarse.flow import interpolate_grid
 from colmap_guided.coarse.geometry import stack_padded
 from colmap_guided.coarse.model import CoarseNet
 from colmap_guided.coarse.weights import load_filter_weights, save_filter_weights
+from colmap_guided.conf import merge_conf
 from colmap_guided.log import logger
 from colmap_guided.train.data import CoarseTrainData, PairSample, collate
 from colmap_guided.train.losses import coarse_loss
@@ -97,10 +98,7 @@ def evaluate_pck(model: CoarseNet, samples: list[PairSample], features, batch_si
 # ----------------------------------------------------------------------------------------- trainer
 class Trainer:
     def __init__(self, out_dir: Path, conf: dict | None = None):
-        unknown = set(conf or {}) - set(default_conf)
-        if unknown:
-            raise ValueError(f"Unknown training option(s) {sorted(unknown)}; known: {sorted(default_conf)}")
-        self.conf = c = {**default_conf, **(conf or {})}
+        self.conf = c = merge_conf(default_conf, conf, "training")
         if c["supervision"] not in ("image", "epipolar", "points"):
             raise ValueError(f"supervision must be image, epipolar or points, got {c['supervision']!r}")
         self.out = Path(out_dir)
