@@ -1,4 +1,5 @@
-"""Database io: the COLMAP SQLite database read and written through pycolmap only.
+"""Database io: the COLMAP SQLite database read and written through pycolmap only; the only module that
+calls ``pycolmap.Database`` (images, cameras, rigs, frames, keypoints, descriptors, matches, two-view geometries).
 
 Every write of a pair (matches, then its two-view geometry) is its own transaction, so a run killed at
 any moment leaves a database that a rerun continues from (pairs already written are skipped).
@@ -13,7 +14,7 @@ from typing import Iterator
 import numpy as np
 import pycolmap
 
-from .matchers.base import ImageData
+from .image_data import ImageData
 
 
 class DatabaseError(ValueError):
@@ -35,8 +36,93 @@ def open_database(path: Path, must_exist: bool = True) -> Iterator[pycolmap.Data
         db.close()
 
 
+@contextlib.contextmanager
+def transaction(db: pycolmap.Database) -> Iterator[None]:
+    """Writes inside the block are one transaction: all of them are in the database, or none."""
+    with pycolmap.DatabaseTransaction(db):
+        yield
+
+
 def images_by_name(db: pycolmap.Database) -> dict[str, pycolmap.Image]:
     return {image.name: image for image in db.read_all_images()}
+
+
+def image_names(db: pycolmap.Database) -> dict[int, str]:
+    """image_id -> name of every image."""
+    return {image.image_id: image.name for image in db.read_all_images()}
+
+
+def images_with_keypoints(db: pycolmap.Database, descriptors: bool = False) -> dict[str, pycolmap.Image]:
+    """name -> image of the images whose keypoints (and, with ``descriptors``, descriptors) are written."""
+    return {
+        image.name: image
+        for image in db.read_all_images()
+        if db.exists_keypoints(image.image_id) and (not descriptors or db.exists_descriptors(image.image_id))
+    }
+
+
+def read_image(db: pycolmap.Database, name: str) -> pycolmap.Image | None:
+    return db.read_image_with_name(name)
+
+
+def read_camera(db: pycolmap.Database, camera_id: int) -> pycolmap.Camera:
+    return db.read_camera(camera_id)
+
+
+def write_camera(db: pycolmap.Database, camera: pycolmap.Camera) -> int:
+    """Adds ``camera``; returns its new camera_id."""
+    return db.write_camera(camera)
+
+
+def add_image(db: pycolmap.Database, name: str, camera: pycolmap.Camera) -> int:
+    """A camera's image with its rig (one per camera, shared) and frame, as COLMAP's feature extractor writes them."""
+    rig = db.read_rig_with_sensor(camera.sensor_id)
+    if rig is not None:
+        rig_id = rig.rig_id
+    else:
+        rig = pycolmap.Rig()
+        rig.add_ref_sensor(camera.sensor_id)
+        rig_id = db.write_rig(rig)
+    image_id = db.write_image(pycolmap.Image(name=name, camera_id=camera.camera_id))
+    frame = pycolmap.Frame()
+    frame.rig_id = rig_id
+    frame.add_data_id(db.read_image(image_id).data_id)
+    db.write_frame(frame)
+    return image_id
+
+
+def read_keypoints(db: pycolmap.Database, image_id: int) -> np.ndarray:
+    """(N, k) float32 keypoints of an image: x, y (COLMAP's pixel convention), then its shape columns."""
+    keypoints = np.asarray(db.read_keypoints(image_id), np.float32)
+    return keypoints.reshape(-1, keypoints.shape[1] if keypoints.ndim == 2 else 2)
+
+
+def has_keypoints(db: pycolmap.Database, image_id: int) -> bool:
+    return db.exists_keypoints(image_id)
+
+
+def num_keypoints(db: pycolmap.Database, image_id: int) -> int:
+    """Keypoints of an image; 0 when none are written."""
+    return db.num_keypoints_for_image(image_id) if db.exists_keypoints(image_id) else 0
+
+
+def read_descriptors(db: pycolmap.Database, image_id: int) -> tuple[np.ndarray, str]:
+    """(N, D) descriptors (see ``descriptor_array``) and the name of their extractor type ('SIFT', 'ALIKED_N16ROT', ...)."""
+    descriptors = db.read_descriptors(image_id)
+    return descriptor_array(descriptors), descriptors.type.name
+
+
+def write_features(db: pycolmap.Database, image_id: int, keypoints: np.ndarray, descriptors: np.ndarray | None, kind: str = "SIFT") -> None:
+    """Keypoints (and descriptors of extractor type ``kind``) of an image; call inside ``transaction``
+    when other writes belong with them. Learned descriptors (float32) are stored as COLMAP stores its own."""
+    db.write_keypoints(image_id, np.ascontiguousarray(keypoints, np.float32))
+    if descriptors is None:
+        return
+    kind = getattr(pycolmap.FeatureExtractorType, kind)
+    if descriptors.dtype == np.uint8:
+        db.write_descriptors(image_id, pycolmap.FeatureDescriptors(kind, np.ascontiguousarray(descriptors)))
+    else:
+        db.write_descriptors(image_id, pycolmap.FeatureDescriptors.from_float(pycolmap.FeatureDescriptorsFloat(kind, np.ascontiguousarray(descriptors, np.float32))))
 
 
 def check_image_folder(db: pycolmap.Database, image_path: Path) -> None:
@@ -86,15 +172,15 @@ def check_feature_type(path: Path, expected: pycolmap.FeatureExtractorType) -> N
 
 def read_image_data(db: pycolmap.Database, image: pycolmap.Image, image_path: Path) -> ImageData:
     camera = db.read_camera(image.camera_id)
-    keypoints = np.asarray(db.read_keypoints(image.image_id), np.float32)
-    descriptors = descriptor_array(db.read_descriptors(image.image_id))
+    keypoints = read_keypoints(db, image.image_id)
+    descriptors, _ = read_descriptors(db, image.image_id)
     if len(keypoints) != len(descriptors):
         raise DatabaseError(f"Image {image.name}: {len(keypoints)} keypoints but {len(descriptors)} descriptors; rerun feature extraction (--overwrite).")
     return ImageData(
         name=image.name,
         image_id=image.image_id,
         path=(Path(image_path) / image.name).resolve(),
-        keypoints=keypoints.reshape(-1, keypoints.shape[1] if keypoints.ndim == 2 else 2),
+        keypoints=keypoints,
         descriptors=descriptors,
         width=camera.width,
         height=camera.height,
@@ -108,6 +194,28 @@ def pair_has_matches(db: pycolmap.Database, id_a: int, id_b: int) -> bool:
 
 def pair_is_verified(db: pycolmap.Database, id_a: int, id_b: int) -> bool:
     return db.exists_two_view_geometry(id_a, id_b)
+
+
+def read_two_view_geometry(db: pycolmap.Database, id_a: int, id_b: int) -> pycolmap.TwoViewGeometry | None:
+    """The pair's two-view geometry (inlier_matches index a's and b's keypoints); None when not verified."""
+    return db.read_two_view_geometry(id_a, id_b) if db.exists_two_view_geometry(id_a, id_b) else None
+
+
+def pair_match_counts(db: pycolmap.Database) -> dict[tuple[int, int], int]:
+    """(image_id_a, image_id_b) -> number of matches of every matched pair."""
+    pair_ids, counts = db.read_num_matches()
+    return {_image_pair(p): int(n) for p, n in zip(pair_ids, counts)}
+
+
+def pair_inlier_counts(db: pycolmap.Database) -> dict[tuple[int, int], int]:
+    """(image_id_a, image_id_b) -> verified inliers of every pair with a two-view geometry (0: did not verify)."""
+    pair_ids, counts = db.read_two_view_geometry_num_inliers()
+    return {_image_pair(p): int(n) for p, n in zip(pair_ids, counts)}
+
+
+def _image_pair(pair_id: int) -> tuple[int, int]:
+    id_a, id_b = pycolmap.pair_id_to_image_pair(pair_id)
+    return int(id_a), int(id_b)
 
 
 def write_pair_matches(db: pycolmap.Database, id_a: int, id_b: int, matches: np.ndarray) -> None:

@@ -81,7 +81,7 @@ def export_h5(database_path: Path, output: Path, inliers_only: bool = False, ove
     tmp = {k: p.with_suffix(".h5.partial") for k, p in paths.items()}
     pairs = []
     with dbio.open_database(database_path) as db:
-        images = sorted(db.read_all_images(), key=lambda im: im.name)
+        images = sorted(dbio.images_by_name(db).values(), key=lambda im: im.name)
         by_id = {im.image_id: im for im in images}
         names_seen: dict[str, str] = {}
         for im in images:
@@ -91,37 +91,36 @@ def export_h5(database_path: Path, output: Path, inliers_only: bool = False, ove
             names_seen[key] = im.name
         with h5py.File(tmp["features"], "w") as fd, _bar(len(images), "export features", "img") as bar:
             for im in images:
-                if not db.exists_keypoints(im.image_id):
+                if not dbio.has_keypoints(db, im.image_id):
                     bar.update(1)
                     continue
-                kpts = np.asarray(db.read_keypoints(im.image_id), np.float32)
-                desc = db.read_descriptors(im.image_id)
-                camera = db.read_camera(im.camera_id)
+                kpts = dbio.read_keypoints(db, im.image_id)
+                desc, kind = dbio.read_descriptors(db, im.image_id)
+                camera = dbio.read_camera(db, im.camera_id)
                 grp = fd.create_group(im.name)
                 grp.create_dataset("keypoints", data=kpts[:, :2] - 0.5)
-                grp.create_dataset("descriptors", data=np.ascontiguousarray(dbio.descriptor_array(desc).T))
+                grp.create_dataset("descriptors", data=np.ascontiguousarray(desc.T))
                 grp.create_dataset("scores", data=np.ones(len(kpts), np.float32))
                 grp.create_dataset("image_size", data=np.array([camera.width, camera.height], np.int64))
                 grp.create_dataset("colmap_keypoints", data=kpts)
-                grp.attrs["colmap_descriptor_type"] = desc.type.name
+                grp.attrs["colmap_descriptor_type"] = kind
                 grp.attrs["colmap_camera_id"] = int(camera.camera_id)
                 grp.attrs["colmap_camera_model"] = camera.model.name
                 grp.attrs["colmap_camera_params"] = np.asarray(camera.params, np.float64)
                 grp.attrs["colmap_prior_focal_length"] = bool(camera.has_prior_focal_length)
                 bar.update(1)
-        pair_ids, _ = db.read_num_matches()
-        with h5py.File(tmp["matches"], "w") as fd, _bar(len(pair_ids), "export matches", "pair") as bar:
-            for pair_id in sorted(pair_ids, key=lambda p: tuple(sorted(by_id[i].name for i in pycolmap.pair_id_to_image_pair(p)))):
-                id_a, id_b = (int(i) for i in pycolmap.pair_id_to_image_pair(pair_id))
+        id_pairs = list(dbio.pair_match_counts(db))
+        with h5py.File(tmp["matches"], "w") as fd, _bar(len(id_pairs), "export matches", "pair") as bar:
+            for id_a, id_b in sorted(id_pairs, key=lambda p: tuple(sorted(by_id[i].name for i in p))):
                 a, b = by_id[id_a], by_id[id_b]
                 if a.name > b.name:
                     a, b = b, a
                 matches = dbio.read_pair_matches(db, a.image_id, b.image_id)
-                geometry = db.read_two_view_geometry(a.image_id, b.image_id) if db.exists_two_view_geometry(a.image_id, b.image_id) else None
+                geometry = dbio.read_two_view_geometry(db, a.image_id, b.image_id)
                 if inliers_only:
                     matches = np.asarray(geometry.inlier_matches, np.uint32).reshape(-1, 2) if geometry is not None else np.zeros((0, 2), np.uint32)
                 grp = fd.create_group(names_to_pair(a.name, b.name))
-                num0 = db.num_keypoints_for_image(a.image_id)
+                num0 = dbio.num_keypoints(db, a.image_id)
                 matches0 = np.full(num0, -1, np.int32)
                 matches0[matches[:, 0]] = matches[:, 1]
                 grp.create_dataset("matches0", data=matches0)
@@ -197,25 +196,6 @@ def _new_camera(grp: h5py.Group, name: str, image_path: Path | None) -> pycolmap
     return verify.default_camera(width, height)
 
 
-def _add_image(db: pycolmap.Database, name: str, camera: pycolmap.Camera) -> int:
-    """A camera's image with its rig (one per camera, shared) and frame, as COLMAP's feature extractor writes them."""
-    rig = db.read_rig_with_sensor(camera.sensor_id)
-    if rig is not None:
-        rig_id = rig.rig_id
-    else:
-        rig = pycolmap.Rig()
-        rig.add_ref_sensor(camera.sensor_id)
-        rig_id = db.write_rig(rig)
-    image = pycolmap.Image(name=name, camera_id=camera.camera_id)
-    image_id = db.write_image(image)
-    image = db.read_image(image_id)
-    frame = pycolmap.Frame()
-    frame.rig_id = rig_id
-    frame.add_data_id(image.data_id)
-    db.write_frame(frame)
-    return image_id
-
-
 def import_h5(
     database_path: Path,
     features_path: Path,
@@ -248,32 +228,30 @@ def import_h5(
                 grp = groups[name]
                 kpts = np.asarray(grp["colmap_keypoints"][()] if "colmap_keypoints" in grp else grp["keypoints"][()] + 0.5, np.float32)
                 desc = np.ascontiguousarray(np.asarray(grp["descriptors"][()]).T) if "descriptors" in grp else None
-                if name in existing and db.exists_keypoints(existing[name].image_id):
-                    have = np.asarray(db.read_keypoints(existing[name].image_id), np.float32)
+                if name in existing and dbio.has_keypoints(db, existing[name].image_id):
+                    have = dbio.read_keypoints(db, existing[name].image_id)
                     if have.shape[0] != kpts.shape[0] or not np.array_equal(have[:, :2], kpts[:, :2]):
                         raise ValueError(f"{name}: the database has other keypoints than {features_path}; import into a new database (another --database_path).")
                     bar.update(1)
                     continue
-                with pycolmap.DatabaseTransaction(db):
+                kind = str(grp.attrs.get("colmap_descriptor_type", "SIFT"))
+                if desc is not None and desc.dtype != np.uint8:
+                    raise ValueError(f"{name}: descriptors are {desc.dtype}; COLMAP's database holds uint8 (SIFT) descriptors — import keypoints and matches only by deleting 'descriptors' or convert them.")
+                with dbio.transaction(db):
                     if name in existing:
                         image_id = existing[name].image_id
                     else:
                         exported = int(grp.attrs["colmap_camera_id"]) if "colmap_camera_id" in grp.attrs else None
                         if exported is not None and exported in cameras:
-                            camera = db.read_camera(cameras[exported])
+                            camera = dbio.read_camera(db, cameras[exported])
                         else:
                             camera = _new_camera(grp, name, image_path)
-                            camera.camera_id = db.write_camera(camera)
+                            camera.camera_id = dbio.write_camera(db, camera)
                             if exported is not None:
                                 cameras[exported] = camera.camera_id
-                        image_id = _add_image(db, name, camera)
+                        image_id = dbio.add_image(db, name, camera)
                         stats["num_images_added"] += 1
-                    db.write_keypoints(image_id, np.ascontiguousarray(kpts))
-                    if desc is not None:
-                        kind = str(grp.attrs.get("colmap_descriptor_type", "SIFT"))
-                        if desc.dtype != np.uint8:
-                            raise ValueError(f"{name}: descriptors are {desc.dtype}; COLMAP's database holds uint8 (SIFT) descriptors — import keypoints and matches only by deleting 'descriptors' or convert them.")
-                        db.write_descriptors(image_id, pycolmap.FeatureDescriptors(getattr(pycolmap.FeatureExtractorType, kind), desc))
+                    dbio.write_features(db, image_id, kpts, desc, kind)
                 bar.update(1)
         if matches_path is None:
             return stats
@@ -297,7 +275,7 @@ def import_h5(
                         matches0 = np.asarray(grp["matches0"][()]).astype(np.int64)
                         idx = np.flatnonzero(matches0 >= 0)
                         matches = np.stack([idx, matches0[idx]], axis=1).astype(np.uint32)
-                    num_a, num_b = db.num_keypoints_for_image(ia), db.num_keypoints_for_image(ib)
+                    num_a, num_b = dbio.num_keypoints(db, ia), dbio.num_keypoints(db, ib)
                     if len(matches) and (matches[:, 0].max() >= num_a or matches[:, 1].max() >= num_b):
                         raise ValueError(f"Pair {a} / {b}: matches index keypoints that {features_path} does not have; the two files do not belong together.")
                     dbio.write_pair_matches(db, ia, ib, matches)
@@ -306,9 +284,7 @@ def import_h5(
                         dbio.write_pair_geometry(db, ia, ib, geometry)
                     stats["num_pairs_added"] += 1
                     bar.update(1)
-        from .match import verify_pairs
-
-        stats["num_pairs_verified"] = verify_pairs(db, images, id_pairs, verify.two_view_options(verification_conf))
+        stats["num_pairs_verified"] = verify.verify_pairs(db, images, id_pairs, verify.two_view_options(verification_conf))
         stats.update(dbio.database_summary(db))
     logger.info("Imported %d new images and %d pairs into %s (%d pairs verified here)", stats["num_images_added"], stats["num_pairs_added"], database_path, stats["num_pairs_verified"])
     return stats

@@ -199,7 +199,7 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
         if any(orphans):
             logger.info("Removed %d camera(s) and %d rig(s) left without images by an interrupted extraction.", *orphans)
         with open_database(database_path) as db:
-            done = {image.name: image.camera_id for image in db.read_all_images() if db.exists_keypoints(image.image_id) and db.exists_descriptors(image.image_id)}
+            done = {name: image.camera_id for name, image in dbio.images_with_keypoints(db, descriptors=True).items()}
     todo = [name for name in image_names if name not in done]
     skipped: dict[str, str] = {}
     if todo and check:
@@ -237,13 +237,13 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
                 if camera_id is None and any(keys[name] is not None for name in run):
                     with open_database(database_path) as db:
                         for name in run:
-                            image = db.read_image_with_name(name) if keys[name] is not None else None
+                            image = dbio.read_image(db, name) if keys[name] is not None else None
                             if image is not None:
                                 known.setdefault(keys[name], image.camera_id)
                 bar.update(len(run))
                 i = j
     with open_database(database_path) as db:
-        present = {image.name for image in db.read_all_images() if db.exists_keypoints(image.image_id)}
+        present = set(dbio.images_with_keypoints(db))
     for name in todo:
         if name not in present:
             skipped[name] = "COLMAP could not read it (unsupported variant of the format, or a size that differs from its camera's); convert it to JPEG"

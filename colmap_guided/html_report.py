@@ -124,16 +124,10 @@ def match_panels(databases: dict[str, Path], image_path: Path, num_pairs: int = 
     if not labels:
         return []
     with dbio.open_database(databases[labels[0]]) as db:
-        by_id = {image.image_id: image.name for image in db.read_all_images()}
+        by_id = dbio.image_names(db)
         if pairs is None:
-            pair_ids, counts = db.read_two_view_geometry_num_inliers()
-            ranked = sorted(zip(counts, pair_ids), key=lambda t: (-t[0], t[1]))
-            pairs = []
-            for count, pair_id in ranked[:num_pairs]:
-                if count <= 0:
-                    break
-                id_a, id_b = pair_id_to_image_ids(pair_id)
-                pairs.append((by_id[id_a], by_id[id_b]))
+            ranked = sorted(dbio.pair_inlier_counts(db).items(), key=lambda t: (-t[1], t[0]))
+            pairs = [(by_id[id_a], by_id[id_b]) for (id_a, id_b), count in ranked[:num_pairs] if count > 0]
     panels = []
     for a, b in pairs:
         for label in labels:
@@ -142,20 +136,13 @@ def match_panels(databases: dict[str, Path], image_path: Path, num_pairs: int = 
                 if a not in named or b not in named:
                     continue
                 ia, ib = named[a], named[b]
-                inliers = db.read_two_view_geometry(ia.image_id, ib.image_id).inlier_matches if db.exists_two_view_geometry(ia.image_id, ib.image_id) else np.zeros((0, 2))
-                inliers = np.asarray(inliers, np.int64).reshape(-1, 2)
-                ka = np.asarray(db.read_keypoints(ia.image_id))[:, :2]
-                kb = np.asarray(db.read_keypoints(ib.image_id))[:, :2]
+                geometry = dbio.read_two_view_geometry(db, ia.image_id, ib.image_id)
+                inliers = np.asarray(geometry.inlier_matches if geometry is not None else np.zeros((0, 2)), np.int64).reshape(-1, 2)
+                ka = dbio.read_keypoints(db, ia.image_id)[:, :2]
+                kb = dbio.read_keypoints(db, ib.image_id)[:, :2]
             xy = np.concatenate([ka[inliers[:, 0]], kb[inliers[:, 1]]], axis=1) if len(inliers) else np.zeros((0, 4))
             panels.append((f"{label}: {a} \u2194 {b} \u2014 {len(inliers)} verified matches", Path(image_path) / a, Path(image_path) / b, xy))
     return panels
-
-
-def pair_id_to_image_ids(pair_id: int) -> tuple[int, int]:
-    import pycolmap
-
-    id_a, id_b = pycolmap.pair_id_to_image_pair(pair_id)
-    return int(id_a), int(id_b)
 
 
 def ratio_plot(report: dict) -> str:

@@ -263,10 +263,6 @@ def extract_image(model: ALIKED, device: torch.device, path: Path, conf: dict) -
     return keypoints, desc.cpu().numpy().astype(np.float32)
 
 
-def descriptors_to_colmap(descriptors: np.ndarray) -> pycolmap.FeatureDescriptors:
-    return pycolmap.FeatureDescriptors.from_float(pycolmap.FeatureDescriptorsFloat(DESCRIPTOR_TYPE, np.ascontiguousarray(descriptors, np.float32)))
-
-
 def extract_features(database_path: Path, image_path: Path, image_names: list[str], conf: dict, camera_mode: pycolmap.CameraMode, camera_model: str, check: bool = True) -> dict:
     """ALIKED for the images of ``image_names`` not yet in the database (a rerun continues where it
     stopped). Cameras and images are made by COLMAP's own reader (``pycolmap.import_images``, same
@@ -277,7 +273,7 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
     present = set()
     if database_path.exists():
         with dbio.open_database(database_path) as db:
-            present = {image.name for image in db.read_all_images()}
+            present = set(dbio.images_by_name(db))
     new = [name for name in image_names if name not in present]
     skipped: dict[str, str] = {}
     if new and check:
@@ -298,14 +294,13 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
                 skipped[name] = "COLMAP could not read it (unsupported variant of the format); convert it to JPEG"
                 logger.warning("Skipped %s: %s.", name, skipped[name])
         wanted = set(image_names)
-        todo = [image for name, image in by_name.items() if name in wanted and not db.exists_keypoints(image.image_id)]
+        todo = [image for name, image in by_name.items() if name in wanted and not dbio.has_keypoints(db, image.image_id)]
         if todo:
             logger.info("Extracting ALIKED for %d images (%d already in the database)", len(todo), len(image_names) - len(todo) - len(skipped))
         for image in tqdm(todo, desc="extract", unit="img", disable=None, dynamic_ncols=True, leave=False):
             keypoints, descriptors = extract_image(model, device, image_path / image.name, conf)
-            with pycolmap.DatabaseTransaction(db):
-                db.write_keypoints(image.image_id, keypoints)
-                db.write_descriptors(image.image_id, descriptors_to_colmap(descriptors))
+            with dbio.transaction(db):
+                dbio.write_features(db, image.image_id, keypoints, descriptors, DESCRIPTOR_TYPE.name)
             done += 1
     elapsed = time.time() - start
     return {"num_extracted": done, "skipped": skipped, "time": elapsed, "time_per_image": elapsed / done if done else None}

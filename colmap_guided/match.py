@@ -17,7 +17,9 @@ from tqdm import tqdm
 
 from . import database as dbio
 from . import verify
-from .log import colmap_quiet, logger
+from .conf import merge_conf
+from .log import logger
+from .image_data import PairKey
 from .matchers import MATCHERS, get_matcher
 from .matchers.base import Matcher, scoped_torch_threads
 from .executor import EXECUTORS, get_executor
@@ -47,10 +49,10 @@ def match_database(
     matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
     verification_conf = {**matcher.verification_conf, **(verification_conf or {})}
     options = verify.two_view_options(verification_conf)
-    stats = {"matcher": matcher.describe(), "verification": {**verify.default_conf, **verification_conf}}
+    stats = {"matcher": matcher.describe(), "verification": merge_conf(verify.default_conf, verification_conf, "verification")}
     with dbio.open_database(database_path) as db:
         dbio.check_image_folder(db, image_path)
-        images = {name: image for name, image in dbio.images_by_name(db).items() if db.exists_keypoints(image.image_id)}
+        images = dbio.images_with_keypoints(db)
         if len(images) < 2:
             raise ValueError(f"The database holds {len(images)} image(s) with keypoints; at least 2 are needed to match.")
         if overwrite:
@@ -78,7 +80,7 @@ def match_database(
         stats["num_pairs_matched_now"] = len(todo)
 
         start = time.time()
-        verify_pairs(db, images, id_pairs, options)
+        verify.verify_pairs(db, images, id_pairs, options)
         stats["verify_time"] = time.time() - start
         stats.update(dbio.database_summary(db))
     logger.info(
@@ -88,30 +90,29 @@ def match_database(
 
 
 def _global_descriptors(matcher: Matcher, image_path: Path, names: list[str]) -> np.ndarray:
-    """Retrieval descriptors from the guided matcher's own backbone (an ImageNet backbone for the other matchers)."""
-    from .coarse import CoarseMatcher
+    """Retrieval descriptors from the matcher's own backbone (``retrieval_backbone``; else an ImageNet backbone)."""
+    coarse = matcher.retrieval_backbone()
+    if coarse is None:
+        from .coarse import CoarseMatcher
 
-    coarse = getattr(matcher, "coarse", None)
-    if not isinstance(coarse, CoarseMatcher):
-        coarse = CoarseMatcher({"mode": "raw", "device": str(getattr(matcher, "device", "auto")), "num_threads": None})
+        coarse = CoarseMatcher({"mode": "raw", "device": str(matcher.device), "num_threads": None})
     return global_descriptors(coarse, {name: Path(image_path) / name for name in names})
 
 
-def _match_pairs(db, image_path: Path, images: dict, todo: list[tuple[int, int, str, str]], matcher: Matcher, run) -> None:
+def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matcher: Matcher, run) -> None:
     """Match ``todo`` (id_a, id_b, name_a, name_b) on the executor ``run``; the caller's process is the only
-    database writer (one transaction per batch of finished pairs). An image is read (and, for matchers with
-    a backbone, its features computed) once at its first pair and released after its last one."""
+    database writer (one transaction per batch of finished pairs). An image is read (and ``matcher.prepare``d:
+    the guided matcher's backbone features) once at its first pair and released after its last one."""
     remaining = Counter(name for p in todo for name in p[2:])
     handles: dict[str, object] = {}
-    backbone = getattr(matcher, "features", None)
-    backbone_bar = tqdm(desc="backbone", total=len(remaining), unit="img", disable=None, dynamic_ncols=True, leave=False) if callable(backbone) else None
+    prepare_bar = tqdm(desc="prepare", total=len(remaining), unit="img", disable=None, dynamic_ncols=True, leave=False) if matcher.prepares_images else None
 
     def handle(name: str):
         if name not in handles:
             image = dbio.read_image_data(db, images[name], image_path)
-            if backbone_bar is not None:
-                backbone(image)
-                backbone_bar.update(1)
+            matcher.prepare(image)
+            if prepare_bar is not None:
+                prepare_bar.update(1)
             handles[name] = run.put(image)
         return handles[name]
 
@@ -138,26 +139,8 @@ def _match_pairs(db, image_path: Path, images: dict, todo: list[tuple[int, int, 
                 write_done()
         while run.in_flight:
             write_done()
-    if backbone_bar is not None:
-        backbone_bar.close()
-
-
-def verify_pairs(db, images: dict, id_pairs: list[tuple[int, int, str, str]], options) -> int:
-    """Two-view geometry of every matched, not yet verified pair (id_a, id_b, name_a, name_b); returns how many."""
-    unverified = [p for p in id_pairs if dbio.pair_has_matches(db, p[0], p[1]) and not dbio.pair_is_verified(db, p[0], p[1])]
-    cameras, keypoints = {}, {}  # read once per camera / image, not once per pair
-    with colmap_quiet():
-        for id_a, id_b, a, b in _progress(unverified, "verify", len(unverified)):
-            for name in (a, b):
-                image = images[name]
-                if image.camera_id not in cameras:
-                    cameras[image.camera_id] = db.read_camera(image.camera_id)
-                if name not in keypoints:
-                    keypoints[name] = np.asarray(db.read_keypoints(image.image_id), np.float32)
-            matches = dbio.read_pair_matches(db, id_a, id_b)
-            geometry = verify.verify_pair(cameras[images[a].camera_id], keypoints[a], cameras[images[b].camera_id], keypoints[b], matches, options)
-            dbio.write_pair_geometry(db, id_a, id_b, geometry)
-    return len(unverified)
+    if prepare_bar is not None:
+        prepare_bar.close()
 
 
 def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:

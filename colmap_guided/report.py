@@ -87,18 +87,18 @@ def explain_unregistered(
     if len(out) == len(todo):
         return out
     with dbio.open_database(database_path) as db:
-        by_id = {im.image_id: im.name for im in db.read_all_images()}
+        by_id = dbio.image_names(db)
         ids = {n: i for i, n in by_id.items()}
         verified: dict[str, list[tuple[int, str]]] = {}
         candidates: dict[str, list[tuple[int, str]]] = {}
-        for table, pairs_counts in ((verified, db.read_two_view_geometry_num_inliers()), (candidates, db.read_num_matches())):
-            for pair_id, count in zip(*pairs_counts):
+        for table, pairs_counts in ((verified, dbio.pair_inlier_counts(db)), (candidates, dbio.pair_match_counts(db))):
+            for (id_a, id_b), count in pairs_counts.items():
                 if count <= 0 and table is verified:
                     continue
-                a, b = (by_id[int(i)] for i in pycolmap.pair_id_to_image_pair(pair_id))
-                table.setdefault(a, []).append((int(count), b))
-                table.setdefault(b, []).append((int(count), a))
-        keypoints = {n: db.num_keypoints_for_image(ids[n]) if n in ids and db.exists_keypoints(ids[n]) else 0 for n in todo if n not in out}
+                a, b = by_id[id_a], by_id[id_b]
+                table.setdefault(a, []).append((count, b))
+                table.setdefault(b, []).append((count, a))
+        keypoints = {n: dbio.num_keypoints(db, ids[n]) if n in ids else 0 for n in todo if n not in out}
     for name in todo:
         if name in out:
             continue

@@ -8,6 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 import pycolmap
+from tqdm import tqdm
+
+from . import database as dbio
+from .image_data import PairKey
+from .conf import merge_conf
+from .log import colmap_quiet
 
 default_conf = {
     "min_num_inliers": 15,  # COLMAP's default
@@ -24,7 +30,7 @@ def default_camera(width: int, height: int) -> pycolmap.Camera:
 
 
 def two_view_options(conf: dict | None = None) -> pycolmap.TwoViewGeometryOptions:
-    conf = {**default_conf, **(conf or {})}
+    conf = merge_conf(default_conf, conf, "verification")
     options = pycolmap.TwoViewGeometryOptions()
     options.min_num_inliers = conf["min_num_inliers"]
     options.ransac.max_error = conf["max_error"]
@@ -49,3 +55,22 @@ def verify_pair(
         np.ascontiguousarray(matches, np.uint32),
         options,
     )
+
+
+def verify_pairs(db: pycolmap.Database, images: dict[str, pycolmap.Image], id_pairs: list[PairKey], options: pycolmap.TwoViewGeometryOptions) -> int:
+    """Two-view geometry of every matched, not yet verified pair (id_a, id_b, name_a, name_b) of the open
+    database ``db`` (``images``: name -> its image); returns how many were verified now."""
+    unverified = [p for p in id_pairs if dbio.pair_has_matches(db, p[0], p[1]) and not dbio.pair_is_verified(db, p[0], p[1])]
+    cameras, keypoints = {}, {}  # read once per camera / image, not once per pair
+    with colmap_quiet():
+        for id_a, id_b, a, b in tqdm(unverified, desc="verify", total=len(unverified), unit="pair", disable=None, dynamic_ncols=True, leave=False):
+            for name in (a, b):
+                image = images[name]
+                if image.camera_id not in cameras:
+                    cameras[image.camera_id] = dbio.read_camera(db, image.camera_id)
+                if name not in keypoints:
+                    keypoints[name] = dbio.read_keypoints(db, image.image_id)
+            matches = dbio.read_pair_matches(db, id_a, id_b)
+            geometry = verify_pair(cameras[images[a].camera_id], keypoints[a], cameras[images[b].camera_id], keypoints[b], matches, options)
+            dbio.write_pair_geometry(db, id_a, id_b, geometry)
+    return len(unverified)

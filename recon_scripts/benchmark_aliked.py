@@ -20,7 +20,6 @@ import time
 from pathlib import Path
 
 import colmap_guided  # noqa: F401  (before pycolmap: see colmap_guided/__init__.py)
-import pycolmap
 from colmap_guided import database as dbio
 from colmap_guided import features
 from colmap_guided.log import set_verbosity
@@ -47,11 +46,10 @@ def parse_config(text: str) -> tuple[str, str, dict]:
 def wrong_pairs(database_path: Path) -> tuple[int, list]:
     """Verified pairs (with inliers) and those joining different landmarks: [(a, b, inliers)]."""
     with dbio.open_database(database_path) as db:
-        names = {image.image_id: image.name for image in db.read_all_images()}
-        pair_ids, counts = db.read_two_view_geometry_num_inliers()
+        names = dbio.image_names(db)
+        counts = dbio.pair_inlier_counts(db)
     verified, wrong = 0, []
-    for pair_id, n in zip(pair_ids, counts):
-        id_a, id_b = pycolmap.pair_id_to_image_pair(pair_id)
+    for (id_a, id_b), n in counts.items():
         if n > 0:
             verified += 1
             if landmark(names[id_a]) != landmark(names[id_b]):

@@ -102,7 +102,7 @@ def match_stage(images: list[Path], workers: list[int], rounds: int = 5) -> dict
         out["keypoints"] = int(np.mean([len(d.keypoints) for d in data]))
         t = time.perf_counter()
         for d in data:
-            matcher.features(d)
+            matcher.prepare(d)
         out["backbone_ms_per_image"] = 1000 * (time.perf_counter() - t) / len(data)
         coarse = eq1 = 0.0
         for i, a in enumerate(data):

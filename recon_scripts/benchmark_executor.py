@@ -29,7 +29,7 @@ def matches(path: Path) -> dict:
     with dbio.open_database(path) as db:
         ims = dbio.images_by_name(db)
         return {(a, b): dbio.read_pair_matches(db, ims[a].image_id, ims[b].image_id).tolist()
-                for a in ims for b in ims if a < b and db.exists_matches(ims[a].image_id, ims[b].image_id)}
+                for a in ims for b in ims if a < b and dbio.pair_has_matches(db, ims[a].image_id, ims[b].image_id)}
 
 
 def main(argv=None):

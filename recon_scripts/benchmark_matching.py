@@ -180,9 +180,11 @@ def best_time(fn, repeat: int):
 
 
 def extract_coarse(matcher: GuidedMatcher, a: ImageData, b: ImageData) -> None:
-    """Coarse features of both images from their files (the cache emptied first)."""
-    matcher.release(a.name), matcher.release(b.name)
-    matcher.features(a), matcher.features(b)
+    """Coarse features of both images from their files (the caches emptied first: the matcher's and the images')."""
+    for image in (a, b):
+        matcher.release(image.name)
+        image.extra.clear()
+        matcher.prepare(image)
 
 
 def run_pair(pair: dict, matchers: dict, cache_dir: Path, max_ref_err: float, repeat: int) -> dict:

@@ -19,7 +19,6 @@ import time
 from pathlib import Path
 
 import colmap_guided  # noqa: F401  (zlib before pycolmap)
-import pycolmap
 from colmap_guided import features, mapping, report
 from colmap_guided import database as dbio
 from colmap_guided.log import set_verbosity
@@ -30,13 +29,8 @@ from colmap_guided.paths import shared_data_dir
 
 def verified_pairs(database_path: Path) -> set[tuple[str, str]]:
     with dbio.open_database(database_path) as db:
-        names = {image.image_id: image.name for image in db.read_all_images()}
-        out = set()
-        for pair_id, geometry in zip(*db.read_two_view_geometries()):
-            if len(geometry.inlier_matches) > 0:
-                a, b = pycolmap.pair_id_to_image_pair(pair_id)
-                out.add(tuple(sorted((names[a], names[b]))))
-        return out
+        names = dbio.image_names(db)
+        return {tuple(sorted((names[a], names[b]))) for (a, b), n in dbio.pair_inlier_counts(db).items() if n > 0}
 
 
 def main(argv=None):

@@ -421,3 +421,56 @@ def test_raw_matches_verified_never_loses_what_raw_matching_verifies(photo_pair)
     assert inliers(guided.match_flows(a, b, right)) >= max(raw, guided_only["right"])
     with pytest.raises(ValueError, match="raw_matches must be"):
         get_matcher("guided", {"device": "cpu", "raw_matches": "union"})
+
+
+def test_a_new_matcher_plugs_into_the_pipeline_through_the_base_class_only(synthetic_scene, tmp_path):
+    """What match_database asks of a matcher is declared on Matcher: ``prepare`` runs once per image, before
+    its first pair, and what it puts in ``image.extra`` reaches ``match``; ``verification_conf`` sets the
+    pair's two-view verification (an impossible 10**6 inliers: no pair verifies); ``release`` comes once
+    per image after its last pair."""
+    import pycolmap
+
+    from colmap_guided import database as dbio
+    from colmap_guided.match import match_database
+    from colmap_guided.matchers.base import Matcher
+
+    class Plugged(Matcher):
+        name = "plugged"
+        default_conf = {"ratio": 0.8}
+
+        def __init__(self, conf=None):
+            super().__init__(conf)
+            self.raw = get_matcher("raw", {"ratio": self.conf["ratio"], "device": "cpu"})
+            self.prepared, self.released = [], []
+
+        @property
+        def verification_conf(self):
+            return {"min_num_inliers": 10**6}
+
+        def prepare(self, image):
+            self.prepared.append(image.name)
+            image.extra["plugged"] = len(image.keypoints)
+
+        def match(self, a, b):
+            assert a.extra["plugged"] == len(a.keypoints) and b.extra["plugged"] == len(b.keypoints)
+            return self.raw.match(a, b)
+
+        def release(self, name):
+            self.released.append(name)
+
+    db = tmp_path / "db.db"
+    pycolmap.extract_features(db, synthetic_scene.image_dir)
+    matcher = Plugged()
+    stats = match_database(db, synthetic_scene.image_dir, pairs_path="exhaustive", matcher=matcher)
+    names = sorted(synthetic_scene.names)
+    assert sorted(matcher.prepared) == names and sorted(matcher.released) == names
+    assert stats["verification"]["min_num_inliers"] == 10**6 and stats["num_matches"] > 0 and stats["num_verified_pairs"] == 0
+    with dbio.open_database(db) as database:
+        assert len(dbio.pair_match_counts(database)) == len(names) * (len(names) - 1) // 2
+        assert not any(dbio.pair_inlier_counts(database).values())
+        a, b = (dbio.read_image_data(database, image, synthetic_scene.image_dir) for image in list(dbio.images_by_name(database).values())[:2])
+    # A matcher without a guidance step runs variants through the same two-step calls as the guided one.
+    matcher.prepare(a), matcher.prepare(b)
+    assert np.array_equal(matcher.match_flows(a, b, matcher.coarse_flows(a, b)), matcher.raw.match(a, b))
+    with pytest.raises(ValueError, match="no option"):
+        matcher.match_flows(a, b, None, ratio=0.9)

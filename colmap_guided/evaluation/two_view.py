@@ -75,9 +75,9 @@ def sift_features(image_dir: Path, names: list[str], cache_dir: Path, max_num_fe
     features.extract_features(database_path, image_dir, sorted(set(names)), conf)
     out = {}
     with dbio.open_database(database_path) as db:
-        images = dbio.images_by_name(db)
+        images = dbio.images_with_keypoints(db)
         for name in sorted(set(names)):
-            if name in images and db.exists_keypoints(images[name].image_id):
+            if name in images:
                 out[name] = dbio.read_image_data(db, images[name], image_dir)
     return out
 
@@ -94,15 +94,17 @@ def _fresh(image: ImageData) -> ImageData:
     return dataclasses.replace(image, extra={})
 
 
-# Options of eq. 1 that a matcher with ``coarse_flows``/``match_flows`` (the guided matcher) applies after
-# the coarse match: variants differing only in these share one coarse match per pair.
-FLOW_OVERRIDES = ("window_cells", "ratio", "min_score", "max_fb_cells")
+def _flow_options(spec) -> tuple[str, ...]:
+    """Options the spec's matcher applies after its guidance (``Matcher.flow_options``): variants differing
+    only in these share one ``coarse_flows`` per pair."""
+    matchers, _ = matcher_specs.registry()
+    return matchers[spec.name].flow_options
 
 
 def _group_key(spec) -> str:
     import json
 
-    return spec.name + json.dumps({k: v for k, v in sorted(spec.conf.items()) if k not in FLOW_OVERRIDES}, default=str)
+    return spec.name + json.dumps({k: v for k, v in sorted(spec.conf.items()) if k not in _flow_options(spec)}, default=str)
 
 
 def run_specs(specs, pairs: list[tuple[str, str]], images: dict[str, ImageData]) -> dict[str, tuple[list[np.ndarray], list[float]]]:
@@ -115,13 +117,10 @@ def run_specs(specs, pairs: list[tuple[str, str]], images: dict[str, ImageData])
     out = {}
     for group in groups.values():
         first = group[0]
-        base = dataclasses.replace(first, conf={k: v for k, v in first.conf.items() if k not in FLOW_OVERRIDES})
-        matcher = matcher_specs.build(base if len(group) > 1 else first)
-        shared = len(group) > 1 and hasattr(matcher, "coarse_flows") and hasattr(matcher, "match_flows")
-        if len(group) > 1 and not shared:
-            for spec in group:
-                out.update(run_specs([spec], pairs, images))
-            continue
+        flow_options = _flow_options(first)
+        shared = len(group) > 1  # variants of one matcher differing only in its flow_options
+        base = dataclasses.replace(first, conf={k: v for k, v in first.conf.items() if k not in flow_options})
+        matcher = matcher_specs.build(base if shared else first)
         local: dict[str, ImageData] = {}
         res = {spec.label: ([], []) for spec in group}
         with scoped_torch_threads(matcher.torch_threads):  # as match_database
@@ -135,7 +134,7 @@ def run_specs(specs, pairs: list[tuple[str, str]], images: dict[str, ImageData])
                     t_flow = time.time() - start
                     for spec in group:
                         start = time.time()
-                        m = matcher.match_flows(local[a], local[b], flows, **{k: spec.conf[k] for k in FLOW_OVERRIDES if k in spec.conf})
+                        m = matcher.match_flows(local[a], local[b], flows, **{k: spec.conf[k] for k in flow_options if k in spec.conf})
                         res[spec.label][0].append(np.asarray(m, np.int64).reshape(-1, 2))
                         res[spec.label][1].append(t_flow + time.time() - start)
                 else:

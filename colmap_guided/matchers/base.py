@@ -1,33 +1,19 @@
-"""The matcher interface every matcher implements (raw, guided, guided epipolar/homography, ...).
+"""The matcher interface: everything the pipeline (match.py, executor.py, evaluation/) asks of a matcher.
 
-Coordinates follow COLMAP: (0, 0) is the top-left corner of the top-left pixel, so the centre of
-pixel (col, row) is (col + 0.5, row + 0.5). Keypoints are in the original image's pixels.
+A new matcher subclasses ``Matcher``, sets ``name`` and ``default_conf`` (one comment line per option),
+implements ``match`` and adds itself to ``matchers.MATCHERS``; the other hooks have defaults that fit
+a matcher needing no per-image work, no own verification options and no separate guidance step.
+Coordinates follow COLMAP (see ``colmap_guided.image_data``).
 """
 
 from __future__ import annotations
 
 import contextlib
-from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from colmap_guided.conf import merge_conf
-
-
-@dataclass
-class ImageData:
-    """One image as a matcher sees it: its keypoints, descriptors and where its pixels are."""
-
-    name: str  # COLMAP image name (path relative to the image folder, '/'-separated)
-    image_id: int
-    path: Path  # absolute path of the image file (read-only; never written)
-    keypoints: np.ndarray  # (N, >=2) float32, x, y first (COLMAP convention), then scale/orientation/affine
-    descriptors: np.ndarray  # (N, D) uint8 (SIFT) or float32
-    width: int
-    height: int
-    camera: object = None  # pycolmap.Camera of the database, when there is one (COLMAP's guided matching needs it)
-    extra: dict = field(default_factory=dict)  # per-matcher caches (e.g. backbone features)
+from colmap_guided.image_data import ImageData
 
 
 class Matcher:
@@ -35,9 +21,10 @@ class Matcher:
 
     name = "base"
     default_conf: dict = {}
-    verification_conf: dict = {}  # options of verify.two_view_options for this matcher's pairs (e.g. min_num_inliers)
+    device = "auto"  # torch device it runs on (subclasses resolve it); retrieval's backbone runs there too
     pair_workers: int = 1  # pairs that match_database may match at once in threads (``match`` must be thread-safe)
     torch_threads: int | None = None  # torch CPU threads while match_database runs (set, then restored); None: as is
+    flow_options: tuple[str, ...] = ()  # options ``match_flows`` takes as overrides (applied after ``coarse_flows``)
 
     def __init__(self, conf: dict | None = None):
         self.conf = merge_conf(self.default_conf, conf, f"{self.name} matcher")
@@ -45,8 +32,39 @@ class Matcher:
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
         raise NotImplementedError
 
+    @property
+    def verification_conf(self) -> dict:
+        """Options of ``verify.two_view_options`` for this matcher's pairs (e.g. min_num_inliers); {}: COLMAP's."""
+        return {}
+
+    def prepare(self, image: ImageData) -> None:
+        """Per-image work done once, before the image's first pair, by the process that reads the database.
+        What it stores in ``image.extra`` travels with the image to pair workers (the guided matcher's
+        backbone features); ``prepares_images`` says whether there is any."""
+
+    @property
+    def prepares_images(self) -> bool:
+        return type(self).prepare is not Matcher.prepare
+
     def release(self, name: str) -> None:
         """Called when the pipeline will not pass image ``name`` again: drop what is cached for it."""
+
+    def coarse_flows(self, a: ImageData, b: ImageData) -> object | None:
+        """The pair's guidance (guided matchers: the coarse match at both images' keypoints), computed once
+        for variants that differ only in ``flow_options``; None for a matcher without that step."""
+        return None
+
+    def match_flows(self, a: ImageData, b: ImageData, flows: object | None, **overrides) -> np.ndarray:
+        """``match`` given ``coarse_flows``' result, with ``overrides`` of the options in ``flow_options``."""
+        unknown = sorted(set(overrides) - set(self.flow_options))
+        if unknown:
+            raise ValueError(f"The {self.name} matcher takes no option {unknown} after its guidance; known: {list(self.flow_options)}")
+        return self.match(a, b)
+
+    def retrieval_backbone(self):
+        """The ``coarse.CoarseMatcher`` whose backbone features give retrieval descriptors (pairs.py);
+        None: an ImageNet backbone on this matcher's ``device``."""
+        return None
 
     def describe(self) -> dict:
         """What the report records about this matcher."""

@@ -47,6 +47,7 @@ class ColmapGuidedMatcher(Matcher):
     def __init__(self, conf: dict | None = None):
         super().__init__(conf)
         self.raw = RawMatcher({k: self.conf[k] for k in ("ratio", "device", "chunk_size")})
+        self.device = self.raw.device
         options = pycolmap.FeatureMatchingOptions()
         options.sift.max_ratio = 1.0 if self.conf["ratio"] is None else self.conf["ratio"]
         options.sift.max_distance = self.conf["max_distance"]

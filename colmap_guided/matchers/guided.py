@@ -217,6 +217,7 @@ class GuidedMatcher(Matcher):
     """
 
     name = "guided"
+    flow_options = ("window_cells", "ratio", "min_score", "max_fb_cells", "raw_matches")  # applied after the coarse match
     default_conf = {
         "weights": None,  # coarse filter weights; None = the shipped ones (raw-correlation fallback, with a WARNING)
         "mode": "auto",  # 'auto' | 'filter' (weights required) | 'raw' (correlation only, untrained)
@@ -248,7 +249,6 @@ class GuidedMatcher(Matcher):
     def __init__(self, conf: dict | None = None):
         super().__init__(conf)
         self.device = resolve_device(self.conf["device"])
-        self.verification_conf = {"min_num_inliers": self.conf["min_inliers"]}  # read by match.match_database
         coarse_conf = {**self.conf["coarse"], "device": str(self.device), "weights": self.conf["weights"]}
         mode = self.conf["mode"]
         if self.conf["raw_matches"] not in (None, "merge", "verified"):
@@ -280,6 +280,16 @@ class GuidedMatcher(Matcher):
     def describe(self) -> dict:
         return {**super().describe(), "pair_workers": self.pair_workers, "coarse": self.coarse.describe()}
 
+    @property
+    def verification_conf(self) -> dict:
+        return {"min_num_inliers": self.conf["min_inliers"]}
+
+    def prepare(self, image: ImageData) -> None:
+        self.features(image)
+
+    def retrieval_backbone(self) -> CoarseMatcher:
+        return self.coarse
+
     def features(self, image: ImageData):
         """Backbone features of ``image`` (cached by name until ``release``, and in ``image.extra``: an image
         sent to another process carries them, so the worker needs neither the photo nor the backbone pass)."""
@@ -303,7 +313,10 @@ class GuidedMatcher(Matcher):
         return CoarseFlows(flow_ab, score_ab, fb_ab, flow_ba, score_ba, fb_ba, result.cell_size_a, result.cell_size_b)
 
     def match_flows(self, a: ImageData, b: ImageData, flows: CoarseFlows, **overrides) -> np.ndarray:
-        """Eq. 1 given the coarse flows; ``overrides`` replace options of ``conf`` (the benchmark's sweep)."""
+        """Eq. 1 given the coarse flows; ``overrides`` replace options of ``flow_options`` (the benchmark's sweep)."""
+        unknown = sorted(set(overrides) - set(self.flow_options))
+        if unknown:
+            raise ValueError(f"The guided matcher takes no option {unknown} after the coarse match; known: {list(self.flow_options)}")
         conf = {**self.conf, **overrides}
         dev = self.device
 
