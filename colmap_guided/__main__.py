@@ -76,9 +76,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     set_verbosity(args.verbose, args.quiet)
     from . import match
-    from .matchers import DEFAULT_MATCHER
 
-    matcher = getattr(args, "matcher", None) or DEFAULT_MATCHER
+    matcher = getattr(args, "matcher", None)  # reconstruct and match only
     try:
         if args.command == "export":
             from .export import export_h5

@@ -8,6 +8,7 @@ the database afterwards unchanged. Pairs already matched (and verified) are skip
 from __future__ import annotations
 
 import argparse
+import inspect
 import time
 from collections import Counter
 from pathlib import Path
@@ -20,7 +21,7 @@ from . import verify
 from .conf import merge_conf
 from .log import logger
 from .image_data import PairKey
-from .matchers import MATCHERS, get_matcher
+from .matchers import DEFAULT_MATCHER, PRESETS, get_matcher, preset
 from .matchers.base import Matcher, scoped_torch_threads
 from .executor import EXECUTORS, get_executor
 from .pairs import DEFAULT_NUM_NEIGHBORS, PAIR_MODES, global_descriptors, select_pairs
@@ -144,11 +145,12 @@ def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matche
 
 
 def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--matcher", default=None, choices=sorted(MATCHERS), help="raw: mutual NN + ratio; guided: paper eq. 1 (default)")
+    parser.add_argument("--matcher", default=DEFAULT_MATCHER, choices=sorted(PRESETS), help="a preset of matchers.PRESETS; raw: mutual NN + ratio; guided: paper eq. 1 (default)")
     parser.add_argument("--ratio", type=float, default=None, help="Lowe ratio threshold (0 disables)")
     parser.add_argument("--pairs", default="auto", help=f"{'|'.join(PAIR_MODES)} or a pairs file (name_a name_b per line); auto: exhaustive for small sets, retrieval above")
-    parser.add_argument("--num_neighbors", type=int, default=DEFAULT_NUM_NEIGHBORS, help="retrieval / sequential: pairs per image")
-    parser.add_argument("--executor", default="local", choices=EXECUTORS, help="local: threads of this process; ray: a Ray cluster (pip install colmap_guided[ray])")
+    defaults = {name: p.default for name, p in inspect.signature(match_database).parameters.items()}  # declared once, there
+    parser.add_argument("--num_neighbors", type=int, default=defaults["num_neighbors"], help="retrieval / sequential: pairs per image")
+    parser.add_argument("--executor", default=defaults["executor"], choices=EXECUTORS, help="local: threads of this process; ray: a Ray cluster (pip install colmap_guided[ray])")
     parser.add_argument("--ray_address", default=None, help="Ray cluster to join (default RAY_ADDRESS; none: a private local instance)")
     parser.add_argument("--weights", type=Path, default=None, help="coarse filter weights (guided matcher)")
     parser.add_argument("--device", default=None, help="torch device for matching (cpu, cuda)")
@@ -158,7 +160,7 @@ def matcher_conf_from_args(args, matcher: str) -> dict:
     """The command-line options that the chosen matcher knows; an option it does not know is an error."""
     given = {"ratio": None if args.ratio is None else (args.ratio if args.ratio > 0 else None), "device": args.device, "weights": args.weights}
     given = {k: (str(v) if isinstance(v, Path) else v) for k, v in given.items() if getattr(args, k) is not None}
-    known = MATCHERS[matcher].default_conf
+    known = preset(matcher)[0].default_conf
     unknown = sorted(set(given) - set(known))
     if unknown:
         raise SystemExit(f"error: --{unknown[0]} does not apply to the {matcher} matcher")

@@ -1,7 +1,7 @@
 """Two-view geometry benchmark (paper Table 2 protocol) + WxBS, for every matcher variant of the registry.
 
     python recon_scripts/eval_two_view.py [--max_pairs 10] [--wxbs_max_pairs 33] [--output outputs/eval_two_view]
-    python recon_scripts/eval_two_view.py --matchers raw:ratio=0.8 guided:ratio=0.8 --max_pairs 3 --no_wxbs
+    python recon_scripts/eval_two_view.py --matchers raw guided_ratio0.9 --max_pairs 3 --no_wxbs
 
 Pose: pairs of lund_door_gtsfm (reference COLMAP model), train/strecha_castle, train/strecha_entry_P10
 (Strecha reference cameras) and train/instantngp_fox (instant-ngp cameras) — held out of training —,

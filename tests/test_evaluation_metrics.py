@@ -157,6 +157,26 @@ def test_matcher_specs_parse_and_refuse_unknown():
         matcher_specs.parse_spec("raw:ratio")
 
 
+def test_one_preset_name_means_the_same_matcher_on_the_command_line_in_python_and_in_the_benchmarks():
+    """matchers.PRESETS is the one set of named confs: get_matcher, the CLI's --matcher and the benchmark
+    specs resolve a name to the same matcher and options, and every default benchmark row is a preset."""
+    from colmap_guided.__main__ import build_parser
+    from colmap_guided.match import matcher_conf_from_args
+    from colmap_guided.matchers import PRESETS, get_matcher
+
+    assert set(matcher_specs.DEFAULT_TWO_VIEW_SPECS) <= set(PRESETS)
+    (spec,) = matcher_specs.parse_specs(["raw_mutual"], {"device": "cpu"})
+    assert (spec.name, spec.conf) == ("raw", {"ratio": None, "device": "cpu"})
+    assert matcher_specs.parse_specs(["raw:ratio=none"])[0].conf == matcher_specs.parse_specs(["raw_mutual"])[0].conf
+    assert matcher_specs.build(spec).conf == get_matcher("raw_mutual", {"device": "cpu"}).conf
+    args = build_parser().parse_args(["match", "--database_path", "db.db", "--image_path", "images", "--matcher", "guided_ratio0.9", "--device", "cpu"])
+    matcher = get_matcher(args.matcher, matcher_conf_from_args(args, args.matcher))
+    assert matcher.name == "guided" and matcher.conf["ratio"] == 0.9
+    assert build_parser().parse_args(["match", "--database_path", "db.db", "--image_path", "images"]).matcher == "guided"
+    with pytest.raises(ValueError, match="choose one of"):
+        get_matcher("raw_ratio")
+
+
 def test_estimate_geometry_returns_none_when_opencv_asserts(monkeypatch):
     """OpenCV 5's MAGSAC++ raises (!model.empty()) on some degenerate WxBS match sets: no model, no crash."""
     import cv2

@@ -1,7 +1,7 @@
 """Coarse matching network (paper §4.1, §4.3): backbone features → 4D correlation → symmetric
 neighbourhood-consensus filter → coarse matches and pixel flow. See ``matcher.CoarseMatcher``."""
 
-from colmap_guided.coarse.backbone import BACKBONES, build_backbone
+from colmap_guided.coarse.backbone import BACKBONES, DEFAULT_BACKBONE, build_backbone
 from colmap_guided.coarse.flow import CoarseResult
 from colmap_guided.coarse.geometry import ImageGeometry, resize_geometry
 from colmap_guided.coarse.matcher import CoarseFeatures, CoarseMatcher
@@ -10,6 +10,7 @@ from colmap_guided.coarse.weights import DEFAULT_WEIGHTS, load_filter_weights, r
 
 __all__ = [
     "BACKBONES",
+    "DEFAULT_BACKBONE",
     "DEFAULT_WEIGHTS",
     "CoarseFeatures",
     "CoarseMatcher",

@@ -279,6 +279,7 @@ class BackboneSpec:
     cell_offset: float
 
 
+DEFAULT_BACKBONE = "efficientnet-lite0"  # of the coarse network, its weights and training (declared here only)
 BACKBONES: dict[str, BackboneSpec] = {
     "efficientnet-lite0": BackboneSpec("efficientnet-lite0", "_blocks.10", 112, STRIDE, EfficientNetLite.cell_offset),
     "efficientnet-lite1": BackboneSpec("efficientnet-lite1", "_blocks.14", 112, STRIDE, EfficientNetLite.cell_offset),

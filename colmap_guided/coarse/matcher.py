@@ -18,7 +18,7 @@ import h5py
 import numpy as np
 import torch
 
-from colmap_guided.coarse.backbone import BACKBONES
+from colmap_guided.coarse.backbone import BACKBONES, DEFAULT_BACKBONE
 from colmap_guided.coarse.flow import CoarseResult
 from colmap_guided.coarse.geometry import ImageGeometry, as_rgb, resize_geometry, resize_image
 from colmap_guided.coarse.model import CoarseNet
@@ -42,7 +42,7 @@ class CoarseMatcher:
     """Coarse matches and flow between images (paper §4.1), with a per-image feature cache."""
 
     default_conf = {
-        "backbone": "efficientnet-lite0",
+        "backbone": DEFAULT_BACKBONE,
         "backbone_weights": None,  # path overriding the backbone's ImageNet weights
         "resize_max": 512,  # long side of the network input (grid at most 32x32)
         "mode": "filter",  # 'filter': learned filter (needs weights) | 'raw': correlation only

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from colmap_guided.coarse.backbone import BACKBONES, build_backbone
+from colmap_guided.coarse.backbone import BACKBONES, DEFAULT_BACKBONE, build_backbone
 from colmap_guided.coarse.conv4d import SparseNeighbourhood, conv4d, sparse_conv4d
 from colmap_guided.conf import merge_conf
 
@@ -188,7 +188,7 @@ class CoarseNet(nn.Module):
     """
 
     default_conf = {
-        "backbone": "efficientnet-lite0",
+        "backbone": DEFAULT_BACKBONE,
         "backbone_weights": None,  # path overriding the backbone's ImageNet weights
         "pretrained": True,  # False: random backbone (wiring tests only)
         "filter": True,  # False: raw mode (correlation only, no weights)

@@ -1,10 +1,11 @@
-"""Matcher variants for the benchmarks, picked from the registry by name.
+"""Matcher variants for the benchmarks: a preset of ``matchers.PRESETS`` by name, with options over it.
 
-A spec is ``name[:key=value[,key=value...]]``, e.g. ``raw:ratio=none`` (mutual check only),
-``raw:ratio=0.8`` (ratio + mutual), ``guided:ratio=0.9``, ``guided_epipolar``. Values are parsed as JSON
-when they can be (``none``/``null`` -> None, numbers, true/false), else kept as strings.
-A spec whose matcher the registry does not have, or whose option the matcher does not know, raises
-ValueError: a benchmark never drops a row silently.
+A spec is ``preset[:key=value[,key=value...]]``, e.g. ``raw_mutual`` (mutual check only), ``raw`` (ratio +
+mutual), ``guided_ratio0.9``, ``guided:window_cells=2`` (an option swept outside the presets). Values are
+parsed as JSON when they can be (``none``/``null`` -> None, numbers, true/false), else kept as strings.
+A spec whose preset does not exist, or whose option its matcher does not know, raises ValueError: a
+benchmark never drops a row silently. A parsed spec names the matcher (``name``) and holds the preset's
+options with the overrides (``conf``); ``label`` is its text.
 """
 
 from __future__ import annotations
@@ -14,12 +15,12 @@ from dataclasses import dataclass, field
 
 # Paper Table 2 rows that this project can produce (the best ratio among 0.8/0.9/0.95 is reported there).
 DEFAULT_TWO_VIEW_SPECS = (
-    "raw:ratio=none",  # bidirectional check only
-    "raw:ratio=0.8",  # ratio test + bidirectional check (the paper's strong baseline)
-    "guided:ratio=none",
-    "guided:ratio=0.8",
-    "guided:ratio=0.9",
-    "guided:ratio=0.95",
+    "raw_mutual",  # bidirectional check only
+    "raw",  # ratio test 0.8 + bidirectional check (the paper's strong baseline)
+    "guided_mutual",
+    "guided",  # ratio 0.8
+    "guided_ratio0.9",
+    "guided_ratio0.95",
     "guided_epipolar",
     "guided_homography",
     "guided_colmap",  # COLMAP's own guided_matching option
@@ -58,26 +59,29 @@ def parse_spec(text: str) -> MatcherSpec:
     return MatcherSpec(name.strip(), conf, text)
 
 
-def registry():
-    """(MATCHERS, get_matcher) of the project's registry."""
-    from colmap_guided.matchers import MATCHERS, get_matcher
+def matcher_class(name: str):
+    """The matcher class of a registry name."""
+    from colmap_guided.matchers import MATCHERS
 
-    return MATCHERS, get_matcher
+    return MATCHERS[name]
 
 
 def parse_specs(texts, extra_conf: dict | None = None) -> list[MatcherSpec]:
-    """Parse specs; ValueError for one the registry cannot build. ``extra_conf`` (e.g. device, weights)
-    is added to each spec for the options its matcher knows."""
-    matchers, _ = registry()
+    """Parse specs into (matcher, preset options + overrides); ValueError for one that cannot be built.
+    ``extra_conf`` (e.g. device, weights) is added to each spec for the options its matcher knows."""
+    from colmap_guided.matchers import PRESETS, preset
+
     out = []
     for text in texts:
         spec = parse_spec(text)
-        if spec.name not in matchers:
-            raise ValueError(f"Matcher {spec.name!r} of {text!r} is not in the registry ({', '.join(sorted(matchers))})")
-        known = matchers[spec.name].default_conf
+        if spec.name not in PRESETS:
+            raise ValueError(f"Matcher {spec.name!r} of {text!r} is not in the registry ({', '.join(sorted(PRESETS))})")
+        cls, options = preset(spec.name)
+        known = cls.default_conf
         unknown = sorted(set(spec.conf) - set(known))
         if unknown:
-            raise ValueError(f"The {spec.name} matcher has no option {', '.join(unknown)} ({text!r}); known: {', '.join(sorted(known))}")
+            raise ValueError(f"The {cls.name} matcher has no option {', '.join(unknown)} ({text!r}); known: {', '.join(sorted(known))}")
+        spec = MatcherSpec(cls.name, {**options, **spec.conf}, text)
         for key, value in (extra_conf or {}).items():
             if key in known and key not in spec.conf and value is not None:
                 spec.conf[key] = value
@@ -86,5 +90,6 @@ def parse_specs(texts, extra_conf: dict | None = None) -> list[MatcherSpec]:
 
 
 def build(spec: MatcherSpec):
-    _, get_matcher = registry()
+    from colmap_guided.matchers import get_matcher
+
     return get_matcher(spec.name, spec.conf)

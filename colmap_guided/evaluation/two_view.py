@@ -97,8 +97,7 @@ def _fresh(image: ImageData) -> ImageData:
 def _flow_options(spec) -> tuple[str, ...]:
     """Options the spec's matcher applies after its guidance (``Matcher.flow_options``): variants differing
     only in these share one ``coarse_flows`` per pair."""
-    matchers, _ = matcher_specs.registry()
-    return matchers[spec.name].flow_options
+    return matcher_specs.matcher_class(spec.name).flow_options
 
 
 def _group_key(spec) -> str:

@@ -1,4 +1,4 @@
-"""Matcher registry: ``get_matcher(name, conf)`` for raw, guided, guided_epipolar, guided_homography, guided_colmap, lightglue."""
+"""Matcher registry and presets: ``get_matcher(name, conf)`` for a preset name (below) or a matcher of ``MATCHERS``."""
 
 from __future__ import annotations
 
@@ -18,12 +18,28 @@ MATCHERS: dict[str, type[Matcher]] = {
 }
 DEFAULT_MATCHER = "guided"
 
+# Named matcher confs (hloc style), one set for the command line (--matcher NAME), the Python API
+# (get_matcher, reconstruct, match_database) and the evaluation scripts: {"matcher": a MATCHERS name, "conf": its options}.
+PRESETS: dict[str, dict] = {
+    **{name: {"matcher": name, "conf": {}} for name in MATCHERS},  # every matcher with its default_conf
+    "raw_mutual": {"matcher": "raw", "conf": {"ratio": None}},  # bidirectional check only (paper Table 2)
+    "guided_mutual": {"matcher": "guided", "conf": {"ratio": None}},  # eq. 1, mutual check, no ratio test
+    "guided_ratio0.9": {"matcher": "guided", "conf": {"ratio": 0.9}},
+    "guided_ratio0.95": {"matcher": "guided", "conf": {"ratio": 0.95}},
+}
+
+
+def preset(name: str) -> tuple[type[Matcher], dict]:
+    """The matcher class and options of a preset; ValueError naming the presets for an unknown name."""
+    if name not in PRESETS:
+        raise ValueError(f"Unknown matcher {name!r}; choose one of {sorted(PRESETS)}.")
+    return MATCHERS[PRESETS[name]["matcher"]], dict(PRESETS[name]["conf"])
+
 
 def get_matcher(name: str, conf: dict | None = None) -> Matcher:
-    """A matcher by name with ``conf`` overriding its ``default_conf`` (unknown keys are an error)."""
-    if name not in MATCHERS:
-        raise ValueError(f"Unknown matcher {name!r}; choose one of {sorted(MATCHERS)}.")
-    return MATCHERS[name](conf)
+    """The matcher of preset ``name`` with ``conf`` over the preset's options (unknown keys are an error)."""
+    cls, options = preset(name)
+    return cls({**options, **(conf or {})})
 
 
-__all__ = ["DEFAULT_MATCHER", "MATCHERS", "ImageData", "Matcher", "get_matcher"]
+__all__ = ["DEFAULT_MATCHER", "MATCHERS", "PRESETS", "ImageData", "Matcher", "get_matcher", "preset"]
