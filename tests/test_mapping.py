@@ -10,7 +10,7 @@ import pytest
 
 from colmap_guided.mapping import MAPPERS, check_conf, run_mapping
 from colmap_guided.model_check import check_models
-from colmap_guided.synthetic import pose_errors
+from colmap_guided.evaluation.ground_truth import pose_errors
 
 NUM_FRAMES = 12
 

@@ -14,7 +14,7 @@ from colmap_guided import database as dbio
 from colmap_guided.match import match_database
 from colmap_guided.matchers import get_matcher
 from colmap_guided.reconstruct import reconstruct
-from colmap_guided.synthetic import pose_errors
+from colmap_guided.evaluation.ground_truth import pose_errors
 
 
 def folder_digest(folder: Path) -> dict:

@@ -8,11 +8,11 @@ import pycolmap
 import pytest
 
 from colmap_guided import synthetic
+from colmap_guided.evaluation.ground_truth import pose_errors
 from colmap_guided.synthetic import (
     Polygon,
     load_scene,
     make_texture,
-    pose_errors,
     render_image,
     render_scene,
     transfer_points,

@@ -1,0 +1,325 @@
+"""The synthetic landmark: its layout (hall, tower, annex, stone blocks, plaza, field, tree line), the
+cameras around it, and ``render_scene`` writing photos, depth maps and the ground-truth COLMAP model."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+from PIL import Image
+
+from colmap_guided.log import logger
+
+from . import textures
+from .render import Polygon, Texture, make_texture, render_image
+
+
+default_conf = {
+    "focal_factor": 1.1,  # focal length in pixels / image width
+    "arc_step_deg": 14.0,  # azimuth step between consecutive cameras
+    # Varied distance, height and aim keep the cameras off a pure orbit around one point: an orbit is a
+    # critical motion for self-calibration, and COLMAP's focal lengths and rotations drift on it.
+    "radius": (20.0, 28.0),  # camera distance from the hall's centre, metres
+    "camera_height": (1.5, 7.0),  # metres above the ground
+    "target_jitter": 2.0,  # metres of random offset of the look-at point
+    "max_roll_deg": 3.0,
+    "supersample": 2,
+    "jpeg_quality": 92,
+    "exif": True,  # write camera make/model and the focal length (35 mm equivalent) like a camera does
+    "noise_sigma": 1.2,  # sensor noise, grey levels
+    "texels_per_m": 100.0,  # texture resolution of the buildings
+}
+
+
+@dataclass
+class SceneInfo:
+    """Where a rendered scene lies and its ground truth (poses map world to camera: x_cam = R x + t)."""
+
+    image_dir: Path
+    gt_dir: Path
+    depth_dir: Path
+    names: list[str]
+    K: np.ndarray
+    width: int
+    height: int
+    cam_from_world: dict[str, tuple[np.ndarray, np.ndarray]]
+
+    def depth(self, name: str) -> np.ndarray:
+        """Depth map of one image (metres along the optical axis, 0 where unknown)."""
+        return np.load(self.depth_dir / f"{Path(name).stem}.npy")
+
+
+
+_UP = np.array([0.0, 0.0, 1.0])
+
+
+def _wall(p0, p1, height: float, tex: Texture, shade: float, gable: float | None = None) -> Polygon:
+    """A vertical wall on the ground from p0 to p1 (x, y), facing right of p0 -> p1, so walls listed
+    counter-clockwise seen from above face outwards; ``gable`` adds an apex at that height mid-wall."""
+    p0, p1 = np.array([*p0, 0.0]), np.array([*p1, 0.0])
+    length = float(np.linalg.norm(p1 - p0))
+    top = gable if gable is not None else height
+    verts = [(0, top - height), (length, top - height), (length, top), (0, top)]
+    if gable is not None:
+        verts.insert(1, (length / 2, 0.0))
+    return Polygon(p0 + top * _UP, (p1 - p0) / length, -_UP, np.array(verts, float), tex, shade)
+
+
+def _roof_face(eave0, eave1, high, tex: Texture, shade_of, triangle: bool) -> Polygon:
+    """A roof face above the eave eave0 -> eave1 (counter-clockwise seen from above) rising to
+    ``high``: the ridge end above eave1 (a rectangle) or the apex (a triangle)."""
+    a, b, c = (np.array(p, float) for p in (eave0, eave1, high))
+    length = float(np.linalg.norm(b - a))
+    u = (b - a) / length
+    up_slope = c - a - ((c - a) @ u) * u
+    rise = float(np.linalg.norm(up_slope))
+    v = -up_slope / rise  # texture rows run down the slope from the ridge
+    if triangle:
+        verts = [(float((c - a) @ u), 0.0), (length, rise), (0.0, rise)]
+    else:
+        verts = [(0.0, 0.0), (length, 0.0), (length, rise), (0.0, rise)]
+    poly = Polygon(a + up_slope, u, v, np.array(verts, float), tex)
+    poly.shade = shade_of(poly.normal)
+    return poly
+
+
+def _flat_top(x0: float, y0: float, x1: float, y1: float, z: float, tex: Texture, shade: float) -> Polygon:
+    """A horizontal rectangle facing up."""
+    verts = np.array([(0, 0), (x1 - x0, 0), (x1 - x0, y1 - y0), (0, y1 - y0)], float)
+    return Polygon(np.array([x0, y1, z]), np.array([1.0, 0, 0]), np.array([0, -1.0, 0]), verts, tex, shade)
+
+
+def _box_walls(x0: float, y0: float, x1: float, y1: float, height: float, make_tex, shade_of) -> list[Polygon]:
+    """The four walls of an axis-aligned box standing on the ground."""
+    corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+    walls = []
+    for p0, p1 in zip(corners, corners[1:] + corners[:1]):
+        length = math.dist(p0, p1)
+        normal = np.array([p1[1] - p0[1], p0[0] - p1[0], 0.0]) / length
+        walls.append(_wall(p0, p1, height, make_tex(length, height, height), shade_of(normal)))
+    return walls
+
+
+def build_scene(seed: int = 0, repeated: bool = False, texels_per_m: float = 100.0) -> list[Polygon]:
+    """The polygons of the scene: hall, tower, annex, stone blocks, ground and tree line."""
+    rng = np.random.default_rng(seed)
+    ppm = texels_per_m
+    sun_az = rng.uniform(0, 2 * np.pi)
+    sun = np.array([np.cos(sun_az) * 0.75, np.sin(sun_az) * 0.75, 0.66])
+
+    def shade_of(normal: np.ndarray) -> float:
+        return float(0.55 + 0.5 * max(0.0, normal @ sun) + 0.1 * normal[2])
+
+    motif = textures.window_motif(np.random.default_rng(rng.integers(2**32)), ppm) if repeated else None
+
+    def facade(width: float, height: float, eave: float) -> Texture:
+        return make_texture(textures.facade(rng, width, height, eave, ppm, motif), ppm)
+
+    def roof(width: float, height: float) -> Texture:
+        return make_texture(textures.roof(rng, width, height, ppm), ppm)
+
+    stone = (0.7, 0.66, 0.6)
+
+    def stone_block(width: float, height: float, _eave: float) -> Texture:
+        return make_texture(textures.masonry(rng, int(height * ppm), int(width * ppm), ppm, (0.5, 0.3), stone), ppm)
+
+    up_shade = shade_of(_UP)
+    # Hall: 12 x 8 m, eaves at 6.5 m, ridge along x at 9.5 m, gables east and west.
+    hx, hy, eave, ridge = 6.0, 4.0, 6.5, 9.5
+    corners = [(-hx, -hy), (hx, -hy), (hx, hy), (-hx, hy)]
+    polys: list[Polygon] = []
+    for i, gable in enumerate([None, ridge, None, ridge]):
+        p0, p1 = corners[i], corners[(i + 1) % 4]
+        length = math.dist(p0, p1)
+        normal = np.array([p1[1] - p0[1], p0[0] - p1[0], 0.0]) / length
+        polys.append(_wall(p0, p1, eave, facade(length, gable or eave, eave), shade_of(normal), gable))
+    polys.append(_roof_face((-hx, -hy, eave), (hx, -hy, eave), (hx, 0, ridge), roof(12, 5), shade_of, False))
+    polys.append(_roof_face((hx, hy, eave), (-hx, hy, eave), (-hx, 0, ridge), roof(12, 5), shade_of, False))
+    # Tower through the west gable: 4 x 4 m, 11 m, pyramid roof up to 14 m.
+    tx0, ty0, tx1, ty1, th = -9.0, -2.0, -5.0, 2.0, 11.0
+    polys += _box_walls(tx0, ty0, tx1, ty1, th, facade, shade_of)
+    apex = ((tx0 + tx1) / 2, (ty0 + ty1) / 2, th + 3.0)
+    ring = [(tx0, ty0, th), (tx1, ty0, th), (tx1, ty1, th), (tx0, ty1, th)]
+    for p0, p1 in zip(ring, ring[1:] + ring[:1]):
+        polys.append(_roof_face(p0, p1, apex, roof(4, 3.7), shade_of, True))
+    # Annex on the south side with a gravel roof, and a few stone blocks on the plaza.
+    polys += _box_walls(1.5, -7.5, 6.5, -4.0, 3.5, facade, shade_of)
+    gravel = make_texture(textures.plaster(rng, 400, 600, ppm, (0.5, 0.5, 0.48), stains=0.5), ppm)
+    polys.append(_flat_top(1.5, -7.5, 6.5, -4.0, 3.5, gravel, up_shade))
+    for _ in range(3):
+        ang, dist = rng.uniform(0, 2 * np.pi), rng.uniform(10.5, 12.5)
+        cx, cy, s, bh = dist * np.cos(ang), dist * np.sin(ang), rng.uniform(0.5, 0.8), rng.uniform(0.8, 1.8)
+        polys += _box_walls(cx - s, cy - s, cx + s, cy + s, bh, stone_block, shade_of)
+        top = make_texture(textures.plaster(rng, int(2 * s * ppm), int(2 * s * ppm), ppm, stone, stains=0.4), ppm)
+        polys.append(_flat_top(cx - s, cy - s, cx + s, cy + s, bh, top, up_shade))
+    # Ground: 120 m square in 10 m tiles (each picks its own mip level), a tree line at its edge.
+    size, tile = 120.0, 10.0
+    macro, detail = textures.ground(rng, size, plaza_radius=14.0)
+    macro_tex, detail_tex = make_texture(macro, 1024 / size), make_texture(detail, 2048 / 24.0, wrap=True)
+    for x in np.arange(-size / 2, size / 2, tile):
+        for y in np.arange(-size / 2, size / 2, tile):
+            ground = _flat_top(-size / 2, -size / 2, size / 2, size / 2, 0.0, macro_tex, up_shade)
+            a, b = x + size / 2, size / 2 - y - tile
+            ground.vertices = np.array([(a, b), (a + tile, b), (a + tile, b + tile), (a, b + tile)])
+            ground.detail = detail_tex
+            polys.append(ground)
+    half = size / 2 - 2
+    edge = [(-half, -half), (-half, half), (half, half), (half, -half)]  # clockwise: facing inwards
+    for p0, p1 in zip(edge, edge[1:] + edge[:1]):
+        polys.append(_wall(p0, p1, 12.0, make_texture(textures.treeline(rng, 2 * half, 12.0, 10.0), 10.0), 0.8))
+    return polys
+
+
+def _cameras(rng: np.random.Generator, num_images: int, conf: dict) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Poses on an arc around the hall, looking at it with jitter in distance, height, aim and roll."""
+    start = rng.uniform(0, 2 * np.pi)
+    poses = []
+    for i in range(num_images):
+        az = start + math.radians(conf["arc_step_deg"]) * (i + rng.uniform(-0.15, 0.15))
+        r = rng.uniform(*conf["radius"])
+        center = np.array([r * np.cos(az), r * np.sin(az), rng.uniform(*conf["camera_height"])])
+        target = np.array([0.0, 0.0, 4.0]) + rng.uniform(-1, 1, 3) * conf["target_jitter"]
+        z = (target - center) / np.linalg.norm(target - center)
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        roll = math.radians(rng.uniform(-1, 1) * conf["max_roll_deg"])
+        c, s = math.cos(roll), math.sin(roll)
+        R = np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]]) @ np.stack([x, y, z])
+        poses.append((R, -R @ center))
+    return poses
+
+
+def render_scene(
+    out_dir: str | Path,
+    num_images: int = 8,
+    width: int = 640,
+    height: int = 480,
+    seed: int = 0,
+    repeated: bool = False,
+    conf: dict | None = None,
+) -> SceneInfo:
+    """Render the scene into ``out_dir`` (images/, ground_truth/, depth/) and return its SceneInfo."""
+    if num_images < 2:
+        raise ValueError(f"num_images must be at least 2, got {num_images}.")
+    if width < 32 or height < 32:
+        raise ValueError(f"Image size {width}x{height} is too small; use at least 32x32 pixels.")
+    conf = {**default_conf, **(conf or {})}
+    out_dir = Path(out_dir)
+    image_dir, gt_dir, depth_dir = out_dir / "images", out_dir / "ground_truth", out_dir / "depth"
+    for d in (image_dir, gt_dir, depth_dir):
+        d.mkdir(parents=True, exist_ok=True)
+    names = [f"view_{i:03d}.jpg" for i in range(num_images)]
+    for stale in [*image_dir.glob("view_*.jpg"), *depth_dir.glob("view_*.npy")]:  # from an earlier, larger render
+        if stale.stem not in {Path(n).stem for n in names}:
+            stale.unlink()
+    tic = time.perf_counter()
+    polygons = build_scene(seed, repeated, conf["texels_per_m"])
+    logger.debug("Built %d textured polygons in %.2f s.", len(polygons), time.perf_counter() - tic)
+    f = conf["focal_factor"] * width
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
+    poses = _cameras(np.random.default_rng([seed, 1]), num_images, conf)
+    tic = time.perf_counter()
+    for i, (name, (R, t)) in enumerate(zip(names, poses)):
+        noise_rng = np.random.default_rng([seed, 2, i])  # per image: a shorter render gives the same views
+        image, depth = render_image(polygons, K, R, t, width, height, conf, noise_rng)
+        _write_jpeg(image_dir / name, image, conf["jpeg_quality"], f if conf["exif"] else None)
+        np.save(depth_dir / f"{Path(name).stem}.npy", depth)
+    seconds = time.perf_counter() - tic
+    logger.info("Rendered %d images of %dx%d in %.1f s into %s.", num_images, width, height, seconds, out_dir)
+    _write_model(gt_dir, K, width, height, names, poses)
+    return SceneInfo(image_dir, gt_dir, depth_dir, names, K, width, height, dict(zip(names, poses)))
+
+
+def _write_jpeg(path: Path, image: np.ndarray, quality: int, focal: float | None) -> None:
+    """Save RGB as JPEG; with ``focal`` (pixels) add the EXIF tags from which COLMAP reads a focal
+    length prior (35 mm equivalent over the diagonal) and groups the images into one camera."""
+    exif = Image.Exif()
+    if focal is not None:
+        exif[0x010F], exif[0x0110] = "colmap_guided", "synthetic"  # Make, Model
+        diagonal_35mm = math.hypot(36.0, 24.0)
+        exif.get_ifd(0x8769)[0xA405] = round(focal / math.hypot(*image.shape[:2]) * diagonal_35mm)
+    Image.fromarray(image).save(path, quality=quality, exif=exif)
+
+
+def _write_model(path: Path, K: np.ndarray, width: int, height: int, names: list[str], poses) -> None:
+    """Write the ground truth as a COLMAP text model (cameras, rigs, frames, images; no points)."""
+    rec = pycolmap.Reconstruction()
+    params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+    camera = pycolmap.Camera(model="PINHOLE", width=width, height=height, params=params, camera_id=1)
+    rec.add_camera_with_trivial_rig(camera)
+    for image_id, (name, (R, t)) in enumerate(zip(names, poses), start=1):
+        image = pycolmap.Image(name=name, camera_id=1, image_id=image_id)
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(R), t))
+    rec.write_text(str(path))
+
+
+def transfer_points(info: SceneInfo, src: str, dst: str, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth correspondences: map pixels (N x 2, COLMAP convention) of ``src`` into ``dst``.
+
+    Uses the depth of ``src`` (nearest pixel) and the poses; ``valid`` is False where the depth is
+    unknown (sky, occlusion edges), a point lies outside either image or is hidden in ``dst`` (depth
+    test, 2 %).
+    """
+    points = np.asarray(points, np.float64).reshape(-1, 2)
+    depth_src, depth_dst = info.depth(src), info.depth(dst)
+    z = _lookup(depth_src, points).astype(np.float64)
+    rays = np.concatenate([points, np.ones((len(points), 1))], 1) @ np.linalg.inv(info.K).T
+    (R_s, t_s), (R_d, t_d) = info.cam_from_world[src], info.cam_from_world[dst]
+    world = (rays * z[:, None] - t_s) @ R_s
+    cam = world @ R_d.T + t_d
+    proj = cam @ info.K.T
+    out = proj[:, :2] / np.where(np.abs(proj[:, 2:]) > 1e-12, proj[:, 2:], 1e-12)
+    seen = _lookup(depth_dst, out)
+    valid = (z > 0) & (cam[:, 2] > 0) & (seen > 0) & (np.abs(seen - cam[:, 2]) < 0.02 * cam[:, 2])
+    return out, valid
+
+
+def _lookup(depth: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Depth of the pixels containing the points, 0 for points outside the image."""
+    h, w = depth.shape
+    inside = (points[:, 0] >= 0) & (points[:, 0] < w) & (points[:, 1] >= 0) & (points[:, 1] < h)
+    cols = np.clip(np.floor(points[:, 0]), 0, w - 1).astype(int)
+    rows = np.clip(np.floor(points[:, 1]), 0, h - 1).astype(int)
+    return np.where(inside, depth[rows, cols], 0)
+
+
+def load_scene(out_dir: str | Path) -> SceneInfo:
+    """The SceneInfo of a scene rendered earlier into ``out_dir``."""
+    out_dir = Path(out_dir)
+    rec = load_ground_truth(out_dir / "ground_truth")
+    images = sorted(rec.images.values(), key=lambda im: im.name)
+    camera = rec.cameras[images[0].camera_id]
+    poses = {im.name: (im.cam_from_world().rotation.matrix(), im.cam_from_world().translation) for im in images}
+    return SceneInfo(
+        out_dir / "images", out_dir / "ground_truth", out_dir / "depth", [im.name for im in images],
+        camera.calibration_matrix(), camera.width, camera.height, poses,
+    )
+
+
+def load_ground_truth(gt: SceneInfo | pycolmap.Reconstruction | str | Path) -> pycolmap.Reconstruction:
+    """The ground-truth model of a rendered scene (its SceneInfo or ground_truth folder), or ``gt`` itself."""
+    if isinstance(gt, pycolmap.Reconstruction):
+        return gt
+    path = Path(gt.gt_dir if isinstance(gt, SceneInfo) else gt)
+    if not path.is_dir():
+        raise FileNotFoundError(f"No ground-truth model at {path}; render one with render_scene() first.")
+    return pycolmap.Reconstruction(str(path))
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description="Render the synthetic landmark scene with its ground truth.")
+    parser.add_argument("out_dir", type=Path)
+    parser.add_argument("--num_images", type=int, default=8)
+    parser.add_argument("--width", type=int, default=640)
+    parser.add_argument("--height", type=int, default=480)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--repeated", action="store_true", help="periodic window grid on every facade")
+    args = parser.parse_args(argv)
+    info = render_scene(args.out_dir, args.num_images, args.width, args.height, args.seed, args.repeated)
+    print(f"{len(info.names)} images in {info.image_dir}, ground truth in {info.gt_dir}")
