@@ -22,6 +22,7 @@ from pathlib import Path
 import colmap_guided  # noqa: F401  (before pycolmap: see colmap_guided/__init__.py)
 from colmap_guided import database as dbio
 from colmap_guided import features
+from colmap_guided.evaluation import matcher_specs
 from colmap_guided.log import set_verbosity
 from colmap_guided.paths import shared_data_dir
 from colmap_guided.reconstruct import reconstruct
@@ -34,13 +35,10 @@ def landmark(name: str) -> str:
 
 
 def parse_config(text: str) -> tuple[str, str, dict]:
-    kind, matcher, *rest = text.split(":")
-    conf = {}
-    for item in ",".join(rest).split(","):
-        if item:
-            key, value = item.split("=")
-            conf[key] = None if value.lower() == "none" else float(value) if key != "workers" else int(value)
-    return kind, matcher, conf
+    """FEATURES:SPEC, SPEC a matcher spec of evaluation.matcher_specs (a preset, options over it)."""
+    kind, _, spec = text.partition(":")
+    (spec,) = matcher_specs.parse_specs([spec])
+    return kind, spec.name, spec.conf
 
 
 def wrong_pairs(database_path: Path) -> tuple[int, list]:
