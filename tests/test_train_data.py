@@ -5,7 +5,9 @@ import pytest
 import torch
 
 from colmap_guided.images import read_image
+from colmap_guided.train import augment, scenes, views
 from colmap_guided.train import data as D
+from colmap_guided.train import geometry as G
 from colmap_guided.train.losses import epipolar_distance
 
 SMALL = dict(
@@ -29,32 +31,32 @@ def _dist(F, xa, xb):
 
 
 def test_sfm_pairs_and_fundamental_matrices(shared_data):
-    scene = D.load_scene("strecha_entry_P10", min_shared=30)
+    scene = scenes.load_scene("strecha_entry_P10", min_shared=30)
     assert len(scene.images) == 10 and len(scene.pairs) > 20
     assert all(p.n_shared >= 30 for p in scene.pairs)
     for p in scene.pairs[:10]:
         A, B = scene.images[p.a], scene.images[p.b]
-        xa, xb = D.ideal_pixels(A.camera, p.xy_a), D.ideal_pixels(B.camera, p.xy_b)
+        xa, xb = G.ideal_pixels(A.camera, p.xy_a), G.ideal_pixels(B.camera, p.xy_b)
         d = _dist(p.F, xa, xb)
         assert np.median(d) < 0.5 and np.percentile(d, 90) < 2.0  # pseudo-GT reprojection error level
         # wrong pairing of the same points is far from the lines: the check has teeth
         assert np.median(_dist(p.F, xa, np.roll(xb, 7, axis=0))) > 20
         # F in scaled frames
         sa, sb = np.array([0.4, 0.41]), np.array([0.25, 0.26])
-        assert np.median(_dist(D.scale_fundamental(p.F, sa, sb), xa * sa, xb * sb)) < 0.5 * sb.max() + 1e-6
+        assert np.median(_dist(G.scale_fundamental(p.F, sa, sb), xa * sa, xb * sb)) < 0.5 * sb.max() + 1e-6
 
 
 def test_pair_mining_counts_shared_tracks(shared_data):
     import pycolmap
 
-    rec = pycolmap.Reconstruction(str(D.scene_model_dir("bundler_et")))
-    scene = D.load_scene("bundler_et", min_shared=30)
+    rec = pycolmap.Reconstruction(str(scenes.scene_model_dir("bundler_et")))
+    scene = scenes.load_scene("bundler_et", min_shared=30)
     by_name = {im.name: im for im in rec.images.values()}
     p = scene.pairs[0]
     ids_a = {q.point3D_id for q in by_name[p.a].points2D if q.has_point3D()}
     ids_b = {q.point3D_id for q in by_name[p.b].points2D if q.has_point3D()}
     assert p.n_shared == len(ids_a & ids_b)
-    all_pairs = D.load_scene("bundler_et", min_shared=1).pairs
+    all_pairs = scenes.load_scene("bundler_et", min_shared=1).pairs
     assert len(all_pairs) > len(scene.pairs)  # the threshold removes weak pairs
 
 
@@ -63,11 +65,11 @@ def test_synthetic_homography_pair_is_exact(small_data):
     view = small_data.views[key]
     im = small_data.scenes[view.scene].images[view.name]
     photo = read_image(im.path).astype(np.float32)
-    warped = D.warp_image(photo.astype(np.uint8), view.H, view.geometry.width, view.geometry.height).astype(np.float32)
+    warped = augment.warp_image(photo.astype(np.uint8), view.H, view.geometry.width, view.geometry.height).astype(np.float32)
     rng = np.random.default_rng(0)
     pts = np.stack([rng.uniform(0, im.width, 4000), rng.uniform(0, im.height, 4000)], 1)
-    mapped = D.apply_h(view.H, pts)
-    ok = D._inside(mapped, view.geometry) & (mapped.min(1) > 2) & (mapped[:, 0] < view.geometry.width - 2) & (mapped[:, 1] < view.geometry.height - 2)
+    mapped = G.apply_h(view.H, pts)
+    ok = views.inside(mapped, view.geometry) & (mapped.min(1) > 2) & (mapped[:, 0] < view.geometry.width - 2) & (mapped[:, 1] < view.geometry.height - 2)
     assert ok.sum() > 200
     # pixel value in the photo at p (pixel centre convention) vs in the warp at H p
     a = photo[np.floor(pts[ok, 1]).astype(int), np.floor(pts[ok, 0]).astype(int)]
@@ -113,7 +115,7 @@ def test_collate_cell_indices_and_padding(small_data, max_cells):
     rng = np.random.default_rng(5)
     samples = small_data.sample_batch(rng, 6, 2)
     if max_cells:
-        samples = [D.crop_sample(s, max_cells, rng) for s in samples]
+        samples = [views.crop_sample(s, max_cells, rng) for s in samples]
         assert all(s.a.grid[2] <= max_cells and s.b.grid[3] <= max_cells for s in samples)
     batch = D.collate(samples, small_data, with_features=False)
     wa = batch["xy_a"].shape[2]
