@@ -15,7 +15,7 @@ SMALL = dict(
     val_scenes=["strecha_entry_P10"],
     max_images_per_scene=4,
     resolution=160,
-    n_variants=2,
+    n_variants=3,
     n_synthetic=1,
     val_pairs_per_scene=3,
 )
@@ -107,6 +107,9 @@ def test_sampler_is_seeded_and_balanced(small_data):
     kinds = {s.source for s in many}
     assert kinds == {"sfm", "synthetic"}
     assert any("/v1" in s.a.key or "/v1" in s.b.key for s in many)  # archival versions are drawn
+    assert any("/v2" in s.a.key or "/v2" in s.b.key for s in many)  # and small soft scans
+    assert any(s.a.key.endswith("/v0") and "/v0" not in s.b.key for s in many)  # either image may be old
+    assert any("/v0" not in s.a.key and s.b.key.endswith("/v0") for s in many)
     assert set(small_data.val_scenes).isdisjoint(s.a.scene for s in many)
 
 
@@ -161,3 +164,25 @@ def test_cached_features_match_backbone(small_data):
     assert got.shape == ref.shape
     assert torch.allclose(got, ref, atol=2e-3)  # float16 storage
     assert torch.allclose(got.norm(dim=0), torch.ones_like(got[0]), atol=5e-3)  # L2-normalised per cell
+
+
+def test_soft_scan_is_a_soft_copy_in_place(shared_data):
+    """A small, soft scan (issue 17 scale gaps) loses fine detail but stays pixel-aligned with the photo
+    (the view's geometry is unchanged)."""
+    import cv2
+
+    path = next(iter(scenes.load_scene("strecha_entry_P10").images.values())).path
+    img = cv2.resize(read_image(path), (512, 336), interpolation=cv2.INTER_AREA)
+    out = augment.soft_scan(img, np.random.default_rng(0))
+    assert out.shape == img.shape and out.dtype == np.uint8
+
+    def detail(x):
+        return cv2.Laplacian(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY).astype(np.float32), cv2.CV_32F).var()
+
+    assert detail(out) < 0.3 * detail(img)
+
+    def low(x):
+        return cv2.GaussianBlur(x.astype(np.float32), (0, 0), 3)
+
+    aligned = np.abs(low(out) - low(img)).mean()
+    assert aligned < 0.5 * np.abs(low(out) - low(np.roll(img, 4, axis=1))).mean()
