@@ -117,12 +117,13 @@ def test_finetune_stage_updates_the_backbone(straight, tmp_path):
 def test_dense_windowed_path_trains_and_resume_checks_the_path(straight, tmp_path):
     """The batched dense filter on grid windows (--impl dense --max_cells, the GPU / old CPU recipe)."""
     _, root, _, _ = straight
-    conf = _conf(root / "features", impl="dense", iterations=6, lr=1e-2)
+    conf = _conf(root / "features", impl="dense", iterations=6, lr=1e-2, lr_steps=(5,))
     conf["data"] = {**conf["data"], "max_cells": 4}
     tr = T.Trainer(tmp_path / "dense", conf)
     before = _fixed_loss(tr)
     assert tr.train() is True
     assert _fixed_loss(tr) < before - 1e-3
+    assert tr.optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)  # the last iteration ran after the 10x drop
     with pytest.raises(ValueError, match="impl"):  # a checkpoint continues on the path it was trained on
         T.Trainer(tmp_path / "dense", {**conf, "impl": "sparse"})
     with pytest.raises(ValueError, match="point supervision"):

@@ -26,6 +26,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--max_minutes", type=float, default=None, help="stop and checkpoint after this wall time")
     p.add_argument("--batch_size", type=int, default=default_conf["batch_size"])
     p.add_argument("--lr", type=float, default=default_conf["lr"])
+    p.add_argument("--lr_steps", type=int, nargs="*", default=[], help="iterations after which the learning rates drop 10x")
     p.add_argument("--seed", type=int, default=default_conf["seed"])
     p.add_argument("--backbone", default="efficientnet-lite0")
     p.add_argument("--resolution", type=int, default=512, help="long side of training images (multiple of 16; the pipeline's resize_max is 512)")
@@ -85,6 +86,7 @@ def conf_from_args(args: argparse.Namespace) -> dict:
         "max_minutes": args.max_minutes,
         "batch_size": args.batch_size,
         "lr": args.lr,
+        "lr_steps": tuple(args.lr_steps),
         "seed": args.seed,
         "finetune_backbone": args.finetune_backbone,
         "backbone_lr": args.backbone_lr,

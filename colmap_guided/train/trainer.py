@@ -43,6 +43,7 @@ default_conf = {
     "batch_size": 8,
     "negatives": None,  # negatives per batch; None: half the batch for image/epipolar, 0 for points
     "lr": 1e-3,
+    "lr_steps": (),  # iterations after which the learning rates drop 10x (each); () = constant (paper §4.3)
     "seed": 0,
     "impl": "sparse",  # filter during training: 'dense' (batched 4D conv; windows with data max_cells on CPU)
     # or 'sparse' (the CPU inference path, CoarseNet.sparse_volume, whole grids, one pair at a time)
@@ -221,6 +222,9 @@ class Trainer:
         self.model.backbone.eval()  # BatchNorm statistics frozen (also when fine-tuning)
         samples = self.data.sample_batch(self.rng, c["batch_size"], self.n_negative())
         loss, stats = self.loss(samples)
+        decay = 0.1 ** sum(self.iteration >= s for s in c["lr_steps"])  # from the iteration: resume-safe
+        for group, base in zip(self.optimizer.param_groups, (c["lr"], c["backbone_lr"])):
+            group["lr"] = base * decay
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
@@ -318,6 +322,7 @@ class Trainer:
             "seed": self.conf["seed"],
             "batch_size": self.conf["batch_size"],
             "lr": self.conf["lr"],
+            "lr_steps": list(self.conf["lr_steps"]),
             "finetuned_backbone": self.conf["finetune_backbone"],
             "train_scenes": self.data.train_scenes,
             "val_scenes": self.data.val_scenes,
