@@ -9,6 +9,11 @@ has the numbers; ``OUT/coarse_filter.safetensors`` (the coarse package's weight 
 training config) is refreshed at every checkpoint, so the latest filter can be evaluated any time;
 a fine-tuned backbone goes to ``OUT/backbone.pth`` (a state dict for CoarseNet's ``backbone_weights``).
 
+Filter paths (``impl``): 'sparse' (default) trains what the CPU pipeline runs, ``CoarseNet.sparse_volume``
+on the matcher's support (k best cells both ways + cells around each best match), on whole grids, one
+pair at a time; 'dense' trains the batched dense filter (GPU; on a CPU only on ``max_cells`` windows:
+its whole-grid step costs ~120x the sparse one, MODEL_CARD.md).
+
 Stages: ``finetune_backbone=False`` trains the 4D filter on cached frozen-backbone features
 (``CoarseTrainData.build_cache``); ``finetune_backbone=True`` (after convergence, ``init`` = the
 frozen-stage checkpoint or weights) also trains the backbone with ``backbone_lr``, computing features
@@ -32,8 +37,9 @@ from colmap_guided.coarse.model import CoarseNet, correlation, sparse_best
 from colmap_guided.coarse.weights import load_filter_weights, save_filter_weights
 from colmap_guided.conf import merge_conf
 from colmap_guided.log import logger
-from colmap_guided.train.data import CoarseTrainData, PairSample, collate
+from colmap_guided.train.data import CoarseTrainData, collate
 from colmap_guided.train.losses import coarse_loss, epipolar_loss_from_best, image_loss_from_best
+from colmap_guided.train.views import PairSample
 
 PCK_THRESHOLDS = (8, 16, 32)
 
