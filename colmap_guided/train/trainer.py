@@ -199,7 +199,7 @@ class Trainer:
         if path.suffix == ".safetensors":
             load_filter_weights(self.model, path)
         else:
-            state = torch.load(path, map_location="cpu", weights_only=False)["model"]
+            state = torch.load(path, map_location="cpu", weights_only=True)["model"]
             if any(k.startswith("filter.") for k in state):
                 self.model.load_state_dict(state)
             else:
