@@ -76,7 +76,7 @@ def test_shipped_weights_load_and_record_their_training(name):
     """Both shipped filters load for the default backbone; the permissive one was trained only on the
     permissively licensed scenes, and neither saw the held-out evaluation scenes."""
     from colmap_guided.coarse import DEFAULT_WEIGHTS
-    from colmap_guided.train.data import PERMISSIVE_SCENES, VAL_SCENES
+    from colmap_guided.train.scenes import PERMISSIVE_SCENES, VAL_SCENES
 
     path = DEFAULT_WEIGHTS.parent / name
     matcher = CoarseMatcher({"weights": str(path), "device": "cpu"})

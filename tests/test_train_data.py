@@ -5,7 +5,9 @@ import pytest
 import torch
 
 from colmap_guided.images import read_image
+from colmap_guided.train import augment, scenes, views
 from colmap_guided.train import data as D
+from colmap_guided.train import geometry as G
 from colmap_guided.train.losses import epipolar_distance
 
 SMALL = dict(
@@ -13,7 +15,7 @@ SMALL = dict(
     val_scenes=["strecha_entry_P10"],
     max_images_per_scene=4,
     resolution=160,
-    n_variants=2,
+    n_variants=3,
     n_synthetic=1,
     val_pairs_per_scene=3,
 )
@@ -29,32 +31,32 @@ def _dist(F, xa, xb):
 
 
 def test_sfm_pairs_and_fundamental_matrices(shared_data):
-    scene = D.load_scene("strecha_entry_P10", min_shared=30)
+    scene = scenes.load_scene("strecha_entry_P10", min_shared=30)
     assert len(scene.images) == 10 and len(scene.pairs) > 20
     assert all(p.n_shared >= 30 for p in scene.pairs)
     for p in scene.pairs[:10]:
         A, B = scene.images[p.a], scene.images[p.b]
-        xa, xb = D.ideal_pixels(A.camera, p.xy_a), D.ideal_pixels(B.camera, p.xy_b)
+        xa, xb = G.ideal_pixels(A.camera, p.xy_a), G.ideal_pixels(B.camera, p.xy_b)
         d = _dist(p.F, xa, xb)
         assert np.median(d) < 0.5 and np.percentile(d, 90) < 2.0  # pseudo-GT reprojection error level
         # wrong pairing of the same points is far from the lines: the check has teeth
         assert np.median(_dist(p.F, xa, np.roll(xb, 7, axis=0))) > 20
         # F in scaled frames
         sa, sb = np.array([0.4, 0.41]), np.array([0.25, 0.26])
-        assert np.median(_dist(D.scale_fundamental(p.F, sa, sb), xa * sa, xb * sb)) < 0.5 * sb.max() + 1e-6
+        assert np.median(_dist(G.scale_fundamental(p.F, sa, sb), xa * sa, xb * sb)) < 0.5 * sb.max() + 1e-6
 
 
 def test_pair_mining_counts_shared_tracks(shared_data):
     import pycolmap
 
-    rec = pycolmap.Reconstruction(str(D.scene_model_dir("bundler_et")))
-    scene = D.load_scene("bundler_et", min_shared=30)
+    rec = pycolmap.Reconstruction(str(scenes.scene_model_dir("bundler_et")))
+    scene = scenes.load_scene("bundler_et", min_shared=30)
     by_name = {im.name: im for im in rec.images.values()}
     p = scene.pairs[0]
     ids_a = {q.point3D_id for q in by_name[p.a].points2D if q.has_point3D()}
     ids_b = {q.point3D_id for q in by_name[p.b].points2D if q.has_point3D()}
     assert p.n_shared == len(ids_a & ids_b)
-    all_pairs = D.load_scene("bundler_et", min_shared=1).pairs
+    all_pairs = scenes.load_scene("bundler_et", min_shared=1).pairs
     assert len(all_pairs) > len(scene.pairs)  # the threshold removes weak pairs
 
 
@@ -63,11 +65,11 @@ def test_synthetic_homography_pair_is_exact(small_data):
     view = small_data.views[key]
     im = small_data.scenes[view.scene].images[view.name]
     photo = read_image(im.path).astype(np.float32)
-    warped = D.warp_image(photo.astype(np.uint8), view.H, view.geometry.width, view.geometry.height).astype(np.float32)
+    warped = augment.warp_image(photo.astype(np.uint8), view.H, view.geometry.width, view.geometry.height).astype(np.float32)
     rng = np.random.default_rng(0)
     pts = np.stack([rng.uniform(0, im.width, 4000), rng.uniform(0, im.height, 4000)], 1)
-    mapped = D.apply_h(view.H, pts)
-    ok = D._inside(mapped, view.geometry) & (mapped.min(1) > 2) & (mapped[:, 0] < view.geometry.width - 2) & (mapped[:, 1] < view.geometry.height - 2)
+    mapped = G.apply_h(view.H, pts)
+    ok = views.inside(mapped, view.geometry) & (mapped.min(1) > 2) & (mapped[:, 0] < view.geometry.width - 2) & (mapped[:, 1] < view.geometry.height - 2)
     assert ok.sum() > 200
     # pixel value in the photo at p (pixel centre convention) vs in the warp at H p
     a = photo[np.floor(pts[ok, 1]).astype(int), np.floor(pts[ok, 0]).astype(int)]
@@ -105,6 +107,9 @@ def test_sampler_is_seeded_and_balanced(small_data):
     kinds = {s.source for s in many}
     assert kinds == {"sfm", "synthetic"}
     assert any("/v1" in s.a.key or "/v1" in s.b.key for s in many)  # archival versions are drawn
+    assert any("/v2" in s.a.key or "/v2" in s.b.key for s in many)  # and small soft scans
+    assert any(s.a.key.endswith("/v0") and "/v0" not in s.b.key for s in many)  # either image may be old
+    assert any("/v0" not in s.a.key and s.b.key.endswith("/v0") for s in many)
     assert set(small_data.val_scenes).isdisjoint(s.a.scene for s in many)
 
 
@@ -113,7 +118,7 @@ def test_collate_cell_indices_and_padding(small_data, max_cells):
     rng = np.random.default_rng(5)
     samples = small_data.sample_batch(rng, 6, 2)
     if max_cells:
-        samples = [D.crop_sample(s, max_cells, rng) for s in samples]
+        samples = [views.crop_sample(s, max_cells, rng) for s in samples]
         assert all(s.a.grid[2] <= max_cells and s.b.grid[3] <= max_cells for s in samples)
     batch = D.collate(samples, small_data, with_features=False)
     wa = batch["xy_a"].shape[2]
@@ -159,3 +164,25 @@ def test_cached_features_match_backbone(small_data):
     assert got.shape == ref.shape
     assert torch.allclose(got, ref, atol=2e-3)  # float16 storage
     assert torch.allclose(got.norm(dim=0), torch.ones_like(got[0]), atol=5e-3)  # L2-normalised per cell
+
+
+def test_soft_scan_is_a_soft_copy_in_place(shared_data):
+    """A small, soft scan (issue 17 scale gaps) loses fine detail but stays pixel-aligned with the photo
+    (the view's geometry is unchanged)."""
+    import cv2
+
+    path = next(iter(scenes.load_scene("strecha_entry_P10").images.values())).path
+    img = cv2.resize(read_image(path), (512, 336), interpolation=cv2.INTER_AREA)
+    out = augment.soft_scan(img, np.random.default_rng(0))
+    assert out.shape == img.shape and out.dtype == np.uint8
+
+    def detail(x):
+        return cv2.Laplacian(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY).astype(np.float32), cv2.CV_32F).var()
+
+    assert detail(out) < 0.3 * detail(img)
+
+    def low(x):
+        return cv2.GaussianBlur(x.astype(np.float32), (0, 0), 3)
+
+    aligned = np.abs(low(out) - low(img)).mean()
+    assert aligned < 0.5 * np.abs(low(out) - low(np.roll(img, 4, axis=1))).mean()

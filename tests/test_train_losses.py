@@ -214,3 +214,39 @@ def test_losses_train_a_filter_in_the_right_direction():
     assert stats["max_pos"] > 0.9  # P's maxima are sharpened towards 1
     with pytest.raises(ValueError):
         coarse_loss("pixels", sa, sb, batch)
+
+
+def test_sparse_training_path_equals_dense_with_full_support():
+    """The sparse filter the CPU path runs (CoarseNet.sparse_volume + sparse_best) gives the dense
+    epipolar loss and the same filter gradients when its support holds every entry (k >= grid sizes),
+    so training it trains what inference runs; with the product's k = 3 the loss still flows."""
+    from colmap_guided.coarse.model import CoarseNet, correlation, sparse_best
+    from colmap_guided.train.losses import epipolar_loss_from_best
+
+    torch.manual_seed(0)
+    net = CoarseNet({"pretrained": False}).double()
+    fa = torch.nn.functional.normalize(torch.randn(1, 8, 3, 4, dtype=torch.float64), dim=1)
+    fb = torch.nn.functional.normalize(torch.randn(1, 8, 4, 3, dtype=torch.float64), dim=1)
+    xa = torch.stack(torch.meshgrid(torch.arange(4.0), torch.arange(3.0), indexing="xy"), -1).double() * 16 + 8  # (3, 4, 2)
+    xb = torch.stack(torch.meshgrid(torch.arange(3.0), torch.arange(4.0), indexing="xy"), -1).double() * 16 + 8  # (4, 3, 2)
+    F = torch.tensor([[[0, 0, 1], [0, 0, 0], [-1, 0, 0]]], dtype=torch.float64)  # line of (u, v): x = u
+    pos = torch.tensor([True])
+
+    out = net(fa, fb)
+    dense, _ = epipolar_loss(out["s_ab"], out["s_ba"], pos, F, xa[None], xb[None], lam=16.0)
+    g_dense = torch.autograd.grad(dense, list(net.filter.parameters()))
+
+    def sparse(k):
+        a, b, v = net.sparse_volume(correlation(fa, fb)[0], k, radius=0)
+        idx_ab, best_ab = sparse_best(a, b, v, 12, 12)
+        idx_ba, best_ba = sparse_best(b, a, v, 12, 12)
+        ones = torch.ones(1, 12, dtype=torch.bool)
+        return epipolar_loss_from_best(best_ab[None], idx_ab[None], best_ba[None], idx_ba[None], pos, F,
+                                       xa.reshape(1, -1, 2), xb.reshape(1, -1, 2), ones, ones, lam=16.0)[0]
+
+    full = sparse(12)
+    assert full.item() == pytest.approx(dense.item(), abs=1e-10)
+    for g, h in zip(g_dense, torch.autograd.grad(full, list(net.filter.parameters()))):
+        assert torch.allclose(g, h, atol=1e-10)
+    grads = torch.autograd.grad(sparse(3), list(net.filter.parameters()))
+    assert all(torch.isfinite(g).all() for g in grads) and sum(g.abs().sum() for g in grads) > 0

@@ -1,4 +1,5 @@
-"""Tiny CPU training: the loss goes down, checkpoints resume exactly, weights are exported."""
+"""Tiny CPU training on the sparse filter the CPU pipeline runs (default) and on dense windows: the loss
+goes down, checkpoints resume exactly, weights are exported."""
 
 import json
 
@@ -7,8 +8,6 @@ import pytest
 import torch
 
 from colmap_guided.train import trainer as T
-from colmap_guided.train.data import collate
-from colmap_guided.train.losses import coarse_loss
 
 DATA = dict(
     train_scenes=["bundler_et", "vggsfm_statue"],
@@ -27,12 +26,10 @@ def _conf(cache, **kw):
     return {**conf, **kw}
 
 
-def _fixed_loss(tr, supervision="epipolar"):
+def _fixed_loss(tr):
     samples = tr.data.sample_batch(np.random.default_rng(99), 8, 4)
-    batch = collate(samples, tr.data)
     with torch.no_grad():
-        out = tr.model(batch["feat_a"], batch["feat_b"], batch["mask_a"], batch["mask_b"])
-    return coarse_loss(supervision, out["s_ab"], out["s_ba"], batch, lam=16.0)[0].item()
+        return tr.loss(samples)[0].item()
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +78,7 @@ def test_resume_continues_exactly(straight, tmp_path):
 def test_pck_errors_zero_on_an_exact_translation():
     """A volume whose argmax is a 2-column, 1-row shift and GT points shifted by exactly that."""
     from colmap_guided.coarse.geometry import resize_geometry
-    from colmap_guided.train.data import PairSample, View
+    from colmap_guided.train.views import PairSample, View
 
     g = resize_geometry(640, 480, 320, 16, 15.5)
     h, w = g.grid_height, g.grid_width
@@ -93,10 +90,11 @@ def test_pck_errors_zero_on_an_exact_translation():
     shift = np.array([2, 1]) * 16 / g.scale  # in original pixels
     pts_a = g.cell_centers()[[43, 64, 110, 172]] + [[3.0, 4.0], [0.0, 0.0], [10.0, -7.0], [5.0, 5.0]]  # interior
     sample = PairSample(view, view, True, "sfm", np.eye(3), pts_a, pts_a + shift)
-    err = T.pck_errors(s, s, sample)
+    ab, ba = s.reshape(h * w, h * w).argmax(1).numpy(), s.reshape(h * w, h * w).argmax(0).numpy()
+    err = T.pck_errors(ab, ba, sample)
     assert np.allclose(err, 0, atol=1e-9)  # both directions interpolate the shift exactly
     bad = PairSample(view, view, True, "sfm", np.eye(3), pts_a, pts_a + shift + [20.0, 0.0])
-    assert np.allclose(T.pck_errors(s, s, bad)[:4], 20.0)
+    assert np.allclose(T.pck_errors(ab, ba, bad)[:4], 20.0)
 
 
 def test_finetune_stage_updates_the_backbone(straight, tmp_path):
@@ -114,3 +112,19 @@ def test_finetune_stage_updates_the_backbone(straight, tmp_path):
     assert resumed.iteration == 1
     for p, q in zip(tr.model.backbone.parameters(), resumed.model.backbone.parameters()):
         assert torch.equal(p, q)  # its checkpoint holds the backbone too
+
+
+def test_dense_windowed_path_trains_and_resume_checks_the_path(straight, tmp_path):
+    """The batched dense filter on grid windows (--impl dense --max_cells, the GPU / old CPU recipe)."""
+    _, root, _, _ = straight
+    conf = _conf(root / "features", impl="dense", iterations=6, lr=1e-2, lr_steps=(5,))
+    conf["data"] = {**conf["data"], "max_cells": 4}
+    tr = T.Trainer(tmp_path / "dense", conf)
+    before = _fixed_loss(tr)
+    assert tr.train() is True
+    assert _fixed_loss(tr) < before - 1e-3
+    assert tr.optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)  # the last iteration ran after the 10x drop
+    with pytest.raises(ValueError, match="impl"):  # a checkpoint continues on the path it was trained on
+        T.Trainer(tmp_path / "dense", {**conf, "impl": "sparse"})
+    with pytest.raises(ValueError, match="point supervision"):
+        T.Trainer(tmp_path / "points", {**conf, "impl": "sparse", "supervision": "points"})

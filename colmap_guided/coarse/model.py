@@ -17,10 +17,11 @@ Decisions (documented for the trainer and the guided matcher):
   dims swapped, so both orders run in one pass as a 2-group network; the output is their mean. Exact.
 - Raw mode (``filter=False``, the paper's guided-VGG4-style baseline): the volume is the correlation
   divided by ``raw_temperature``, no filter, no weights needed.
-- ``forward`` (dense, differentiable, batched) is the training API; ``match_sparse`` is the CPU
-  inference path (Sparse-NCNet-style submanifold filter on ``sparse_support``: each cell's ``k`` best
+- ``forward`` (dense, differentiable, batched) and ``sparse_volume`` (one pair, differentiable) are
+  the two training paths; ``match_sparse`` is the CPU inference path (Sparse-NCNet-style submanifold filter on ``sparse_support``: each cell's ``k`` best
   correlations in both directions plus the cells around its best match; entries outside read as 0).
-  The same weights run in both; sparse approximates dense (README.md has the measured agreement).
+  The same weights run in both; sparse approximates dense (README.md has the measured agreement), and
+  weights trained on the sparse path see exactly what inference on the CPU sees.
 """
 
 from __future__ import annotations
@@ -136,20 +137,21 @@ def _dense_matches(volume2d: torch.Tensor) -> GridMatches:
     return GridMatches(ab, sab, ba, sba)
 
 
-def _sparse_best(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, n_rows: int, n_cols: int
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def sparse_best(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, n_rows: int, n_cols: int
+                ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per row, the column of the largest active value and its softmax probability over the whole
-    row, inactive entries counting as 0 (values are non-negative)."""
-    order = torch.argsort(values, descending=True, stable=True)
+    row, inactive entries counting as 0 (values are non-negative): (n_rows,) long, (n_rows,) float.
+    Differentiable in ``values`` (the sparse training path takes max s from it, paper eq. 3, 5)."""
+    order = torch.argsort(values.detach(), descending=True, stable=True)
     order = order[torch.argsort(rows[order], stable=True)]  # grouped by row, largest first
     counts = torch.bincount(rows, minlength=n_rows)
     first = torch.cumsum(counts, 0) - counts
     if (counts == 0).any():
         raise ValueError("sparse support must hold at least one entry per row and column")
     vmax = values[order[first]]
-    denom = torch.zeros(n_rows, dtype=values.dtype, device=values.device).index_add_(0, rows, torch.exp(values - vmax[rows]))
+    denom = torch.zeros(n_rows, dtype=values.dtype, device=values.device).index_add(0, rows, torch.exp(values - vmax[rows]))
     denom = denom + (n_cols - counts) * torch.exp(-vmax)
-    return cols[order[first]].cpu().numpy(), (1.0 / denom).float().cpu().numpy()
+    return cols[order[first]], 1.0 / denom
 
 
 def sparse_support(c2: torch.Tensor, shape: tuple[int, int, int, int], k: int, radius: int) -> torch.Tensor:
@@ -268,24 +270,33 @@ class CoarseNet(nn.Module):
         _, ha, wa, hb, wb = corr.shape
         return [_dense_matches(v.float().reshape(ha * wa, hb * wb)) for v in volume]
 
-    def match_sparse(self, corr: torch.Tensor, k: int, radius: int = 0) -> GridMatches:
-        """Sparse filter (Sparse-NCNet's idea) on ``sparse_support(corr, k, radius)``; with k ≥ the grid
-        sizes it equals the dense filter. Entries outside the support read as 0."""
+    def sparse_volume(self, corr: torch.Tensor, k: int, radius: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The filtered volume of one pair's correlation (hA, wA, hB, wB) on ``sparse_support(k, radius)``
+        (Sparse-NCNet's idea): flat A cells ``a``, flat B cells ``b`` and values ``v`` (N,) of the active
+        entries; the rest of the volume reads as 0. Differentiable in the filter (and ``corr``): the CPU
+        inference path and the sparse training path run exactly this. With k ≥ the grid sizes it
+        equals the dense filter."""
         ha, wa, hb, wb = corr.shape
         na, nb = ha * wa, hb * wb
         c2 = F.relu(corr.reshape(na, nb))
-        lin = sparse_support(c2, (ha, wa, hb, wb), k, radius)
+        lin = sparse_support(c2.detach(), (ha, wa, hb, wb), k, radius)
         a, b = lin // nb, lin % nb
-        v = c2.view(-1)[lin]
+        v = c2.reshape(-1)[lin]
         if self.conf["mutual_before"]:
             v = self._sparse_mutual(v, a, b, na, nb)
         coords = torch.stack([a // wa, a % wa, b // wb, b % wb], dim=1)
         v = self.filter.forward_sparse(v, coords, (ha, wa, hb, wb))
         if self.conf["mutual_after"]:
             v = self._sparse_mutual(v, a, b, na, nb)
-        ab, sab = _sparse_best(a, b, v, na, nb)
-        ba, sba = _sparse_best(b, a, v, nb, na)
-        return GridMatches(ab, sab, ba, sba)
+        return a, b, v
+
+    def match_sparse(self, corr: torch.Tensor, k: int, radius: int = 0) -> GridMatches:
+        """Coarse matches from ``sparse_volume``: argmax and softmax score per row and column."""
+        ha, wa, hb, wb = corr.shape
+        a, b, v = self.sparse_volume(corr, k, radius)
+        ab, sab = sparse_best(a, b, v, ha * wa, hb * wb)
+        ba, sba = sparse_best(b, a, v, hb * wb, ha * wa)
+        return GridMatches(ab.cpu().numpy(), sab.float().cpu().numpy(), ba.cpu().numpy(), sba.float().cpu().numpy())
 
     @staticmethod
     def _sparse_mutual(v: torch.Tensor, a: torch.Tensor, b: torch.Tensor, na: int, nb: int, eps: float = 1e-5) -> torch.Tensor:

@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 
 from colmap_guided.log import logger, set_verbosity
-from colmap_guided.train.data import PERMISSIVE_SCENES, VAL_SCENES
+from colmap_guided.train.scenes import PERMISSIVE_SCENES, VAL_SCENES
 from colmap_guided.train.trainer import Trainer, default_conf
 
 
@@ -26,9 +26,14 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--max_minutes", type=float, default=None, help="stop and checkpoint after this wall time")
     p.add_argument("--batch_size", type=int, default=default_conf["batch_size"])
     p.add_argument("--lr", type=float, default=default_conf["lr"])
+    p.add_argument("--lr_steps", type=int, nargs="*", default=[], help="iterations after which the learning rates drop 10x")
     p.add_argument("--seed", type=int, default=default_conf["seed"])
     p.add_argument("--backbone", default="efficientnet-lite0")
-    p.add_argument("--resolution", type=int, default=400, help="long side of training images (multiple of 16)")
+    p.add_argument("--resolution", type=int, default=512, help="long side of training images (multiple of 16; the pipeline's resize_max is 512)")
+    p.add_argument("--impl", choices=["sparse", "dense"], default=default_conf["impl"],
+                   help="sparse: the filter the CPU pipeline runs, on whole grids (default); dense: batched 4D conv (GPU, or --max_cells windows)")
+    p.add_argument("--sparse_k", type=int, default=default_conf["sparse_k"], help="sparse support: best cells per cell and direction")
+    p.add_argument("--sparse_radius", type=int, default=default_conf["sparse_radius"], help="sparse support: cells around each best match")
     p.add_argument("--max_cells", type=int, default=None,
                    help="train on windows of at most this many feature cells per side (CPU budget); default: whole grids")
     p.add_argument("--scenes", default=None, help="comma-separated training scenes, or 'permissive' (default: all but validation)")
@@ -36,7 +41,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--val_pairs_per_scene", type=int, default=16)
     p.add_argument("--synthetic_ratio", type=float, default=0.3, help="share of positives from homography pairs (0: SfM only, 1: synthetic only)")
     p.add_argument("--n_synthetic", type=int, default=1, help="homography views cached per training photo")
-    p.add_argument("--n_variants", type=int, default=2, help="cached versions per image: clean + archival ones")
+    p.add_argument("--n_variants", type=int, default=3, help="cached versions per image: clean, archival print, small soft scan (+ more alternating)")
+    p.add_argument("--max_images_per_scene", type=int, default=None, help="at most this many images per scene (cache budget)")
     p.add_argument("--archival_prob", type=float, default=0.5)
     p.add_argument("--finetune_backbone", action="store_true", help="second stage: also train the backbone")
     p.add_argument("--backbone_lr", type=float, default=default_conf["backbone_lr"])
@@ -68,14 +74,19 @@ def conf_from_args(args: argparse.Namespace) -> dict:
         "n_synthetic": args.n_synthetic,
         "n_variants": args.n_variants,
         "archival_prob": args.archival_prob,
+        "max_images_per_scene": args.max_images_per_scene,
         "cache_dir": str(args.cache_dir) if args.cache_dir else None,
     }
     return {
         "supervision": args.supervision,
+        "impl": args.impl,
+        "sparse_k": args.sparse_k,
+        "sparse_radius": args.sparse_radius,
         "iterations": args.iterations,
         "max_minutes": args.max_minutes,
         "batch_size": args.batch_size,
         "lr": args.lr,
+        "lr_steps": tuple(args.lr_steps),
         "seed": args.seed,
         "finetune_backbone": args.finetune_backbone,
         "backbone_lr": args.backbone_lr,

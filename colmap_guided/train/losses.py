@@ -66,9 +66,14 @@ def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 def image_loss(s_ab, s_ba, positive, mask_a=None, mask_b=None):
     """Weak image-level supervision, NCNet's loss (eq. 3): l^{A→B} = −y_AB · mean_{ij} max_{kl} s^{A→B}_{ijkl}."""
     ab, ba, ma, mb = _flat(s_ab, s_ba, mask_a, mask_b)
-    y = positive.to(ab.dtype) * 2 - 1
-    mean_ab = _masked_mean(ab.amax(dim=2), ma)
-    mean_ba = _masked_mean(ba.amax(dim=2), mb)
+    return image_loss_from_best(ab.amax(dim=2), ba.amax(dim=2), positive, ma, mb)
+
+
+def image_loss_from_best(best_ab, best_ba, positive, ma, mb):
+    """Eq. 3 from max_{kl} s^{A→B} (B, nA) and max s^{B→A} (B, nB) of every source cell, masks (B, n)."""
+    y = positive.to(best_ab.dtype) * 2 - 1
+    mean_ab = _masked_mean(best_ab, ma)
+    mean_ba = _masked_mean(best_ba, mb)
     per_pair = -y * (mean_ab + mean_ba)
     stats = {
         "max_pos": ((mean_ab + mean_ba) / 2)[positive].mean().item() if positive.any() else float("nan"),
@@ -88,9 +93,9 @@ def epipolar_distance(F: torch.Tensor, x_src: torch.Tensor, x_tgt: torch.Tensor)
     return num.abs() / lines[..., :2].norm(dim=-1).clamp(min=1e-12)
 
 
-def _epipolar_direction(s, F, x_src, x_tgt, m_src, positive, lam):
-    """One direction of eq. (5). s: (B, n_src, n_tgt); F maps source points to target lines."""
-    best, idx = s.max(dim=2)  # max_{kl} s and its argmax, (B, n_src)
+def _epipolar_direction(best, idx, F, x_src, x_tgt, m_src, positive, lam):
+    """One direction of eq. (5) from max_{kl} s (B, n_src) and its argmax (B, n_src) into the target
+    cells; F maps source points to target lines."""
     with torch.no_grad():
         x_hit = torch.gather(x_tgt, 1, idx.unsqueeze(-1).expand(-1, -1, 2))
         d = epipolar_distance(F, x_src, x_hit)
@@ -111,15 +116,24 @@ def epipolar_loss(s_ab, s_ba, positive, F, xy_a, xy_b, mask_a=None, mask_b=None,
     """
     ab, ba, ma, mb = _flat(s_ab, s_ba, mask_a, mask_b)
     b = ab.shape[0]
-    xa, xb = xy_a.reshape(b, -1, 2).to(ab.dtype), xy_b.reshape(b, -1, 2).to(ab.dtype)
-    F = F.to(ab.dtype)
-    l_ab, P_ab, _ = _epipolar_direction(ab, F, xa, xb, ma, positive, lam)
-    l_ba, P_ba, _ = _epipolar_direction(ba, F.transpose(1, 2), xb, xa, mb, positive, lam)
+    best_ab, idx_ab = ab.max(dim=2)
+    best_ba, idx_ba = ba.max(dim=2)
+    return epipolar_loss_from_best(best_ab, idx_ab, best_ba, idx_ba, positive, F, xy_a.reshape(b, -1, 2),
+                                   xy_b.reshape(b, -1, 2), ma, mb, lam)
+
+
+def epipolar_loss_from_best(best_ab, idx_ab, best_ba, idx_ba, positive, F, xa, xb, ma, mb, lam: float = 16.0):
+    """Eq. 4–5 from max s^{A→B} (B, nA) with its argmax among B's cells (B, nA) and the same for B → A;
+    xa (B, nA, 2), xb (B, nB, 2) cell centres in F's frames; ma (B, nA), mb (B, nB) valid cells.
+    Shared by the dense path (``epipolar_loss``) and the sparse one (``trainer``: one pair at a time)."""
+    xa, xb, F = xa.to(best_ab.dtype), xb.to(best_ab.dtype), F.to(best_ab.dtype)
+    l_ab, P_ab, _ = _epipolar_direction(best_ab, idx_ab, F, xa, xb, ma, positive, lam)
+    l_ba, P_ba, _ = _epipolar_direction(best_ba, idx_ba, F.transpose(1, 2), xb, xa, mb, positive, lam)
     with torch.no_grad():
         pos = positive
         n_valid = ma.sum(1) + mb.sum(1)
         frac = (P_ab.sum(1) + P_ba.sum(1)).float() / n_valid.clamp(min=1).float()
-        best = (_masked_mean(ab.amax(2), ma) + _masked_mean(ba.amax(2), mb)) / 2
+        best = (_masked_mean(best_ab, ma) + _masked_mean(best_ba, mb)) / 2
     stats = {
         "epi_inlier_frac": frac[pos].mean().item() if pos.any() else float("nan"),
         "max_pos": best[pos].mean().item() if pos.any() else float("nan"),

@@ -9,6 +9,11 @@ has the numbers; ``OUT/coarse_filter.safetensors`` (the coarse package's weight 
 training config) is refreshed at every checkpoint, so the latest filter can be evaluated any time;
 a fine-tuned backbone goes to ``OUT/backbone.pth`` (a state dict for CoarseNet's ``backbone_weights``).
 
+Filter paths (``impl``): 'sparse' (default) trains what the CPU pipeline runs, ``CoarseNet.sparse_volume``
+on the matcher's support (k best cells both ways + cells around each best match), on whole grids, one
+pair at a time; 'dense' trains the batched dense filter (GPU; on a CPU only on ``max_cells`` windows:
+its whole-grid step costs ~120x the sparse one, MODEL_CARD.md).
+
 Stages: ``finetune_backbone=False`` trains the 4D filter on cached frozen-backbone features
 (``CoarseTrainData.build_cache``); ``finetune_backbone=True`` (after convergence, ``init`` = the
 frozen-stage checkpoint or weights) also trains the backbone with ``backbone_lr``, computing features
@@ -24,16 +29,17 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from colmap_guided.coarse.flow import interpolate_grid
 from colmap_guided.coarse.geometry import stack_padded
-from colmap_guided.coarse.model import CoarseNet
+from colmap_guided.coarse.matcher import CoarseMatcher
+from colmap_guided.coarse.model import CoarseNet, correlation, sparse_best
 from colmap_guided.coarse.weights import load_filter_weights, save_filter_weights
 from colmap_guided.conf import merge_conf
 from colmap_guided.log import logger
-from colmap_guided.train.data import CoarseTrainData, PairSample, collate
-from colmap_guided.train.losses import coarse_loss
+from colmap_guided.train.data import CoarseTrainData, collate
+from colmap_guided.train.losses import coarse_loss, epipolar_loss_from_best, image_loss_from_best
+from colmap_guided.train.views import PairSample
 
 PCK_THRESHOLDS = (8, 16, 32)
 
@@ -43,7 +49,12 @@ default_conf = {
     "batch_size": 8,
     "negatives": None,  # negatives per batch; None: half the batch for image/epipolar, 0 for points
     "lr": 1e-3,
+    "lr_steps": (),  # iterations after which the learning rates drop 10x (each); () = constant (paper §4.3)
     "seed": 0,
+    "impl": "sparse",  # filter during training: 'dense' (batched 4D conv; windows with data max_cells on CPU)
+    # or 'sparse' (the CPU inference path, CoarseNet.sparse_volume, whole grids, one pair at a time)
+    "sparse_k": CoarseMatcher.default_conf["sparse_k"],  # sparse support as the pipeline matches
+    "sparse_radius": CoarseMatcher.default_conf["sparse_radius"],
     "finetune_backbone": False,
     "backbone_lr": 1e-5,
     "init": None,  # checkpoint.pt or safetensors to start from (fine-tuning stage)
@@ -57,15 +68,10 @@ default_conf = {
 
 
 # ------------------------------------------------------------------------------------------- PCK
-def pck_errors(s_ab: torch.Tensor, s_ba: torch.Tensor, sample: PairSample) -> np.ndarray:
-    """Errors (pixels, original resolution) of the coarse flow at the GT points, both directions.
-
-    s_ab, s_ba: (hA, wA, hB, wB) of one pair, already cropped to its valid grid.
-    """
+def pck_errors(ab: np.ndarray, ba: np.ndarray, sample: PairSample) -> np.ndarray:
+    """Errors (pixels, original resolution) of the coarse flow at the GT points, both directions, from
+    the coarse matches ab (hA·wA,) and ba (hB·wB,) of the pair's whole grids (flat cell indices)."""
     ga, gb = sample.a.geometry, sample.b.geometry
-    na, nb = ga.grid_height * ga.grid_width, gb.grid_height * gb.grid_width
-    ab = s_ab.reshape(na, nb).argmax(1).cpu().numpy()
-    ba = s_ba.reshape(na, nb).argmax(0).cpu().numpy()
     if len(sample.pts_a) == 0:
         return np.zeros(0)
     # m^{A→B}: bilinear interpolation of the matches of the four nearest cells (coarse.flow, §4.1)
@@ -77,20 +83,30 @@ def pck_errors(s_ab: torch.Tensor, s_ba: torch.Tensor, sample: PairSample) -> np
 
 
 @torch.no_grad()
-def evaluate_pck(model: CoarseNet, samples: list[PairSample], features, batch_size: int = 4) -> dict:
-    """PCK@8/16/32 px (original resolution) of the coarse flow on ``samples`` (whole grids, dense
-    filter). ``features(views)`` returns padded features and masks (cached or computed)."""
+def evaluate_pck(model: CoarseNet, samples: list[PairSample], features, impl: str = "dense", k: int = 3,
+                 radius: int = 1, batch_size: int = 4) -> dict:
+    """PCK@8/16/32 px (original resolution) of the coarse flow on ``samples`` (whole grids) with the
+    dense filter or the sparse one (``k``, ``radius``). ``features(views)`` returns padded features and
+    masks (cached or computed)."""
     model.eval()
     errors = []
     for i in range(0, len(samples), batch_size):
         chunk = samples[i : i + batch_size]
         feat_a, mask_a = features([s.a for s in chunk])
         feat_b, mask_b = features([s.b for s in chunk])
-        out = model(feat_a, feat_b, mask_a, mask_b)
+        out = model(feat_a, feat_b, mask_a, mask_b) if impl == "dense" else None
         for n, s in enumerate(chunk):
             ga, gb = s.a.geometry, s.b.geometry
             crop = (n, slice(0, ga.grid_height), slice(0, ga.grid_width), slice(0, gb.grid_height), slice(0, gb.grid_width))
-            errors.append(pck_errors(out["s_ab"][crop], out["s_ba"][crop], s))
+            if impl == "dense":
+                na, nb = ga.grid_height * ga.grid_width, gb.grid_height * gb.grid_width
+                ab = out["s_ab"][crop].reshape(na, nb).argmax(1).numpy()
+                ba = out["s_ba"][crop].reshape(na, nb).argmax(0).numpy()
+            else:
+                fa = feat_a[n, :, : ga.grid_height, : ga.grid_width]
+                m = model.match(fa, feat_b[n, :, : gb.grid_height, : gb.grid_width], impl="sparse", k=k, radius=radius)
+                ab, ba = m.ab, m.ba
+            errors.append(pck_errors(ab, ba, s))
     e = np.concatenate(errors) if errors else np.zeros(0)
     return {f"pck{t}": float((e < t).mean()) if len(e) else float("nan") for t in PCK_THRESHOLDS} | {"n_points": int(len(e))}
 
@@ -101,6 +117,10 @@ class Trainer:
         self.conf = c = merge_conf(default_conf, conf, "training")
         if c["supervision"] not in ("image", "epipolar", "points"):
             raise ValueError(f"supervision must be image, epipolar or points, got {c['supervision']!r}")
+        if c["impl"] not in ("dense", "sparse"):
+            raise ValueError(f"impl must be 'dense' or 'sparse', got {c['impl']!r}")
+        if c["impl"] == "sparse" and c["supervision"] == "points":
+            raise ValueError("point supervision trains the dense filter only: use impl 'dense' (--impl dense)")
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
         torch.manual_seed(c["seed"])
@@ -156,8 +176,8 @@ class Trainer:
     def resume(self) -> bool:
         if not self.checkpoint_path.exists():
             return False
-        state = torch.load(self.checkpoint_path, map_location="cpu", weights_only=False)
-        for key in ("supervision", "batch_size", "seed", "finetune_backbone"):
+        state = torch.load(self.checkpoint_path, map_location="cpu", weights_only=True)
+        for key in ("supervision", "batch_size", "seed", "finetune_backbone", "impl"):
             if state["conf"].get(key) != self.conf[key]:
                 raise ValueError(f"{self.checkpoint_path} was written with {key}={state['conf'].get(key)!r}, "
                                  f"not {self.conf[key]!r}: use another --out or the same options")
@@ -179,7 +199,7 @@ class Trainer:
         if path.suffix == ".safetensors":
             load_filter_weights(self.model, path)
         else:
-            state = torch.load(path, map_location="cpu", weights_only=False)["model"]
+            state = torch.load(path, map_location="cpu", weights_only=True)["model"]
             if any(k.startswith("filter.") for k in state):
                 self.model.load_state_dict(state)
             else:
@@ -207,20 +227,57 @@ class Trainer:
         self.model.filter.train()
         self.model.backbone.eval()  # BatchNorm statistics frozen (also when fine-tuning)
         samples = self.data.sample_batch(self.rng, c["batch_size"], self.n_negative())
-        batch = collate(samples, self.data, with_features=False)
-        feat_a, mask_a = self._features([s.a for s in samples])
-        feat_b, mask_b = self._features([s.b for s in samples])
-        batch.update(mask_a=mask_a, mask_b=mask_b)
-        out = self.model(feat_a, feat_b, mask_a, mask_b)
-        loss, stats = coarse_loss(c["supervision"], out["s_ab"], out["s_ba"], batch, lam=float(self.model.spec.stride))
+        loss, stats = self.loss(samples)
+        decay = 0.1 ** sum(self.iteration >= s for s in c["lr_steps"])  # from the iteration: resume-safe
+        for group, base in zip(self.optimizer.param_groups, (c["lr"], c["backbone_lr"])):
+            group["lr"] = base * decay
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
         return {"loss": float(loss.detach()), **stats}
 
+    def loss(self, samples: list[PairSample]) -> tuple[torch.Tensor, dict]:
+        """The training loss of a batch (paper eq. 2) and its statistics, on the conf's filter path."""
+        c = self.conf
+        if c["impl"] == "sparse":
+            return self._sparse_loss(samples)
+        batch = collate(samples, self.data, with_features=False)
+        feat_a, mask_a = self._features([s.a for s in samples])
+        feat_b, mask_b = self._features([s.b for s in samples])
+        batch.update(mask_a=mask_a, mask_b=mask_b)
+        out = self.model(feat_a, feat_b, mask_a, mask_b)
+        return coarse_loss(c["supervision"], out["s_ab"], out["s_ba"], batch, lam=float(self.model.spec.stride))
+
+    def _sparse_loss(self, samples: list[PairSample]) -> tuple[torch.Tensor, dict]:
+        """Image or epipolar loss (eq. 3, 5) on the sparse filter the CPU path runs (``sparse_volume``
+        with the pipeline's k and radius; entries outside the support read as 0 in the softmax), whole
+        grids, one pair at a time; the per-cell max s and argmax are padded into a batch for the loss."""
+        c = self.conf
+        rows = {key: [] for key in ("best_ab", "idx_ab", "best_ba", "idx_ba", "xa", "xb")}
+        for s in samples:
+            fa, fb = self._features([s.a])[0][0], self._features([s.b])[0][0]
+            ha, wa, hb, wb = *fa.shape[1:], *fb.shape[1:]
+            a, b, v = self.model.sparse_volume(correlation(fa[None], fb[None])[0], c["sparse_k"], c["sparse_radius"])
+            for key, val in zip(("idx_ab", "best_ab"), sparse_best(a, b, v, ha * wa, hb * wb)):
+                rows[key].append(val)
+            for key, val in zip(("idx_ba", "best_ba"), sparse_best(b, a, v, hb * wb, ha * wa)):
+                rows[key].append(val)
+            rows["xa"].append(torch.from_numpy(np.ascontiguousarray(s.a.crop_xy()).reshape(-1, 2)))
+            rows["xb"].append(torch.from_numpy(np.ascontiguousarray(s.b.crop_xy()).reshape(-1, 2)))
+        pad = {key: torch.nn.utils.rnn.pad_sequence(val, batch_first=True) for key, val in rows.items()}
+        ma = torch.nn.utils.rnn.pad_sequence([torch.ones(len(x), dtype=torch.bool) for x in rows["xa"]], batch_first=True)
+        mb = torch.nn.utils.rnn.pad_sequence([torch.ones(len(x), dtype=torch.bool) for x in rows["xb"]], batch_first=True)
+        positive = torch.tensor([s.positive for s in samples])
+        if c["supervision"] == "image":
+            return image_loss_from_best(pad["best_ab"], pad["best_ba"], positive, ma, mb)
+        F = torch.from_numpy(np.stack([s.F for s in samples]))
+        return epipolar_loss_from_best(pad["best_ab"], pad["idx_ab"], pad["best_ba"], pad["idx_ba"], positive, F,
+                                       pad["xa"], pad["xb"], ma, mb, lam=float(self.model.spec.stride))
+
     def validate(self) -> dict:
         t = time.time()
-        res = evaluate_pck(self.model, self.data.val_samples, self._features)
+        c = self.conf
+        res = evaluate_pck(self.model, self.data.val_samples, self._features, c["impl"], c["sparse_k"], c["sparse_radius"])
         res = {"iteration": self.iteration, **res, "seconds": round(time.time() - t, 1)}
         self.val_history.append(res)
         logger.info("Validation at %d: PCK@8/16/32 = %.1f / %.1f / %.1f %% (%d points, %.0f s)", self.iteration,
@@ -271,6 +328,7 @@ class Trainer:
             "seed": self.conf["seed"],
             "batch_size": self.conf["batch_size"],
             "lr": self.conf["lr"],
+            "lr_steps": list(self.conf["lr_steps"]),
             "finetuned_backbone": self.conf["finetune_backbone"],
             "train_scenes": self.data.train_scenes,
             "val_scenes": self.data.val_scenes,
