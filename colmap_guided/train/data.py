@@ -17,7 +17,7 @@ import torch
 from tqdm import tqdm
 
 from colmap_guided import archival, paths
-from colmap_guided.coarse.backbone import BACKBONES, build_backbone
+from colmap_guided.coarse.backbone import BACKBONES, DEFAULT_BACKBONE, build_backbone
 from colmap_guided.coarse.geometry import ImageGeometry, resize_geometry, resize_image, stack_padded
 from colmap_guided.conf import merge_conf
 from colmap_guided.images import read_image
@@ -33,7 +33,7 @@ class CoarseTrainData:
     """Scenes, views, positive/negative pairs, the feature cache, and a seeded batch sampler."""
 
     default_conf = {
-        "backbone": "efficientnet-lite0",
+        "backbone": DEFAULT_BACKBONE,
         "resolution": 512,  # long side of training images (the pipeline's resize_max; paper: 401 px), multiple of the stride
         "min_shared": 30,  # positive pair: at least this many common 3D points (paper §4.3)
         "train_scenes": None,  # None: every scene with a model except val_scenes
