@@ -7,6 +7,12 @@ Same defaults and options as `colmap feature_extractor`. Camera grouping (``came
   17/29 of opensfm_lund with ``single`` and 2/29 with a camera per image.
 - ``single``, ``per_folder`` (one camera per sub-folder: a good choice for mixed archives sorted by source),
   ``per_image`` (every photo its own camera, e.g. scans of prints from unknown cameras).
+
+Archival prints (``stretch_contrast_below``, ``smooth_noise_above``): COLMAP's SIFT peak threshold is absolute,
+so a print faded to a narrow grey range loses most detections. Such photos get SIFT (pycolmap's own extractor,
+same options) on a prepared grey copy in memory, stretched to the full range and/or smoothed; the photo file is
+only read, and keypoints and descriptors are stored exactly as COLMAP stores SIFT (identical arrays for an
+unprepared copy at full size), so ``colmap mapper`` and ``match`` read the database as usual.
 """
 
 from __future__ import annotations
@@ -297,6 +303,7 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
         reasons = "; ".join(f"{name}: {reason}" for name, reason in list(skipped.items())[:3])
         raise ValueError(f"None of the {len(image_names)} image(s) in {image_path} can be used ({reasons}{' ...' if len(skipped) > 3 else ''}).")
     start = time.time()
+    prepared: dict[str, bool] = {}
     if todo:
         logger.info("Extracting SIFT for %d images (%d already in the database)", len(todo), len(done))
         mode = conf["camera_mode"]
@@ -341,7 +348,8 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
         if name not in present:
             skipped[name] = "COLMAP could not read it (unsupported variant of the format, or a size that differs from its camera's); convert it to JPEG"
             logger.warning("Skipped %s: %s.", name, skipped[name])
-    return {"num_extracted": sum(name in present for name in todo), "skipped": skipped, "time": time.time() - start}
+    prepared = sorted(name for name in todo if name in present and prepared.get(name))
+    return {"num_extracted": sum(name in present for name in todo), "prepared": prepared, "skipped": skipped, "time": time.time() - start}
 
 
 def main(argv=None):
