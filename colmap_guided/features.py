@@ -148,14 +148,19 @@ def _camera_key(image_path: Path, name: str, mode: str):
     return None
 
 
-def _extract_chunk(database_path: Path, image_path: Path, names: list[str], conf: dict, existing_camera_id: int | None, options: pycolmap.FeatureExtractionOptions) -> None:
-    """One pycolmap.extract_features call on a few images (onto ``existing_camera_id`` if given)."""
+def _reader(conf: dict, existing_camera_id: int | None) -> tuple[pycolmap.ImageReaderOptions, pycolmap.CameraMode]:
+    """COLMAP's image reader options and camera mode (onto ``existing_camera_id`` if given)."""
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = conf["camera_model"]
-    mode = CAMERA_MODES[conf["camera_mode"]]
-    if existing_camera_id is not None:
-        reader.existing_camera_id = existing_camera_id
-        mode = pycolmap.CameraMode.SINGLE
+    if existing_camera_id is None:
+        return reader, CAMERA_MODES[conf["camera_mode"]]
+    reader.existing_camera_id = existing_camera_id
+    return reader, pycolmap.CameraMode.SINGLE
+
+
+def _extract_chunk(database_path: Path, image_path: Path, names: list[str], conf: dict, existing_camera_id: int | None, options: pycolmap.FeatureExtractionOptions) -> None:
+    """One pycolmap.extract_features call on a few images (onto ``existing_camera_id`` if given)."""
+    reader, mode = _reader(conf, existing_camera_id)
     try:
         with colmap_quiet():
             pycolmap.extract_features(database_path, image_path, image_names=names, camera_mode=mode, reader_options=reader, extraction_options=options)
@@ -208,12 +213,7 @@ def _extract_prepared(database_path: Path, image_path: Path, names: list[str], c
     """SIFT on prepared grey images (``prepared_grey``) through pycolmap's own extractor: cameras and images
     made by COLMAP's reader (as in ``_extract_chunk``), keypoints in the photo's pixels and uint8 descriptors
     stored as COLMAP stores them, so `colmap mapper` reads the database as usual."""
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = conf["camera_model"]
-    mode = CAMERA_MODES[conf["camera_mode"]]
-    if existing_camera_id is not None:
-        reader.existing_camera_id = existing_camera_id
-        mode = pycolmap.CameraMode.SINGLE
+    reader, mode = _reader(conf, existing_camera_id)
     with open_database(database_path, must_exist=False) as db:
         new = [name for name in names if db.read_image_with_name(name) is None]
     if new:

@@ -40,7 +40,7 @@ def main(argv=None) -> int:
     parser.add_argument("--scenes", nargs="+", default=None)
     parser.add_argument("--max_scenes", type=int, default=0)
     parser.add_argument("--subsets", nargs="+", default=["historical", "all"], choices=sorted(mf.SUBSETS))
-    parser.add_argument("--methods", nargs="+", default=["pycolmap", "raw", "guided"], help="'pycolmap' and/or matcher specs of the registry")
+    parser.add_argument("--methods", nargs="+", default=["pycolmap", "raw", "guided"], help="'pycolmap' and/or matcher specs of the registry; a spec may carry feature options (guided:stretch_contrast_below=none)")
     parser.add_argument("--max_rotation_deg", type=float, default=registration.MAX_ROTATION_DEG)
     parser.add_argument("--max_center_frac", type=float, default=registration.MAX_CENTER_FRAC)
     parser.add_argument("--wxbs_max_pairs", type=int, default=6, help="WxBS appearance pairs beside the table (0 = skip)")
