@@ -54,7 +54,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     parser.add_argument("results", nargs="+", type=Path)
     parser.add_argument("--reference", nargs="*", default=[], help="SCENE_PREFIX=MODEL_DIR: a reference for scenes without one")
+    parser.add_argument("--label", nargs="*", default=[], help="METHOD=LABEL: one column for runs of the same method under different specs")
     args = parser.parse_args(argv)
+    labels = dict(r.rsplit("=", 1) for r in args.label)
     refs = {k: pycolmap.Reconstruction(v) for k, _, v in (r.partition("=") for r in args.reference)}
     runs: dict = {}  # (scene, subset) -> method -> list of (seed, record, scene)
     methods: list[str] = []
@@ -63,12 +65,13 @@ def main(argv=None) -> int:
             for method, record in scene["methods"].items():
                 if "error" in record:
                     continue
+                column = labels.get(method, method)
                 ref = next((r for k, r in refs.items() if scene["scene"] in (k, f"{k}_realistic")), None)
                 if ref is not None and record.get("correct") is None:
                     record = rescore(record, scene, method, ref)
-                runs.setdefault((scene["scene"], scene["subset"]), {}).setdefault(method, []).append((scene.get("seed"), record, scene))
-                if method not in methods:
-                    methods.append(method)
+                runs.setdefault((scene["scene"], scene["subset"]), {}).setdefault(column, []).append((scene.get("seed"), record, scene))
+                if column not in methods:
+                    methods.append(column)
     for subset, title in (("historical", "historical photos + distractors"), ("all", "historical + modern photos + distractors")):
         rows, totals = [], {m: [] for m in methods}
         for (name, sub), by_method in sorted(runs.items()):
@@ -92,7 +95,8 @@ def main(argv=None) -> int:
                     cell = f"**{_span([c[0] for c in checks])}** ✓ {_span([c[1] for c in checks])} ✗"
                     totals[m].append(np.mean([c[0] for c in checks]) / max(n_hist, 1))
                 if subset == "all":
-                    cell += f" · all {_span(reg)}/{entries[0][1]['num_images']}"
+                    on_pose = "" if checks[0][0] is None else f" ({_span([rec['correct'] for _, rec, _ in entries])} ✓)"
+                    cell += f" · all {_span(reg)}/{entries[0][1]['num_images']}{on_pose}"
                 cell += f" · d {_span(distr)} · {entries[0][1].get('wall_time', 0):.0f} s ({len(entries)} seeds)"
                 row.append(cell)
             rows.append(row)
