@@ -9,6 +9,10 @@ from pathlib import Path
 from .log import logger, set_verbosity
 
 
+def _float_or_none(text: str) -> float | None:
+    return None if text.strip().lower() in ("none", "off") else float(text)
+
+
 def _add_common(parser: argparse.ArgumentParser) -> None:
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--verbose", "-v", action="store_true", help="debug messages and COLMAP's own log")
@@ -27,6 +31,8 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--output", type=Path, default=None, help="workspace (default SCENE_DIR/colmap_guided)")
     rec.add_argument("--camera_mode", default=features.default_conf["camera_mode"], choices=sorted(features.CAMERA_MODES), help="camera grouping (default auto, as COLMAP)")
     rec.add_argument("--camera_model", default=features.default_conf["camera_model"])
+    rec.add_argument("--stretch_contrast_below", type=_float_or_none, default=features.default_conf["stretch_contrast_below"], help="SIFT on a contrast-stretched copy of photos whose 1-99 %% grey range is below this fraction (faded prints; default 0.5, none = off)")
+    rec.add_argument("--smooth_noise_above", type=_float_or_none, default=features.default_conf["smooth_noise_above"], help="smooth photos noisier than this many grey levels before SIFT (film grain; default none = off)")
     rec.add_argument("--features", default=features.default_conf["type"], choices=sorted(features.FEATURE_TYPES), help="sift (COLMAP's, default) or aliked (learned, paper §4.4)")
     rec.add_argument("--aliked_weights", type=Path, default=None, help="aliked-n16rot.pth (default: $COLMAP_GUIDED_ALIKED_WEIGHTS or ../shared/weights)")
     rec.add_argument("--overwrite", action="store_true", help="delete the workspace and start fresh")
@@ -110,7 +116,7 @@ def main(argv=None) -> int:
                 matcher=matcher,
                 matcher_conf=match.matcher_conf_from_args(args, matcher),
                 pairs_path=args.pairs,
-                feature_conf={"camera_mode": args.camera_mode, "camera_model": args.camera_model, "type": args.features, "aliked": {"weights": str(args.aliked_weights)} if args.aliked_weights else {}},
+                feature_conf={"camera_mode": args.camera_mode, "camera_model": args.camera_model, "type": args.features, "stretch_contrast_below": args.stretch_contrast_below, "smooth_noise_above": args.smooth_noise_above, "aliked": {"weights": str(args.aliked_weights)} if args.aliked_weights else {}},
                 mapping_conf={"mapper": args.mapper, "random_seed": args.seed, "num_threads": args.threads},
                 overwrite=args.overwrite,
                 match_options=match.match_options_from_args(args),

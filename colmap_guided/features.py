@@ -7,6 +7,12 @@ Same defaults and options as `colmap feature_extractor`. Camera grouping (``came
   17/29 of opensfm_lund with ``single`` and 2/29 with a camera per image.
 - ``single``, ``per_folder`` (one camera per sub-folder: a good choice for mixed archives sorted by source),
   ``per_image`` (every photo its own camera, e.g. scans of prints from unknown cameras).
+
+Archival prints (``stretch_contrast_below``, ``smooth_noise_above``): COLMAP's SIFT peak threshold is absolute,
+so a print faded to a narrow grey range loses most detections. Such photos get SIFT (pycolmap's own extractor,
+same options) on a prepared grey copy in memory, stretched to the full range and/or smoothed; the photo file is
+only read, and keypoints and descriptors are stored exactly as COLMAP stores SIFT (identical arrays for an
+unprepared copy at full size), so ``colmap mapper`` and ``match`` read the database as usual.
 """
 
 from __future__ import annotations
@@ -18,6 +24,8 @@ import posixpath
 import time
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pycolmap
 from PIL import Image
 from tqdm import tqdm
@@ -28,6 +36,8 @@ from .conf import merge_conf
 from .database import open_database
 from .log import colmap_quiet, logger
 
+# COLMAP's grey conversion (Rec. 709 luma, rounded to 8 bits): its SIFT keypoints are reproduced exactly.
+GREY_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], np.float32)
 IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm", ".webp", ".jp2"}
 CAMERA_MODES = {
     "auto": pycolmap.CameraMode.AUTO,
@@ -45,6 +55,13 @@ default_conf = {
     "type": "sift",  # 'sift' (COLMAP's extractor) or 'aliked' (learned_features.py, paper §4.4)
     "aliked": {},  # ALIKED options (learned_features.default_conf)
     "image_checks": None,  # options of images.check_images (None: its defaults)
+    # Archival prints (prepared_grey): SIFT on a prepared grey copy of the photos that need it, COLMAP's own
+    # extraction on the others. Photos whose 1-99 % grey range is below this fraction of 0-255 are stretched
+    # to the full range (faded prints: COLMAP's SIFT peak threshold is absolute); None = off.
+    "stretch_contrast_below": 0.5,
+    # Photos whose noise (Immerkaer's estimate, grey levels of 255) exceeds this are smoothed (Gaussian,
+    # sigma 1 px at SIFT's resolution) before SIFT (film grain, scanner noise); None = off.
+    "smooth_noise_above": None,
 }
 # Lowe's ratio of the raw and guided matchers on ALIKED (reconstruct's default unless --ratio is given): 0.9
 # verified more related pairs than SIFT's 0.8 and no unrelated one (recon_scripts/benchmark_aliked.py,
@@ -131,19 +148,97 @@ def _camera_key(image_path: Path, name: str, mode: str):
     return None
 
 
-def _extract_chunk(database_path: Path, image_path: Path, names: list[str], conf: dict, existing_camera_id: int | None, options: pycolmap.FeatureExtractionOptions) -> None:
-    """One pycolmap.extract_features call on a few images (onto ``existing_camera_id`` if given)."""
+def _reader(conf: dict, existing_camera_id: int | None) -> tuple[pycolmap.ImageReaderOptions, pycolmap.CameraMode]:
+    """COLMAP's image reader options and camera mode (onto ``existing_camera_id`` if given)."""
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = conf["camera_model"]
-    mode = CAMERA_MODES[conf["camera_mode"]]
-    if existing_camera_id is not None:
-        reader.existing_camera_id = existing_camera_id
-        mode = pycolmap.CameraMode.SINGLE
+    if existing_camera_id is None:
+        return reader, CAMERA_MODES[conf["camera_mode"]]
+    reader.existing_camera_id = existing_camera_id
+    return reader, pycolmap.CameraMode.SINGLE
+
+
+def _extract_chunk(database_path: Path, image_path: Path, names: list[str], conf: dict, existing_camera_id: int | None, options: pycolmap.FeatureExtractionOptions) -> None:
+    """One pycolmap.extract_features call on a few images (onto ``existing_camera_id`` if given)."""
+    reader, mode = _reader(conf, existing_camera_id)
     try:
         with colmap_quiet():
             pycolmap.extract_features(database_path, image_path, image_names=names, camera_mode=mode, reader_options=reader, extraction_options=options)
     except Exception as err:  # noqa: BLE001 - pycolmap raises RuntimeError/ValueError from C++
         raise RuntimeError(f"COLMAP feature extraction failed on {names[0]}... ({err}); rerun with --verbose to see COLMAP's log.") from err
+
+
+def noise_level(grey: np.ndarray) -> float:
+    """Standard deviation of the noise of a float grey image in [0, 1], in grey levels of 255 (Immerkaer,
+    "Fast noise variance estimation", CVIU 1996: the mean absolute response to a Laplacian difference mask).
+    Measured on the historical proxy: 0.5-2.4 on modern photos, 7-15 on grainy prints."""
+    kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+    response = cv2.filter2D(np.ascontiguousarray(grey, np.float32), -1, kernel)[1:-1, 1:-1]
+    return float(np.sqrt(np.pi / 2) * np.mean(np.abs(response)) / 6 * 255) if response.size else 0.0
+
+
+def sift_grey(path: Path, max_image_size: int) -> np.ndarray:
+    """The grey image COLMAP's SIFT works on: float32 in [0, 1] (Rec. 709 luma rounded to 8 bits, as COLMAP:
+    the same keypoints and descriptors at full size), the longer side downscaled to ``max_image_size``."""
+    rgb = images.read_image(path)
+    grey = np.round(rgb.astype(np.float32) @ GREY_WEIGHTS)
+    height, width = grey.shape
+    scale = min(1.0, max_image_size / max(width, height))
+    if scale < 1.0:  # COLMAP's resampling differs slightly: 2062 vs its 2067 keypoints on a photo at 500 px
+        size = (max(1, round(width * scale)), max(1, round(height * scale)))
+        grey = np.asarray(Image.fromarray(grey, "F").resize(size, Image.BILINEAR))
+    return np.ascontiguousarray(grey * np.float32(1 / 255), np.float32)
+
+
+def prepared_grey(path: Path, conf: dict) -> tuple[np.ndarray | None, list[str]]:
+    """SIFT's grey image of an archival photo prepared for detection (``stretch_contrast_below``,
+    ``smooth_noise_above``), and the steps applied; (None, []) when the photo needs none (COLMAP's own
+    extraction then)."""
+    if conf["stretch_contrast_below"] is None and conf["smooth_noise_above"] is None:
+        return None, []
+    grey, steps = sift_grey(path, conf["max_image_size"]), []
+    if conf["stretch_contrast_below"] is not None:
+        low, high = np.percentile(grey, [1, 99])
+        if high - low < conf["stretch_contrast_below"]:
+            low, high = np.percentile(grey, [0.5, 99.5])
+            grey = np.clip((grey - low) / max(high - low, 1 / 255), 0, 1).astype(np.float32)
+            steps.append("stretched")
+    if conf["smooth_noise_above"] is not None and noise_level(grey) > conf["smooth_noise_above"]:
+        grey = cv2.GaussianBlur(grey, (0, 0), 1.0)
+        steps.append("smoothed")
+    return (grey if steps else None), steps
+
+
+def _extract_prepared(database_path: Path, image_path: Path, names: list[str], conf: dict, existing_camera_id: int | None, options: pycolmap.FeatureExtractionOptions) -> None:
+    """SIFT on prepared grey images (``prepared_grey``) through pycolmap's own extractor: cameras and images
+    made by COLMAP's reader (as in ``_extract_chunk``), keypoints in the photo's pixels and uint8 descriptors
+    stored as COLMAP stores them, so `colmap mapper` reads the database as usual."""
+    reader, mode = _reader(conf, existing_camera_id)
+    with open_database(database_path, must_exist=False) as db:
+        new = [name for name in names if db.read_image_with_name(name) is None]
+    if new:
+        with colmap_quiet():
+            pycolmap.import_images(database_path, image_path, mode, image_names=new, options=reader)
+    extractor = pycolmap.FeatureExtractor.create(options)
+    with open_database(database_path) as db:
+        for name in names:
+            image = db.read_image_with_name(name)
+            if image is None:
+                continue  # COLMAP could not read it: reported by extract_features
+            grey, steps = prepared_grey(image_path / name, conf)
+            if grey is None:  # cannot happen: chunks are made of prepared photos
+                grey = sift_grey(image_path / name, conf["max_image_size"])
+            keypoints, descriptors = extractor.extract_from_float32_array(grey)
+            camera = db.read_camera(image.camera_id)
+            sx, sy = camera.width / grey.shape[1], camera.height / grey.shape[0]
+            if (sx, sy) != (1.0, 1.0):
+                for keypoint in keypoints:
+                    keypoint.rescale(sx, sy)  # COLMAP's FeatureKeypoint::Rescale, as its extractor does
+            rows = np.array([(k.x, k.y, k.a11, k.a12, k.a21, k.a22) for k in keypoints], np.float32).reshape(-1, 6)
+            with pycolmap.DatabaseTransaction(db):
+                db.write_keypoints(image.image_id, rows)
+                db.write_descriptors(image.image_id, descriptors)
+            logger.debug("%s: SIFT on a %s grey image, %d keypoints.", name, " and ".join(steps), len(keypoints))
 
 
 def _sift_pixels(image_path: Path, names: list[str], conf: dict) -> int | None:
@@ -208,6 +303,7 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
         reasons = "; ".join(f"{name}: {reason}" for name, reason in list(skipped.items())[:3])
         raise ValueError(f"None of the {len(image_names)} image(s) in {image_path} can be used ({reasons}{' ...' if len(skipped) > 3 else ''}).")
     start = time.time()
+    prepared: dict[str, bool] = {}
     if todo:
         logger.info("Extracting SIFT for %d images (%d already in the database)", len(todo), len(done))
         mode = conf["camera_mode"]
@@ -221,19 +317,23 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
         # touches the database meanwhile (COLMAP opens it without a busy timeout).
         options = extraction_options(conf, _sift_pixels(image_path, todo, conf))
         chunk = max(2, 2 * options.num_threads)
+        prepared = {name: bool(prepared_grey(image_path / name, conf)[1]) for name in todo}
+        if any(prepared.values()):
+            logger.info("%d photo(s) get SIFT on a contrast-stretched and/or smoothed grey copy (archival prints).", sum(prepared.values()))
         with tqdm(total=len(todo), desc="extract", unit="img", disable=None, dynamic_ncols=True, leave=False) as bar:
             i = 0
             while i < len(todo):
                 camera_id = known.get(keys[todo[i]])
                 j = i + 1
+                same = prepared[todo[i]]  # a chunk is extracted one way: COLMAP's, or on prepared grey images
                 if camera_id is not None:  # onto a camera already in the database
-                    while j < min(len(todo), i + chunk) and keys[todo[j]] is not None and known.get(keys[todo[j]]) == camera_id:
+                    while j < min(len(todo), i + chunk) and prepared[todo[j]] == same and keys[todo[j]] is not None and known.get(keys[todo[j]]) == camera_id:
                         j += 1
                 else:  # COLMAP makes (and shares) the cameras itself
-                    while j < min(len(todo), i + chunk) and not (keys[todo[j]] is not None and keys[todo[j]] in known):
+                    while j < min(len(todo), i + chunk) and prepared[todo[j]] == same and not (keys[todo[j]] is not None and keys[todo[j]] in known):
                         j += 1
                 run = todo[i:j]
-                _extract_chunk(database_path, image_path, run, conf, camera_id, options)
+                (_extract_prepared if same else _extract_chunk)(database_path, image_path, run, conf, camera_id, options)
                 if camera_id is None and any(keys[name] is not None for name in run):
                     with open_database(database_path) as db:
                         for name in run:
@@ -248,7 +348,8 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
         if name not in present:
             skipped[name] = "COLMAP could not read it (unsupported variant of the format, or a size that differs from its camera's); convert it to JPEG"
             logger.warning("Skipped %s: %s.", name, skipped[name])
-    return {"num_extracted": sum(name in present for name in todo), "skipped": skipped, "time": time.time() - start}
+    prepared = sorted(name for name in todo if name in present and prepared.get(name))
+    return {"num_extracted": sum(name in present for name in todo), "prepared": prepared, "skipped": skipped, "time": time.time() - start}
 
 
 def main(argv=None):

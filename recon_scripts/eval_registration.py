@@ -40,10 +40,11 @@ def main(argv=None) -> int:
     parser.add_argument("--scenes", nargs="+", default=None)
     parser.add_argument("--max_scenes", type=int, default=0)
     parser.add_argument("--subsets", nargs="+", default=["historical", "all"], choices=sorted(mf.SUBSETS))
-    parser.add_argument("--methods", nargs="+", default=["pycolmap", "raw", "guided"], help="'pycolmap' and/or matcher specs of the registry")
+    parser.add_argument("--methods", nargs="+", default=["pycolmap", "raw", "guided"], help="'pycolmap' and/or matcher specs of the registry; a spec may carry feature options (guided:stretch_contrast_below=none)")
     parser.add_argument("--max_rotation_deg", type=float, default=registration.MAX_ROTATION_DEG)
     parser.add_argument("--max_center_frac", type=float, default=registration.MAX_CENTER_FRAC)
     parser.add_argument("--wxbs_max_pairs", type=int, default=6, help="WxBS appearance pairs beside the table (0 = skip)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=None, help="random seeds of every mapper (pycolmap's default pipeline too), one run each; runs go to runs/seed<N>/ and the later seeds map the first seed's databases again (default: one run, unseeded pycolmap, reconstruct's seed 0)")
     parser.add_argument("--resume", action="store_true", help="reuse finished runs")
     parser.add_argument("--device", default=None)
     parser.add_argument("--weights", default=None)
@@ -70,7 +71,7 @@ def main(argv=None) -> int:
         logger.error("%s lists no scene with images (LTLL: pass --root and --scan).", manifest_path)
         return 2
     methods = args.methods
-    matcher_specs.parse_specs([m for m in methods if m != "pycolmap"])  # ValueError now, not after hours
+    matcher_specs.parse_specs([registration.split_feature_options(m)[0] for m in methods if m != "pycolmap"])  # ValueError now, not after hours
     extra = {"device": args.device, "weights": args.weights}
     tol = {"max_rotation_deg": args.max_rotation_deg, "max_center_frac": args.max_center_frac}
     results = []
@@ -81,12 +82,14 @@ def main(argv=None) -> int:
             if scene_dir is None:
                 logger.info("%s: fewer than 2 %s images, skipped.", scene["name"], subset)
                 continue
-            results.append(registration.evaluate_scene(scene_dir, methods, extra_conf=extra, resume=args.resume, **tol))
+            for seed in args.seeds or [None]:
+                first = registration.seed_runs_dir(scene_dir, args.seeds[0]) if args.seeds and seed != args.seeds[0] else None
+                results.append(registration.evaluate_scene(scene_dir, methods, extra_conf=extra, resume=args.resume, seed=seed, databases_from=first, **tol))
             tables.write_json(args.output / "results.json", {"manifest": str(manifest_path), "methods": methods, "scenes": results})
     distractors = sum(len(r["methods"][m].get("distractors_registered", [])) for r in results for m in methods if m in r["methods"])
     extra_text = f"\n\nDistractors registered, all runs: {distractors} (must be 0)\n"
 
-    specs = [m for m in methods if m != "pycolmap"]
+    specs = [registration.split_feature_options(m)[0] for m in methods if m != "pycolmap"]
     if args.wxbs_max_pairs and specs:
         w = two_view.run_wxbs_benchmark(specs, max_pairs=args.wxbs_max_pairs, categories=WXBS_APPEARANCE, extra_conf=extra)
         tables.write_json(args.output / "wxbs_appearance.json", w)

@@ -173,41 +173,72 @@ def method_slug(method: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.=-]+", "_", method).strip("_")
 
 
-def run_pycolmap_default(image_dir: Path, workspace: Path, camera_mode: str = "auto") -> tuple[dict, dict]:
-    """pycolmap's default pipeline with default options; returns (models, timings)."""
+def _fresh_workspace(workspace: Path, database: Path | None) -> Path:
+    """An empty ``workspace`` (with a copy of ``database`` when given); returns its database path."""
     workspace = Path(workspace)
     if workspace.exists():
         shutil.rmtree(workspace)
-    (workspace / "sparse").mkdir(parents=True)
-    db = workspace / "database.db"
+    workspace.mkdir(parents=True)
+    if database is not None:
+        shutil.copyfile(database, workspace / "database.db")
+    return workspace / "database.db"
+
+
+def run_pycolmap_default(image_dir: Path, workspace: Path, camera_mode: str = "auto", seed: int | None = None, database: Path | None = None) -> tuple[dict, dict]:
+    """pycolmap's default pipeline with default options (``seed``: only the mapper's random seed, so that
+    runs repeat; ``database``: a finished database of this pipeline to map again, extraction and matching
+    skipped); returns (models, timings)."""
+    db = _fresh_workspace(workspace, database)
+    (Path(workspace) / "sparse").mkdir()
     timings = {}
+    if database is None:
+        start = time.time()
+        pycolmap.extract_features(db, image_dir, camera_mode=CAMERA_MODES[camera_mode])
+        timings["extract"] = time.time() - start
+        start = time.time()
+        pycolmap.match_exhaustive(db)
+        timings["match"] = time.time() - start
     start = time.time()
-    pycolmap.extract_features(db, image_dir, camera_mode=CAMERA_MODES[camera_mode])
-    timings["extract"] = time.time() - start
-    start = time.time()
-    pycolmap.match_exhaustive(db)
-    timings["match"] = time.time() - start
-    start = time.time()
-    models = pycolmap.incremental_mapping(db, image_dir, workspace / "sparse")
+    options = pycolmap.IncrementalPipelineOptions()
+    if seed is not None:
+        options.random_seed = seed
+    models = pycolmap.incremental_mapping(db, image_dir, workspace / "sparse", options=options)
     timings["map"] = time.time() - start
     return dict(models), timings
 
 
-def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict | None = None) -> tuple[pycolmap.Reconstruction | None, dict]:
-    """One reconstruction of a laid-out scene; returns (largest model, summary)."""
+def split_feature_options(method: str) -> tuple[str, dict]:
+    """A method spec's feature-stage options (keys of ``features.default_conf``, e.g.
+    ``guided:smooth_noise_above=4``) apart from its matcher spec: (matcher spec, feature conf)."""
+    from colmap_guided.features import default_conf as feature_defaults
+
+    spec = matcher_specs.parse_spec(method)
+    feature = {k: v for k, v in spec.conf.items() if k in feature_defaults}
+    rest = ",".join(item for item in method.partition(":")[2].split(",") if item and item.partition("=")[0].strip() not in feature)
+    return spec.name + (f":{rest}" if rest else ""), feature
+
+
+def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict | None = None, seed: int | None = None, feature_conf: dict | None = None, database: Path | None = None) -> tuple[pycolmap.Reconstruction | None, dict]:
+    """One reconstruction of a laid-out scene (``seed``: the mapper's random seed, None = each method's
+    default; ``database``: this method's finished database of another run, so only mapping runs: the
+    database does not depend on the mapper's seed); returns (largest model, summary)."""
     scene_dir = Path(scene_dir)
     image_dir = scene_dir / "images"
     start = time.time()
     if method == "pycolmap":
-        models, timings = run_pycolmap_default(image_dir, workspace)
+        models, timings = run_pycolmap_default(image_dir, workspace, seed=seed, database=database)
         largest = largest_model(models)
         info = {"timings": timings, "num_models": len(models)}
     else:
         from colmap_guided.mapping import load_models
         from colmap_guided.reconstruct import reconstruct
 
+        method, own_features = split_feature_options(method)
+        feature_conf = {**(feature_conf or {}), **own_features} or None
         (spec,) = matcher_specs.parse_specs([method], extra_conf)
-        result = reconstruct(scene_dir, output=workspace, matcher=spec.name, matcher_conf=spec.conf, overwrite=True)
+        mapping_conf = {"random_seed": seed} if seed is not None else None
+        _fresh_workspace(workspace, database)  # reconstruct resumes from the copied database
+        result = reconstruct(scene_dir, output=workspace, matcher=spec.name, matcher_conf=spec.conf, feature_conf=feature_conf, mapping_conf=mapping_conf)
         models = load_models(Path(result["sparse_path"]))
         largest = largest_model(models)
         info = {"timings": result["timings"], "num_models": result["model"]["num_models"], "matcher": result["matcher"]}
@@ -216,15 +247,21 @@ def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict |
     return largest, info
 
 
-def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = None, extra_conf: dict | None = None, resume: bool = False, **tol) -> dict:
-    """Run every method on one laid-out scene (SCENE/images + SCENE/manifest.json) and score it."""
+def seed_runs_dir(scene_dir: Path, seed: int | None) -> Path:
+    return Path(scene_dir) / "runs" / (f"seed{seed}" if seed is not None else "")
+
+
+def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = None, extra_conf: dict | None = None, resume: bool = False, seed: int | None = None, feature_conf: dict | None = None, databases_from: Path | None = None, **tol) -> dict:
+    """Run every method on one laid-out scene (SCENE/images + SCENE/manifest.json) and score it
+    (``seed``: the mappers' random seed; runs go to SCENE/runs/seed<seed>/ then; ``databases_from``: the
+    runs folder of another seed whose finished databases are mapped again)."""
     scene_dir = Path(scene_dir)
     one = json.loads((scene_dir / "manifest.json").read_text(encoding="utf-8"))
     images = one["images"]
     ref_path = (one.get("reference") or {}).get("path")
     reference = pycolmap.Reconstruction(ref_path) if ref_path and Path(ref_path).is_dir() else None
-    runs_dir = Path(runs_dir) if runs_dir else scene_dir / "runs"
-    out = {"scene": one.get("scene", scene_dir.name), "subset": one.get("subset", "all"), "scene_dir": str(scene_dir), "reference": ref_path, "eras": era_counts(images), "methods": {}}
+    runs_dir = Path(runs_dir) if runs_dir else seed_runs_dir(scene_dir, seed)
+    out = {"scene": one.get("scene", scene_dir.name), "subset": one.get("subset", "all"), "scene_dir": str(scene_dir), "reference": ref_path, "seed": seed, "eras": era_counts(images), "methods": {}}
     for method in methods:
         workspace = runs_dir / method_slug(method)
         done = workspace / "eval.json"
@@ -233,7 +270,9 @@ def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = 
             continue
         logger.info("%s [%s]: %s", out["scene"], out["subset"], method)
         try:
-            largest, info = run_method(scene_dir, method, workspace, extra_conf)
+            reuse = Path(databases_from) / method_slug(method) / "database.db" if databases_from else None
+            reuse = reuse if reuse is not None and reuse.is_file() and (reuse.parent / "eval.json").is_file() else None
+            largest, info = run_method(scene_dir, method, workspace, extra_conf, seed, feature_conf, reuse)
         except Exception as err:  # one failing method must not lose the others' results
             logger.error("%s [%s] %s failed: %r", out["scene"], out["subset"], method, err)
             out["methods"][method] = {"error": repr(err)}
