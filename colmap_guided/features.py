@@ -215,29 +215,28 @@ def _extract_prepared(database_path: Path, image_path: Path, names: list[str], c
     stored as COLMAP stores them, so `colmap mapper` reads the database as usual."""
     reader, mode = _reader(conf, existing_camera_id)
     with open_database(database_path, must_exist=False) as db:
-        new = [name for name in names if db.read_image_with_name(name) is None]
+        new = [name for name in names if dbio.read_image(db, name) is None]
     if new:
         with colmap_quiet():
             pycolmap.import_images(database_path, image_path, mode, image_names=new, options=reader)
     extractor = pycolmap.FeatureExtractor.create(options)
     with open_database(database_path) as db:
         for name in names:
-            image = db.read_image_with_name(name)
+            image = dbio.read_image(db, name)
             if image is None:
                 continue  # COLMAP could not read it: reported by extract_features
             grey, steps = prepared_grey(image_path / name, conf)
             if grey is None:  # cannot happen: chunks are made of prepared photos
                 grey = sift_grey(image_path / name, conf["max_image_size"])
             keypoints, descriptors = extractor.extract_from_float32_array(grey)
-            camera = db.read_camera(image.camera_id)
+            camera = dbio.read_camera(db, image.camera_id)
             sx, sy = camera.width / grey.shape[1], camera.height / grey.shape[0]
             if (sx, sy) != (1.0, 1.0):
                 for keypoint in keypoints:
                     keypoint.rescale(sx, sy)  # COLMAP's FeatureKeypoint::Rescale, as its extractor does
             rows = np.array([(k.x, k.y, k.a11, k.a12, k.a21, k.a22) for k in keypoints], np.float32).reshape(-1, 6)
-            with pycolmap.DatabaseTransaction(db):
-                db.write_keypoints(image.image_id, rows)
-                db.write_descriptors(image.image_id, descriptors)
+            with dbio.transaction(db):
+                dbio.write_features(db, image.image_id, rows, dbio.descriptor_array(descriptors))
             logger.debug("%s: SIFT on a %s grey image, %d keypoints.", name, " and ".join(steps), len(keypoints))
 
 
