@@ -289,7 +289,6 @@ def _stop_nodes(procs: list, root: Path) -> None:
 def ray_main(args) -> None:
     """Same pairs matched from scratch by: local threads (1, 2), a private Ray instance (1, 2 CPUs), and
     two Ray nodes of one CPU each; pairs/s and the ratio per added worker. One process, one run."""
-    import numpy as np  # noqa: F401
     import ray
 
     from colmap_guided import database as dbio
@@ -307,14 +306,12 @@ def ray_main(args) -> None:
     pairs_file = work / "pairs.txt"
     if not pairs_file.exists():  # the first retrieval pairs of the N-photo set (the match stage's selection)
         src = args.out / f"n{n}" / "retrieval" / "database.db"
+        import pycolmap
+
         with dbio.open_database(src) as db:
             names = {im.image_id: im.name for im in db.read_all_images()}
-            import pycolmap
-
-            ids, _ = db.read_all_matches() if hasattr(db, "read_all_matches") else (None, None)
-            pairs = sorted(tuple(sorted((names[a], names[b]))) for a, b in map(pycolmap.pair_id_to_image_pair, ids))
+            pairs = sorted(tuple(sorted((names[a], names[b]))) for a, b in map(pycolmap.pair_id_to_image_pair, db.read_all_matches()[0]))
         write_pairs(pairs_file, pairs[: args.num_pairs])
-    pairs = read_pairs(pairs_file, [])if False else None  # noqa: F841
     root = Path(tempfile.mkdtemp(prefix="rayb", dir="/tmp"))
     saved = {k: os.environ.get(k) for k in ("HOME", "RAY_TMPDIR")}
     os.environ.update(HOME=str(root), RAY_TMPDIR=str(root))
@@ -379,8 +376,144 @@ def ray_main(args) -> None:
 # -- report -------------------------------------------------------------------------------------------
 
 
+def _json(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.exists() else None
+
+
 def report_main(args) -> None:
-    raise NotImplementedError
+    """Markdown tables (stdout and OUT/report.md) and OUT/scale.png from the stage JSONs."""
+    out = args.out
+    pool = json.loads((out / "pool.json").read_text())
+    lines = []
+    p = lines.append
+
+    def composition(n: int) -> str:
+        train = synth = 0
+        for scene in pool:
+            take = min(n - train - synth, len(scene["files"]))
+            if scene["kind"] == "train":
+                train += take
+            else:
+                synth += take
+        return f"{train} train + {synth} rendered"
+
+    p("| N (photos) | pairs | pairs matched (of exhaustive) | verified | extract s | select s | match s | verify s | map (global) s | "
+      "total s (CPU s) | peak RSS: run / match stage (start) MB | images held max / reads | registered (train + rendered) | models | load 1-min |")
+    p("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    per_pair, rows = {}, {}
+    for n in args.n:
+        ex = _json(out / f"n{n}" / "extract.json")
+        for mode in ("retrieval", "exhaustive"):
+            m = _json(out / f"n{n}" / mode / "match.json")
+            g = _json(out / f"n{n}" / mode / "map_global.json")
+            if ex is None or m is None:
+                continue
+            stages = [r for r in (ex, m, g) if r]
+            total = sum(r["wall"] for r in stages)
+            cpu = sum(r["cpu"] for r in stages)
+            pure_match = m["match_time"] + m["verify_time"]
+            if mode == "exhaustive":
+                per_pair[n] = (pure_match / m["num_pairs"], m["cpu"] / m["num_pairs"])
+            rows[(n, mode)] = {"extract": ex["wall"], "select": m["select_time"], "match": m["match_time"], "verify": m["verify_time"],
+                               "map": g["wall"] if g else None, "total": total, "cpu": cpu, "rss_match": m["peak_rss_mb"],
+                               "rss_run": max(r["peak_rss_mb"] for r in stages), "held": (m.get("memory") or {}).get("images_held_max")}
+            mem = m.get("memory") or {}
+            reg = f"{g['registered']}/{n} ({g['registered_train']} + {g['registered_synthetic']})" if g else "–"
+            loads = [float(r[k].split("/")[0]) for r in stages for k in ("load_before", "load_after")]
+            p(f"| {n} ({composition(n)}) | {mode}" + (f" k={args.k}" if mode == "retrieval" else "") + f" | {m['num_pairs']} ({m['num_pairs'] / (n * (n - 1) / 2):.1%}) | "
+              f"{m['num_verified_pairs']} | {ex['wall']:.0f} | {m['select_time']:.0f} | {m['match_time']:.0f} | {m['verify_time']:.0f} | "
+              f"{g['wall']:.0f} | " if g else "– | ")
+            lines[-1] += (f"{total:.0f} ({cpu:.0f}) | {max(r['peak_rss_mb'] for r in stages)} / {m['peak_rss_mb']} ({m['rss_start_mb']}) | "
+                          f"{mem.get('images_held_max', '–')} / {mem.get('image_reads', '–')} | {reg} | {g['num_models'] if g else '–'} | "
+                          f"{min(loads):.1f}–{max(loads):.1f} |")
+    if per_pair:
+        n0 = min(per_pair)
+        wall_pp, cpu_pp = per_pair[n0]
+        p("")
+        p(f"Exhaustive matching projected from its measured time per pair at N={n0} ({wall_pp:.2f} s wall match + verify per pair, "
+          f"{cpu_pp:.2f} s CPU with selection): a projection, not a measurement:")
+        p("")
+        p("| N | exhaustive pairs | projected match + verify h (wall, this load) | projected CPU h |")
+        p("|---|---|---|---|")
+        for n in args.n:
+            pairs = n * (n - 1) // 2
+            p(f"| {n} | {pairs} | {pairs * wall_pp / 3600:.1f} | {pairs * cpu_pp / 3600:.1f} |")
+    mapping = []
+    for n in args.n:
+        for mode in ("retrieval", "exhaustive"):
+            for mapper in ("incremental", "global", "hierarchical"):
+                r = _json(out / f"n{n}" / mode / f"map_{mapper}.json")
+                if r:
+                    mapping.append((n, mode, r))
+    if mapping:
+        p("")
+        p("| N | pairs | mapper | wall s (CPU s) | models | registered (train + rendered) | largest model | photos in a verified pair | peak RSS MB | load 1-min |")
+        p("|---|---|---|---|---|---|---|---|---|---|")
+        for n, mode, r in mapping:
+            p(f"| {n} | {mode} | {r['mapper']} | {r['wall']:.0f} ({r['cpu']:.0f}) | {r['num_models']} | {r['registered']} ({r['registered_train']} + {r['registered_synthetic']}) | "
+              f"{r['largest']} | {r['images_in_verified_pairs']} | {r['peak_rss_mb']} | {r['load_before'].split('/')[0]}–{r['load_after'].split('/')[0]} |")
+    executors = _json(out / "executors" / "executors.json") or []
+    if executors:
+        base = {}
+        for r in executors:
+            base.setdefault(("local" if r["executor"] == "local" else "ray", r["config"].split("_r")[-1]), r) if r["workers"] == 1 else None
+        p("")
+        p("| configuration | workers | pairs | match s | pairs/s | per worker vs 1 worker | same matches | load 1-min |")
+        p("|---|---|---|---|---|---|---|---|")
+        for r in executors:
+            b = base.get(("local" if r["executor"] == "local" else "ray", r["config"].split("_r")[-1]))
+            ratio = r["pairs_per_s"] / (r["workers"] * b["pairs_per_s"]) if b else float("nan")
+            p(f"| {r['config']} | {r['workers']} | {r['pairs']} | {r['match_time']:.0f} | {r['pairs_per_s']:.2f} | {ratio:.2f} | "
+              f"{r['same_matches_as_local_1']} | {r['load_before'].split('/')[0]}–{r['load_after'].split('/')[0]} |")
+    text = "\n".join(lines)
+    print(text)
+    (out / "report.md").write_text(text + "\n")
+    _plot(out / "scale.png", rows, executors, per_pair)
+
+
+def _plot(path: Path, rows: dict, executors: list, per_pair: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    ax = axes[0]
+    for mode, style in (("retrieval", "o-"), ("exhaustive", "s--")):
+        ns = sorted(n for n, m in rows if m == mode)
+        if ns:
+            for key, colour in (("extract", "C0"), ("match", "C1"), ("total", "k")):
+                ax.plot(ns, [rows[(n, mode)][key] / 60 for n in ns], style, color=colour, label=f"{mode}: {key}")
+            ax.plot(ns, [rows[(n, mode)]["cpu"] / 60 for n in ns], style, color="C2", label=f"{mode}: CPU (all stages)")
+    if per_pair:
+        n0 = min(per_pair)
+        ns = [n0, 200, 1000]
+        ax.plot(ns, [n * (n - 1) / 2 * per_pair[n0][0] / 60 for n in ns], ":", color="C3", label="exhaustive match, projected")
+    ax.axhline(60, color="grey", lw=0.8)
+    ax.set(xscale="log", yscale="log", xlabel="photos N", ylabel="minutes", title="time per stage (wall, shared machine)")
+    ax.legend(fontsize=7)
+    ax = axes[1]
+    ns = sorted(n for n, m in rows if m == "retrieval")
+    ax.plot(ns, [rows[(n, "retrieval")]["rss_match"] for n in ns], "o-", label="match stage peak RSS (MB)")
+    ax.plot(ns, [rows[(n, "retrieval")]["rss_run"] for n in ns], "s-", label="run peak RSS (MB, max over stages)")
+    ax2 = ax.twinx()
+    ax2.plot(ns, [rows[(n, "retrieval")]["held"] or 0 for n in ns], "^:", color="C3", label="images held at once (max)")
+    ax2.set_ylabel("images held")
+    ax.set(xscale="log", xlabel="photos N", ylabel="MB", title="memory (retrieval)")
+    ax.legend(fontsize=7, loc="upper left")
+    ax2.legend(fontsize=7, loc="lower right")
+    ax = axes[2]
+    for kind, marker in (("local", "o"), ("ray_private", "s"), ("ray_2nodes", "^")):
+        pts = [(r["workers"], r["pairs_per_s"]) for r in executors if r["config"].startswith(kind)]
+        if pts:
+            ax.plot(*zip(*pts), marker, label=kind, ms=8)
+    ones = [r["pairs_per_s"] for r in executors if r["workers"] == 1]
+    if ones:
+        ax.plot([1, 2], [min(ones), 2 * min(ones)], ":", color="grey", label="linear from the slower 1-worker run")
+    ax.set(xlabel="workers", ylabel="pairs / s", title="matching throughput", xticks=[1, 2])
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
 
 
 def main(argv=None):
