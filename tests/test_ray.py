@@ -24,6 +24,26 @@ ray = pytest.importorskip("ray")
 from test_pipeline import all_matches  # noqa: E402
 
 
+def test_a_private_ray_instance_runs_its_workers_at_the_callers_priority(synthetic_scene, tmp_path, monkeypatch):
+    """Ray starts workers at nice +15; a private instance's pair workers run at the caller's niceness
+    (first in this module: before the shared cluster fixture initialises Ray)."""
+    from colmap_guided.executor import RayExecutor
+    from colmap_guided.matchers import get_matcher
+
+    root = tempfile.mkdtemp(prefix="ray", dir="/tmp")
+    monkeypatch.setenv("HOME", root)
+    monkeypatch.setenv("RAY_TMPDIR", root)
+    monkeypatch.delenv("RAY_worker_niceness", raising=False)
+    run = RayExecutor(get_matcher("raw"), num_cpus=1)
+    try:
+        assert ray.get(ray.remote(num_cpus=0)(lambda: os.nice(0)).remote()) == os.nice(0)
+        assert "RAY_worker_niceness" not in os.environ
+    finally:
+        run.close()
+        shutil.rmtree(root, ignore_errors=True)
+    assert not ray.is_initialized()
+
+
 @pytest.fixture(scope="module")
 def ray_cluster():
     """A private local cluster of 2 CPUs; yields (address, environment for a process that joins it)."""
