@@ -187,6 +187,15 @@ def stage_main(args) -> None:
     del dbio
 
 
+def _verified_pairs(db: Path) -> set:
+    from colmap_guided import database as dbio
+    import pycolmap
+
+    with dbio.open_database(db) as d:
+        return {pycolmap.pair_id_to_image_pair(pair_id) for pair_id, geometry in zip(*d.read_two_view_geometries())
+                if len(geometry.inlier_matches) > 0}
+
+
 def _in_verified_pairs(db: Path) -> int:
     from colmap_guided import database as dbio
     import pycolmap
@@ -399,7 +408,7 @@ def report_main(args) -> None:
                 synth += take
         return f"{train} train + {synth} rendered"
 
-    p("| N (photos) | pairs | pairs matched (of exhaustive) | verified | extract s | select s | match s | verify s | map (global) s | "
+    p("| N (photos) | pairs | pairs matched (of exhaustive) | verified (exhaustive's kept) | extract s | select s | match s | verify s | map (global) s | "
       "total s (CPU s) | peak RSS: run / match stage (start) MB | images held max / reads | registered (train + rendered) | models | load 1-min |")
     p("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     per_pair, rows = {}, {}
@@ -420,10 +429,14 @@ def report_main(args) -> None:
                                "map": g["wall"] if g else None, "total": total, "cpu": cpu, "rss_match": m["peak_rss_mb"],
                                "rss_run": max(r["peak_rss_mb"] for r in stages), "held": (m.get("memory") or {}).get("images_held_max")}
             mem = m.get("memory") or {}
+            kept = "–"
+            if (out / f"n{n}" / "exhaustive" / "match.json").exists():
+                truth = _verified_pairs(out / f"n{n}" / "exhaustive" / "database.db")
+                kept = f"{len(_verified_pairs(out / f'n{n}' / mode / 'database.db') & truth)}/{len(truth)}"
             reg = f"{g['registered']}/{n} ({g['registered_train']} + {g['registered_synthetic']})" if g else "–"
             loads = [float(r[k].split("/")[0]) for r in stages for k in ("load_before", "load_after")]
             p(f"| {n} ({composition(n)}) | {mode}" + (f" k={args.k}" if mode == "retrieval" else "") + f" | {m['num_pairs']} ({m['num_pairs'] / (n * (n - 1) / 2):.1%}) | "
-              f"{m['num_verified_pairs']} | {ex['wall']:.0f} | {m['select_time']:.0f} | {m['match_time']:.0f} | {m['verify_time']:.0f} | "
+              f"{m['num_verified_pairs']} ({kept}) | {ex['wall']:.0f} | {m['select_time']:.0f} | {m['match_time']:.0f} | {m['verify_time']:.0f} | "
               f"{g['wall']:.0f} | " if g else "– | ")
             lines[-1] += (f"{total:.0f} ({cpu:.0f}) | {max(r['peak_rss_mb'] for r in stages)} / {m['peak_rss_mb']} ({m['rss_start_mb']}) | "
                           f"{mem.get('images_held_max', '–')} / {mem.get('image_reads', '–')} | {reg} | {g['num_models'] if g else '–'} | "
