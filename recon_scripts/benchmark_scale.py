@@ -514,7 +514,8 @@ def _plot(path: Path, rows: dict, executors: list, per_pair: dict) -> None:
     ax2 = ax.twinx()
     ax2.plot(ns, [rows[(n, "retrieval")]["held"] or 0 for n in ns], "^:", color="C3", label="images held at once (max)")
     ax2.set_ylabel("images held")
-    ax.set(xscale="log", xlabel="photos N", ylabel="MB", title="memory (retrieval)")
+    ax.set(xscale="log", xlabel="photos N", ylabel="MB", title="memory (retrieval)", ylim=(0, 1.3 * max([r["rss_run"] for r in rows.values()] or [1])))
+    ax2.set_ylim(0, 140)
     ax.legend(fontsize=7, loc="upper left")
     ax2.legend(fontsize=7, loc="lower right")
     ax = axes[2]
