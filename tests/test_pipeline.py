@@ -86,6 +86,31 @@ def test_match_is_a_drop_in_exhaustive_matcher_and_reruns_do_not_duplicate(raw_r
     assert sorted(largest.images[i].name for i in largest.reg_image_ids()) == result["model"]["registered_images"]
 
 
+def test_matching_memory_is_bounded_and_the_matches_do_not_change(raw_run, synthetic_scene, tmp_path):
+    """At most ``max_images_held`` images in memory: the others are dropped and read again at their next
+    pair, and the database gets the same matches as with every image held."""
+    _, _, out = raw_run
+    db = tmp_path / "db.db"
+    pycolmap.extract_features(db, synthetic_scene.image_dir)
+    stats = match_database(db, synthetic_scene.image_dir, matcher="raw", max_images_held=3)
+    assert stats["memory"]["images_held_max"] == 3 and stats["memory"]["image_reads"] > 8
+    assert all_matches(db) == all_matches(out / "database.db") and len(all_matches(db)) == 28
+    with pytest.raises(ValueError, match="max_images_held must be at least 2"):
+        match_database(db, synthetic_scene.image_dir, matcher="raw", max_images_held=1)
+
+
+def test_pairs_are_ordered_to_hold_few_images_when_names_say_nothing():
+    """A walk of 60 photos (each paired with the next 2) under shuffled names: name order holds most of
+    the photos until the end, the Cuthill-McKee grouping a handful; the same pairs either way."""
+    from colmap_guided.match import most_images_held, pair_order
+
+    names = [f"{i:03d}.jpg" for i in np.random.default_rng(0).permutation(60)]
+    todo = sorted((0, 0, *sorted((names[i], names[j]))) for i in range(60) for j in (i + 1, i + 2) if j < 60)
+    ordered = pair_order(todo)
+    assert sorted(ordered) == todo
+    assert most_images_held(todo) > 30 and most_images_held(ordered) <= 5
+
+
 def test_colmap_guided_matching_in_the_pipeline_uses_the_database_cameras(raw_run, synthetic_scene, tmp_path):
     """`match --matcher guided_colmap` (COLMAP's guided_matching option) verifies at least what raw verifies."""
     result, _, _ = raw_run

@@ -24,6 +24,24 @@ ray = pytest.importorskip("ray")
 from test_pipeline import all_matches  # noqa: E402
 
 
+def test_a_private_ray_instance_runs_its_workers_at_the_callers_priority():
+    """Ray starts workers at nice +15; a private instance's pair workers run at the caller's niceness, and
+    the caller's environment is left as it was (in a process of its own: no Ray state shared with the fixture)."""
+    code = ("import os, ray\nfrom colmap_guided.executor import RayExecutor\nfrom colmap_guided.matchers import get_matcher\n"
+            "run = RayExecutor(get_matcher('raw'), num_cpus=1)\n"
+            "print(ray.get(ray.remote(num_cpus=0)(lambda: os.nice(0)).remote()), os.nice(0), 'RAY_worker_niceness' in os.environ)\n"
+            "run.close()\n")
+    root = tempfile.mkdtemp(prefix="ray", dir="/tmp")
+    env = {**{k: v for k, v in os.environ.items() if k != "RAY_worker_niceness"}, "HOME": root, "RAY_TMPDIR": root}
+    try:
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    worker, caller, leaked = out.stdout.split()[-3:]
+    assert worker == caller and leaked == "False"
+
+
 @pytest.fixture(scope="module")
 def ray_cluster():
     """A private local cluster of 2 CPUs; yields (address, environment for a process that joins it)."""
