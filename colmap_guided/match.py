@@ -41,7 +41,7 @@ def match_database(
     database_path: Path,
     image_path: Path,
     pairs_path: str | Path | None = None,
-    matcher: str | Matcher = "raw",
+    matcher: str | Matcher = DEFAULT_MATCHER,
     matcher_conf: dict | None = None,
     verification_conf: dict | None = None,
     overwrite: bool = False,
