@@ -110,6 +110,8 @@ class RayExecutor:
                 except Exception as err:  # noqa: BLE001 - Ray raises ConnectionError, RuntimeError, AuthenticationError
                     raise RuntimeError(f"Could not connect to the Ray cluster at {address} ({err}); start it with `ray start --head` "
                                        "and pass its address, or omit --ray_address for a private local instance.") from err
+        self.workers: list = []
+        self.refs: dict = {}  # object ref -> (key, worker index)
         try:
             cpus = int(ray.cluster_resources().get("CPU", 1))
             worker_class = _pair_worker_class()
@@ -121,7 +123,6 @@ class RayExecutor:
         self.num_workers = len(self.workers)
         self.capacity = tasks_per_worker * self.num_workers
         self.load = [0] * len(self.workers)
-        self.refs: dict = {}  # object ref -> (key, worker index)
         logger.info("Ray: %d pair workers on %s", len(self.workers), "a private local instance" if self.owns and address is None else address or "the running Ray session")
 
     def put(self, image: ImageData):
@@ -156,7 +157,7 @@ class RayExecutor:
             except Exception:  # noqa: BLE001 - already finished or its worker gone
                 pass
         self.refs.clear()
-        for worker in getattr(self, "workers", []):
+        for worker in self.workers:
             self.ray.kill(worker)
         self.workers = []
         if self.owns and self.ray.is_initialized():
