@@ -46,6 +46,7 @@ def main(argv=None) -> int:
     parser.add_argument("--wxbs_max_pairs", type=int, default=6, help="WxBS appearance pairs beside the table (0 = skip)")
     parser.add_argument("--seeds", type=int, nargs="+", default=None, help="random seeds of every mapper (pycolmap's default pipeline too), one run each; runs go to runs/seed<N>/ and the later seeds map the first seed's databases again (default: one run, unseeded pycolmap, reconstruct's seed 0)")
     parser.add_argument("--resume", action="store_true", help="reuse finished runs")
+    parser.add_argument("--remap", action="store_true", help="with --resume: map the finished databases again (after a change of the mapping stage), extraction and matching reused; pycolmap's runs are kept")
     parser.add_argument("--device", default=None)
     parser.add_argument("--weights", default=None)
     parser.add_argument("--output", type=Path, default=REPO_ROOT / "outputs" / "eval_registration")
@@ -71,7 +72,7 @@ def main(argv=None) -> int:
         logger.error("%s lists no scene with images (LTLL: pass --root and --scan).", manifest_path)
         return 2
     methods = args.methods
-    matcher_specs.parse_specs([registration.split_feature_options(m)[0] for m in methods if m != "pycolmap"])  # ValueError now, not after hours
+    matcher_specs.parse_specs([registration.split_stage_options(m)[0] for m in methods if m != "pycolmap"])  # ValueError now, not after hours
     extra = {"device": args.device, "weights": args.weights}
     tol = {"max_rotation_deg": args.max_rotation_deg, "max_center_frac": args.max_center_frac}
     results = []
@@ -84,12 +85,12 @@ def main(argv=None) -> int:
                 continue
             for seed in args.seeds or [None]:
                 first = registration.seed_runs_dir(scene_dir, args.seeds[0]) if args.seeds and seed != args.seeds[0] else None
-                results.append(registration.evaluate_scene(scene_dir, methods, extra_conf=extra, resume=args.resume, seed=seed, databases_from=first, **tol))
+                results.append(registration.evaluate_scene(scene_dir, methods, extra_conf=extra, resume=args.resume, seed=seed, databases_from=first, remap=args.remap, **tol))
             tables.write_json(args.output / "results.json", {"manifest": str(manifest_path), "methods": methods, "scenes": results})
     distractors = sum(len(r["methods"][m].get("distractors_registered", [])) for r in results for m in methods if m in r["methods"])
     extra_text = f"\n\nDistractors registered, all runs: {distractors} (must be 0)\n"
 
-    specs = [registration.split_feature_options(m)[0] for m in methods if m != "pycolmap"]
+    specs = [registration.split_stage_options(m)[0] for m in methods if m != "pycolmap"]
     if args.wxbs_max_pairs and specs:
         w = two_view.run_wxbs_benchmark(specs, max_pairs=args.wxbs_max_pairs, categories=WXBS_APPEARANCE, extra_conf=extra)
         tables.write_json(args.output / "wxbs_appearance.json", w)

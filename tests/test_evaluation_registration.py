@@ -8,6 +8,7 @@ import numpy as np
 import pycolmap
 import pytest
 
+from colmap_guided.database import open_database, pair_inlier_counts, read_keypoints
 from colmap_guided.evaluation import manifest as mf
 from colmap_guided.evaluation import proxy, registration
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
@@ -179,3 +180,36 @@ def test_eval_registration_all_methods_on_a_tiny_proxy_scene(tiny_proxy, tmp_pat
             if rec["num_registered"]:
                 assert rec["correct"] + len(rec["wrong"]) + len(rec["unverified"]) == rec["num_registered"]
     assert (out / "wxbs_appearance.json").is_file()
+
+
+def test_method_specs_split_into_matcher_feature_and_mapping_options():
+    split = registration.split_stage_options
+    assert split("guided:type=aliked,ratio=0.9,mapper=global") == ("guided:ratio=0.9", {"type": "aliked"}, {"mapper": "global"})
+    assert split("pycolmap") == ("pycolmap", {}, {})
+    key = registration.database_key
+    assert key("guided") == key("guided:mapper=incremental") != key("raw")  # the mapper does not change the database
+    assert key("raw:type=aliked")[0] == key("lightglue:type=aliked")[0] != key("raw")[0]  # shared ALIKED keypoints
+    assert key("pycolmap")[0] != key("raw")[0]  # pycolmap's own SIFT is not reconstruct's
+
+
+def test_eval_registration_reuses_databases_across_mappers_and_matchers(tiny_proxy, tmp_path):
+    """A mapper variant maps the same database again (only mapping runs) and a matcher with the same
+    features reuses the keypoints (extraction skipped); the reused stages' times are counted."""
+    out = tmp_path / "eval"
+    argv = ["--manifest", str(tiny_proxy), "--subsets", "all", "--methods", "raw", "raw:mapper=global", "guided", "--wxbs_max_pairs", "0", "--output", str(out), "-q"]
+    assert load_script("eval_registration").main(argv) == 0
+    methods = json.loads((out / "results.json").read_text())["scenes"][0]["methods"]
+    raw, raw_global, guided = (methods[m] for m in ("raw", "raw:mapper=global", "guided"))
+    assert "reused" not in raw
+    assert raw_global["reused"]["stages"] == ["extract", "match", "verify"] and raw_global["timings"]["match"] >= raw["timings"]["match"]
+    assert guided["reused"]["stages"] == ["extract"] and guided["matcher"]["name"] == "guided"
+    runs = out / "scenes" / "strecha_entry_P10__all" / "runs"
+    with open_database(runs / "raw" / "database.db") as a, open_database(runs / "raw_mapper=global" / "database.db") as b, open_database(runs / "guided" / "database.db") as c:
+        for image in a.read_all_images():
+            assert np.array_equal(read_keypoints(a, image.image_id), read_keypoints(c, image.image_id))
+        assert pair_inlier_counts(a) == pair_inlier_counts(b) and len(pair_inlier_counts(a)) >= 1
+    # --remap maps each finished database again (a change of the mapping stage) and keeps the stage times
+    assert load_script("eval_registration").main(argv + ["--resume", "--remap"]) == 0
+    again = json.loads((out / "results.json").read_text())["scenes"][0]["methods"]
+    assert again["guided"]["reused"]["database"].endswith("(--remap)") and again["guided"]["timings"]["match"] >= guided["timings"]["match"]
+    assert again["raw"]["num_registered"] == raw["num_registered"] and not list(runs.glob("*.remap"))

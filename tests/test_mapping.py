@@ -125,3 +125,31 @@ def test_model_check_flags_a_pose_jump(lund_door):
     frame.rig_from_world = turn * frame.rig_from_world
     problems = check_models({0: lund_door})["problems"]
     assert any("pose jump" in p and "DSC_0005.JPG" in p for p in problems), problems
+
+
+def _keep_observations(rec: pycolmap.Reconstruction, image: pycolmap.Image, keep: set[int]) -> None:
+    for idx, point in enumerate(image.points2D):
+        if point.has_point3D() and point.point3D_id not in keep:
+            rec.delete_observation(image.image_id, idx)
+
+
+def test_photos_on_too_few_3d_points_are_taken_out_until_none_is_left(lund_door):
+    """A photo observing 10 3D points goes; one observing 16, 3 of them seen only with the first, is left
+    with 13 and goes too; every other photo stays, each on >= 15 points."""
+    from colmap_guided.mapping import prune_weak_images
+
+    a, b = (next(im for im in lund_door.images.values() if im.name == n) for n in ("DSC_0005.JPG", "DSC_0006.JPG"))
+    shared = sorted({p.point3D_id for p in a.points2D if p.has_point3D()} & {p.point3D_id for p in b.points2D if p.has_point3D()})
+    only_b = sorted({p.point3D_id for p in b.points2D if p.has_point3D()} - set(shared))
+    for pid in shared[:3]:  # three points seen by a and b only
+        for image_id, idx in [(el.image_id, el.point2D_idx) for el in lund_door.points3D[pid].track.elements]:  # copied: the track changes
+            if image_id not in (a.image_id, b.image_id):
+                lund_door.delete_observation(image_id, idx)
+    _keep_observations(lund_door, a, set(shared[:10]))
+    _keep_observations(lund_door, b, set(shared[:3]) | set(only_b[:13]))
+    before = lund_door.num_reg_images()
+    assert (lund_door.images[a.image_id].num_points3D, lund_door.images[b.image_id].num_points3D) == (10, 16)
+    assert prune_weak_images(lund_door, 15) == {"DSC_0005.JPG": 10, "DSC_0006.JPG": 13}
+    assert lund_door.num_reg_images() == before - 2 and not lund_door.images[a.image_id].has_pose
+    assert min(lund_door.images[i].num_points3D for i in lund_door.reg_image_ids()) >= 15
+    assert prune_weak_images(lund_door, 15) == {}

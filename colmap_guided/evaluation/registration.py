@@ -207,21 +207,36 @@ def run_pycolmap_default(image_dir: Path, workspace: Path, camera_mode: str = "a
     return dict(models), timings
 
 
-def split_feature_options(method: str) -> tuple[str, dict]:
+def split_stage_options(method: str) -> tuple[str, dict, dict]:
     """A method spec's feature-stage options (keys of ``features.default_conf``, e.g.
-    ``guided:smooth_noise_above=4``) apart from its matcher spec: (matcher spec, feature conf)."""
+    ``guided:type=aliked``) and mapping options (keys of ``mapping.default_conf``, e.g.
+    ``guided:mapper=global``) apart from its matcher spec: (matcher spec, feature conf, mapping conf)."""
     from colmap_guided.features import default_conf as feature_defaults
+    from colmap_guided.mapping import default_conf as mapping_defaults
 
+    if method == "pycolmap":
+        return method, {}, {}
     spec = matcher_specs.parse_spec(method)
     feature = {k: v for k, v in spec.conf.items() if k in feature_defaults}
-    rest = ",".join(item for item in method.partition(":")[2].split(",") if item and item.partition("=")[0].strip() not in feature)
-    return spec.name + (f":{rest}" if rest else ""), feature
+    mapping = {k: v for k, v in spec.conf.items() if k in mapping_defaults}
+    rest = ",".join(item for item in method.partition(":")[2].split(",") if item and item.partition("=")[0].strip() not in {**feature, **mapping})
+    return spec.name + (f":{rest}" if rest else ""), feature, mapping
 
 
-def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict | None = None, seed: int | None = None, feature_conf: dict | None = None, database: Path | None = None) -> tuple[pycolmap.Reconstruction | None, dict]:
+def database_key(method: str) -> tuple[str, str]:
+    """What a method's database depends on: (features key, features + matching key). Mapping options do
+    not change the database, so ``guided`` and ``guided:mapper=global`` share one; ``raw:type=aliked`` and
+    ``guided:type=aliked`` share their keypoints."""
+    matcher, feature, _ = split_stage_options(method)
+    features = json.dumps(feature, sort_keys=True) if method != "pycolmap" else "pycolmap"
+    return features, f"{matcher}|{features}"
+
+
+def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict | None = None, seed: int | None = None, feature_conf: dict | None = None, database: Path | None = None, features_only: bool = False) -> tuple[pycolmap.Reconstruction | None, dict]:
     """One reconstruction of a laid-out scene (``seed``: the mapper's random seed, None = each method's
-    default; ``database``: this method's finished database of another run, so only mapping runs: the
-    database does not depend on the mapper's seed); returns (largest model, summary)."""
+    default; ``database``: a finished database of this method, or of another mapper, so only mapping runs
+    (the database does not depend on the mapper); with ``features_only`` its matches are cleared first, so
+    only the keypoints of a method with the same feature options are reused); returns (largest model, summary)."""
     scene_dir = Path(scene_dir)
     image_dir = scene_dir / "images"
     start = time.time()
@@ -230,14 +245,18 @@ def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict |
         largest = largest_model(models)
         info = {"timings": timings, "num_models": len(models)}
     else:
+        from colmap_guided.database import clear_matches, open_database
         from colmap_guided.mapping import load_models
         from colmap_guided.reconstruct import reconstruct
 
-        method, own_features = split_feature_options(method)
+        method, own_features, own_mapping = split_stage_options(method)
         feature_conf = {**(feature_conf or {}), **own_features} or None
         (spec,) = matcher_specs.parse_specs([method], extra_conf)
-        mapping_conf = {"random_seed": seed} if seed is not None else None
-        _fresh_workspace(workspace, database)  # reconstruct resumes from the copied database
+        mapping_conf = {**({"random_seed": seed} if seed is not None else {}), **own_mapping} or None
+        db = _fresh_workspace(workspace, database)  # reconstruct resumes from the copied database
+        if database is not None and features_only:
+            with open_database(db) as opened:
+                clear_matches(opened)
         result = reconstruct(scene_dir, output=workspace, matcher=spec.name, matcher_conf=spec.conf, feature_conf=feature_conf, mapping_conf=mapping_conf)
         models = load_models(Path(result["sparse_path"]))
         largest = largest_model(models)
@@ -247,14 +266,37 @@ def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict |
     return largest, info
 
 
+def _reusable(runs_dirs: list[Path], methods: list[str], method: str) -> tuple[Path | None, bool, dict]:
+    """A finished database to start ``method`` from: (path, features only, the source's timings). First
+    one of the same features and matcher (map only), then one of the same features (match and map), in
+    ``runs_dirs`` in order; (None, False, {}) when there is none."""
+    features, full = database_key(method)
+    for want_full in (True, False):
+        for runs_dir in runs_dirs:
+            for other in methods:
+                if other == method and runs_dir == runs_dirs[0]:
+                    continue
+                key = database_key(other)
+                if (key[1] if want_full else key[0]) != (full if want_full else features):
+                    continue
+                if other == "pycolmap" and not want_full:
+                    continue
+                ws = Path(runs_dir) / method_slug(other)
+                if (ws / "database.db").is_file() and (ws / "eval.json").is_file():
+                    timings = json.loads((ws / "eval.json").read_text()).get("timings", {})
+                    return ws / "database.db", not want_full, timings
+    return None, False, {}
+
+
 def seed_runs_dir(scene_dir: Path, seed: int | None) -> Path:
     return Path(scene_dir) / "runs" / (f"seed{seed}" if seed is not None else "")
 
 
-def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = None, extra_conf: dict | None = None, resume: bool = False, seed: int | None = None, feature_conf: dict | None = None, databases_from: Path | None = None, **tol) -> dict:
+def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = None, extra_conf: dict | None = None, resume: bool = False, seed: int | None = None, feature_conf: dict | None = None, databases_from: Path | None = None, remap: bool = False, **tol) -> dict:
     """Run every method on one laid-out scene (SCENE/images + SCENE/manifest.json) and score it
     (``seed``: the mappers' random seed; runs go to SCENE/runs/seed<seed>/ then; ``databases_from``: the
-    runs folder of another seed whose finished databases are mapped again)."""
+    runs folder of another seed whose finished databases are mapped again; ``remap``: a finished run maps
+    its own database again, after a change of the mapping stage; pycolmap's runs are kept)."""
     scene_dir = Path(scene_dir)
     one = json.loads((scene_dir / "manifest.json").read_text(encoding="utf-8"))
     images = one["images"]
@@ -265,18 +307,35 @@ def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = 
     for method in methods:
         workspace = runs_dir / method_slug(method)
         done = workspace / "eval.json"
-        if resume and done.is_file():
+        own = remap and method != "pycolmap" and done.is_file() and (workspace / "database.db").is_file()
+        if resume and done.is_file() and not own:
             out["methods"][method] = json.loads(done.read_text())
             continue
         logger.info("%s [%s]: %s", out["scene"], out["subset"], method)
+        if own:  # set aside: the workspace is emptied before the run
+            previous = workspace.with_name(workspace.name + ".remap")
+            shutil.rmtree(previous, ignore_errors=True)
+            workspace.rename(previous)
         try:
-            reuse = Path(databases_from) / method_slug(method) / "database.db" if databases_from else None
-            reuse = reuse if reuse is not None and reuse.is_file() and (reuse.parent / "eval.json").is_file() else None
-            largest, info = run_method(scene_dir, method, workspace, extra_conf, seed, feature_conf, reuse)
+            sources = [Path(databases_from)] if databases_from else []
+            if own:
+                reuse, features_only = previous / "database.db", False
+                source_timings = {k: v for k, v in json.loads((previous / "eval.json").read_text()).get("timings", {}).items()}
+            else:
+                reuse, features_only, source_timings = _reusable([runs_dir, *sources], methods, method)
+            largest, info = run_method(scene_dir, method, workspace, extra_conf, seed, feature_conf, reuse, features_only)
         except Exception as err:  # one failing method must not lose the others' results
             logger.error("%s [%s] %s failed: %r", out["scene"], out["subset"], method, err)
             out["methods"][method] = {"error": repr(err)}
             continue
+        if reuse is not None:  # the stages reused count in this method's time, as if it had run them
+            reused = {k: v for k, v in source_timings.items() if k != "map" and (k == "extract" or not features_only)}
+            info["timings"] = {**info["timings"], **{k: v + info["timings"].get(k, 0.0) for k, v in reused.items()}}
+            info["wall_time"] += sum(reused.values())
+            info["reused"] = {"database": str(reuse), "stages": sorted(reused)}
+        if own:
+            shutil.rmtree(previous)
+            info["reused"]["database"] = "the same run's, mapped again (--remap)"
         record = {**score_registration(largest, images, reference, **tol), **info}
         workspace.mkdir(parents=True, exist_ok=True)
         done.write_text(json.dumps(record, indent=1, default=str), encoding="utf-8")
