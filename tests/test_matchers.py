@@ -2,6 +2,7 @@
 
 import logging
 import warnings
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -474,3 +475,37 @@ def test_a_new_matcher_plugs_into_the_pipeline_through_the_base_class_only(synth
     assert np.array_equal(matcher.match_flows(a, b, matcher.coarse_flows(a, b)), matcher.raw.match(a, b))
     with pytest.raises(ValueError, match="no option"):
         matcher.match_flows(a, b, None, ratio=0.9)
+
+
+def test_raw_matches_verified_keeps_a_raw_pair_at_colmaps_threshold_and_guided_at_25():
+    """A pair whose raw matches verify 20 inliers (COLMAP's 15 would keep it) and whose guided matches are
+    chance matches: the raw matches are kept and pass the pipeline's verification; 20 correct guided matches
+    alone (under the guided 25) do not pass."""
+    from colmap_guided import verify
+
+    rng = np.random.default_rng(0)
+    H = np.array([[0.9, 0.05, 40.0], [-0.04, 0.95, 25.0], [2e-5, 1e-5, 1.0]])
+    pts = rng.uniform(50, 590, (300, 2)).astype(np.float32)
+    proj = np.c_[pts, np.ones(len(pts))] @ H.T
+    kp_b = (proj[:, :2] / proj[:, 2:]).astype(np.float32)
+    keypoints = lambda xy: np.c_[xy, np.ones((len(xy), 1)), np.zeros((len(xy), 1))].astype(np.float32)
+    desc = np.zeros((len(pts), 128), np.uint8)
+    a = ImageData("a.jpg", 1, Path("a.jpg"), keypoints(pts), desc, 640, 640)
+    b = ImageData("b.jpg", 2, Path("b.jpg"), keypoints(kp_b), desc, 640, 640)
+    right = np.stack([np.arange(20), np.arange(20)], 1)
+    chance = np.stack([np.arange(20, 80), rng.permutation(np.arange(20, 300))[:60]], 1)
+    guided = get_matcher("guided", {"device": "cpu"})
+    assert guided.verification_conf == {"min_num_inliers": 15}
+    options = verify.two_view_options(guided.verification_conf)
+    cam = verify.default_camera(640, 640)
+
+    def verified(matches):
+        return len(verify.verify_pair(cam, a.keypoints, cam, b.keypoints, np.asarray(matches, np.uint32), options).inlier_matches)
+
+    t = lambda m: torch.from_numpy(np.asarray(m, np.int64))
+    kept = guided.verified_best(a, b, t(chance), t(np.r_[right, chance[:30]]))
+    assert verified(kept) == 20  # the raw pair, as plain COLMAP keeps it (before: lost under the guided 25)
+    assert verified(guided.verified_best(a, b, t(right), t(chance))) == 0  # 20 guided inliers < 25: rejected
+    more = np.stack([np.arange(30), np.arange(30)], 1)
+    assert verified(guided.verified_best(a, b, t(more), t(chance))) == 30  # >= 25 guided inliers pass
+    assert get_matcher("guided", {"device": "cpu", "raw_matches": None}).verification_conf == {"min_num_inliers": 25}

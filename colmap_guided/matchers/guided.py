@@ -217,7 +217,7 @@ class GuidedMatcher(Matcher):
     """
 
     name = "guided"
-    flow_options = ("window_cells", "ratio", "min_score", "max_fb_cells", "raw_matches")  # applied after the coarse match
+    flow_options = ("window_cells", "ratio", "min_score", "max_fb_cells", "raw_matches", "raw_min_inliers")  # applied after the coarse match
     default_conf = {
         "weights": None,  # coarse filter weights; None = the shipped ones (raw-correlation fallback, with a WARNING)
         "mode": "auto",  # 'auto' | 'filter' (weights required) | 'raw' (correlation only, untrained)
@@ -235,10 +235,12 @@ class GuidedMatcher(Matcher):
         "ratio": 0.8,  # Lowe's ratio among the candidates, both directions; None = off
         "min_inliers": 25,  # two-view verification of guided pairs: at least this many inliers (COLMAP: 15)
         # Raw matches (mutual NN + ratio) beside the guided ones, for pairs where the coarse flow is wrong:
-        # 'verified': verify guided, raw and (when both verify) the union of their inliers, keep the one
-        # with the most verified inliers (the pipeline's verification, >= min_inliers);
+        # 'verified': verify guided, raw and the union of their inliers, keep the one with the most verified
+        # inliers among those that pass (guided and union: min_inliers; raw: raw_min_inliers);
         # 'merge': add raw matches of keypoints that guidance left unmatched, unverified; None: guided only.
         "raw_matches": "verified",
+        "raw_min_inliers": 15,  # raw matches kept by 'verified' pass with COLMAP's 15, as in plain COLMAP
+
         "max_fb_cells": None,  # drop keypoints whose coarse forward-backward error exceeds this many cells
         "min_score": None,  # drop keypoints whose coarse match score (softmax probability) is below this
         "device": "auto",
@@ -282,6 +284,10 @@ class GuidedMatcher(Matcher):
 
     @property
     def verification_conf(self) -> dict:
+        """With 'verified' raw matches the matcher applies the guided threshold itself (``verified_best``) and
+        the pipeline's verification takes what it returns at the raw threshold."""
+        if self.conf["raw_matches"] == "verified":
+            return {"min_num_inliers": min(self.conf["raw_min_inliers"], self.conf["min_inliers"])}
         return {"min_num_inliers": self.conf["min_inliers"]}
 
     def prepare(self, image: ImageData) -> None:
@@ -346,15 +352,18 @@ class GuidedMatcher(Matcher):
         if conf["raw_matches"] == "merge":
             m = merge_matches(m, mutual_nn_match(da, db, conf["ratio"]).cpu())
         elif conf["raw_matches"] == "verified":
-            m = self.verified_best(a, b, m, mutual_nn_match(da, db, conf["ratio"]).cpu())
+            m = self.verified_best(a, b, m, mutual_nn_match(da, db, conf["ratio"]).cpu(), conf)
         return m.numpy().astype(np.uint32)
 
-    def verified_best(self, a: ImageData, b: ImageData, guided: torch.Tensor, raw: torch.Tensor) -> torch.Tensor:
-        """Never lose what raw matching finds: verify the guided and the raw matches (the pipeline's
-        verification, this matcher's min_inliers) and, when both verify, the union of their inliers; return
-        the candidate with the most verified inliers (guided on ties). Verification is deterministic, so the
-        pipeline's own verification of the returned matches finds the same inliers."""
-        options = verify.two_view_options(self.verification_conf)
+    def verified_best(self, a: ImageData, b: ImageData, guided: torch.Tensor, raw: torch.Tensor, conf: dict | None = None) -> torch.Tensor:
+        """Never lose what raw matching finds: verify the guided matches, the raw matches and the union of
+        their inliers (the pipeline's verification), and return the candidate with the most inliers among
+        those that pass: guided and union with ``min_inliers`` (a wrong coarse flow gathers chance inliers),
+        raw with ``raw_min_inliers`` (COLMAP's 15, as plain COLMAP); guided first on ties. When none passes,
+        the raw matches, which the pipeline's verification rejects. Verification is deterministic, so the
+        pipeline finds the same inliers in the returned matches."""
+        conf = conf or self.conf
+        options = verify.two_view_options({"min_num_inliers": min(conf["raw_min_inliers"], conf["min_inliers"])})
         cam_a, cam_b = (im.camera or verify.default_camera(im.width, im.height) for im in (a, b))
 
         def inliers(m: torch.Tensor) -> torch.Tensor:
@@ -364,10 +373,13 @@ class GuidedMatcher(Matcher):
         with colmap_quiet():
             candidates = [guided, raw]
             found = [inliers(m) for m in candidates]
+            needed = [conf["min_inliers"], conf["raw_min_inliers"]]
             if len(found[0]) and len(found[1]):
                 candidates.append(merge_matches(*found))
                 found.append(inliers(candidates[-1]))
-        return candidates[max(range(len(found)), key=lambda k: (len(found[k]), -k))]
+                needed.append(conf["min_inliers"])
+        passing = [k for k in range(len(found)) if len(found[k]) >= needed[k]]
+        return candidates[max(passing, key=lambda k: (len(found[k]), -k))] if passing else raw
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
         return self.match_flows(a, b, self.coarse_flows(a, b))
