@@ -192,7 +192,7 @@ def test_method_specs_split_into_matcher_feature_and_mapping_options():
     assert key("pycolmap")[0] != key("raw")[0]  # pycolmap's own SIFT is not reconstruct's
 
 
-def test_eval_registration_reuses_databases_across_mappers_and_matchers(tiny_proxy, tmp_path):
+def test_eval_registration_reuses_databases_across_mappers_and_matchers(tiny_proxy, tmp_path, capsys):
     """A mapper variant maps the same database again (only mapping runs) and a matcher with the same
     features reuses the keypoints (extraction skipped); the reused stages' times are counted."""
     out = tmp_path / "eval"
@@ -213,3 +213,9 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(tiny_pro
     again = json.loads((out / "results.json").read_text())["scenes"][0]["methods"]
     assert again["guided"]["reused"]["database"].endswith("(--remap)") and again["guided"]["timings"]["match"] >= guided["timings"]["match"]
     assert again["raw"]["num_registered"] == raw["num_registered"] and not list(runs.glob("*.remap"))
+    # the summary: one table per LTLL protocol (rows = methods, columns = scenes) and the time per stage
+    load_script("summarize_registration").main([str(out / "results.json")])
+    text = capsys.readouterr().out
+    assert "**Protocol: historical + modern photos + distractors**" in text and "**Time**" in text
+    row = next(line for line in text.splitlines() if line.startswith("| raw:mapper=global |"))
+    assert f"· {again['raw:mapper=global']['correct']}/4 |" in row
