@@ -29,7 +29,9 @@ default_conf = {
     # 2 seeds): global >= incremental on every shared set (sacre_coeur guided 10/10 vs 3/10, opensfm_lund 29/29 vs
     # 14-24/29), but it drops a photo whose only strong pair is planar (synthetic scene: 7/8, incremental 8/8),
     # and on a short, nearly straight walk (strecha_entry_P10, 4 photos) it registers all of them on wrong
-    # poses where incremental is right: hence auto, and incremental when both place as many photos.
+    # poses where incremental is right: hence auto, and incremental when both place as many photos. Historical
+    # proxy, 10 scenes x 3 seeds (docs/RESULTS.md, session 6): runs with fewer photos on the reference pose than
+    # pycolmap's default pipeline, guided auto 6 / incremental 5 / global 5 of 30, raw 1 / 2 / 9.
     "mapper": "auto",
     "random_seed": 0,  # seeds every random choice of the mapper; -1 = COLMAP's unseeded default
     "num_threads": -1,  # -1 = all cores; 1 = the same model on every rerun

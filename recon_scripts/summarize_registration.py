@@ -119,7 +119,7 @@ def main(argv=None) -> int:
             head += ["runs below pycolmap", "runs ≥ 1.25× pycolmap"]
         what = "historical photos on the reference pose ✓ / off it ✗" + (", then all photos on the reference pose / all" if subset == "all" else "")
         print(f"\n**Protocol: {title}** — {what}, over the seeds (a range when they differ); mean share over the scenes that every method ran; "
-              f"runs below pycolmap: (scene, seed) runs with fewer {'historical' if subset == 'historical' else ''} photos on the reference pose than pycolmap's default pipeline with the same seed\n")
+              f"runs below pycolmap: (scene, seed) runs with fewer {'historical ' if subset == 'historical' else ''}photos on the reference pose than pycolmap's default pipeline with the same seed\n")
         print(markdown_table(head, rows))
     print("\n**Time** (first seed; extract per image, match per pair of the exhaustive pairs, distractors included)\n")
     rows = []
