@@ -320,7 +320,7 @@ def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = 
             sources = [Path(databases_from)] if databases_from else []
             if own:
                 reuse, features_only = previous / "database.db", False
-                source_timings = {k: v for k, v in json.loads((previous / "eval.json").read_text()).get("timings", {}).items()}
+                source_timings = json.loads((previous / "eval.json").read_text()).get("timings", {})
             else:
                 reuse, features_only, source_timings = _reusable([runs_dir, *sources], methods, method)
             largest, info = run_method(scene_dir, method, workspace, extra_conf, seed, feature_conf, reuse, features_only)

@@ -240,7 +240,6 @@ class GuidedMatcher(Matcher):
         # 'merge': add raw matches of keypoints that guidance left unmatched, unverified; None: guided only.
         "raw_matches": "verified",
         "raw_min_inliers": 15,  # raw matches kept by 'verified' pass with COLMAP's 15, as in plain COLMAP
-
         "max_fb_cells": None,  # drop keypoints whose coarse forward-backward error exceeds this many cells
         "min_score": None,  # drop keypoints whose coarse match score (softmax probability) is below this
         "device": "auto",
