@@ -172,7 +172,7 @@ def test_eval_registration_all_methods_on_a_tiny_proxy_scene(tiny_proxy, tmp_pat
     argv = ["--manifest", str(tiny_proxy), "--methods", "pycolmap", "raw", "guided", "--wxbs_max_pairs", "1", "--output", str(out), "-q"]
     assert load_script("eval_registration").main(argv) == 0
     data = json.loads((out / "results.json").read_text())
-    assert [s["subset"] for s in data["scenes"]] == ["historical", "all"]
+    assert [(s["scene"], s["subset"]) for s in data["scenes"]] == [(n, sub) for n in ("strecha_entry_P10", "strecha_entry_P10_realistic") for sub in ("historical", "all")]
     for scene in data["scenes"]:
         for method in ("pycolmap", "raw", "guided"):
             rec = scene["methods"][method]
