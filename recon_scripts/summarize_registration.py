@@ -79,6 +79,11 @@ def main(argv=None) -> int:
         scenes = sorted(name for name, sub in runs if sub == subset)
         if not scenes:
             continue
+        # the baseline's count per scene and seed, the one the goal is about (historical only: historical photos)
+        base_counts = {
+            name: {seed: (era_checks(rec, sc)[0] if subset == "historical" else rec["correct"]) for seed, rec, sc in runs[(name, subset)].get(baseline, [])}
+            for name in scenes
+        }
         rows = []
         for m in methods:
             row, shares, wrong, distr, below, above = [m], [], [], [], [], 0
@@ -102,8 +107,8 @@ def main(argv=None) -> int:
                 wrong.append(max(c[1] for c in checks))
                 if all(by_method.get(other) for other in methods):  # means over the scenes every method ran
                     shares.append(np.mean([c[0] for c in checks]) / max(n_hist, 1))
-                if baseline and m != baseline and by_method.get(baseline):  # per seed, the count the goal is about
-                    base = {seed: (era_checks(rec, sc)[0] if subset == "historical" else rec["correct"]) for seed, rec, sc in by_method[baseline]}
+                if baseline and m != baseline and base_counts[name]:
+                    base = base_counts[name]
                     for (seed, rec, sc), c in zip(entries, checks):
                         mine = c[0] if subset == "historical" else rec["correct"]
                         if seed in base and mine < base[seed]:
