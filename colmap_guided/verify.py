@@ -57,6 +57,20 @@ def verify_pair(
     )
 
 
+def agreement(geometry: pycolmap.TwoViewGeometry, kpts_a: np.ndarray, kpts_b: np.ndarray, matches: np.ndarray, max_error: float) -> float:
+    """Share of ``matches`` (N, 2) that fit ``geometry``'s fundamental matrix (Sampson error under
+    ``max_error`` pixels, the RANSAC threshold): do two matchers' verified pairs tell the same geometry?
+    1.0 when there is nothing to compare (no match; no fundamental matrix, e.g. a pure rotation)."""
+    F = np.asarray(geometry.F, np.float64)
+    if len(matches) == 0 or F.shape != (3, 3) or not np.all(np.isfinite(F)) or not np.any(F):
+        return 1.0
+    matches = np.asarray(matches, np.int64)
+    errors = pycolmap.compute_squared_sampson_error(
+        np.ascontiguousarray(kpts_a[matches[:, 0], :2], np.float64), np.ascontiguousarray(kpts_b[matches[:, 1], :2], np.float64), F
+    )
+    return float(np.mean(np.asarray(errors) < max_error**2))
+
+
 def verify_pairs(db: pycolmap.Database, images: dict[str, pycolmap.Image], id_pairs: list[PairKey], options: pycolmap.TwoViewGeometryOptions) -> int:
     """Two-view geometry of every matched, not yet verified pair (id_a, id_b, name_a, name_b) of the open
     database ``db`` (``images``: name -> its image); returns how many were verified now."""

@@ -46,7 +46,8 @@ def main(argv=None) -> int:
     parser.add_argument("--wxbs_max_pairs", type=int, default=6, help="WxBS appearance pairs beside the table (0 = skip)")
     parser.add_argument("--seeds", type=int, nargs="+", default=None, help="random seeds of every mapper (pycolmap's default pipeline too), one run each; runs go to runs/seed<N>/ and the later seeds map the first seed's databases again (default: one run, unseeded pycolmap, reconstruct's seed 0)")
     parser.add_argument("--resume", action="store_true", help="reuse finished runs")
-    parser.add_argument("--remap", action="store_true", help="with --resume: map the finished databases again (after a change of the mapping stage), extraction and matching reused; pycolmap's runs are kept")
+    parser.add_argument("--remap", action="store_true", help="with --resume: map the finished databases again (after a change of the mapping stage or of --threads), extraction and matching reused")
+    parser.add_argument("--threads", type=int, default=None, help="threads of every mapper (pycolmap's default pipeline too); 1 = every seeded run repeats exactly (default: each pipeline's, all cores)")
     parser.add_argument("--device", default=None)
     parser.add_argument("--weights", default=None)
     parser.add_argument("--output", type=Path, default=REPO_ROOT / "outputs" / "eval_registration")
@@ -85,7 +86,7 @@ def main(argv=None) -> int:
                 continue
             for seed in args.seeds or [None]:
                 first = registration.seed_runs_dir(scene_dir, args.seeds[0]) if args.seeds and seed != args.seeds[0] else None
-                results.append(registration.evaluate_scene(scene_dir, methods, extra_conf=extra, resume=args.resume, seed=seed, databases_from=first, remap=args.remap, **tol))
+                results.append(registration.evaluate_scene(scene_dir, methods, extra_conf=extra, resume=args.resume, seed=seed, databases_from=first, remap=args.remap, threads=args.threads, **tol))
             tables.write_json(args.output / "results.json", {"manifest": str(manifest_path), "methods": methods, "scenes": results})
     distractors = sum(len(r["methods"][m].get("distractors_registered", [])) for r in results for m in methods if m in r["methods"])
     extra_text = f"\n\nDistractors registered, all runs: {distractors} (must be 0)\n"

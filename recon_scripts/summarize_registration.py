@@ -56,7 +56,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     parser.add_argument("results", nargs="+", type=Path)
     parser.add_argument("--reference", nargs="*", default=[], help="SCENE_PREFIX=MODEL_DIR: a reference for scenes without one")
-    parser.add_argument("--label", nargs="*", default=[], help="METHOD=LABEL: one column for runs of the same method under different specs")
+    parser.add_argument("--label", nargs="*", default=[], help="METHOD=LABEL: one row for runs of the same method under different specs; RESULTS:METHOD=LABEL: that file's runs of METHOD only (the same method before and after a change)")
     args = parser.parse_args(argv)
     labels = dict(r.rsplit("=", 1) for r in args.label)
     refs = {k: pycolmap.Reconstruction(v) for k, _, v in (r.partition("=") for r in args.reference)}
@@ -67,7 +67,7 @@ def main(argv=None) -> int:
             for method, record in scene["methods"].items():
                 if "error" in record:
                     continue
-                column = labels.get(method, method)
+                column = labels.get(f"{path}:{method}", labels.get(method, method))
                 ref = next((r for k, r in refs.items() if scene["scene"] in (k, f"{k}_realistic")), None)
                 if ref is not None and record.get("correct") is None:
                     record = rescore(record, scene, method, ref)

@@ -213,9 +213,42 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(tiny_pro
     again = json.loads((out / "results.json").read_text())["scenes"][0]["methods"]
     assert again["guided"]["reused"]["database"].endswith("(--remap)") and again["guided"]["timings"]["match"] >= guided["timings"]["match"]
     assert again["raw"]["num_registered"] == raw["num_registered"] and not list(runs.glob("*.remap"))
+    # --threads 1: every mapper on one thread, so a seeded run repeats exactly (here: mapping it twice)
+    poses = []
+    for _ in range(2):
+        assert load_script("eval_registration").main(argv + ["--resume", "--remap", "--threads", "1"]) == 0
+        model = pycolmap.Reconstruction(str(runs / "guided" / "sparse" / "0"))
+        poses.append({im.name: im.cam_from_world().matrix() for im in model.images.values() if im.has_pose})
+    assert poses[0].keys() == poses[1].keys() and len(poses[0]) >= 3
+    assert all(np.array_equal(poses[0][n], poses[1][n]) for n in poses[0])
     # the summary: one table per LTLL protocol (rows = methods, columns = scenes) and the time per stage
     load_script("summarize_registration").main([str(out / "results.json")])
     text = capsys.readouterr().out
     assert "**Protocol: historical + modern photos + distractors**" in text and "**Time**" in text
     row = next(line for line in text.splitlines() if line.startswith("| raw:mapper=global |"))
     assert f"· {again['raw:mapper=global']['correct']}/4 |" in row
+    # one results file's runs of a method under their own label (the same method before and after a change)
+    load_script("summarize_registration").main([str(out / "results.json"), "--label", f"{out / 'results.json'}:raw=raw (this run)"])
+    assert "| raw (this run) |" in capsys.readouterr().out
+
+
+def test_reference_check_accepts_true_correspondences_of_resized_cropped_photos_and_rejects_shuffled_ones(tmp_path):
+    """Two photos of a synthetic scene, resized (x0.5) and cropped as the proxy makes its prints: the
+    projections of the same 3D points are all within the 6 px of the reference epipolar lines, the same
+    keypoints paired at random mostly are not."""
+    script = load_script("pair_agreement")  # recon_scripts/pair_agreement.py
+    options = pycolmap.SyntheticDatasetOptions()
+    options.num_rigs, options.num_cameras_per_rig, options.num_frames_per_rig, options.num_points3D = 1, 1, 2, 200
+    pycolmap.set_random_seed(0)
+    with pycolmap.Database.open(str(tmp_path / "db.db")) as db:
+        ref = pycolmap.synthesize_dataset(options, db)
+    a, b = (ref.images[i] for i in sorted(ref.reg_image_ids()))
+    entries = [{"ref_name": im.name, "scale": 0.5, "crop_offset": off} for im, off in ((a, [10, 20]), (b, [0, 5]))]
+    in_b = {p.point3D_id: k for k, p in enumerate(b.points2D) if p.has_point3D()}
+    pairs = np.array([(k, in_b[p.point3D_id]) for k, p in enumerate(a.points2D) if p.has_point3D() and p.point3D_id in in_b])
+    kp = [np.array([p.xy for p in im.points2D]) * 0.5 - np.asarray(e["crop_offset"], float) for im, e in zip((a, b), entries)]
+    F = script.reference_fundamental(ref, *entries)
+    assert len(pairs) > 50 and script.share_right(F, kp[0], kp[1], pairs) == 1.0
+    shuffled = np.c_[pairs[:, 0], np.random.default_rng(0).permutation(pairs[:, 1])]
+    assert script.share_right(F, kp[0], kp[1], shuffled) < 0.3
+    assert script.share_right(F, kp[0], kp[1], pairs[:0]) is None

@@ -509,3 +509,47 @@ def test_raw_matches_verified_keeps_a_raw_pair_at_colmaps_threshold_and_guided_a
     more = np.stack([np.arange(30), np.arange(30)], 1)
     assert verified(guided.verified_best(a, b, t(more), t(chance))) == 30  # >= 25 guided inliers pass
     assert get_matcher("guided", {"device": "cpu", "raw_matches": None}).verification_conf == {"min_num_inliers": 25}
+
+
+def test_raw_matches_verified_keeps_the_raw_pair_when_the_guided_geometry_contradicts_it():
+    """Guided and raw matches that both verify on their own but tell two different epipolar geometries (one
+    of them holds wrong inliers its own RANSAC accepted: proxy sacre_coeur_hloc_realistic, 30-60 % wrong
+    inliers on 11 of 45 pairs): the raw matches are kept, as plain COLMAP keeps the pair; when the two
+    agree, the union of their inliers."""
+    from colmap_guided import verify
+
+    rng = np.random.default_rng(1)
+    K = np.array([[700.0, 0, 320], [0, 700, 320], [0, 0, 1]])
+
+    def project(X, yaw_deg, t):
+        c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+        R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+        x = (X @ R.T + t) @ K.T
+        return (x[:, :2] / x[:, 2:]).astype(np.float32)
+
+    X = np.c_[rng.uniform(-2, 2, (200, 2)), rng.uniform(6, 10, 200)]  # a deep, non-planar scene
+    kp_a = project(X, 0, np.zeros(3))
+    kp_b = np.r_[project(X, 12, np.array([-1.0, 0, 0])), project(X, -15, np.array([0.8, 0.3, 0]))]  # true view, then a wrong one
+    keypoints = lambda xy: np.c_[xy, np.ones((len(xy), 1)), np.zeros((len(xy), 1))].astype(np.float32)
+    desc = np.zeros((len(kp_b), 128), np.uint8)
+    a = ImageData("a.jpg", 1, Path("a.jpg"), keypoints(kp_a), desc[:200], 640, 640)
+    b = ImageData("b.jpg", 2, Path("b.jpg"), keypoints(kp_b), desc, 640, 640)
+    cam = verify.default_camera(640, 640)
+    options = verify.two_view_options({"min_num_inliers": 15})
+
+    def verified(matches):
+        return verify.verify_pair(cam, a.keypoints, cam, b.keypoints, np.asarray(matches, np.uint32), options).inlier_matches
+
+    right_raw = np.stack([np.arange(0, 40), np.arange(0, 40)], 1)
+    right_guided = np.stack([np.arange(20, 100), np.arange(20, 100)], 1)
+    wrong_guided = np.stack([np.arange(100, 180), np.arange(300, 380)], 1)  # a consistent but wrong geometry
+    assert len(verified(right_raw)) == 40 and len(verified(wrong_guided)) == 80
+    t = lambda m: torch.from_numpy(np.asarray(m, np.int64))
+    guided = get_matcher("guided", {"device": "cpu"})
+    assert verify.agreement(pycolmap_geometry := verify.verify_pair(cam, a.keypoints, cam, b.keypoints, wrong_guided.astype(np.uint32), options), a.keypoints, b.keypoints, right_raw, 4.0) < 0.2
+    assert pycolmap_geometry.inlier_matches.shape[0] == 80
+    kept = guided.verified_best(a, b, t(wrong_guided), t(right_raw))
+    assert np.array_equal(kept.numpy(), right_raw)  # 40 raw inliers, not the 80 wrong guided ones
+    union = np.asarray(verified(guided.verified_best(a, b, t(right_guided), t(right_raw))))
+    assert len(union) == 100 and set(union[:, 0]) == set(range(100))  # agreeing sides: the union of both
+    assert len(verified(guided.match_flows.__self__.verified_best(a, b, t(wrong_guided), t(right_raw), {**guided.conf, "min_agreement": 0.0}))) == 80

@@ -184,10 +184,10 @@ def _fresh_workspace(workspace: Path, database: Path | None) -> Path:
     return workspace / "database.db"
 
 
-def run_pycolmap_default(image_dir: Path, workspace: Path, camera_mode: str = "auto", seed: int | None = None, database: Path | None = None) -> tuple[dict, dict]:
-    """pycolmap's default pipeline with default options (``seed``: only the mapper's random seed, so that
-    runs repeat; ``database``: a finished database of this pipeline to map again, extraction and matching
-    skipped); returns (models, timings)."""
+def run_pycolmap_default(image_dir: Path, workspace: Path, camera_mode: str = "auto", seed: int | None = None, database: Path | None = None, threads: int | None = None) -> tuple[dict, dict]:
+    """pycolmap's default pipeline with default options (``seed``: only the mapper's random seed, and
+    ``threads``: the mapper's threads, 1 = runs repeat exactly; ``database``: a finished database of this
+    pipeline to map again, extraction and matching skipped); returns (models, timings)."""
     db = _fresh_workspace(workspace, database)
     (Path(workspace) / "sparse").mkdir()
     timings = {}
@@ -202,6 +202,8 @@ def run_pycolmap_default(image_dir: Path, workspace: Path, camera_mode: str = "a
     options = pycolmap.IncrementalPipelineOptions()
     if seed is not None:
         options.random_seed = seed
+    if threads is not None:
+        options.num_threads = threads
     models = pycolmap.incremental_mapping(db, image_dir, workspace / "sparse", options=options)
     timings["map"] = time.time() - start
     return dict(models), timings
@@ -232,16 +234,16 @@ def database_key(method: str) -> tuple[str, str]:
     return features, f"{matcher}|{features}"
 
 
-def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict | None = None, seed: int | None = None, feature_conf: dict | None = None, database: Path | None = None, features_only: bool = False) -> tuple[pycolmap.Reconstruction | None, dict]:
+def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict | None = None, seed: int | None = None, feature_conf: dict | None = None, database: Path | None = None, features_only: bool = False, threads: int | None = None) -> tuple[pycolmap.Reconstruction | None, dict]:
     """One reconstruction of a laid-out scene (``seed``: the mapper's random seed, None = each method's
-    default; ``database``: a finished database of this method, or of another mapper, so only mapping runs
+    default; ``threads``: the mapper's threads, None = each method's default, 1 = a rerun gives the same model; ``database``: a finished database of this method, or of another mapper, so only mapping runs
     (the database does not depend on the mapper); with ``features_only`` its matches are cleared first, so
     only the keypoints of a method with the same feature options are reused); returns (largest model, summary)."""
     scene_dir = Path(scene_dir)
     image_dir = scene_dir / "images"
     start = time.time()
     if method == "pycolmap":
-        models, timings = run_pycolmap_default(image_dir, workspace, seed=seed, database=database)
+        models, timings = run_pycolmap_default(image_dir, workspace, seed=seed, database=database, threads=threads)
         largest = largest_model(models)
         info = {"timings": timings, "num_models": len(models)}
     else:
@@ -252,7 +254,7 @@ def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict |
         method, own_features, own_mapping = split_stage_options(method)
         feature_conf = {**(feature_conf or {}), **own_features} or None
         (spec,) = matcher_specs.parse_specs([method], extra_conf)
-        mapping_conf = {**({"random_seed": seed} if seed is not None else {}), **own_mapping} or None
+        mapping_conf = {**({"random_seed": seed} if seed is not None else {}), **({"num_threads": threads} if threads is not None else {}), **own_mapping} or None
         db = _fresh_workspace(workspace, database)  # reconstruct resumes from the copied database
         if database is not None and features_only:
             with open_database(db) as opened:
@@ -292,11 +294,12 @@ def seed_runs_dir(scene_dir: Path, seed: int | None) -> Path:
     return Path(scene_dir) / "runs" / (f"seed{seed}" if seed is not None else "")
 
 
-def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = None, extra_conf: dict | None = None, resume: bool = False, seed: int | None = None, feature_conf: dict | None = None, databases_from: Path | None = None, remap: bool = False, **tol) -> dict:
+def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = None, extra_conf: dict | None = None, resume: bool = False, seed: int | None = None, feature_conf: dict | None = None, databases_from: Path | None = None, remap: bool = False, threads: int | None = None, **tol) -> dict:
     """Run every method on one laid-out scene (SCENE/images + SCENE/manifest.json) and score it
-    (``seed``: the mappers' random seed; runs go to SCENE/runs/seed<seed>/ then; ``databases_from``: the
-    runs folder of another seed whose finished databases are mapped again; ``remap``: a finished run maps
-    its own database again, after a change of the mapping stage; pycolmap's runs are kept)."""
+    (``seed``: the mappers' random seed; runs go to SCENE/runs/seed<seed>/ then; ``threads``: the mappers'
+    threads, 1 = every run repeats exactly; ``databases_from``: the runs folder of another seed whose
+    finished databases are mapped again; ``remap``: a finished run maps its own database again, after a
+    change of the mapping stage or of ``threads``; pycolmap's runs too)."""
     scene_dir = Path(scene_dir)
     one = json.loads((scene_dir / "manifest.json").read_text(encoding="utf-8"))
     images = one["images"]
@@ -307,7 +310,7 @@ def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = 
     for method in methods:
         workspace = runs_dir / method_slug(method)
         done = workspace / "eval.json"
-        own = remap and method != "pycolmap" and done.is_file() and (workspace / "database.db").is_file()
+        own = remap and done.is_file() and (workspace / "database.db").is_file()
         if resume and done.is_file() and not own:
             out["methods"][method] = json.loads(done.read_text())
             continue
@@ -323,7 +326,7 @@ def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = 
                 source_timings = json.loads((previous / "eval.json").read_text()).get("timings", {})
             else:
                 reuse, features_only, source_timings = _reusable([runs_dir, *sources], methods, method)
-            largest, info = run_method(scene_dir, method, workspace, extra_conf, seed, feature_conf, reuse, features_only)
+            largest, info = run_method(scene_dir, method, workspace, extra_conf, seed, feature_conf, reuse, features_only, threads)
         except Exception as err:  # one failing method must not lose the others' results
             logger.error("%s [%s] %s failed: %r", out["scene"], out["subset"], method, err)
             out["methods"][method] = {"error": repr(err)}

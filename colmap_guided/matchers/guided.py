@@ -18,6 +18,7 @@ import os
 from dataclasses import dataclass
 
 import numpy as np
+import pycolmap
 import torch
 
 from colmap_guided import verify
@@ -217,7 +218,7 @@ class GuidedMatcher(Matcher):
     """
 
     name = "guided"
-    flow_options = ("window_cells", "ratio", "min_score", "max_fb_cells", "raw_matches", "raw_min_inliers")  # applied after the coarse match
+    flow_options = ("window_cells", "ratio", "min_score", "max_fb_cells", "raw_matches", "raw_min_inliers", "min_agreement")  # applied after the coarse match
     default_conf = {
         "weights": None,  # coarse filter weights; None = the shipped ones (raw-correlation fallback, with a WARNING)
         "mode": "auto",  # 'auto' | 'filter' (weights required) | 'raw' (correlation only, untrained)
@@ -235,11 +236,17 @@ class GuidedMatcher(Matcher):
         "ratio": 0.8,  # Lowe's ratio among the candidates, both directions; None = off
         "min_inliers": 25,  # two-view verification of guided pairs: at least this many inliers (COLMAP: 15)
         # Raw matches (mutual NN + ratio) beside the guided ones, for pairs where the coarse flow is wrong:
-        # 'verified': verify guided, raw and the union of their inliers, keep the one with the most verified
-        # inliers among those that pass (guided and union: min_inliers; raw: raw_min_inliers);
+        # 'verified': verify guided and raw (guided: min_inliers; raw: raw_min_inliers) and keep the one that
+        # passes; when both do and agree (min_agreement), the one with the most inliers among them and the union
+        # of their inliers (verified, min_inliers), else raw (``verified_best``);
         # 'merge': add raw matches of keypoints that guidance left unmatched, unverified; None: guided only.
         "raw_matches": "verified",
         "raw_min_inliers": 15,  # raw matches kept by 'verified' pass with COLMAP's 15, as in plain COLMAP
+        # 'verified', both sides pass: share of each side's inliers within the RANSAC threshold of the other's
+        # epipolar geometry, both ways, below which the pair keeps its raw matches. Measured on the 374 proxy pairs
+        # where both pass (recon_scripts/pair_agreement.py, docs/RESULTS.md session 7): under 0.6 raw is the more
+        # right side in 15 of 19 pairs; from 0.6 to 0.8 guided in 16 of 27.
+        "min_agreement": 0.6,
         "max_fb_cells": None,  # drop keypoints whose coarse forward-backward error exceeds this many cells
         "min_score": None,  # drop keypoints whose coarse match score (softmax probability) is below this
         "device": "auto",
@@ -355,30 +362,40 @@ class GuidedMatcher(Matcher):
         return m.numpy().astype(np.uint32)
 
     def verified_best(self, a: ImageData, b: ImageData, guided: torch.Tensor, raw: torch.Tensor, conf: dict | None = None) -> torch.Tensor:
-        """Never lose what raw matching finds: verify the guided matches, the raw matches and the union of
-        their inliers (the pipeline's verification), and return the candidate with the most inliers among
-        those that pass: guided and union with ``min_inliers`` (a wrong coarse flow gathers chance inliers),
-        raw with ``raw_min_inliers`` (COLMAP's 15, as plain COLMAP); guided first on ties. When none passes,
-        the raw matches, which the pipeline's verification rejects. Verification is deterministic, so the
-        pipeline finds the same inliers in the returned matches."""
+        """Never lose what raw matching finds, never keep what it contradicts: verify the guided and the raw
+        matches (the pipeline's verification); guided passes with ``min_inliers`` (a wrong coarse flow gathers
+        chance inliers), raw with ``raw_min_inliers`` (COLMAP's 15, as plain COLMAP). When only one passes it
+        is returned. When both pass and their geometries agree (``agreement`` >= ``min_agreement`` both ways)
+        the union of their inliers is verified too and the candidate with the most inliers is returned
+        (guided first on ties); when they disagree, one of them holds wrong inliers that its own RANSAC
+        accepted (a bent epipolar geometry), and the raw matches are returned, as plain COLMAP would keep the
+        pair. When none passes, the raw matches, which the pipeline's verification rejects. Verification is
+        deterministic, so the pipeline finds the same inliers in the returned matches."""
         conf = conf or self.conf
         options = verify.two_view_options({"min_num_inliers": min(conf["raw_min_inliers"], conf["min_inliers"])})
         cam_a, cam_b = (im.camera or verify.default_camera(im.width, im.height) for im in (a, b))
 
-        def inliers(m: torch.Tensor) -> torch.Tensor:
+        def check(m: torch.Tensor) -> tuple[torch.Tensor, pycolmap.TwoViewGeometry]:
             geometry = verify.verify_pair(cam_a, a.keypoints, cam_b, b.keypoints, m.numpy().astype(np.uint32), options)
-            return torch.from_numpy(np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2))
+            return torch.from_numpy(np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2)), geometry
 
         with colmap_quiet():
-            candidates = [guided, raw]
-            found = [inliers(m) for m in candidates]
-            needed = [conf["min_inliers"], conf["raw_min_inliers"]]
-            if len(found[0]) and len(found[1]):
-                candidates.append(merge_matches(*found))
-                found.append(inliers(candidates[-1]))
-                needed.append(conf["min_inliers"])
-        passing = [k for k in range(len(found)) if len(found[k]) >= needed[k]]
-        return candidates[max(passing, key=lambda k: (len(found[k]), -k))] if passing else raw
+            (g_inl, g_geo), (r_inl, r_geo) = check(guided), check(raw)
+        g_ok, r_ok = len(g_inl) >= conf["min_inliers"], len(r_inl) >= conf["raw_min_inliers"]
+        if not g_ok:
+            return raw
+        if not r_ok:
+            return guided
+        threshold = options.ransac.max_error
+        if min(verify.agreement(g_geo, a.keypoints, b.keypoints, r_inl, threshold), verify.agreement(r_geo, a.keypoints, b.keypoints, g_inl, threshold)) < conf["min_agreement"]:
+            return raw
+        candidates = [(len(g_inl), guided), (len(r_inl), raw)]
+        union = merge_matches(g_inl, r_inl)
+        with colmap_quiet():
+            u_inl, _ = check(union)
+        if len(u_inl) >= conf["min_inliers"]:
+            candidates.append((len(u_inl), union))
+        return max(candidates, key=lambda item: item[0])[1]  # the first on ties: guided, then raw
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
         return self.match_flows(a, b, self.coarse_flows(a, b))
