@@ -25,7 +25,7 @@ from colmap_guided import features, model_check, report
 from colmap_guided.database import num_verified_pairs, open_database
 from colmap_guided.evaluation import matcher_specs
 from colmap_guided.evaluation.reference import load_colmap_model, reference_model_dir
-from colmap_guided.evaluation.registration import method_slug, run_pycolmap_default, score_registration
+from colmap_guided.evaluation.registration import method_slug, run_pycolmap_default, score_registration, split_stage_options
 from colmap_guided.log import set_verbosity
 from colmap_guided.mapping import MAPPERS, load_models, run_mapping
 from colmap_guided.paths import shared_data_dir
@@ -46,7 +46,7 @@ def summarize(models: dict, image_names: list[str], reference, timings: dict, ve
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sets", nargs="+", default=DEFAULT_SETS)
-    parser.add_argument("--matchers", nargs="+", default=["guided"], help="matcher specs, e.g. guided guided:raw_matches=none raw")
+    parser.add_argument("--matchers", nargs="+", default=["guided"], help="matcher specs, e.g. guided guided:raw_matches=none raw guided:type=aliked (feature options go to extraction)")
     parser.add_argument("--mappers", nargs="+", default=["incremental", "global"], choices=MAPPERS)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
     parser.add_argument("--threads", type=int, default=-1, help="mapping threads (1: each seeded run repeats exactly)")
@@ -54,7 +54,8 @@ def main(argv=None):
     parser.add_argument("--output", type=Path, default=Path("outputs/benchmark_pipeline.json"))
     args = parser.parse_args(argv)
     set_verbosity(quiet=True)
-    specs = [matcher_specs.parse_spec(text) for text in args.matchers]  # unknown options: the matcher raises
+    # (label, matcher spec, feature options): 'guided:type=aliked' = guided matching of ALIKED features; unknown options: the matcher raises
+    specs = [(text, matcher_specs.parse_spec(split_stage_options(text)[0]), split_stage_options(text)[1]) for text in args.matchers]
     rows, results = [], {}
 
     def add(name, seed, label, stats, base_time):
@@ -84,10 +85,10 @@ def main(argv=None):
                     models = run_mapping(work / f"default_{seed}" / "database.db", image_path, work / f"default_{seed}" / mapper, {"mapper": mapper, "random_seed": seed, "num_threads": args.threads})
                     t = {**{k: v for k, v in timings.items() if k != "map"}, "map": time.time() - start}
                     add(name, seed, f"pycolmap matching + {mapper}", summarize(models, names, reference, t, verified), base_times[seed])
-            for spec in specs:
-                out = work / method_slug(spec.label)
+            for label, spec, feature_conf in specs:
+                out = work / method_slug(label)
                 first = {"mapper": args.mappers[0], "random_seed": args.seeds[0], "num_threads": args.threads}
-                res = reconstruct(image_path.parent, image_path=image_path, output=out, matcher=matcher_specs.build(spec), feature_conf={"camera_mode": args.camera_mode}, mapping_conf=first)
+                res = reconstruct(image_path.parent, image_path=image_path, output=out, matcher=matcher_specs.build(spec), feature_conf={"camera_mode": args.camera_mode, **feature_conf}, mapping_conf=first)
                 verified = res["database"]["num_verified_pairs"]
                 for seed in args.seeds:
                     for mapper in args.mappers:
@@ -97,7 +98,7 @@ def main(argv=None):
                             start = time.time()
                             models = run_mapping(out / "database.db", image_path, out / f"sparse_{mapper}_{seed}", {"mapper": mapper, "random_seed": seed, "num_threads": args.threads})
                             timings = {**res["timings"], "map": time.time() - start}
-                        add(name, seed, f"{spec.label} + {mapper}", summarize(models, names, reference, timings, verified), base_times[seed])
+                        add(name, seed, f"{label} + {mapper}", summarize(models, names, reference, timings, verified), base_times[seed])
             shutil.rmtree(work, ignore_errors=True)
     print(f"\nPipeline benchmark, camera_mode={args.camera_mode}, mapping threads {args.threads} (time ratio = total wall time / pycolmap default's, same set and seed round)\n")
     print("| set | seed | pipeline | verified pairs | registered | correct (reference) | model check | 3D points | total s | time ratio |")
