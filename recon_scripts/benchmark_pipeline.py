@@ -55,7 +55,10 @@ def main(argv=None):
     args = parser.parse_args(argv)
     set_verbosity(quiet=True)
     # (label, matcher spec, feature options): 'guided:type=aliked' = guided matching of ALIKED features; unknown options: the matcher raises
-    specs = [(text, matcher_specs.parse_spec(split_stage_options(text)[0]), split_stage_options(text)[1]) for text in args.matchers]
+    specs = []
+    for text in args.matchers:
+        matcher, feature_conf, _ = split_stage_options(text)
+        specs.append((text, matcher_specs.parse_spec(matcher), feature_conf))
     rows, results = [], {}
 
     def add(name, seed, label, stats, base_time):
