@@ -29,6 +29,7 @@ from colmap_guided.log import colmap_quiet
 from colmap_guided.matchers import get_matcher
 from colmap_guided.matchers.raw import mutual_nn_match, normalize_descriptors
 from colmap_guided.paths import REPO_ROOT
+from colmap_guided.train.geometry import fundamental_from_poses
 
 BUCKETS = [(0.0, 0.3), (0.3, 0.6), (0.6, 0.8), (0.8, 0.9), (0.9, 1.01)]
 
@@ -45,10 +46,9 @@ def reference_fundamental(ref: pycolmap.Reconstruction, entry_a: dict, entry_b: 
         K[:2, 2] -= np.asarray(entry.get("crop_offset", [0, 0]), float)
         return K
 
-    rel = images[entry_b["ref_name"]].cam_from_world() * images[entry_a["ref_name"]].cam_from_world().inverse()
-    t = np.asarray(rel.translation)
-    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ rel.rotation.matrix()
-    return np.linalg.inv(calibration(entry_b)).T @ E @ np.linalg.inv(calibration(entry_a))
+    poses = [images[entry["ref_name"]].cam_from_world() for entry in (entry_a, entry_b)]
+    (R_a, t_a), (R_b, t_b) = ((pose.rotation.matrix(), np.asarray(pose.translation)) for pose in poses)
+    return fundamental_from_poses(calibration(entry_a), R_a, t_a, calibration(entry_b), R_b, t_b)
 
 
 def share_right(F: np.ndarray, kp_a: np.ndarray, kp_b: np.ndarray, inliers: np.ndarray, max_px: float = 6.0) -> float | None:
