@@ -106,6 +106,15 @@ def num_keypoints(db: pycolmap.Database, image_id: int) -> int:
     return db.num_keypoints_for_image(image_id) if db.exists_keypoints(image_id) else 0
 
 
+def descriptor_type(db: pycolmap.Database) -> str | None:
+    """The extractor type of the database's descriptors ('SIFT', 'ALIKED_N16ROT', ...; the first image with
+    descriptors tells), None when there are none."""
+    for image in db.read_all_images():
+        if db.exists_descriptors(image.image_id):
+            return db.read_descriptors(image.image_id).type.name
+    return None
+
+
 def read_descriptors(db: pycolmap.Database, image_id: int) -> tuple[np.ndarray, str]:
     """(N, D) descriptors (see ``descriptor_array``) and the name of their extractor type ('SIFT', 'ALIKED_N16ROT', ...)."""
     descriptors = db.read_descriptors(image_id)
@@ -250,6 +259,18 @@ def clear_matches(db: pycolmap.Database) -> None:
 def read_pair_matches(db: pycolmap.Database, id_a: int, id_b: int) -> np.ndarray:
     """Matches of (id_a, id_b) as indices into a's and b's keypoints, whatever order COLMAP stored them in."""
     return np.asarray(db.read_matches(id_a, id_b), np.uint32).reshape(-1, 2)
+
+
+def read_verified_inliers(db: pycolmap.Database, image_ids: set[int] | None = None) -> dict[tuple[int, int], np.ndarray]:
+    """(image_id_a, image_id_b) -> (N, 2) inlier matches (indices into a's and b's keypoints) of every verified
+    pair, or of the pairs between ``image_ids``."""
+    out = {}
+    for pair_id, geometry in zip(*db.read_two_view_geometries()):
+        key = _image_pair(pair_id)
+        inliers = np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2)
+        if len(inliers) and (image_ids is None or set(key) <= image_ids):
+            out[key] = inliers
+    return out
 
 
 def num_verified_pairs(db: pycolmap.Database) -> int:

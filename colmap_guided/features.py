@@ -68,6 +68,18 @@ default_conf = {
 # 2026-11-30: sacre_coeur_hloc raw 43 vs 34 pairs, phototourism_superglue raw 3/13 vs 0/13 registered, 0 of
 # its 60 different-landmark pairs verified either way).
 ALIKED_RATIO = 0.9
+# The guided matcher's min_agreement on ALIKED (reconstruct's default): its raw side (mutual NN of ALIKED
+# descriptors) is the weaker one, so a disagreeing guided side is kept down to 0.6. Historical proxy, 10 scenes x
+# 3 seeds (docs/RESULTS.md, session 8): runs below pycolmap's default pipeline 0 of 60 at 0.6, 4 at SIFT's 0.9.
+ALIKED_MIN_AGREEMENT = 0.6
+
+
+def matcher_defaults(feature_type: str, matcher: str, matcher_conf: dict | None) -> dict:
+    """``matcher_conf`` with the raw and guided matchers' defaults for ``feature_type`` (ALIKED: ratio, and
+    min_agreement for guided) where it does not set them."""
+    if feature_type != "aliked" or matcher not in ("raw", "guided"):
+        return dict(matcher_conf or {})
+    return {"ratio": ALIKED_RATIO, **({"min_agreement": ALIKED_MIN_AGREEMENT} if matcher == "guided" else {}), **(matcher_conf or {})}
 FEATURE_TYPES = {"sift": pycolmap.FeatureExtractorType.SIFT, "aliked": pycolmap.FeatureExtractorType.ALIKED_N16ROT}
 # COLMAP's CPU SIFT needs about this many bytes per pixel of the (downscaled) image it works on
 # (measured, pycolmap 4.2.1: 3.0 GB peak for one 3200x3200 image, 0.34 GB for 780x1063).

@@ -1,7 +1,8 @@
 """Stage 5: mapping the verified database with COLMAP — incremental, global (GLOMAP) or hierarchical.
 
 ``mapper``: 'auto' (default: global and incremental mapping both run, the larger largest model that
-passes the model check is kept, incremental on ties), 'incremental' (pycolmap.incremental_mapping, COLMAP's `mapper`), 'global'
+passes the model check is kept; on ties the one whose poses explain more verified inliers, then
+incremental), 'incremental' (pycolmap.incremental_mapping, COLMAP's `mapper`), 'global'
 (pycolmap.global_mapping: rotation averaging + global positioning, then bundle adjustment) or
 'hierarchical' (pycolmap.hierarchical_mapping: the view graph cut into overlapping clusters mapped
 incrementally and merged; for thousands of photos). Seeded by default; with ``num_threads=1`` a rerun
@@ -17,8 +18,10 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pycolmap
 
+from . import database as dbio
 from . import model_check
 from .conf import merge_conf
 from .log import colmap_quiet, logger
@@ -30,8 +33,9 @@ default_conf = {
     # 14-24/29), but it drops a photo whose only strong pair is planar (synthetic scene: 7/8, incremental 8/8),
     # and on a short, nearly straight walk (strecha_entry_P10, 4 photos) it registers all of them on wrong
     # poses where incremental is right: hence auto, and incremental when both place as many photos. Historical
-    # proxy, 10 scenes x 3 seeds (docs/RESULTS.md, session 6): runs with fewer photos on the reference pose than
-    # pycolmap's default pipeline, guided auto 6 / incremental 5 / global 5 of 30, raw 1 / 2 / 9.
+    # proxy, 10 scenes x 3 seeds x 2 protocols, one thread (docs/RESULTS.md, session 8, recon_scripts/mapper_choice.py):
+    # photos on the reference pose / off it, guided SIFT databases: incremental 341 / 26, global 330 / 21, auto 349 / 21
+    # (347 / 23 without the pose-support tie-break).
     "mapper": "auto",
     "random_seed": 0,  # seeds every random choice of the mapper; -1 = COLMAP's unseeded default
     "num_threads": -1,  # -1 = all cores; 1 = the same model on every rerun
@@ -78,16 +82,48 @@ def _global_options(conf: dict) -> pycolmap.GlobalPipelineOptions:
     return options
 
 
+def pose_support(rec: pycolmap.Reconstruction, database_path: Path, max_error: float = 4.0) -> int:
+    """Verified inliers between the model's photos that its poses explain: Sampson error under ``max_error``
+    pixels (the verification's RANSAC threshold) of the epipolar geometry of the two photos' poses, in
+    undistorted normalized coordinates. A photo placed on a wrong pose contradicts the inliers of its pairs."""
+    registered = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
+    with dbio.open_database(database_path) as db:
+        ids = {image.image_id: image.name for image in db.read_all_images() if image.name in registered}
+        inliers = dbio.read_verified_inliers(db, set(ids))
+        keypoints = {image_id: dbio.read_keypoints(db, image_id)[:, :2].astype(np.float64) for image_id in {i for pair in inliers for i in pair}}
+    support = 0
+    for (id_a, id_b), matches in inliers.items():
+        image_a, image_b = registered[ids[id_a]], registered[ids[id_b]]
+        camera_a, camera_b = rec.cameras[image_a.camera_id], rec.cameras[image_b.camera_id]
+        b_from_a = image_b.cam_from_world() * image_a.cam_from_world().inverse()
+        t = np.asarray(b_from_a.translation, np.float64)
+        E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ b_from_a.rotation.matrix()
+        x_a = camera_a.cam_from_img(keypoints[id_a][matches[:, 0]])
+        x_b = camera_b.cam_from_img(keypoints[id_b][matches[:, 1]])
+        focal = (camera_a.mean_focal_length() + camera_b.mean_focal_length()) / 2
+        errors = np.asarray(pycolmap.compute_squared_sampson_error(np.ascontiguousarray(x_a), np.ascontiguousarray(x_b), E))
+        support += int(np.sum(errors < (max_error / focal) ** 2))
+    return support
+
+
+def auto_key(largest: pycolmap.Reconstruction | None, database_path: Path) -> tuple[bool, int, int]:
+    """What ``auto`` prefers in a mapper's largest model: passing the model check, then more photos, then more
+    verified inliers explained by its poses (``pose_support``)."""
+    if largest is None:
+        return (False, 0, 0)
+    return (not model_check.check_model(largest), largest.num_reg_images(), pose_support(largest, database_path))
+
+
 def _auto(conf: dict, database_path: Path, image_path: Path, out: Path) -> dict[int, pycolmap.Reconstruction]:
-    """Global and incremental mapping; the larger largest model among those passing the model check."""
+    """Global and incremental mapping; the largest model that passes the model check, on ties the one whose poses
+    explain more verified inliers, then incremental."""
     scored = []
     for mapper in ("incremental", "global"):
         (out / mapper).mkdir()
         models = _run({**conf, "mapper": mapper}, database_path, image_path, out / mapper)
-        largest = max(models.values(), key=lambda rec: rec.num_reg_images(), default=None)
-        ok = largest is not None and not model_check.check_model(largest)
-        scored.append(((ok, largest.num_reg_images() if largest else 0), mapper, models))
-        logger.info("%s mapping: %d images in the largest model, model check %s", mapper, scored[-1][0][1], "ok" if ok else "failed")
+        key = auto_key(max(models.values(), key=lambda rec: rec.num_reg_images(), default=None), database_path)
+        scored.append((key, mapper, models))
+        logger.info("%s mapping: %d images in the largest model, %d verified inliers fit its poses, model check %s", mapper, key[1], key[2], "ok" if key[0] else "failed")
     return max(scored, key=lambda item: item[0])[2]  # incremental (the first) on ties
 
 

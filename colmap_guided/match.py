@@ -61,6 +61,7 @@ def match_database(
     verification_conf = {**matcher.verification_conf, **(verification_conf or {})}
     options = verify.two_view_options(verification_conf)
     stats = {"matcher": matcher.describe(), "verification": merge_conf(verify.default_conf, verification_conf, "verification")}
+    logger.debug("%s matcher options: %s", matcher.name, matcher.conf)
     with dbio.open_database(database_path) as db:
         dbio.check_image_folder(db, image_path)
         images = dbio.images_with_keypoints(db)

@@ -54,8 +54,8 @@ def reconstruct(
     image_names = features.list_images(image_path)
     # The matcher first: a missing or broken --weights file fails now, not after the extraction.
     feature_conf = features.check_conf(feature_conf)  # also a missing --aliked_weights file
-    if feature_conf["type"] == "aliked" and matcher in ("raw", "guided") and "ratio" not in (matcher_conf or {}):
-        matcher_conf = {**(matcher_conf or {}), "ratio": features.ALIKED_RATIO}
+    if not isinstance(matcher, Matcher):
+        matcher_conf = features.matcher_defaults(feature_conf["type"], matcher, matcher_conf)
     matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
     if overwrite and output.exists():
         shutil.rmtree(output)

@@ -230,6 +230,16 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(tiny_pro
     # one results file's runs of a method under their own label (the same method before and after a change)
     load_script("summarize_registration").main([str(out / "results.json"), "--label", f"{out / 'results.json'}:raw=raw (this run)"])
     assert "| raw (this run) |" in capsys.readouterr().out
+    # mapper_choice maps the run's database again with each mapper: its `auto` pick is the pipeline's own model
+    assert load_script("mapper_choice").main([str(out / "results.json"), "--method", "guided", "--json", str(tmp_path / "choice.json")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    final = [scene["methods"]["guided"] for scene in json.loads((out / "results.json").read_text())["scenes"]]
+    right, wrong = sum(f["correct"] for f in final), sum(len(f["wrong"]) for f in final)
+    assert f"| auto | {right} | {wrong} | 0 of {len(final)} |" in lines  # no pycolmap run: none below it
+    choice = json.loads((tmp_path / "choice.json").read_text())
+    oracle = int(next(line for line in lines if line.startswith("| oracle |")).split("|")[2])
+    assert len(choice) == len(final) and all(set(run["models"]) == {"incremental", "global"} for run in choice)
+    assert oracle == sum(max(m["correct"] for m in run["models"].values()) for run in choice) >= right
 
 
 def test_reference_check_accepts_true_correspondences_of_resized_cropped_photos_and_rejects_shuffled_ones(tmp_path):

@@ -108,6 +108,24 @@ def test_guided_matching_on_aliked_registers_the_synthetic_scene(aliked, aliked_
     ws = copy_features(aliked_run[1], tmp_path)
     result = reconstruct(synthetic_scene.image_dir.parent, output=ws, matcher="guided", feature_conf={"type": "aliked", "aliked": {"weights": str(aliked[2])}})
     assert result["num_registered"] == 8 and result["database"]["num_verified_pairs"] >= 7
+    assert {k: result["matcher"]["conf"][k] for k in ("ratio", "min_agreement")} == {"ratio": 0.9, "min_agreement": 0.6}  # ALIKED's defaults
+
+
+def test_match_on_an_aliked_database_takes_aliked_defaults(aliked_run, synthetic_scene, tmp_path):
+    """The drop-in `match` reads the descriptors' type: on ALIKED, ratio 0.9 and (guided) min_agreement 0.6
+    unless given, as `reconstruct --features aliked`; SIFT keeps the matchers' own defaults."""
+    from colmap_guided import features
+
+    ws = copy_features(aliked_run[1], tmp_path)
+    with dbio.open_database(ws / "database.db") as db:
+        assert dbio.descriptor_type(db) == "ALIKED_N16ROT"
+    assert features.matcher_defaults("aliked", "guided", {"ratio": 0.95}) == {"ratio": 0.95, "min_agreement": 0.6}
+    assert features.matcher_defaults("aliked", "raw", None) == {"ratio": 0.9}
+    assert features.matcher_defaults("sift", "guided", {"ratio": 0.95}) == {"ratio": 0.95}
+    cmd = [sys.executable, "-m", "colmap_guided", "match", "--database_path", str(ws / "database.db"), "--image_path", str(synthetic_scene.image_dir), "--matcher", "guided", "-v"]
+    run = subprocess.run(cmd, capture_output=True, text=True)
+    assert run.returncode == 0 and "pairs verified" in run.stdout, run.stderr[-2000:]
+    assert "'ratio': 0.9" in run.stderr and "'min_agreement': 0.6" in run.stderr
 
 
 def test_colmap_guided_matcher_refuses_aliked_in_one_line(aliked_run, synthetic_scene, tmp_path):

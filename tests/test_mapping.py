@@ -153,3 +153,23 @@ def test_photos_on_too_few_3d_points_are_taken_out_until_none_is_left(lund_door)
     assert lund_door.num_reg_images() == before - 2 and not lund_door.images[a.image_id].has_pose
     assert min(lund_door.images[i].num_points3D for i in lund_door.reg_image_ids()) >= 15
     assert prune_weak_images(lund_door, 15) == {}
+
+
+def test_pose_support_counts_the_inliers_a_model_explains_and_drops_for_a_wrong_pose(thin_chain, tmp_path):
+    """``auto``'s tie-break: a right model explains every verified inlier between its photos; turning one photo
+    by 20° leaves its pairs' inliers unexplained (the other pairs keep theirs)."""
+    from colmap_guided import database as dbio
+    from colmap_guided.mapping import auto_key, pose_support
+
+    rec = run_mapping(thin_chain, tmp_path, tmp_path / "sparse", {"mapper": "incremental", "num_threads": 1})[0]
+    with dbio.open_database(thin_chain) as db:
+        inliers = dbio.read_verified_inliers(db, set(rec.reg_image_ids()))
+    total = sum(len(m) for m in inliers.values())
+    assert pose_support(rec, thin_chain) >= 0.99 * total > 0
+    assert auto_key(rec, thin_chain)[1:] == (NUM_FRAMES, pose_support(rec, thin_chain)) and auto_key(None, thin_chain) == (False, 0, 0)
+    image = next(im for im in rec.images.values() if im.name == sorted(im.name for im in rec.images.values())[5])
+    own = sum(len(m) for pair, m in inliers.items() if image.image_id in pair)
+    frame = rec.frames[image.frame_id]
+    turn = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0, np.sin(np.pi / 18), 0, np.cos(np.pi / 18)])), np.zeros(3))  # 20° about y
+    frame.rig_from_world = turn * frame.rig_from_world
+    assert own >= 100 and pose_support(rec, thin_chain) <= total - 0.95 * own
