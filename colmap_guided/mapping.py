@@ -88,7 +88,7 @@ def pose_support(rec: pycolmap.Reconstruction, database_path: Path, max_error: f
     undistorted normalized coordinates. A photo placed on a wrong pose contradicts the inliers of its pairs."""
     registered = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
     with dbio.open_database(database_path) as db:
-        ids = {image.image_id: image.name for image in db.read_all_images() if image.name in registered}
+        ids = {image_id: name for image_id, name in dbio.image_names(db).items() if name in registered}
         inliers = dbio.read_verified_inliers(db, set(ids))
         keypoints = {image_id: dbio.read_keypoints(db, image_id)[:, :2].astype(np.float64) for image_id in {i for pair in inliers for i in pair}}
     support = 0
