@@ -80,6 +80,8 @@ def matcher_defaults(feature_type: str, matcher: str, matcher_conf: dict | None)
     if feature_type != "aliked" or matcher not in ("raw", "guided"):
         return dict(matcher_conf or {})
     return {"ratio": ALIKED_RATIO, **({"min_agreement": ALIKED_MIN_AGREEMENT} if matcher == "guided" else {}), **(matcher_conf or {})}
+
+
 FEATURE_TYPES = {"sift": pycolmap.FeatureExtractorType.SIFT, "aliked": pycolmap.FeatureExtractorType.ALIKED_N16ROT}
 # COLMAP's CPU SIFT needs about this many bytes per pixel of the (downscaled) image it works on
 # (measured, pycolmap 4.2.1: 3.0 GB peak for one 3200x3200 image, 0.34 GB for 780x1063).

@@ -54,9 +54,8 @@ def reconstruct(
     image_names = features.list_images(image_path)
     # The matcher first: a missing or broken --weights file fails now, not after the extraction.
     feature_conf = features.check_conf(feature_conf)  # also a missing --aliked_weights file
-    if not isinstance(matcher, Matcher):
-        matcher_conf = features.matcher_defaults(feature_conf["type"], matcher, matcher_conf)
-    matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
+    if not isinstance(matcher, Matcher):  # ALIKED's own ratio and agreement unless given
+        matcher = get_matcher(matcher, features.matcher_defaults(feature_conf["type"], matcher, matcher_conf))
     if overwrite and output.exists():
         shutil.rmtree(output)
     output.mkdir(parents=True, exist_ok=True)
