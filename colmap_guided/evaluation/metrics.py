@@ -22,6 +22,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from colmap_guided.train.geometry import skew
+
 AUC_THRESHOLDS = (5.0, 10.0, 20.0)
 WXBS_THRESHOLDS = (3.0, 5.0, 10.0)
 
@@ -171,9 +173,7 @@ def estimate_relative_pose(
 
 
 def essential_from_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    t = np.asarray(t, float).ravel()
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    return tx @ np.asarray(R, float)
+    return skew(np.asarray(t, float).ravel()) @ np.asarray(R, float)
 
 
 # ------------------------------------------------------------------------------------------- WxBS
