@@ -172,9 +172,21 @@ def _reader(conf: dict, existing_camera_id: int | None) -> tuple[pycolmap.ImageR
     return reader, pycolmap.CameraMode.SINGLE
 
 
+def _import_new(database_path: Path, image_path: Path, names: list[str], reader: pycolmap.ImageReaderOptions, mode: pycolmap.CameraMode) -> None:
+    """Write the image rows (and cameras) of the ``names`` not yet in the database, in the order given, by
+    COLMAP's own reader. COLMAP's extractor reuses them; left to it, image ids would follow the order in
+    which its threads finish, and a rerun would give another database (other pairs, another model)."""
+    with open_database(database_path, must_exist=False) as db:
+        new = [name for name in names if dbio.read_image(db, name) is None]
+    if new:
+        with colmap_quiet():
+            pycolmap.import_images(database_path, image_path, mode, image_names=new, options=reader)
+
+
 def _extract_chunk(database_path: Path, image_path: Path, names: list[str], conf: dict, existing_camera_id: int | None, options: pycolmap.FeatureExtractionOptions) -> None:
     """One pycolmap.extract_features call on a few images (onto ``existing_camera_id`` if given)."""
     reader, mode = _reader(conf, existing_camera_id)
+    _import_new(database_path, image_path, names, reader, mode)
     try:
         with colmap_quiet():
             pycolmap.extract_features(database_path, image_path, image_names=names, camera_mode=mode, reader_options=reader, extraction_options=options)
@@ -228,11 +240,7 @@ def _extract_prepared(database_path: Path, image_path: Path, names: list[str], c
     made by COLMAP's reader (as in ``_extract_chunk``), keypoints in the photo's pixels and uint8 descriptors
     stored as COLMAP stores them, so `colmap mapper` reads the database as usual."""
     reader, mode = _reader(conf, existing_camera_id)
-    with open_database(database_path, must_exist=False) as db:
-        new = [name for name in names if dbio.read_image(db, name) is None]
-    if new:
-        with colmap_quiet():
-            pycolmap.import_images(database_path, image_path, mode, image_names=new, options=reader)
+    _import_new(database_path, image_path, names, reader, mode)
     extractor = pycolmap.FeatureExtractor.create(options)
     with open_database(database_path) as db:
         for name in names:

@@ -254,3 +254,25 @@ def test_extraction_in_chunks_groups_cameras_as_one_colmap_call(reference, tmp_p
     assert sharing(ours) == sharing(theirs)
     expected = {"auto": 1 + NUM_IMAGES // 2, "single": 1, "per_folder": 2}[camera_mode]
     assert sharing(ours)[1] == expected
+
+
+def test_extraction_numbers_images_in_name_order(reference, tmp_path):
+    """Image ids follow the photos' names, whatever order COLMAP's extraction threads finish in: a rerun
+    must give the same database, the same pairs and the same model. The first photo is made 16× larger so
+    that, left to COLMAP, it would be written after the others."""
+    from PIL import Image
+
+    from colmap_guided.features import extract_features
+
+    image_path = tmp_path / "images"
+    image_path.mkdir()
+    names = sorted(p.name for p in (reference["scene"] / "images").iterdir())
+    for i, name in enumerate(names):
+        with Image.open(reference["scene"] / "images" / name) as im:
+            (im.resize((im.width * 4, im.height * 4), Image.BICUBIC) if i == 0 else im).save(image_path / name)
+    database = tmp_path / "colmap.db"
+    extract_features(database, image_path, conf={"num_threads": 2})
+    with pycolmap.Database.open(str(database)) as db:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        assert all(db.num_keypoints_for_image(ids[name]) > 0 for name in names)
+    assert [ids[name] for name in names] == list(range(1, len(names) + 1))
