@@ -106,24 +106,29 @@ def pose_support(rec: pycolmap.Reconstruction, database_path: Path, max_error: f
     return support
 
 
-def auto_key(largest: pycolmap.Reconstruction | None, database_path: Path) -> tuple[bool, int, int]:
+def auto_key(largest: pycolmap.Reconstruction | None, database_path: Path | None) -> tuple:
     """What ``auto`` prefers in a mapper's largest model: passing the model check, then more photos, then more
-    verified inliers explained by its poses (``pose_support``)."""
+    verified inliers explained by its poses (``pose_support``; left out when ``database_path`` is None)."""
     if largest is None:
-        return (False, 0, 0)
-    return (not model_check.check_model(largest), largest.num_reg_images(), pose_support(largest, database_path))
+        return (False, 0, 0)[: 3 if database_path else 2]
+    key = (not model_check.check_model(largest), largest.num_reg_images())
+    return key + (pose_support(largest, database_path),) if database_path else key
 
 
 def _auto(conf: dict, database_path: Path, image_path: Path, out: Path) -> dict[int, pycolmap.Reconstruction]:
     """Global and incremental mapping; the largest model that passes the model check, on ties the one whose poses
-    explain more verified inliers, then incremental."""
+    explain more verified inliers (computed on ties only: it reads every verified pair), then incremental."""
     scored = []
     for mapper in ("incremental", "global"):
         (out / mapper).mkdir()
         models = _run({**conf, "mapper": mapper}, database_path, image_path, out / mapper)
-        key = auto_key(max(models.values(), key=lambda rec: rec.num_reg_images(), default=None), database_path)
-        scored.append((key, mapper, models))
-        logger.info("%s mapping: %d images in the largest model, %d verified inliers fit its poses, model check %s", mapper, key[1], key[2], "ok" if key[0] else "failed")
+        largest = max(models.values(), key=lambda rec: rec.num_reg_images(), default=None)
+        scored.append([auto_key(largest, None), mapper, models, largest])
+        logger.info("%s mapping: %d images in the largest model, model check %s", mapper, scored[-1][0][1], "ok" if scored[-1][0][0] else "failed")
+    if scored[0][0] == scored[1][0] and scored[0][0][1]:
+        for item in scored:
+            item[0] += (pose_support(item[3], database_path),)
+        logger.info("Tie: %d verified inliers fit incremental's poses, %d global's", scored[0][0][2], scored[1][0][2])
     return max(scored, key=lambda item: item[0])[2]  # incremental (the first) on ties
 
 

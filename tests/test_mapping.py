@@ -167,6 +167,7 @@ def test_pose_support_counts_the_inliers_a_model_explains_and_drops_for_a_wrong_
     total = sum(len(m) for m in inliers.values())
     assert pose_support(rec, thin_chain) >= 0.99 * total > 0
     assert auto_key(rec, thin_chain)[1:] == (NUM_FRAMES, pose_support(rec, thin_chain)) and auto_key(None, thin_chain) == (False, 0, 0)
+    assert auto_key(rec, None)[1:] == (NUM_FRAMES,) and auto_key(None, None) == (False, 0)  # pose support left out
     image = next(im for im in rec.images.values() if im.name == sorted(im.name for im in rec.images.values())[5])
     own = sum(len(m) for pair, m in inliers.items() if image.image_id in pair)
     frame = rec.frames[image.frame_id]
