@@ -75,6 +75,7 @@ def main(argv=None) -> int:
                 if column not in methods:
                     methods.append(column)
     baseline = "pycolmap" if "pycolmap" in methods else None
+    totals: dict = {}  # method -> subset -> [on the pose, off it, runs below the baseline, runs]
     for subset, title in (("historical", "historical photos + distractors"), ("all", "historical + modern photos + distractors")):
         scenes = sorted(name for name, sub in runs if sub == subset)
         if not scenes:
@@ -104,6 +105,11 @@ def main(argv=None) -> int:
                 if subset == "all":
                     cell += f" · {_span([rec['correct'] for _, rec, _ in entries])}/{entries[0][1]['num_images']}"
                 row.append(cell)
+                total = totals.setdefault(m, {}).setdefault(subset, [0, 0, 0, 0])
+                for (_, rec, _), c in zip(entries, checks):
+                    total[0] += c[0] if subset == "historical" else rec["correct"]
+                    total[1] += c[1] if subset == "historical" else len(rec.get("wrong") or [])
+                    total[3] += 1
                 wrong.append(max(c[1] for c in checks))
                 if all(by_method.get(other) for other in methods):  # means over the scenes every method ran
                     shares.append(np.mean([c[0] for c in checks]) / max(n_hist, 1))
@@ -114,6 +120,8 @@ def main(argv=None) -> int:
                         if seed in base and mine < base[seed]:
                             below.append(f"{name} s{seed} {mine}<{base[seed]}")
                         above += seed in base and mine >= 1.25 * base[seed] and mine > base[seed]
+            if m in totals and subset in totals[m]:
+                totals[m][subset][2] = len(below)
             runs_total = sum(len(runs[(n, subset)].get(m, [])) for n in scenes)
             row += [f"{100 * np.mean(shares):.0f} %" if shares else "–", str(sum(wrong)), str(sum(distr))]
             if baseline:
@@ -126,6 +134,14 @@ def main(argv=None) -> int:
         print(f"\n**Protocol: {title}** — {what}, over the seeds (a range when they differ); mean share over the scenes that every method ran; "
               f"runs below pycolmap: (scene, seed) runs with fewer {'historical ' if subset == 'historical' else ''}photos on the reference pose than pycolmap's default pipeline with the same seed\n")
         print(markdown_table(head, rows))
+    if totals:
+        print("\n**Totals** — photos on the reference pose ✓ / off it ✗, summed over the scenes (scored against a reference) and seeds"
+              + ("; runs below pycolmap's default pipeline" if baseline else "") + "\n")
+        def cell(m, t):
+            return "–" if t is None else f"{t[0]} / {t[1]}" + ("" if m == baseline or not baseline else f", {t[2]} of {t[3]} below")
+
+        rows = [[m, cell(m, totals[m].get("all")), cell(m, totals[m].get("historical"))] for m in methods if m in totals]
+        print(markdown_table(["method", "historical + modern (all photos)", "historical only (historical photos)"], rows))
     print("\n**Time** (first seed; extract per image, match per pair of the exhaustive pairs, distractors included)\n")
     rows = []
     for m in methods:

@@ -227,6 +227,8 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(tiny_pro
     assert "**Protocol: historical + modern photos + distractors**" in text and "**Time**" in text
     row = next(line for line in text.splitlines() if line.startswith("| raw:mapper=global |"))
     assert f"· {again['raw:mapper=global']['correct']}/4 |" in row
+    total = next(line for line in text.split("**Totals**")[1].splitlines() if line.startswith("| raw:mapper=global |"))
+    assert total == f"| raw:mapper=global | {again['raw:mapper=global']['correct']} / {len(again['raw:mapper=global']['wrong'] or [])} | – |"  # all photos only
     # one results file's runs of a method under their own label (the same method before and after a change)
     load_script("summarize_registration").main([str(out / "results.json"), "--label", f"{out / 'results.json'}:raw=raw (this run)"])
     assert "| raw (this run) |" in capsys.readouterr().out
