@@ -109,10 +109,10 @@ def pose_support(rec: pycolmap.Reconstruction, database_path: Path, max_error: f
 def auto_key(largest: pycolmap.Reconstruction | None, database_path: Path | None) -> tuple:
     """What ``auto`` prefers in a mapper's largest model: passing the model check, then more photos, then more
     verified inliers explained by its poses (``pose_support``; left out when ``database_path`` is None)."""
-    if largest is None:
-        return (False, 0, 0)[: 3 if database_path else 2]
-    key = (not model_check.check_model(largest), largest.num_reg_images())
-    return key + (pose_support(largest, database_path),) if database_path else key
+    key = (False, 0) if largest is None else (not model_check.check_model(largest), largest.num_reg_images())
+    if database_path is None:
+        return key
+    return key + (0 if largest is None else pose_support(largest, database_path),)
 
 
 def _auto(conf: dict, database_path: Path, image_path: Path, out: Path) -> dict[int, pycolmap.Reconstruction]:

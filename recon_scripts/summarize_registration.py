@@ -137,10 +137,10 @@ def main(argv=None) -> int:
     if totals:
         print("\n**Totals** — photos on the reference pose ✓ / off it ✗, summed over the scenes (scored against a reference) and seeds"
               + ("; runs below pycolmap's default pipeline" if baseline else "") + "\n")
-        def cell(m, t):
+        def total_cell(m, t):
             return "–" if t is None else f"{t[0]} / {t[1]}" + ("" if m == baseline or not baseline else f", {t[2]} of {t[3]} below")
 
-        rows = [[m, cell(m, totals[m].get("all")), cell(m, totals[m].get("historical"))] for m in methods if m in totals]
+        rows = [[m, total_cell(m, totals[m].get("all")), total_cell(m, totals[m].get("historical"))] for m in methods if m in totals]
         print(markdown_table(["method", "historical + modern (all photos)", "historical only (historical photos)"], rows))
     print("\n**Time** (first seed; extract per image, match per pair of the exhaustive pairs, distractors included)\n")
     rows = []
