@@ -310,12 +310,14 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
             dbio.remove_orphans(database_path)
         return learned_features.extract_features(database_path, image_path, image_names, conf["aliked"], CAMERA_MODES[conf["camera_mode"]], conf["camera_model"], check)
     done: dict[str, int] = {}
+    rows: dict[str, int] = {}  # every image row, extracted or not (a killed run leaves rows _import_new wrote)
     if database_path.exists():
         orphans = dbio.remove_orphans(database_path)
         if any(orphans):
             logger.info("Removed %d camera(s) and %d rig(s) left without images by an interrupted extraction.", *orphans)
         with open_database(database_path) as db:
             done = {name: image.camera_id for name, image in dbio.images_with_keypoints(db, descriptors=True).items()}
+            rows = {name: image.camera_id for name, image in dbio.images_by_name(db).items()}
     todo = [name for name in image_names if name not in done]
     skipped: dict[str, str] = {}
     if todo and check:
@@ -331,7 +333,7 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
         keys = {name: _camera_key(image_path, name, mode) for name in todo} if mode != "per_image" else dict.fromkeys(todo)
         known = {}
         if any(key is not None for key in keys.values()):
-            for name, camera_id in done.items():
+            for name, camera_id in rows.items():  # COLMAP's reader does not share a camera with a row it did not write
                 known.setdefault(_camera_key(image_path, name, mode), camera_id)
             known.pop(None, None)
         # A few images per pycolmap call (one per thread, twice): the bar moves, and nothing but pycolmap
