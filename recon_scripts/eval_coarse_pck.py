@@ -157,15 +157,12 @@ def main(argv=None):
         methods.append(("raw correlation", {"mode": "raw"}))
         methods.append(("untrained filter", {"weights": str(untrained_weights(Path(tmp.name) / "untrained.safetensors", args.backbone, args.resize_max))}))
     labels = args.labels or [w.parent.name if w.name == "coarse_filter.safetensors" else w.stem for w in args.weights]
-    for label, w in zip(labels, args.weights):
-        finetuned = w.parent / "backbone.pth"  # written beside the filter by `train --finetune_backbone`
-        methods.append((label, {"weights": str(w), **({"backbone_weights": str(finetuned)} if finetuned.is_file() else {})}))
+    methods += [(label, {"weights": str(w)}) for label, w in zip(labels, args.weights)]
     conditions = [None] + ([args.archival] if args.archival else [])
     results, shared_cache = {}, {}
     for label, conf in methods:
         matcher = CoarseMatcher({**common, **conf})
-        if not conf.get("backbone_weights"):
-            matcher.cache = shared_cache  # same backbone and input size: features computed once
+        matcher.cache = shared_cache.setdefault(matcher.features_key, {})  # features computed once per backbone
         for cond in conditions:
             name = label + (f"|{cond}" if cond else "")
             results[name] = evaluate(matcher, pairs, cond, name)

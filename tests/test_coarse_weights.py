@@ -101,3 +101,40 @@ def test_every_file_beside_the_weights_is_installed():
     files = [p.relative_to(folder.parent).as_posix() for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")]
     assert "coarse_filter_curves.png" in (folder / "MODEL_CARD.md").read_text()
     assert [f for f in files if not any(fnmatchcase(f, g) for g in globs)] == []
+
+
+def test_a_finetuned_backbone_travels_with_its_filter(tmp_path):
+    """`train --finetune_backbone` exports the backbone's feature layers with the filter and loading applies
+    them; a filter without them leaves the backbone as built; the pipeline's feature cache tells them apart."""
+    torch.manual_seed(0)
+    tuned = make_net()
+    with torch.no_grad():
+        for p in tuned.backbone.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    path = save_filter_weights(tuned, tmp_path / "tuned.safetensors", resize_max=512, backbone=True)
+    plain = save_filter_weights(tuned, tmp_path / "plain.safetensors", resize_max=512)
+    tensors, _ = read_filter_weights(path)
+    stored = {k for k in tensors if k.startswith("backbone.")}
+    assert "backbone._blocks.10._project_conv.weight" in stored and "backbone._blocks.11._project_conv.weight" not in stored
+    assert not {"backbone._fc.weight", "backbone._conv_head.weight"} & stored  # the classifier is not used
+
+    x = torch.rand(1, 3, 64, 96) * 255
+    loaded = make_net()
+    load_filter_weights(loaded, path)
+    assert torch.equal(loaded.extract_features(loaded.normalize(x)), tuned.extract_features(tuned.normalize(x)))
+    untouched = make_net()
+    before = {k: v.clone() for k, v in untouched.backbone.state_dict().items()}
+    load_filter_weights(untouched, plain)
+    assert all(torch.equal(before[k], v) for k, v in untouched.backbone.state_dict().items())
+
+    image = (torch.rand(80, 112, 3) * 255).to(torch.uint8).numpy()
+    cache = tmp_path / "coarse.h5"
+    imagenet = CoarseMatcher({"weights": plain, "device": "cpu", "cache_path": cache})
+    finetuned = CoarseMatcher({"weights": path, "device": "cpu", "cache_path": cache})
+    assert imagenet.features_key != finetuned.features_key
+    a = imagenet.extract(image, "photo.jpg").features
+    b = finetuned.extract(image, "photo.jpg").features  # not imagenet's cached features
+    assert not torch.allclose(a, b)
+    assert torch.equal(CoarseMatcher({"weights": path, "device": "cpu", "cache_path": cache}).extract(None, "photo.jpg").features, b)
+    with pytest.raises(ValueError, match="carry the backbone they were trained with"):
+        CoarseMatcher({"weights": path, "device": "cpu", "backbone_weights": tmp_path / "other.pth"})

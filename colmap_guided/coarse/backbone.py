@@ -143,6 +143,12 @@ class EfficientNetLite(nn.Module):
             x = block(x)
         return x
 
+    def feature_state_dict(self) -> dict[str, torch.Tensor]:
+        """The state of the layers ``forward`` runs (stem and blocks up to stride 16): what a fine-tuned
+        backbone stores with its filter (model.save_filter_weights); the classifier layers stay ImageNet's."""
+        used = ("_conv_stem.", "_bn0.", *(f"_blocks.{i}." for i in range(self.feature_block + 1)))
+        return {k: v for k, v in self.state_dict().items() if k.startswith(used)}
+
     def classify(self, x: torch.Tensor) -> torch.Tensor:
         """ImageNet logits (B, 1000) of normalised images; used to check that the weights are wired."""
         x = self.forward(x)
@@ -236,6 +242,9 @@ class ResNetConv4(nn.Module):
         mean = image.new_tensor([0.485, 0.456, 0.406]).view(-1, 1, 1) * 255
         std = image.new_tensor([0.229, 0.224, 0.225]).view(-1, 1, 1) * 255
         return (image - mean) / std
+
+    def feature_state_dict(self) -> dict[str, torch.Tensor]:
+        return self.state_dict()  # every layer it has runs in ``forward``
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         x = self.maxpool(F.relu(self.bn1(self.conv1(x))))

@@ -22,7 +22,7 @@ from colmap_guided.coarse.backbone import BACKBONES, DEFAULT_BACKBONE
 from colmap_guided.coarse.flow import CoarseResult
 from colmap_guided.coarse.geometry import ImageGeometry, as_rgb, resize_geometry, resize_image
 from colmap_guided.coarse.model import CoarseNet
-from colmap_guided.coarse.weights import DEFAULT_WEIGHTS, load_filter_weights, net_conf_from_config, read_filter_weights
+from colmap_guided.coarse.weights import DEFAULT_WEIGHTS, fingerprint, has_backbone, load_filter_weights, net_conf_from_config, read_filter_weights
 from colmap_guided.conf import merge_conf
 from colmap_guided.images import read_image
 
@@ -78,7 +78,10 @@ class CoarseMatcher:
                     "raw_temperature": conf["raw_temperature"], "filter": conf["mode"] == "filter"}
         self.weights_config = None
         if conf["mode"] == "filter":
-            _, self.weights_config = read_filter_weights(conf["weights"])  # FileNotFoundError → caller falls back
+            tensors, self.weights_config = read_filter_weights(conf["weights"])  # FileNotFoundError → caller falls back
+            if has_backbone(tensors) and conf["backbone_weights"]:
+                raise ValueError(f"Filter weights {conf['weights'] or DEFAULT_WEIGHTS} carry the backbone they were trained with: "
+                                 f"drop backbone_weights={conf['backbone_weights']!r} or use weights without a backbone")
             wanted = net_conf_from_config(self.weights_config)
             if wanted["backbone"] != conf["backbone"]:
                 raise ValueError(f"Filter weights {conf['weights'] or DEFAULT_WEIGHTS} were trained on {wanted['backbone']}, "
@@ -89,6 +92,8 @@ class CoarseMatcher:
             load_filter_weights(self.net, conf["weights"])
         self.net.to(self.device).eval()
         self.spec = BACKBONES[conf["backbone"]]
+        # Which features: the backbone, its weights (ImageNet, a file, or fine-tuned with the filter) and input size.
+        self.features_key = f"{self.spec.name}_{conf['resize_max']}_{fingerprint(self.net.backbone.feature_state_dict())}"
         self.cache: dict[str, CoarseFeatures] = {}
 
     # -- features -------------------------------------------------------------------------------
@@ -130,15 +135,12 @@ class CoarseMatcher:
         """Drop image ``name`` from the in-memory cache."""
         self.cache.pop(name, None)
 
-    def _h5_key(self) -> str:
-        return f"{self.spec.name}_{self.conf['resize_max']}"
-
     def _read_h5(self, name: str) -> CoarseFeatures | None:
         path = Path(self.conf["cache_path"])
         if not path.is_file():
             return None
         with h5py.File(path, "r") as f:
-            group = f.get(f"{self._h5_key()}/{name}")
+            group = f.get(f"{self.features_key}/{name}")
             if group is None:
                 return None
             geo = ImageGeometry(**{k: (float if k == "cell_offset" else int)(group.attrs[k]) for k in ImageGeometry.__dataclass_fields__})
@@ -149,7 +151,7 @@ class CoarseMatcher:
         path = Path(self.conf["cache_path"])
         path.parent.mkdir(parents=True, exist_ok=True)
         with h5py.File(path, "a") as f:
-            key = f"{self._h5_key()}/{feats.name}"
+            key = f"{self.features_key}/{feats.name}"
             if key in f:
                 del f[key]
             group = f.create_group(key)

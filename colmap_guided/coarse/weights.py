@@ -2,12 +2,15 @@
 
 The config records what the filter was trained with (backbone, its layer and channels, the filter's
 channels and kernel sizes, the soft mutual-NN placement, the training resolution) plus free-form
-``training`` info (data, loss, iterations, date) for the model card. Loading weights into a network
-built differently is a one-line error saying what to change.
+``training`` info (data, loss, iterations, date) for the model card. A filter trained with its backbone
+(``train --finetune_backbone``) carries the backbone's feature layers too (tensors ``backbone.*``), and
+loading applies them; without them the backbone keeps its ImageNet weights. Loading weights into a
+network built differently is a one-line error saying what to change.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -20,6 +23,7 @@ from colmap_guided.coarse.model import CoarseNet
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parent.parent / "weights" / "coarse_filter.safetensors"
 FORMAT = "colmap_guided.coarse_filter/1"
+BACKBONE_PREFIX = "backbone."  # tensors of a fine-tuned backbone's feature layers
 # Config keys that must agree between the weights and the network that loads them.
 _ARCH_KEYS = ("backbone", "layer", "feature_channels", "channels", "kernel_sizes", "mutual_before", "mutual_after")
 
@@ -42,15 +46,33 @@ def filter_config(net: CoarseNet, resize_max: int, training: dict | None = None)
     }
 
 
-def save_filter_weights(net: CoarseNet, path: str | Path, resize_max: int, training: dict | None = None) -> Path:
-    """Write ``net``'s filter (not the backbone) to ``path`` (.safetensors) with its config."""
+def save_filter_weights(net: CoarseNet, path: str | Path, resize_max: int, training: dict | None = None, backbone: bool = False) -> Path:
+    """Write ``net``'s filter to ``path`` (.safetensors) with its config; with ``backbone`` (a fine-tuned one)
+    also the backbone's feature layers."""
     if net.filter is None:
         raise ValueError("This CoarseNet is in raw mode (filter=False): there are no filter weights to save")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tensors = {k: v.detach().cpu().contiguous() for k, v in net.filter.state_dict().items()}
+    tensors = dict(net.filter.state_dict())
+    if backbone:
+        tensors |= {BACKBONE_PREFIX + k: v for k, v in net.backbone.feature_state_dict().items()}
+    tensors = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
     save_file(tensors, str(path), metadata={"config": json.dumps(filter_config(net, resize_max, training))})
     return path
+
+
+def fingerprint(state: dict[str, torch.Tensor]) -> str:
+    """A short hash of a state dict's names and values (which backbone computed cached features)."""
+    digest = hashlib.sha256()
+    for key in sorted(state):
+        digest.update(key.encode())
+        digest.update(state[key].detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()[:12]
+
+
+def has_backbone(tensors: dict[str, torch.Tensor]) -> bool:
+    """Whether weights read by ``read_filter_weights`` carry a fine-tuned backbone."""
+    return any(k.startswith(BACKBONE_PREFIX) for k in tensors)
 
 
 def read_filter_weights(path: str | Path | None = None) -> tuple[dict[str, torch.Tensor], dict]:
@@ -85,12 +107,18 @@ def check_config(config: dict, net: CoarseNet, path: str | Path) -> None:
 
 
 def load_filter_weights(net: CoarseNet, path: str | Path | None = None) -> dict:
-    """Load filter weights into ``net`` after checking the config; returns the config."""
+    """Load filter weights (and the fine-tuned backbone they carry, if any) into ``net`` after checking the
+    config; returns the config."""
     if net.filter is None:
         raise ValueError("This CoarseNet is in raw mode (filter=False): build it with filter=True to load weights")
     tensors, config = read_filter_weights(path)
     check_config(config, net, path or DEFAULT_WEIGHTS)
-    net.filter.load_state_dict(tensors)
+    backbone = {k.removeprefix(BACKBONE_PREFIX): v for k, v in tensors.items() if k.startswith(BACKBONE_PREFIX)}
+    net.filter.load_state_dict({k: v for k, v in tensors.items() if not k.startswith(BACKBONE_PREFIX)})
+    if backbone:
+        if set(backbone) != set(net.backbone.feature_state_dict()):
+            raise ValueError(f"Coarse filter weights {path or DEFAULT_WEIGHTS}: their backbone tensors are not {config['backbone']}'s feature layers; export them again")
+        net.backbone.load_state_dict(backbone, strict=False)
     return config
 
 

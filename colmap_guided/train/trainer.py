@@ -7,7 +7,7 @@ same command again continues exactly where it stopped (same batches, same parame
 uninterrupted run). ``OUT/curves.png`` plots the losses and the validation PCK; ``OUT/history.json``
 has the numbers; ``OUT/coarse_filter.safetensors`` (the coarse package's weight format, with the
 training config) is refreshed at every checkpoint, so the latest filter can be evaluated any time;
-a fine-tuned backbone goes to ``OUT/backbone.pth`` (a state dict for CoarseNet's ``backbone_weights``).
+a fine-tuned backbone's feature layers go into that file too (the pipeline loads them with the filter).
 
 Filter paths (``impl``): 'sparse' (default) trains what the CPU pipeline runs, ``CoarseNet.sparse_volume``
 on the matcher's support (k best cells both ways + cells around each best match), on whole grids, one
@@ -336,13 +336,8 @@ class Trainer:
             "train_seconds": round(self.train_seconds),
             "val": self.val_history[-1] if self.val_history else None,
         }
-        if self.conf["finetune_backbone"]:
-            meta["backbone_weights"] = "backbone.pth"
-            tmp = self.out / "backbone.tmp.pth"
-            torch.save(self.model.backbone.state_dict(), tmp)
-            os.replace(tmp, self.out / "backbone.pth")
         tmp = Path(path).with_name(Path(path).stem + ".tmp.safetensors")
-        save_trained(self.model, tmp, meta, resize_max=self.data.conf["resolution"])
+        save_trained(self.model, tmp, meta, resize_max=self.data.conf["resolution"], backbone=self.conf["finetune_backbone"])
         os.replace(tmp, path)
         return Path(path)
 
@@ -394,9 +389,9 @@ class _NormalizedBackbone(torch.nn.Module):
         return self.model.extract_features(self.model.normalize(x))
 
 
-def save_trained(model: CoarseNet, path: Path, meta: dict, resize_max: int) -> Path:
-    """Export the filter with the coarse package's format (safetensors + checked config)."""
-    save_filter_weights(model, path, resize_max=resize_max, training=_jsonable(meta))
+def save_trained(model: CoarseNet, path: Path, meta: dict, resize_max: int, backbone: bool = False) -> Path:
+    """Export the filter (and a fine-tuned backbone) with the coarse package's format (safetensors + checked config)."""
+    save_filter_weights(model, path, resize_max=resize_max, training=_jsonable(meta), backbone=backbone)
     logger.debug("Exported %s.", path)
     return Path(path)
 
