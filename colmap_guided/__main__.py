@@ -126,7 +126,7 @@ def main(argv=None) -> int:
             from . import database, features
 
             with database.open_database(args.database_path) as db:
-                feature_type = {kind.name: name for name, kind in features.FEATURE_TYPES.items()}.get(database.descriptor_type(db), "sift")
+                feature_type = features.database_feature_type(db)
             matcher_conf = features.matcher_defaults(feature_type, matcher, match.matcher_conf_from_args(args, matcher))
             stats = match.match_database(args.database_path, args.image_path, args.pairs, matcher, matcher_conf, overwrite=args.overwrite, **match.match_options_from_args(args))
             print(f"{stats['num_verified_pairs']}/{stats['num_pairs']} pairs verified, {stats['num_inlier_matches']} inlier matches in {args.database_path}")

@@ -76,13 +76,26 @@ ALIKED_MIN_AGREEMENT = 0.6
 
 def matcher_defaults(feature_type: str, matcher: str, matcher_conf: dict | None) -> dict:
     """``matcher_conf`` with the raw and guided matchers' defaults for ``feature_type`` (ALIKED: ratio, and
-    min_agreement for guided) where it does not set them."""
+    raw_ratio and min_agreement for guided) where it does not set them."""
     if feature_type != "aliked" or matcher not in ("raw", "guided"):
         return dict(matcher_conf or {})
-    return {"ratio": ALIKED_RATIO, **({"min_agreement": ALIKED_MIN_AGREEMENT} if matcher == "guided" else {}), **(matcher_conf or {})}
+    guided = {"raw_ratio": ALIKED_RATIO, "min_agreement": ALIKED_MIN_AGREEMENT} if matcher == "guided" else {}
+    return {"ratio": ALIKED_RATIO, **guided, **(matcher_conf or {})}
 
 
 FEATURE_TYPES = {"sift": pycolmap.FeatureExtractorType.SIFT, "aliked": pycolmap.FeatureExtractorType.ALIKED_N16ROT}
+
+
+def database_feature_type(db: pycolmap.Database) -> str:
+    """The ``FEATURE_TYPES`` key of the database's descriptors ('sift' when it holds none)."""
+    return {kind.name: name for name, kind in FEATURE_TYPES.items()}.get(dbio.descriptor_type(db), "sift")
+
+
+def check_matcher_features(matcher, feature_type: str) -> None:
+    """A one-line ValueError when ``matcher`` cannot match ``feature_type`` features (LightGlue: ALIKED only),
+    raised before anything is extracted or written."""
+    if matcher.feature_types is not None and feature_type not in matcher.feature_types:
+        raise ValueError(f"The {matcher.name} matcher needs {' or '.join(matcher.feature_types)} features, not {feature_type}: run reconstruct with --features {matcher.feature_types[0]}.")
 # COLMAP's CPU SIFT needs about this many bytes per pixel of the (downscaled) image it works on
 # (measured, pycolmap 4.2.1: 3.0 GB peak for one 3200x3200 image, 0.34 GB for 780x1063).
 SIFT_BYTES_PER_PIXEL = 300

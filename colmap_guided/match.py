@@ -18,7 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from . import database as dbio
-from . import verify
+from . import features, verify
 from .conf import merge_conf
 from .log import logger
 from .image_data import PairKey
@@ -67,6 +67,7 @@ def match_database(
         images = dbio.images_with_keypoints(db)
         if len(images) < 2:
             raise ValueError(f"The database holds {len(images)} image(s) with keypoints; at least 2 are needed to match.")
+        features.check_matcher_features(matcher, features.database_feature_type(db))
         if overwrite:
             dbio.clear_matches(db)
         names = sorted(images)

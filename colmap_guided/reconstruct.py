@@ -56,6 +56,7 @@ def reconstruct(
     feature_conf = features.check_conf(feature_conf)  # also a missing --aliked_weights file
     if not isinstance(matcher, Matcher):  # ALIKED's own ratio and agreement unless given
         matcher = get_matcher(matcher, features.matcher_defaults(feature_conf["type"], matcher, matcher_conf))
+    features.check_matcher_features(matcher, feature_conf["type"])
     if overwrite and output.exists():
         shutil.rmtree(output)
     output.mkdir(parents=True, exist_ok=True)

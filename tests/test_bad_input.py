@@ -358,3 +358,30 @@ def test_no_model_is_said_plainly_with_what_to_try(tmp_path, capfd):
     assert not (tmp_path / "out" / "sparse" / "0").exists()
     assert "No model was made" in out and "--camera_mode single" in out
     assert "sparse/0" not in out
+
+
+def test_a_matcher_that_cannot_match_the_features_fails_before_any_work(synthetic_scene, tmp_path):
+    """LightGlue matches ALIKED only (``feature_types``): with SIFT, reconstruct refuses before extracting anything,
+    and match_database on a SIFT database before writing any match; the line says what to run."""
+    from colmap_guided import database as dbio
+    from colmap_guided.features import extract_features
+    from colmap_guided.match import match_database
+    from colmap_guided.matchers.lightglue import LightGlueMatcher
+    from colmap_guided.matchers.raw import RawMatcher
+
+    class AlikedOnly(RawMatcher):
+        name = "aliked_only"
+        feature_types = LightGlueMatcher.feature_types
+
+    assert LightGlueMatcher.feature_types == ("aliked",)
+    line = "needs aliked features, not sift: run reconstruct with --features aliked"
+    with pytest.raises(ValueError, match=line):
+        reconstruct(synthetic_scene.image_dir.parent, image_path=synthetic_scene.image_dir, output=tmp_path / "ws", matcher=AlikedOnly())
+    assert not (tmp_path / "ws").exists()
+    db = tmp_path / "sift" / "database.db"
+    db.parent.mkdir()
+    extract_features(db, synthetic_scene.image_dir, synthetic_scene.names[:2])
+    with pytest.raises(ValueError, match=line):
+        match_database(db, synthetic_scene.image_dir, "exhaustive", AlikedOnly())
+    with dbio.open_database(db) as opened:
+        assert dbio.pair_match_counts(opened) == {}

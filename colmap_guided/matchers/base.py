@@ -25,6 +25,7 @@ class Matcher:
     pair_workers: int = 1  # pairs that match_database may match at once in threads (``match`` must be thread-safe)
     torch_threads: int | None = None  # torch CPU threads while match_database runs (set, then restored); None: as is
     flow_options: tuple[str, ...] = ()  # options ``match_flows`` takes as overrides (applied after ``coarse_flows``)
+    feature_types: tuple[str, ...] | None = None  # the features (``features.FEATURE_TYPES`` keys) it can match; None: any
 
     def __init__(self, conf: dict | None = None):
         self.conf = merge_conf(self.default_conf, conf, f"{self.name} matcher")

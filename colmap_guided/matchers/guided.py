@@ -218,7 +218,7 @@ class GuidedMatcher(Matcher):
     """
 
     name = "guided"
-    flow_options = ("window_cells", "ratio", "min_score", "max_fb_cells", "raw_matches", "raw_min_inliers", "min_agreement")  # applied after the coarse match
+    flow_options = ("window_cells", "ratio", "raw_ratio", "min_score", "max_fb_cells", "raw_matches", "raw_min_inliers", "min_agreement")  # applied after the coarse match
     default_conf = {
         "weights": None,  # coarse filter weights; None = the shipped ones (raw-correlation fallback, with a WARNING)
         "mode": "auto",  # 'auto' | 'filter' (weights required) | 'raw' (correlation only, untrained)
@@ -235,6 +235,10 @@ class GuidedMatcher(Matcher):
         "window_cells": 1.0,  # W of eq. 1 in coarse cells (1 cell = 16 px at the network input scale, as the paper)
         "ratio": 0.8,  # Lowe's ratio among the candidates, both directions; None = off
         "min_inliers": 25,  # two-view verification of guided pairs: at least this many inliers (COLMAP: 15)
+        # Lowe's ratio of the raw matches below (mutual NN over all keypoints), whatever ``ratio`` is; None = off.
+        # Without a window a looser ratio verifies unrelated photos (historical proxy, museum facade, SIFT: of its 18
+        # pairs with a distractor, 0 verified at 0.8, 1 at 0.9, 17 at 0.95; docs/RESULTS.md, session 11).
+        "raw_ratio": 0.8,
         # Raw matches (mutual NN + ratio) beside the guided ones, for pairs where the coarse flow is wrong:
         # 'verified': verify guided and raw (guided: min_inliers; raw: raw_min_inliers) and keep the one that
         # passes; when both do and agree (min_agreement), the one with the most inliers among them and the union
@@ -356,9 +360,9 @@ class GuidedMatcher(Matcher):
             conf["max_pairs"],
         ).cpu()
         if conf["raw_matches"] == "merge":
-            m = merge_matches(m, mutual_nn_match(da, db, conf["ratio"]).cpu())
+            m = merge_matches(m, mutual_nn_match(da, db, conf["raw_ratio"]).cpu())
         elif conf["raw_matches"] == "verified":
-            m = self.verified_best(a, b, m, mutual_nn_match(da, db, conf["ratio"]).cpu(), conf)
+            m = self.verified_best(a, b, m, mutual_nn_match(da, db, conf["raw_ratio"]).cpu(), conf)
         return m.numpy().astype(np.uint32)
 
     def verified_best(self, a: ImageData, b: ImageData, guided: torch.Tensor, raw: torch.Tensor, conf: dict | None = None) -> torch.Tensor:
