@@ -96,6 +96,8 @@ def check_matcher_features(matcher, feature_type: str) -> None:
     raised before anything is extracted or written."""
     if matcher.feature_types is not None and feature_type not in matcher.feature_types:
         raise ValueError(f"The {matcher.name} matcher needs {' or '.join(matcher.feature_types)} features, not {feature_type}: run reconstruct with --features {matcher.feature_types[0]}.")
+
+
 # COLMAP's CPU SIFT needs about this many bytes per pixel of the (downscaled) image it works on
 # (measured, pycolmap 4.2.1: 3.0 GB peak for one 3200x3200 image, 0.34 GB for 780x1063).
 SIFT_BYTES_PER_PIXEL = 300

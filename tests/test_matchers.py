@@ -343,6 +343,8 @@ def test_raw_merge_adds_raw_matches_of_unmatched_keypoints_only(photo_pair, rati
     raw = get_matcher("raw", {"device": "cpu", "ratio": raw_ratio}).match(a, b).astype(np.int64)
     assert {tuple(m) for m in only} <= {tuple(m) for m in both} <= {tuple(m) for m in only} | {tuple(m) for m in raw}
     assert len(np.unique(both[:, 0])) == len(both) and len(np.unique(both[:, 1])) == len(both)
+    with pytest.raises(ValueError, match=r"takes no option \['min_inliers'\] after its guidance"):
+        guided.match_flows(a, b, flows, min_inliers=15)  # a verification option, not one applied after the flows
     in_both, ga, gb = {tuple(m) for m in both}, set(only[:, 0]), set(only[:, 1])
     assert all(tuple(m) in in_both or m[0] in ga or m[1] in gb for m in raw)  # a raw match is kept unless guidance overrules it
 

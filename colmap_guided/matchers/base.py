@@ -57,10 +57,15 @@ class Matcher:
 
     def match_flows(self, a: ImageData, b: ImageData, flows: object | None, **overrides) -> np.ndarray:
         """``match`` given ``coarse_flows``' result, with ``overrides`` of the options in ``flow_options``."""
+        self.flow_conf(overrides)
+        return self.match(a, b)
+
+    def flow_conf(self, overrides: dict) -> dict:
+        """``conf`` with ``overrides`` of ``match_flows``; an option outside ``flow_options`` is a ValueError."""
         unknown = sorted(set(overrides) - set(self.flow_options))
         if unknown:
             raise ValueError(f"The {self.name} matcher takes no option {unknown} after its guidance; known: {list(self.flow_options)}")
-        return self.match(a, b)
+        return {**self.conf, **overrides}
 
     def retrieval_backbone(self):
         """The ``coarse.CoarseMatcher`` whose backbone features give retrieval descriptors (pairs.py);

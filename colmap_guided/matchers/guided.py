@@ -330,10 +330,7 @@ class GuidedMatcher(Matcher):
 
     def match_flows(self, a: ImageData, b: ImageData, flows: CoarseFlows, **overrides) -> np.ndarray:
         """Eq. 1 given the coarse flows; ``overrides`` replace options of ``flow_options`` (the benchmark's sweep)."""
-        unknown = sorted(set(overrides) - set(self.flow_options))
-        if unknown:
-            raise ValueError(f"The guided matcher takes no option {unknown} after the coarse match; known: {list(self.flow_options)}")
-        conf = {**self.conf, **overrides}
+        conf = self.flow_conf(overrides)
         dev = self.device
 
         def valid(score: np.ndarray, fb: np.ndarray, cell: float) -> torch.Tensor:

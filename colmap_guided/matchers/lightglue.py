@@ -140,10 +140,7 @@ class GuidedLightGlueMatcher(Matcher):
         return self.guide.coarse_flows(a, b)
 
     def match_flows(self, a: ImageData, b: ImageData, flows, **overrides) -> np.ndarray:
-        unknown = sorted(set(overrides) - set(self.flow_options))
-        if unknown:
-            raise ValueError(f"The {self.name} matcher takes no option {unknown} after its guidance; known: {list(self.flow_options)}")
-        window = overrides.get("window_cells", self.conf["window_cells"])
+        window = self.flow_conf(overrides)["window_cells"]
         m = self.lightglue.match(a, b).astype(np.int64)
         with np.errstate(invalid="ignore"):  # a keypoint without coarse match (NaN) is never near
             near_b = np.linalg.norm(flows.flow_ab[m[:, 0]] - b.keypoints[m[:, 1], :2], axis=1) < window * flows.cell_b
