@@ -309,7 +309,7 @@ class GuidedMatcher(Matcher):
     def features(self, image: ImageData):
         """Backbone features of ``image`` (cached by name until ``release``, and in ``image.extra``: an image
         sent to another process carries them, so the worker needs neither the photo nor the backbone pass)."""
-        key = f"coarse/{self.coarse.conf['backbone']}/{self.coarse.conf['backbone_weights']}/{self.coarse.conf['resize_max']}"
+        key = f"coarse/{self.coarse.features_key}"  # the backbone, its weights (a fine-tuned one too) and input size
         if key in image.extra:
             return image.extra[key]
         feats = self.coarse.extract_path(image.path, image.name)
