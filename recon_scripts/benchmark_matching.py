@@ -2,8 +2,9 @@
 
 For every related pair (same scene: sacre_coeur_hloc, lund_door_gtsfm, lightglue_assets, WxBS
 appearance/illumination categories) it reports the COLMAP-verified inliers (pycolmap
-estimate_two_view_geometry, the pipeline's options: >= 15 inliers, guided >= its min_inliers) of raw, guided, guided_epipolar,
-guided_homography and guided_colmap (COLMAP's own guided_matching), whether the verified geometry agrees with the reference correspondences where
+estimate_two_view_geometry, the pipeline's options: >= 15 inliers, guided and LightGlue >= their min_inliers) of raw, guided,
+guided_epipolar, guided_homography and guided_colmap (COLMAP's own guided_matching), or of any preset on ALIKED
+(``--features aliked --matchers raw guided lightglue guided_lightglue``: the learned paths' guard), whether the verified geometry agrees with the reference correspondences where
 there are some (WxBS hand-labelled corrs.txt; lund_door's reference model), and the wall time of
 raw vs guided (coarse extraction of both images + coarse match + eq. 1) on the same pair.
 On pairs of unrelated images (different scenes) it reports the share that verifies per matcher:
@@ -11,8 +12,9 @@ guided matching must not manufacture geometry more often than raw matching.
 
     python recon_scripts/benchmark_matching.py [--pairs_per_set 3] [--unrelated 24] [--json out.json]
     python recon_scripts/benchmark_matching.py --sweep   # guided options grid on the same pairs
+    python recon_scripts/benchmark_matching.py --features aliked --matchers raw guided lightglue guided_lightglue
 
-Markdown tables go to stdout, everything to --json. SIFT (pycolmap, COLMAP's defaults) is cached in
+Markdown tables go to stdout, everything to --json. Features (SIFT: pycolmap, COLMAP's defaults) are cached in
 --cache_dir, so reruns only pay for matching.
 """
 
@@ -30,7 +32,7 @@ import numpy as np
 import pycolmap
 import torch
 
-from colmap_guided import verify
+from colmap_guided import features, learned_features, verify
 from colmap_guided.images import read_image
 from colmap_guided.log import logger
 from colmap_guided.matchers import get_matcher
@@ -72,6 +74,30 @@ def sift_image(path: Path, cache_dir: Path) -> ImageData:
         cache_dir.mkdir(parents=True, exist_ok=True)
         np.savez(cache, keypoints=kp, descriptors=desc, size=np.array([w, h]))
     return ImageData(key, 0, path, kp.astype(np.float32), desc, int(w), int(h))
+
+
+_aliked = {}  # the network, loaded once
+
+
+def aliked_image(path: Path, cache_dir: Path) -> ImageData:
+    """ALIKED-N(16)rot of one image as the pipeline extracts it (top 2048, float descriptors), cached as .npz."""
+    key = str(path.relative_to(shared_data_dir())).replace("/", "__")
+    cache = cache_dir / f"aliked__{key}.npz"
+    if cache.exists():
+        z = np.load(cache)
+        kp, desc, (w, h) = z["keypoints"], z["descriptors"], z["size"]
+    else:
+        if not _aliked:
+            conf = learned_features.check_conf({"device": "cpu"})
+            _aliked.update(conf=conf, net=learned_features.load_model(conf))
+        kp, desc = learned_features.extract_image(*_aliked["net"], path, _aliked["conf"])
+        h, w = read_image(path).shape[:2]
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        np.savez(cache, keypoints=kp, descriptors=desc, size=np.array([w, h]))
+    return ImageData(key, 0, path, kp.astype(np.float32), desc.astype(np.float32), int(w), int(h))
+
+
+FEATURES = {"sift": sift_image, "aliked": aliked_image}
 
 
 def wxbs_corrs(pair_dir: Path) -> np.ndarray:
@@ -187,8 +213,8 @@ def extract_coarse(matcher: GuidedMatcher, a: ImageData, b: ImageData) -> None:
         matcher.prepare(image)
 
 
-def run_pair(pair: dict, matchers: dict, cache_dir: Path, max_ref_err: float, repeat: int) -> dict:
-    a, b = sift_image(pair["a"], cache_dir), sift_image(pair["b"], cache_dir)
+def run_pair(pair: dict, matchers: dict, cache_dir: Path, max_ref_err: float, repeat: int, extract=sift_image) -> dict:
+    a, b = extract(pair["a"], cache_dir), extract(pair["b"], cache_dir)
     row = {"set": pair["set"], "a": str(pair["a"].relative_to(shared_data_dir())), "b": str(pair["b"].relative_to(shared_data_dir())),
            "num_keypoints": [len(a.keypoints), len(b.keypoints)]}
     for name, matcher in matchers.items():
@@ -279,7 +305,7 @@ def markdown(rows: list[dict], unrelated_rows: list[dict], names: list[str]) -> 
                    f"{med['coarse_extract_s']:.2f} + coarse match {med['coarse_match_s']:.2f} + eq. 1 {med['eq1_s']:.2f} "
                    f"(median guided/raw time ratio {np.median([r['guided']['total_s'] / r['raw']['total_s'] for r in rows]):.2f}).")
     out.append("")
-    out.append("Unrelated pairs (different scenes) passing verification (>= 15 inliers):")
+    out.append("Unrelated pairs (different scenes) passing verification (each matcher's minimum inliers):")
     out.append("")
     out.append("| matcher | verified / pairs | max inliers |")
     out.append("|---|---|---|")
@@ -294,7 +320,8 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--pairs_per_set", type=int, default=3)
     parser.add_argument("--unrelated", type=int, default=24, help="number of unrelated-image pairs")
-    parser.add_argument("--matchers", nargs="+", default=BASELINES, choices=BASELINES)
+    parser.add_argument("--matchers", nargs="+", default=BASELINES, help="presets of colmap_guided.matchers.PRESETS (lightglue, guided_lightglue with --features aliked)")
+    parser.add_argument("--features", default="sift", choices=sorted(FEATURES), help="aliked: the pipeline's ALIKED, with its raw / guided defaults")
     parser.add_argument("--guided_conf", type=json.loads, default={}, help="JSON overriding the guided matcher's options")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--max_ref_err", type=float, default=5.0, help="px: a verified geometry is correct below this median reference error")
@@ -304,13 +331,18 @@ def main(argv=None) -> None:
     parser.add_argument("--repeat", type=int, default=3, help="timings: fastest of this many runs (related pairs)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: stable timings on a shared machine)")
     args = parser.parse_args(argv)
+    if args.sweep and args.features != "sift":
+        parser.error("--sweep runs on SIFT only")
     torch.set_grad_enabled(False)
     torch.set_num_threads(args.threads)
 
     pairs = related_pairs(args.pairs_per_set)
     unrelated = unrelated_pairs(args.unrelated)
-    matchers = {n: get_matcher(n, {"device": args.device, **(args.guided_conf if n == "guided" else {})}) for n in args.matchers}
-    result = {"matchers": {n: m.describe() for n, m in matchers.items()}, "device": args.device, "torch_threads": torch.get_num_threads()}
+    extract = FEATURES[args.features]
+    matchers = {n: get_matcher(n, features.matcher_defaults(args.features, n, {"device": args.device, **(args.guided_conf if n == "guided" else {})})) for n in args.matchers}
+    for matcher in matchers.values():
+        features.check_matcher_features(matcher, args.features)
+    result = {"features": args.features, "matchers": {n: m.describe() for n, m in matchers.items()}, "device": args.device, "torch_threads": torch.get_num_threads()}
     if args.sweep:
         guided = matchers.get("guided") or get_matcher("guided", {"device": args.device, **args.guided_conf})
         result["sweep"] = sweep(pairs, unrelated, guided, args.cache_dir, args.max_ref_err)
@@ -318,10 +350,10 @@ def main(argv=None) -> None:
     else:
         rows, unrelated_rows = [], []
         for pair in pairs:
-            rows.append(run_pair(pair, matchers, args.cache_dir, args.max_ref_err, args.repeat))
+            rows.append(run_pair(pair, matchers, args.cache_dir, args.max_ref_err, args.repeat, extract))
             logger.info("%s %s: %s", pair["set"], pair["a"].name, {n: rows[-1][n]["inliers"] for n in matchers})
         for pair in unrelated:
-            unrelated_rows.append(run_pair(pair, matchers, args.cache_dir, args.max_ref_err, 1))
+            unrelated_rows.append(run_pair(pair, matchers, args.cache_dir, args.max_ref_err, 1, extract))
             logger.info("unrelated %s: %s", pair["set"], {n: unrelated_rows[-1][n]["inliers"] for n in matchers})
         result["related"], result["unrelated"] = rows, unrelated_rows
         print(markdown(rows, unrelated_rows, list(matchers)))
