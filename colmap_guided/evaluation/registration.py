@@ -29,6 +29,7 @@ import pycolmap
 
 from colmap_guided.features import CAMERA_MODES
 from colmap_guided.log import logger
+from colmap_guided.matchers import AUTO, resolve_auto
 
 from . import matcher_specs
 from .metrics import rotation_angle
@@ -230,6 +231,8 @@ def database_key(method: str) -> tuple[str, str]:
     not change the database, so ``guided`` and ``guided:mapper=global`` share one; ``raw:type=aliked`` and
     ``guided:type=aliked`` share their keypoints."""
     matcher, feature, _ = split_stage_options(method)
+    if method != "pycolmap":  # the features it extracts: 'guided' and 'guided:type=sift' share them
+        feature = {**feature, "type": resolve_auto(matcher_specs.parse_spec(matcher).name, feature.get("type", AUTO))[1]}
     features = json.dumps(feature, sort_keys=True) if method != "pycolmap" else "pycolmap"
     return features, f"{matcher}|{features}"
 
