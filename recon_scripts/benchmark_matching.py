@@ -33,7 +33,7 @@ import pycolmap
 import torch
 
 from colmap_guided import features, learned_features, verify
-from colmap_guided.images import read_image
+from colmap_guided.images import image_size, read_image
 from colmap_guided.log import logger
 from colmap_guided.matchers import get_matcher
 from colmap_guided.matchers.base import ImageData
@@ -51,50 +51,53 @@ MAX_NUM_FEATURES = 8192
 # ------------------------------------------------------------------------------------------------
 
 
-def sift_image(path: Path, cache_dir: Path) -> ImageData:
-    """COLMAP SIFT of one image (uint8 descriptors as in the database), cached as .npz."""
-    data = shared_data_dir()
-    key = str(path.relative_to(data)).replace("/", "__")
-    cache = cache_dir / f"{key}.npz"
+def _cached(path: Path, cache_dir: Path, prefix: str, compute) -> ImageData:
+    """Features of one image, ``compute(path)`` -> (keypoints, descriptors, (width, height)), cached as .npz."""
+    key = str(path.relative_to(shared_data_dir())).replace("/", "__")
+    cache = cache_dir / f"{prefix}{key}.npz"
     if cache.exists():
         z = np.load(cache)
         kp, desc, (w, h) = z["keypoints"], z["descriptors"], z["size"]
     else:
-        gray = cv2.cvtColor(read_image(path), cv2.COLOR_RGB2GRAY)  # COLMAP's frame (EXIF orientation not applied)
-        h, w = gray.shape
-        scale = min(1.0, MAX_IMAGE_SIZE / max(h, w))
-        small = gray if scale == 1.0 else cv2.resize(gray, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
-        options = pycolmap.FeatureExtractionOptions()
-        options.sift.max_num_features = MAX_NUM_FEATURES
-        kp, desc = pycolmap.Sift(options).extract(np.ascontiguousarray(small))
-        kp = kp.copy()
-        kp[:, :2] *= np.array([w / small.shape[1], h / small.shape[0]], np.float32)  # corner-origin: exact
-        kp[:, 2] /= scale
-        desc = np.clip(np.round(desc * 512), 0, 255).astype(np.uint8)  # COLMAP's database encoding
+        kp, desc, (w, h) = compute(path)
         cache_dir.mkdir(parents=True, exist_ok=True)
         np.savez(cache, keypoints=kp, descriptors=desc, size=np.array([w, h]))
     return ImageData(key, 0, path, kp.astype(np.float32), desc, int(w), int(h))
 
 
+def _sift(path: Path):
+    gray = cv2.cvtColor(read_image(path), cv2.COLOR_RGB2GRAY)  # COLMAP's frame (EXIF orientation not applied)
+    h, w = gray.shape
+    scale = min(1.0, MAX_IMAGE_SIZE / max(h, w))
+    small = gray if scale == 1.0 else cv2.resize(gray, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
+    options = pycolmap.FeatureExtractionOptions()
+    options.sift.max_num_features = MAX_NUM_FEATURES
+    kp, desc = pycolmap.Sift(options).extract(np.ascontiguousarray(small))
+    kp = kp.copy()
+    kp[:, :2] *= np.array([w / small.shape[1], h / small.shape[0]], np.float32)  # corner-origin: exact
+    kp[:, 2] /= scale
+    return kp, np.clip(np.round(desc * 512), 0, 255).astype(np.uint8), (w, h)  # COLMAP's database encoding
+
+
+def sift_image(path: Path, cache_dir: Path) -> ImageData:
+    """COLMAP SIFT of one image (uint8 descriptors as in the database), cached as .npz."""
+    return _cached(path, cache_dir, "", _sift)
+
+
 _aliked = {}  # the network, loaded once
+
+
+def _aliked_features(path: Path):
+    if not _aliked:
+        conf = learned_features.check_conf({"device": "cpu"})
+        _aliked.update(conf=conf, net=learned_features.load_model(conf))
+    kp, desc = learned_features.extract_image(*_aliked["net"], path, _aliked["conf"])
+    return kp, desc, image_size(path)
 
 
 def aliked_image(path: Path, cache_dir: Path) -> ImageData:
     """ALIKED-N(16)rot of one image as the pipeline extracts it (top 2048, float descriptors), cached as .npz."""
-    key = str(path.relative_to(shared_data_dir())).replace("/", "__")
-    cache = cache_dir / f"aliked__{key}.npz"
-    if cache.exists():
-        z = np.load(cache)
-        kp, desc, (w, h) = z["keypoints"], z["descriptors"], z["size"]
-    else:
-        if not _aliked:
-            conf = learned_features.check_conf({"device": "cpu"})
-            _aliked.update(conf=conf, net=learned_features.load_model(conf))
-        kp, desc = learned_features.extract_image(*_aliked["net"], path, _aliked["conf"])
-        h, w = read_image(path).shape[:2]
-        cache_dir.mkdir(parents=True, exist_ok=True)
-        np.savez(cache, keypoints=kp, descriptors=desc, size=np.array([w, h]))
-    return ImageData(key, 0, path, kp.astype(np.float32), desc.astype(np.float32), int(w), int(h))
+    return _cached(path, cache_dir, "aliked__", _aliked_features)
 
 
 FEATURES = {"sift": sift_image, "aliked": aliked_image}
