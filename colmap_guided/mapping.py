@@ -34,7 +34,7 @@ default_conf = {
     # 14-24/29), but it drops a photo whose only strong pair is planar (synthetic scene: 7/8, incremental 8/8),
     # and on a short, nearly straight walk (strecha_entry_P10, 4 photos) it registers all of them on wrong
     # poses where incremental is right: hence auto, and incremental when both place as many photos. Historical
-    # proxy, 10 scenes x 3 seeds x 2 protocols, one thread (docs/RESULTS.md, session 8, recon_scripts/mapper_choice.py):
+    # proxy, 10 scenes x 3 seeds x 2 protocols, one thread (docs/RESULTS.md, recon_scripts/mapper_choice.py):
     # photos on the reference pose / off it, guided SIFT databases: incremental 341 / 26, global 330 / 21, auto 349 / 21
     # (347 / 23 without the pose-support tie-break).
     "mapper": "auto",

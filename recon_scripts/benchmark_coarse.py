@@ -1,4 +1,4 @@
-"""Speed of the coarse network's neighbourhood-consensus filter (issue 6), and pycolmap's exhaustive
+"""Speed of the coarse network's neighbourhood-consensus filter, and pycolmap's exhaustive
 SIFT matching of real pairs measured in the same run as the reference.
 
     python recon_scripts/benchmark_coarse.py [--grids 25 32] [--sift-images 10] [--workers 1 2] [--repeats 3]

@@ -1,4 +1,4 @@
-"""Benchmark of the matchers on real pairs from ../shared/data (issue 8; not a timed test).
+"""Benchmark of the matchers on real pairs from ../shared/data (not a timed test).
 
 For every related pair (same scene: sacre_coeur_hloc, lund_door_gtsfm, lightglue_assets, WxBS
 appearance/illumination categories) it reports the COLMAP-verified inliers (pycolmap

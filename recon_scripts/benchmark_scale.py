@@ -1,4 +1,4 @@
-"""Scale benchmark (issue 15 part 4): time per stage, pairs, registered images and peak memory vs N photos.
+"""Scale benchmark: time per stage, pairs, registered images and peak memory vs N photos.
 
     python recon_scripts/benchmark_scale.py pool                      # the photo pool (once, ~5 min)
     python recon_scripts/benchmark_scale.py run --n 1000 --pairs retrieval

@@ -1,4 +1,4 @@
-"""Seconds per training iteration of the coarse filter's paths, interleaved in one run (issue 17).
+"""Seconds per training iteration of the coarse filter's paths, interleaved in one run.
 
 Sparse filter on whole grids (the default, what the CPU pipeline runs), dense filter on 12x12-cell
 windows (the former CPU recipe) and dense on whole grids (the GPU recipe; slow on a CPU: --dense_whole

@@ -1,4 +1,4 @@
-"""Mapping (incremental / global / hierarchical, seeded, thin view graphs) and the model check (issue 17)."""
+"""Mapping (incremental / global / hierarchical, seeded, thin view graphs) and the model check."""
 
 import json
 import subprocess

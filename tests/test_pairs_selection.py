@@ -1,4 +1,4 @@
-"""Pair selection (issue 15): exhaustive, sequential, retrieval by the backbone's GeM descriptor, auto."""
+"""Pair selection: exhaustive, sequential, retrieval by the backbone's GeM descriptor, auto."""
 
 import numpy as np
 import pytest

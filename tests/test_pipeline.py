@@ -1,4 +1,4 @@
-"""End to end on a real COLMAP database: reconstruct, the drop-in `match`, reruns (issue 3)."""
+"""End to end on a real COLMAP database: reconstruct, the drop-in `match`, reruns."""
 
 import hashlib
 import json

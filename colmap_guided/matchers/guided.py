@@ -237,7 +237,7 @@ class GuidedMatcher(Matcher):
         "min_inliers": 25,  # two-view verification of guided pairs: at least this many inliers (COLMAP: 15)
         # Lowe's ratio of the raw matches below (mutual NN over all keypoints), whatever ``ratio`` is; None = off.
         # Without a window a looser ratio verifies unrelated photos (historical proxy, museum facade, SIFT: of its 18
-        # pairs with a distractor, 0 verified at 0.8, 1 at 0.9, 17 at 0.95; docs/RESULTS.md, session 11).
+        # pairs with a distractor, 0 verified at 0.8, 1 at 0.9, 17 at 0.95; docs/RESULTS.md).
         "raw_ratio": 0.8,
         # Raw matches (mutual NN + ratio) beside the guided ones, for pairs where the coarse flow is wrong:
         # 'verified': verify guided and raw (guided: min_inliers; raw: raw_min_inliers) and keep the one that
@@ -248,7 +248,7 @@ class GuidedMatcher(Matcher):
         "raw_min_inliers": 15,  # raw matches kept by 'verified' pass with COLMAP's 15, as in plain COLMAP
         # 'verified', both sides pass: share of each side's inliers within the RANSAC threshold of the other's
         # epipolar geometry, both ways, below which the pair keeps its raw matches. Historical proxy, 10 scenes x 3
-        # seeds x 2 protocols (docs/RESULTS.md, session 8): runs with fewer photos on the reference pose than
+        # seeds x 2 protocols (docs/RESULTS.md): runs with fewer photos on the reference pose than
         # pycolmap's default pipeline 9 at 0.6, 6 at 0.8, 3 at 0.9; photos off the pose 34 / 19 / 23.
         "min_agreement": 0.9,
         "max_fb_cells": None,  # drop keypoints whose coarse forward-backward error exceeds this many cells

@@ -67,7 +67,7 @@ def random_epipole(width: int, height: int, rng: np.random.Generator) -> np.ndar
 
 
 def soft_scan(image: np.ndarray, rng: np.random.Generator, long_side: tuple[int, int] = (128, 288)) -> np.ndarray:
-    """A small, soft scan (issue 17: realistic scale gaps): the network input downscaled to a long side
+    """A small, soft scan (realistic scale gaps): the network input downscaled to a long side
     of ``long_side`` px (a small print or a low-resolution scan), blurred there (sigma 0.4-1.2 px: soft
     focus, print grain), and brought back to the input size as the pipeline upsamples small photos.
     Corner-aligned resizes keep the geometry of the view exact (a pure scale)."""

@@ -19,7 +19,7 @@ from colmap_guided.train.geometry import fundamental_from_poses
 # Whole scenes held out for validation (the evaluation issue reports on them) ...
 VAL_SCENES = ["strecha_castle", "strecha_entry_P10", "instantngp_fox", "lund_door_gtsfm"]
 # Training scenes under permissive terms (BSD/Apache/CC BY, no NC/SA/GPL clause) per the licence
-# column of train/README.md, for the permissive-only variant of the weights (issue 7, item 5).
+# column of train/README.md, for the permissive-only variant of the weights.
 # Left out on purpose: Flickr photo sets (per-image CC, some NC), GPL/AGPL and NC/research-only sets.
 PERMISSIVE_SCENES = ["aliked_tum", "dim_cyprus", "gtsfm_hilti_exp4"]
 
