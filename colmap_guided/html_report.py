@@ -26,6 +26,7 @@ import numpy as np
 from . import database as dbio
 from . import images
 from .log import logger
+from .workspace import read_marker
 
 MAX_LINES = 150  # match lines drawn per pair (an even subset beyond)
 Panel = tuple  # (title: str, image_a: Path | np.ndarray, image_b: Path | np.ndarray, matches: (M, 4) ndarray)
@@ -312,6 +313,8 @@ def rewrite_report(output: Path, compare: dict[str, Path] | None = None, num_pai
     report_path = output / "report.json"
     if not report_path.is_file():
         raise FileNotFoundError(f"No report.json in {output}: run `python -m colmap_guided reconstruct` first.")
+    if (read_marker(output) or {}).get("kind") != "reconstruct":  # report.html there is not ours to replace
+        raise ValueError(f"{output} is not a workspace written by `reconstruct`: pass the folder of a run's report.json.")
     result = json.loads(report_path.read_text(encoding="utf-8"))
     label = (result.get("matcher") or {}).get("name", "this run")
     databases = {label: Path(result.get("database_path", output / "database.db")), **(compare or {})}

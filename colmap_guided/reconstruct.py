@@ -9,7 +9,6 @@ A killed run started again continues from the database.
 
 from __future__ import annotations
 
-import shutil
 import time
 from pathlib import Path
 
@@ -17,6 +16,13 @@ from . import database as dbio
 from . import export, features, html_report, mapping, match, model_check, report
 from .log import logger
 from .matchers import AUTO, DEFAULT_MATCHER, Matcher, get_matcher
+from .workspace import Workspace
+
+# Everything a run writes in its workspace: --overwrite removes these and nothing else.
+WRITES = (
+    "database.db", "database.db-wal", "database.db-shm", "database.db-journal", "sparse", "sparse.partial",
+    "report.json", "report.json.partial", "report.html", "report.html.partial",
+)
 
 
 # What the default (auto) matcher tells the user about the other path.
@@ -27,6 +33,8 @@ AUTO_HINT = {
 
 
 def resolve_paths(scene_dir: Path, image_path: Path | None, output: Path | None) -> tuple[Path, Path]:
+    """(photos, workspace); a workspace that would put a user's file at risk is refused here, before
+    anything reads a database in it."""
     scene_dir = Path(scene_dir)
     if image_path is None:
         image_path = scene_dir / "images" if (scene_dir / "images").is_dir() else scene_dir
@@ -35,10 +43,9 @@ def resolve_paths(scene_dir: Path, image_path: Path | None, output: Path | None)
         # Never inside the photos' folder: SCENE_DIR/colmap_guided when photos are in SCENE_DIR/images,
         # else a sibling folder SCENE_DIR_colmap_guided.
         output = scene_dir / "colmap_guided" if image_path != scene_dir.resolve() else scene_dir.parent / f"{scene_dir.name}_colmap_guided"
-    output = Path(output).resolve()
-    if output == image_path or image_path in output.parents:
-        raise ValueError(f"The output folder {output} is inside the image folder {image_path}; pass --output outside it (photos are never written to).")
-    return image_path, output
+    return image_path, Workspace.check(output, "reconstruct", keep=(image_path,))
+
+
 
 
 def reconstruct(
@@ -68,9 +75,7 @@ def reconstruct(
         chosen = get_matcher(chosen, features.matcher_defaults(feature_conf["type"], chosen, matcher_conf))
     matcher = chosen
     features.check_matcher_features(matcher, feature_conf["type"])
-    if overwrite and output.exists():
-        shutil.rmtree(output)
-    output.mkdir(parents=True, exist_ok=True)
+    Workspace.claim(output, "reconstruct", keep=(image_path,), overwrite=overwrite).record(*WRITES)
     database_path = output / "database.db"
     if database_path.exists():
         with dbio.open_database(database_path) as db:

@@ -26,6 +26,7 @@ from colmap_guided.evaluation import manifest as mf
 from colmap_guided.evaluation import matcher_specs, proxy, registration, tables, two_view
 from colmap_guided.log import logger, set_verbosity
 from colmap_guided.paths import REPO_ROOT
+from colmap_guided.workspace import Workspace
 
 DEFAULT_PROXY = REPO_ROOT / "outputs" / "historical_proxy"
 WXBS_APPEARANCE = ("WGABS", "WLABS", "WGALBS")
@@ -54,6 +55,11 @@ def main(argv=None) -> int:
     parser.add_argument("--quiet", "-q", action="store_true")
     args = parser.parse_args(argv)
     set_verbosity(False, args.quiet)
+    try:  # refused before any work: a folder of the user's files, or one holding the photos
+        Workspace.claim(args.output, "evaluation").record(*registration.REPORT_FILES, "scenes")
+    except ValueError as err:
+        logger.error("%s", err)
+        return 2
 
     manifest_path = args.manifest
     if manifest_path is None:

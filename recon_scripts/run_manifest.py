@@ -26,6 +26,7 @@ from colmap_guided.evaluation import registration
 from colmap_guided.features import list_images
 from colmap_guided.log import logger, set_verbosity
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
+from colmap_guided.workspace import Workspace
 
 
 def shared_manifest(data_dir: Path | None = None) -> dict:
@@ -76,6 +77,11 @@ def main(argv=None) -> int:
     parser.add_argument("--quiet", "-q", action="store_true")
     args = parser.parse_args(argv)
     set_verbosity(False, args.quiet)
+    try:  # refused before any work: a folder of the user's files, or one holding the photos
+        Workspace.claim(args.output, "evaluation").record(*registration.REPORT_FILES)
+    except ValueError as err:
+        logger.error("%s", err)
+        return 2
 
     if args.write_shared_manifest:
         mf.save_manifest(args.write_shared_manifest, shared_manifest())

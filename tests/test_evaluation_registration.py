@@ -12,6 +12,7 @@ from colmap_guided.database import open_database, pair_inlier_counts, read_keypo
 from colmap_guided.evaluation import manifest as mf
 from colmap_guided.evaluation import proxy, registration
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
+from colmap_guided.workspace import MARKER
 
 
 def load_script(name):
@@ -158,7 +159,7 @@ def test_run_manifest_scans_and_lays_out_a_local_copy(tmp_path, capsys):
     assert load_script("run_manifest").main(argv) == 0
     scanned = json.loads((out / "manifest_scanned.json").read_text())
     assert scanned["root"] == str(root.resolve()) and len(scanned["scenes"][0]["images"]) == 4
-    assert sorted(p.name for p in out.iterdir()) == ["manifest_scanned.json", "some_landmark__all", "some_landmark__historical"]
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "manifest_scanned.json", "some_landmark__all", "some_landmark__historical"]
     # without a local copy the LTLL manifest has nothing to run, and says so
     assert load_script("run_manifest").main(["--manifest", str(REPO_ROOT / "datasets" / "ltll_manifest.json"), "--output", str(out), "-q"]) == 2
 

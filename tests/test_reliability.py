@@ -189,13 +189,13 @@ def test_database_of_other_photos_refused_and_overwrite_starts_fresh(reference, 
         shutil.copy(p, other / f"scan_{i:02d}.jpg")
     output = tmp_path / "out"
     shutil.copytree(reference["scene"].parent / "uninterrupted", output)
-    (output / "marker.txt").write_text("from an earlier run")
+    (output / "notes.txt").write_text("the user's, not the run's")
     with pytest.raises(DatabaseError, match="not in .*--image_path the database was made from, or --overwrite"):
         reconstruct(tmp_path / "other", output=output, matcher="raw")
     assert snapshot(output / "database.db") == reference["snapshot"]  # refused: nothing written
 
     result = reconstruct(tmp_path / "other", output=output, matcher="raw", overwrite=True)
-    assert not (output / "marker.txt").exists()
+    assert (output / "notes.txt").read_text() == "the user's, not the run's"  # --overwrite removes only its own
     assert result["num_registered"] == NUM_IMAGES
     with pycolmap.Database.open(str(output / "database.db")) as db:
         assert sorted(im.name for im in db.read_all_images()) == [f"scan_{i:02d}.jpg" for i in range(NUM_IMAGES)]

@@ -48,6 +48,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from colmap_guided.coarse.matcher import CoarseMatcher
     from colmap_guided.images import read_image
+    from colmap_guided.workspace import check_output_file
 
     parser = argparse.ArgumentParser(prog="python -m colmap_guided.coarse", description="Coarse matches of two images, drawn to a PNG.")
     parser.add_argument("image_a", type=Path)
@@ -62,6 +63,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-v", "--verbose", action="store_true")
     args = parser.parse_args(argv)
     set_verbosity(args.verbose)
+    try:  # a drawing never replaces a file
+        check_output_file(args.out)
+    except ValueError as err:
+        logger.error("%s", err)
+        return 2
     conf = {"backbone": args.backbone, "resize_max": args.resize_max, "weights": args.weights, "impl": args.impl}
     if args.mode == "auto":
         try:

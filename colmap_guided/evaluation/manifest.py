@@ -32,6 +32,7 @@ from pathlib import Path
 from colmap_guided.features import IMAGE_EXTENSIONS
 from colmap_guided.log import logger
 from colmap_guided.paths import shared_data_dir
+from colmap_guided.workspace import OutputRefused, Workspace
 
 ERAS = ("historical", "modern", "distractor")
 # A subset of a scene: the eras it keeps. Distractors stay in every subset: they must never register.
@@ -150,9 +151,12 @@ def layout_scene(manifest: dict, scene: dict, subset: str, out_dir: Path, copy: 
     if sum(im["era"] != "distractor" for im in images) < 2:
         return None
     src_dir = scene_image_dir(manifest, scene).resolve()
-    scene_dir = Path(out_dir).resolve() / f"{scene['name']}__{subset}"
-    if scene_dir == src_dir or src_dir in scene_dir.parents or scene_dir in src_dir.parents:
-        raise ValueError(f"Layout folder {scene_dir} overlaps the source {src_dir}")
+    workspace = Workspace.claim(out_dir, "evaluation", keep=(src_dir,))
+    name = f"{scene['name']}__{subset}"
+    scene_dir = workspace.path / name
+    if scene_dir.exists() and not workspace.owns(name):
+        raise OutputRefused(f"{scene_dir} was not written by colmap_guided; move it out of {workspace.path}.")
+    workspace.record(name)
     image_dir = scene_dir / "images"
     if image_dir.exists():
         shutil.rmtree(image_dir)  # our own links/copies from an earlier layout

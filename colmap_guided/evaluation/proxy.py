@@ -21,7 +21,6 @@ The crop changes the pixel frame but not the camera pose: registrations are chec
 from __future__ import annotations
 
 import json
-import shutil
 import zlib
 from pathlib import Path
 
@@ -33,6 +32,7 @@ from colmap_guided.features import list_images
 from colmap_guided.images import read_image
 from colmap_guided.log import logger
 from colmap_guided.paths import shared_data_dir, shared_dir
+from colmap_guided.workspace import OutputRefused, Workspace
 
 from .reference import reference_model_dir
 
@@ -78,12 +78,10 @@ def _degrade(rgb: np.ndarray, preset: str, seed: int, crop: float) -> tuple[np.n
     return archival.degrade(rgb, np.random.default_rng(seed), strength=p.get("strength", 1.0), effects=p["effects"], crop=crop, return_offset=True)
 
 
-def _check_out(out_dir: Path) -> Path:
-    out_dir = Path(out_dir).resolve()
-    for protected in (shared_dir().resolve(), shared_data_dir().resolve()):
-        if out_dir == protected or protected in out_dir.parents:
-            raise ValueError(f"The proxy must not be written inside {protected}; choose another --output.")
-    return out_dir
+def _claim(out_dir: Path, data_dir: Path | None = None) -> Workspace:
+    """The proxy's folder: never overlapping the photo sets it reads, never a folder of other files."""
+    keep = {shared_dir(), shared_data_dir(), *([Path(data_dir)] if data_dir else [])}
+    return Workspace.claim(out_dir, "proxy", keep=tuple(p for p in keep if p.exists()))
 
 
 def historical_half(names: list[str], key: str, seed: int = 0) -> set[str]:
@@ -105,16 +103,19 @@ def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int
         raise ValueError(f"unknown proxy look {look!r}; known: {sorted(LOOKS)}")
     suffix, presets = LOOKS[look]
     data_dir = Path(data_dir) if data_dir else shared_data_dir()
-    out_dir = _check_out(out_dir)
+    workspace = _claim(out_dir, data_dir)
     src = data_dir / key / "images"
     names = list_images(src)
     if max_images:
         names = names[:max_images]
     hist = historical_half(names, key, seed)
     scene = key.split("/")[-1] + suffix
-    scene_dir = out_dir / scene
-    if (scene_dir / "images").exists():
-        shutil.rmtree(scene_dir / "images")
+    scene_dir = workspace.path / scene
+    if workspace.owns(f"{scene}/images"):  # the images of an earlier build, redrawn below
+        workspace.remove(f"{scene}/images")
+    elif scene_dir.exists():
+        raise OutputRefused(f"{scene_dir} was not written by colmap_guided; move it out of {workspace.path}.")
+    workspace.record(scene, f"{scene}/images", f"{scene}/manifest.json")
     entries = []
     k = 0
     for name in names:
@@ -158,10 +159,10 @@ def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int
 def build_proxy(out_dir: Path, sources=DEFAULT_SOURCES, looks=tuple(LOOKS), **kwargs) -> Path:
     """All proxy scenes, one per source and look, + OUT/proxy_manifest.json (multi-scene schema);
     returns the manifest path."""
-    out_dir = _check_out(out_dir)
+    workspace = _claim(out_dir, kwargs.get("data_dir"))
     scenes = []
     for key, look in ((key, look) for look in looks for key in sources):
-        scene_dir = build_scene(key, out_dir, look=look, **kwargs)
+        scene_dir = build_scene(key, workspace.path, look=look, **kwargs)
         one = json.loads((scene_dir / "manifest.json").read_text())
         scenes.append({
             "name": one["scene"], "path": one["scene"], "image_dir": "images", "source": key, "look": one["build"]["look"],
@@ -175,6 +176,6 @@ def build_proxy(out_dir: Path, sources=DEFAULT_SOURCES, looks=tuple(LOOKS), **kw
         "root": ".",
         "scenes": scenes,
     }
-    path = out_dir / "proxy_manifest.json"
+    path = workspace.record("proxy_manifest.json")[0]
     path.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
     return path

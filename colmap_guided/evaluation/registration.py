@@ -30,8 +30,12 @@ import pycolmap
 from colmap_guided.features import CAMERA_MODES
 from colmap_guided.log import logger
 from colmap_guided.matchers import AUTO, resolve_auto
+from colmap_guided.workspace import Workspace
 
 from . import matcher_specs
+
+# What an evaluation writes beside its scenes (``write_report``) and its WxBS table.
+REPORT_FILES = ("results.json", "results.md", "registered.png", "wxbs_appearance.json", "manifest_scanned.json")
 from .metrics import rotation_angle
 
 MAX_ROTATION_DEG = 5.0
@@ -175,14 +179,15 @@ def method_slug(method: str) -> str:
 
 
 def _fresh_workspace(workspace: Path, database: Path | None) -> Path:
-    """An empty ``workspace`` (with a copy of ``database`` when given); returns its database path."""
-    workspace = Path(workspace)
-    if workspace.exists():
-        shutil.rmtree(workspace)
-    workspace.mkdir(parents=True)
+    """``workspace`` without what an earlier run wrote (with a copy of ``database`` when given); returns
+    its database path."""
+    from colmap_guided.reconstruct import WRITES
+
+    workspace = Workspace.claim(workspace, "reconstruct", overwrite=True)
+    workspace.record(*WRITES, "eval.json")
     if database is not None:
-        shutil.copyfile(database, workspace / "database.db")
-    return workspace / "database.db"
+        shutil.copyfile(database, workspace.path / "database.db")
+    return workspace.path / "database.db"
 
 
 def run_pycolmap_default(image_dir: Path, workspace: Path, camera_mode: str = "auto", seed: int | None = None, database: Path | None = None, threads: int | None = None) -> tuple[dict, dict]:
@@ -417,7 +422,7 @@ def write_report(output: Path, title: str, manifest: Path, methods: list[str], r
 
     note = tables.machine_note()
     text = f"### {title}: registration ({note['date']}, {note['torch_device']}, {note['cpu_count']} CPUs)\n\n" + markdown_tables(results, methods) + extra_text
-    output.mkdir(parents=True, exist_ok=True)
+    Workspace.claim(output, "evaluation").record(*REPORT_FILES)
     tables.write_json(output / "results.json", {"manifest": str(manifest), "methods": methods, "machine": note, "scenes": results})
     (output / "results.md").write_text(text + "\n", encoding="utf-8")
     plot_registration(results, methods, output / "registered.png")

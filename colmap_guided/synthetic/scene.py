@@ -14,6 +14,7 @@ import pycolmap
 from PIL import Image
 
 from colmap_guided.log import logger
+from colmap_guided.workspace import Workspace
 
 from . import textures
 from .render import Polygon, Texture, make_texture, render_image
@@ -210,8 +211,9 @@ def render_scene(
     if width < 32 or height < 32:
         raise ValueError(f"Image size {width}x{height} is too small; use at least 32x32 pixels.")
     conf = {**default_conf, **(conf or {})}
-    out_dir = Path(out_dir)
-    image_dir, gt_dir, depth_dir = out_dir / "images", out_dir / "ground_truth", out_dir / "depth"
+    workspace = Workspace.claim(out_dir, "synthetic", flag="OUT_DIR")
+    image_dir, gt_dir, depth_dir = workspace.record("images", "ground_truth", "depth")
+    out_dir = workspace.path
     for d in (image_dir, gt_dir, depth_dir):
         d.mkdir(parents=True, exist_ok=True)
     names = [f"view_{i:03d}.jpg" for i in range(num_images)]
@@ -321,5 +323,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--repeated", action="store_true", help="periodic window grid on every facade")
     args = parser.parse_args(argv)
-    info = render_scene(args.out_dir, args.num_images, args.width, args.height, args.seed, args.repeated)
+    try:
+        info = render_scene(args.out_dir, args.num_images, args.width, args.height, args.seed, args.repeated)
+    except ValueError as err:
+        logger.error("%s", err)
+        raise SystemExit(2) from None
     print(f"{len(info.names)} images in {info.image_dir}, ground truth in {info.gt_dir}")

@@ -109,7 +109,11 @@ def main(argv=None) -> int:
         torch.set_num_threads(args.threads)
     conf = conf_from_args(args)
     logger.info("Training conf: %s", json.dumps(conf))
-    trainer = Trainer(args.out, conf)  # builds the feature cache when the backbone is frozen
+    try:
+        trainer = Trainer(args.out, conf)  # builds the feature cache when the backbone is frozen
+    except ValueError as err:
+        logger.error("%s", err)
+        return 2
     if args.cache_only:
         return 0
     done = trainer.train()

@@ -40,8 +40,12 @@ from colmap_guided.log import logger
 from colmap_guided.train.data import CoarseTrainData, collate
 from colmap_guided.train.losses import coarse_loss, epipolar_loss_from_best, image_loss_from_best
 from colmap_guided.train.views import PairSample
+from colmap_guided.workspace import Workspace
 
 PCK_THRESHOLDS = (8, 16, 32)
+# What training writes in --out; a run started again there resumes from them.
+WRITES = ("checkpoint.pt", "checkpoint.tmp", "coarse_filter.safetensors", "coarse_filter.tmp.safetensors",
+          "history.json", "curves.png")
 
 default_conf = {
     "supervision": "epipolar",  # 'image' | 'epipolar' | 'points'
@@ -121,8 +125,9 @@ class Trainer:
             raise ValueError(f"impl must be 'dense' or 'sparse', got {c['impl']!r}")
         if c["impl"] == "sparse" and c["supervision"] == "points":
             raise ValueError("point supervision trains the dense filter only: use impl 'dense' (--impl dense)")
-        self.out = Path(out_dir)
-        self.out.mkdir(parents=True, exist_ok=True)
+        workspace = Workspace.claim(out_dir, "train", flag="--out")
+        workspace.record(*WRITES)
+        self.out = workspace.path
         torch.manual_seed(c["seed"])
         model_conf = {**c["model"], "filter": True}
         model_conf.setdefault("backbone", c["data"].get("backbone", CoarseTrainData.default_conf["backbone"]))
