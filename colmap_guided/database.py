@@ -8,6 +8,7 @@ any moment leaves a database that a rerun continues from (pairs already written 
 from __future__ import annotations
 
 import contextlib
+import sqlite3
 from pathlib import Path
 from typing import Iterator
 
@@ -21,15 +22,57 @@ class DatabaseError(ValueError):
     """A database that cannot be used as asked; the message says what to do."""
 
 
+COLMAP_TABLES = {"cameras", "images", "keypoints", "descriptors", "matches", "two_view_geometries"}
+BUSY_TIMEOUT_S = 30.0  # how long to wait for another program's lock on the database
+ANOTHER = "pass another --database_path or a new --output (the file is left as it is)"
+
+
+@contextlib.contextmanager
+def sqlite_connection(path: Path, read_only: bool = False) -> Iterator[sqlite3.Connection]:
+    """A plain SQLite connection to ``path`` whose errors are one line saying what to do."""
+    uri = f"{path.resolve().as_uri()}?mode={'ro' if read_only else 'rw'}"  # never creates the file
+    try:
+        with contextlib.closing(sqlite3.connect(uri, uri=True, timeout=BUSY_TIMEOUT_S)) as conn:
+            yield conn
+    except sqlite3.Error as err:
+        if "locked" in str(err) or "busy" in str(err):
+            what = "is locked by another program; close it (COLMAP's GUI, a run) and run again"
+        elif isinstance(err, sqlite3.OperationalError):  # cannot open, read-only, I/O
+            what = f"cannot be opened as a COLMAP database; {ANOTHER}"
+        else:  # not SQLite, or damaged
+            what = f"is not a COLMAP database, or a damaged one; {ANOTHER}"
+        raise DatabaseError(f"{path} {what} (SQLite: {err}).") from err
+
+
+def check_database(path: Path) -> None:
+    """Refuse a file that is not a COLMAP database (empty, not SQLite, damaged, another program's
+    SQLite) without writing to it: pycolmap would add its tables to an empty or foreign file."""
+    path = Path(path)
+    with sqlite_connection(path, read_only=True) as conn:
+        tables = {name for (name,) in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+    if not COLMAP_TABLES <= tables:
+        kind = "an empty file" if path.stat().st_size == 0 else "an SQLite file without COLMAP's tables"
+        raise DatabaseError(f"{path} is {kind}, not a COLMAP database; {ANOTHER}.")
+
+
 @contextlib.contextmanager
 def open_database(path: Path, must_exist: bool = True) -> Iterator[pycolmap.Database]:
+    """The COLMAP database at ``path``, checked first; created when absent unless ``must_exist``."""
     path = Path(path)
     if must_exist and not path.is_file():
         raise DatabaseError(f"No COLMAP database at {path}: run `colmap feature_extractor` (or `python -m colmap_guided reconstruct`) first.")
+    existed = path.exists()
+    if existed:
+        check_database(path)
     try:
         db = pycolmap.Database.open(str(path))
-    except Exception as err:  # pycolmap raises RuntimeError / ValueError for a corrupt file
-        raise DatabaseError(f"{path} is not a readable COLMAP database ({err}); delete it or pass --overwrite.") from err
+    except Exception as err:  # pycolmap raises RuntimeError / ValueError for a file it cannot open
+        if existed:  # a checked database: another program's write lock is the usual cause
+            with sqlite_connection(path) as conn:
+                conn.execute("BEGIN IMMEDIATE")
+                conn.rollback()
+        first = str(err).splitlines()[0]
+        raise DatabaseError(f"{path} is not a readable COLMAP database; {ANOTHER} ({first}).") from err
     try:
         yield db
     finally:
@@ -287,12 +330,11 @@ def remove_orphans(path: Path) -> tuple[int, int]:
     counters to the largest id in use) makes the resumed extraction give the ids an uninterrupted run
     gives. Cameras in a rig that has frames are kept. Call it while no pycolmap connection is open.
     """
-    import sqlite3
-
     path = Path(path)
     if not path.is_file():
         return 0, 0
-    with contextlib.closing(sqlite3.connect(str(path), timeout=30.0)) as conn:
+    check_database(path)
+    with sqlite_connection(path) as conn:
         tables = {name for (name,) in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
         if not {"rigs", "rig_sensors", "frames", "cameras", "images", "sqlite_sequence"} <= tables:
             return 0, 0  # a database of an older COLMAP: nothing of this kind to clean

