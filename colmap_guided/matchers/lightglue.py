@@ -88,7 +88,7 @@ class LightGlueMatcher(Matcher):
         # Two-view verification: at least this many inliers (COLMAP: 15). LightGlue finds 15-51 inliers between
         # unrelated photos: phototourism_superglue 30 of its 60 different-landmark pairs verified with 15 (up to 38
         # inliers; its same-landmark pairs: 65-670), the historical proxy's distractors 62 pairs (15-51); 60 leaves
-        # none and drops 15 of the proxy's 551 same-landmark pairs (docs/RESULTS.md, session 11).
+        # none and drops 15 of the proxy's 551 same-landmark pairs (docs/RESULTS.md).
         "min_inliers": 60,
         "device": "auto",
     }
@@ -138,8 +138,8 @@ class GuidedLightGlueMatcher(Matcher):
     flow_options = ("window_cells",)
     default_conf = {
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
-        # Historical proxy, 10 scenes x 3 seeds, session 10's LightGlue matches filtered with 3 cells (docs/RESULTS.md,
-        # session 11): photos on the reference pose / off it 300 / 0 with all photos (LightGlue 294 / 6), 124 / 22
+        # Historical proxy, 10 scenes x 3 seeds, LightGlue's matches filtered with 3 cells (docs/RESULTS.md):
+        # photos on the reference pose / off it 300 / 0 with all photos (LightGlue 294 / 6), 124 / 22
         # with historical photos only (123 / 27). phototourism_superglue, where the coarse flow is wrong across
         # Piazza San Marco pairs: 18 of its 18 same-landmark pairs keep >= 25 inliers at 3 cells, 14 at 1 cell.
         "window_cells": 3.0,
