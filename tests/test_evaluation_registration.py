@@ -59,6 +59,15 @@ def test_proxy_never_writes_into_shared_data():
         proxy.build_scene("sacre_coeur_hloc", shared_data_dir() / "proxy_here")
 
 
+def test_the_test_split_shows_no_landmark_the_shipped_weights_saw():
+    seen = proxy.seen_scenes()
+    assert "dfsfm_sacre_coeur" in seen and "lund_door_gtsfm" in seen  # the metadata is read
+    for key in proxy.SPLITS["test"]:
+        assert not proxy.same_landmark(key) & seen, key
+        assert not proxy.same_landmark(key) & {n for k in proxy.SPLITS["dev"] for n in proxy.same_landmark(k)}, key
+    assert proxy.same_landmark("sacre_coeur_hloc") & seen  # a leak is seen as one
+
+
 def test_distractors_never_come_from_the_same_landmark():
     for key in proxy.DEFAULT_SOURCES:
         same = set().union(*(g for g in proxy.SAME_LANDMARK if key in g)) | {key}
