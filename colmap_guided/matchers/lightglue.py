@@ -110,21 +110,26 @@ class LightGlueMatcher(Matcher):
     def verification_conf(self) -> dict:
         return {"min_num_inliers": self.conf["min_inliers"]}
 
-    def match(self, a: ImageData, b: ImageData) -> np.ndarray:
+    def match(self, a: ImageData, b: ImageData, keep_a: np.ndarray | None = None, keep_b: np.ndarray | None = None) -> np.ndarray:
+        """LightGlue's matches (indices into a's and b's keypoints); ``keep_a`` / ``keep_b``: the keypoint
+        indices that enter it (None = all)."""
         for image in (a, b):
             if image.descriptors.dtype != np.float32 or image.descriptors.shape[1] != 128:
                 raise ValueError(f"{image.name}: the lightglue matcher needs ALIKED features; run reconstruct with --features aliked.")
+        keep_a = np.arange(len(a.keypoints)) if keep_a is None else np.asarray(keep_a, np.int64)
+        keep_b = np.arange(len(b.keypoints)) if keep_b is None else np.asarray(keep_b, np.int64)
 
-        def side(image: ImageData) -> dict:
+        def side(image: ImageData, keep: np.ndarray) -> dict:
             return {
-                "keypoints": torch.from_numpy(np.array(image.keypoints[:, :2]))[None].to(self.device),
-                "descriptors": torch.from_numpy(np.array(image.descriptors))[None].to(self.device),
+                "keypoints": torch.from_numpy(np.array(image.keypoints[keep, :2]))[None].to(self.device),
+                "descriptors": torch.from_numpy(np.array(image.descriptors[keep]))[None].to(self.device),
                 "image_size": torch.tensor([[image.width, image.height]], dtype=torch.float32, device=self.device),
             }
 
         with _lock, torch.inference_mode():  # LightGlue caches per call: one pair at a time
-            out = self.net({"image0": side(a), "image1": side(b)})
-        return out["matches"][0].cpu().numpy().astype(np.uint32).reshape(-1, 2)
+            out = self.net({"image0": side(a, keep_a), "image1": side(b, keep_b)})
+        m = out["matches"][0].cpu().numpy().astype(np.int64).reshape(-1, 2)
+        return np.stack([keep_a[m[:, 0]], keep_b[m[:, 1]]], axis=1).astype(np.uint32)
 
 
 class GuidedLightGlueMatcher(Matcher):
@@ -135,7 +140,7 @@ class GuidedLightGlueMatcher(Matcher):
 
     name = "guided_lightglue"
     feature_types = ("aliked",)
-    flow_options = ("window_cells",)
+    flow_options = ("window_cells", "prune_fb_cells")
     default_conf = {
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
         # Historical proxy, 10 scenes x 3 seeds, LightGlue's matches filtered with 3 cells (docs/RESULTS.md):
@@ -143,6 +148,10 @@ class GuidedLightGlueMatcher(Matcher):
         # with historical photos only (123 / 27). phototourism_superglue, where the coarse flow is wrong across
         # Piazza San Marco pairs: 18 of its 18 same-landmark pairs keep >= 25 inliers at 3 cells, 14 at 1 cell.
         "window_cells": 3.0,
+        # Keypoints whose coarse match does not lead back within this many cells (the forward-backward error of
+        # the coarse flow: outside the covisible region) do not enter LightGlue; a pair left with fewer than
+        # min_inliers keypoints on a side is not matched at all. None: every keypoint enters.
+        "prune_fb_cells": None,
         "weights": None,  # coarse filter weights, as the guided matcher's; None = the shipped ones
         "coarse": {},  # further CoarseMatcher options, as the guided matcher's
     }
@@ -172,8 +181,14 @@ class GuidedLightGlueMatcher(Matcher):
         return self.guide.coarse_flows(a, b)
 
     def match_flows(self, a: ImageData, b: ImageData, flows, **overrides) -> np.ndarray:
-        window = self.flow_conf(overrides)["window_cells"]
-        m = self.lightglue.match(a, b).astype(np.int64)
+        conf = self.flow_conf(overrides)
+        window, keep_a, keep_b = conf["window_cells"], None, None
+        if conf["prune_fb_cells"] is not None:  # the coarse flow restricts the candidates before matching
+            keep_a = np.flatnonzero(flows.fb_ab <= conf["prune_fb_cells"] * flows.cell_b)
+            keep_b = np.flatnonzero(flows.fb_ba <= conf["prune_fb_cells"] * flows.cell_a)
+            if min(len(keep_a), len(keep_b)) < self.conf["min_inliers"]:  # cannot verify: matched with none
+                return np.zeros((0, 2), np.uint32)
+        m = self.lightglue.match(a, b, keep_a, keep_b).astype(np.int64)
         with np.errstate(invalid="ignore"):  # a keypoint without coarse match (NaN) is never near
             near_b = np.linalg.norm(flows.flow_ab[m[:, 0]] - b.keypoints[m[:, 1], :2], axis=1) < window * flows.cell_b
             near_a = np.linalg.norm(flows.flow_ba[m[:, 1]] - a.keypoints[m[:, 0], :2], axis=1) < window * flows.cell_a
