@@ -84,12 +84,12 @@ def match_database(
         id_pairs = [(images[a].image_id, images[b].image_id, a, b) for a, b in pairs]
         todo = [p for p in id_pairs if not dbio.pair_has_matches(db, p[0], p[1])]
         logger.info("Matching %d %s pairs with the %s matcher (%d already matched)", len(todo), mode, matcher.name, len(id_pairs) - len(todo))
-        start = time.time()
+        start, seconds = time.time(), {"read": 0.0, "write": 0.0}
         if todo:
             run = get_executor(executor, matcher, ray_address)
             try:
                 with scoped_torch_threads(matcher.torch_threads):
-                    stats["memory"] = _match_pairs(db, image_path, images, pair_order(todo), matcher, run, max_images_held)
+                    stats["memory"], seconds = _match_pairs(db, image_path, images, pair_order(todo), matcher, run, max_images_held)
             finally:
                 run.close()
             stats["executor"] = run.describe()
@@ -100,6 +100,8 @@ def match_database(
         start = time.time()
         verify.verify_pairs(db, images, id_pairs, options)
         stats["verify_time"] = time.time() - start
+        # Where the pairs' time went, in seconds summed over them (the matcher's steps: this process's only).
+        stats["profile"] = {"read": seconds["read"], **matcher.steps, "write": seconds["write"], "verify": stats["verify_time"]}
         stats.update(dbio.database_summary(db))
     logger.info(
         "%d/%d pairs verified, %d inlier matches", stats["num_verified_pairs"], stats["num_pairs"], stats["num_inlier_matches"]
@@ -152,12 +154,12 @@ def pair_order(todo: list[tuple]) -> list[tuple]:
     return grouped if most_images_held(grouped) < most_images_held(todo) else list(todo)
 
 
-def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matcher: Matcher, run, max_held: int) -> dict:
+def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matcher: Matcher, run, max_held: int) -> tuple[dict, dict]:
     """Match ``todo`` (id_a, id_b, name_a, name_b) on the executor ``run``; the caller's process is the only
     database writer (one transaction per batch of finished pairs). An image is read (and ``matcher.prepare``d:
     the guided matcher's backbone features) at its first pair and dropped after its last one; at most ``max_held``
     are held: past that, the one whose next pair comes last is dropped and read again then (Belady's rule).
-    Returns the most images held at once and the image reads."""
+    Returns the most images held at once and the image reads, and the seconds spent reading and writing."""
     remaining = Counter(name for p in todo for name in p[2:])  # unfinished pairs: the matcher's cache is released after the last
     uses: dict[str, deque] = defaultdict(deque)  # positions in ``todo`` of each image's pairs not yet submitted
     for i, key in enumerate(todo):
@@ -165,6 +167,7 @@ def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matche
             uses[name].append(i)
     handles: dict[str, object] = {}
     memory = {"images_held_max": 0, "image_reads": 0, "max_images_held": max_held}
+    seconds = {"read": 0.0, "write": 0.0}
     prepare_bar = tqdm(desc="prepare", total=len(remaining), unit="img", disable=None, dynamic_ncols=True, leave=False) if matcher.prepares_images else None
 
     def handle(name: str, pair: tuple):
@@ -173,8 +176,11 @@ def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matche
                 drop = max((n for n in handles if n not in pair), key=lambda n: uses[n][0] if uses[n] else math.inf)
                 handles.pop(drop)
                 matcher.release(drop)
+            start = time.perf_counter()
             image = dbio.read_image_data(db, images[name], image_path)
-            matcher.prepare(image)
+            seconds["read"] += time.perf_counter() - start
+            with matcher.timed("prepare"):
+                matcher.prepare(image)
             if prepare_bar is not None:
                 prepare_bar.update(1)
             handles[name] = run.put(image)
@@ -188,7 +194,9 @@ def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matche
             done = run.wait()
             errors = [value for _, value in done if isinstance(value, BaseException)]
             done = [(key, value) for key, value in done if not isinstance(value, BaseException)]
+            start = time.perf_counter()
             dbio.write_pairs_matches(db, [(key[0], key[1], matches) for key, matches in done])
+            seconds["write"] += time.perf_counter() - start
             bar.update(len(done))
             if errors:  # the finished pairs are written (resumable); the first error stops the run
                 raise errors[0]
@@ -211,7 +219,7 @@ def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matche
             write_done()
     if prepare_bar is not None:
         prepare_bar.close()
-    return memory
+    return memory, seconds
 
 
 def matcher_for_features(matcher: str, feature_type: str) -> str:

@@ -93,6 +93,10 @@ def main(argv=None):
                 first = {"mapper": args.mappers[0], "random_seed": args.seeds[0], "num_threads": args.threads}
                 res = reconstruct(image_path.parent, image_path=image_path, output=out, matcher=matcher_specs.build(spec), feature_conf={"camera_mode": args.camera_mode, **feature_conf}, mapping_conf=first)
                 verified = res["database"]["num_verified_pairs"]
+                # Where the run's time went: stages, and within matching the read / coarse / fine / write steps.
+                profile = {"extract": res["timings"]["extract"], **res["database"]["profile"], "map": res["timings"]["map"]}
+                results.setdefault(name, {}).setdefault("profile", {})[label] = profile
+                print(f"{name} {label}, {res['database']['num_pairs']} pairs: " + ", ".join(f"{k} {v:.1f} s" for k, v in profile.items()), flush=True)
                 for seed in args.seeds:
                     for mapper in args.mappers:
                         if (mapper, seed) == (args.mappers[0], args.seeds[0]):

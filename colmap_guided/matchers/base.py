@@ -9,11 +9,16 @@ Coordinates follow COLMAP (see ``colmap_guided.image_data``).
 from __future__ import annotations
 
 import contextlib
+import threading
+import time
 
 import numpy as np
 
 from colmap_guided.conf import merge_conf
 from colmap_guided.image_data import ImageData
+
+
+_steps_lock = threading.Lock()
 
 
 class Matcher:
@@ -71,6 +76,28 @@ class Matcher:
         """The ``coarse.CoarseMatcher`` whose backbone features give retrieval descriptors (pairs.py);
         None: an ImageNet backbone on this matcher's ``device``."""
         return None
+
+    @contextlib.contextmanager
+    def timed(self, step: str):
+        """Seconds spent in ``step``, summed over the pairs this process matched (``steps``)."""
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            with _steps_lock:
+                steps = self.__dict__.setdefault("_steps", {})
+                steps[step] = steps.get(step, 0.0) + time.perf_counter() - start
+
+    @property
+    def steps(self) -> dict[str, float]:
+        return dict(self.__dict__.get("_steps", {}))
+
+    def match_guided(self, a: ImageData, b: ImageData) -> np.ndarray:
+        """``match`` of a guided matcher: the coarse guidance, then the matching it restricts, each timed."""
+        with self.timed("coarse"):
+            flows = self.coarse_flows(a, b)
+        with self.timed("fine"):
+            return self.match_flows(a, b, flows)
 
     def describe(self) -> dict:
         """What the report records about this matcher."""

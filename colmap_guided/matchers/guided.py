@@ -399,7 +399,7 @@ class GuidedMatcher(Matcher):
         return max(candidates, key=lambda item: item[0])[1]  # the first on ties: guided, then raw
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
-        return self.match_flows(a, b, self.coarse_flows(a, b))
+        return self.match_guided(a, b)
 
     def release(self, name: str) -> None:
         self.coarse.release(name)

@@ -195,7 +195,7 @@ class GuidedLightGlueMatcher(Matcher):
         return m[near_a | near_b].astype(np.uint32)
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
-        return self.match_flows(a, b, self.coarse_flows(a, b))
+        return self.match_guided(a, b)
 
     def describe(self) -> dict:
         return {**super().describe(), "coarse": self.guide.coarse.describe()}
