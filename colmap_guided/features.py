@@ -239,14 +239,19 @@ def noise_level(grey: np.ndarray) -> float:
 def sift_grey(path: Path, max_image_size: int) -> np.ndarray:
     """The grey image COLMAP's SIFT works on: float32 in [0, 1] (Rec. 709 luma rounded to 8 bits, as COLMAP:
     the same keypoints and descriptors at full size), the longer side downscaled to ``max_image_size``."""
-    rgb = images.read_image(path)
-    grey = np.round(rgb.astype(np.float32) @ GREY_WEIGHTS)
-    height, width = grey.shape
+    width, height = images.image_size(path)
     scale = min(1.0, max_image_size / max(width, height))
+    rgb = images.read_image(path, 2 * max_image_size)  # a JPEG 4x SIFT's size or more: decoded reduced
+    box = images.decoded_box((width, height), rgb.shape)
+    grey = np.empty(rgb.shape[:2], np.uint8)
+    for row in range(0, len(grey), 256):  # in bands of rows: no float copy of a large scan
+        grey[row : row + 256] = np.round(rgb[row : row + 256].astype(np.float32) @ GREY_WEIGHTS)
+    del rgb
     if scale < 1.0:  # COLMAP's resampling differs slightly: 2062 vs its 2067 keypoints on a photo at 500 px
         size = (max(1, round(width * scale)), max(1, round(height * scale)))
-        grey = np.asarray(Image.fromarray(grey, "F").resize(size, Image.BILINEAR))
-    return np.ascontiguousarray(grey * np.float32(1 / 255), np.float32)
+        # (a non-JPEG scan 4x SIFT's size or more is box-reduced in float first: Pillow's reducing_gap)
+        grey = Image.fromarray(grey).convert("F").resize(size, Image.BILINEAR, box=box, reducing_gap=2.0)
+    return np.asarray(grey, np.float32) * np.float32(1 / 255)
 
 
 def prepared_grey(path: Path, conf: dict) -> tuple[np.ndarray | None, list[str]]:

@@ -1,4 +1,5 @@
-"""Plain data types shared by the database io and the matchers (numpy only: importing it loads no torch).
+"""Plain data types shared by the database io and the matchers, and the bounded image cache of the
+match and verify stages (numpy only: importing it loads no torch).
 
 Coordinates follow COLMAP: (0, 0) is the top-left corner of the top-left pixel, so the centre of
 pixel (col, row) is (col + 0.5, row + 0.5). Keypoints are in the original image's pixels.
@@ -6,8 +7,11 @@ pixel (col, row) is (col + 0.5, row + 0.5). Keypoints are in the original image'
 
 from __future__ import annotations
 
+import math
+from collections import defaultdict, deque
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -29,3 +33,51 @@ class ImageData:
 
 # A pair to match: (image_id_a, image_id_b, name_a, name_b).
 PairKey = tuple[int, int, str, str]
+
+
+# Images whose keypoints, descriptors and backbone features the match stage holds at once (about 2 MB each
+# with 8k SIFT and the guided backbone): past it, the image needed latest is dropped and read again at its
+# next pair, so memory stays flat in N (recon_scripts/benchmark_scale.py measures how often that happens).
+MAX_IMAGES_HELD = 128
+
+
+class HeldImages:
+    """What ``load(name)`` gives for the images of ``pairs`` (.., .., name_a, name_b), taken in that
+    order with ``pair``: an image is loaded at its first pair and dropped after its last; at most
+    ``max_held`` are held: past that, the one whose next pair comes last is dropped (``on_drop(name)``)
+    and loaded again then (Belady's rule)."""
+
+    def __init__(self, pairs: list[tuple], load: Callable, max_held: int = MAX_IMAGES_HELD,
+                 on_drop: Callable | None = None):
+        if max_held < 2:
+            raise ValueError(f"max_images_held must be at least 2 (the two images of a pair), got {max_held}.")
+        self.load, self.max_held, self.on_drop = load, max_held, on_drop
+        self.uses: dict[str, deque] = defaultdict(deque)  # positions of each image's pairs not yet taken
+        for i, key in enumerate(pairs):
+            for name in key[2:]:
+                self.uses[name].append(i)
+        self.held: dict[str, object] = {}
+        self.reads = self.most_held = 0
+
+    def _get(self, name: str, pair: tuple):
+        if name not in self.held:
+            if len(self.held) >= self.max_held:
+                next_use = lambda n: self.uses[n][0] if self.uses[n] else math.inf  # noqa: E731
+                drop = max((n for n in self.held if n not in pair), key=next_use)
+                self.held.pop(drop)
+                if self.on_drop is not None:
+                    self.on_drop(drop)
+            self.held[name] = self.load(name)
+            self.reads += 1
+            self.most_held = max(self.most_held, len(self.held))
+        return self.held[name]
+
+    def pair(self, key: tuple) -> tuple:
+        """The two images of ``key``, the next pair; those whose last pair it is are dropped."""
+        pair = tuple(key[2:])
+        values = tuple(self._get(name, pair) for name in pair)
+        for name in pair:
+            self.uses[name].popleft()
+            if not self.uses[name]:
+                self.held.pop(name, None)
+        return values

@@ -168,6 +168,11 @@ def check_images(image_path: Path, names: list[str], conf: dict | None = None, p
 def _to_uint8(array: np.ndarray) -> np.ndarray:
     if array.dtype == np.uint8:
         return array
+    if len(array) > 256:  # in bands of rows: no float64 copy of a large scan
+        out = np.empty(array.shape, np.uint8)
+        for row in range(0, len(array), 256):
+            out[row : row + 256] = _to_uint8(array[row : row + 256])
+        return out
     if array.dtype == np.bool_:
         return array.astype(np.uint8) * 255
     if np.issubdtype(array.dtype, np.floating):
@@ -177,16 +182,22 @@ def _to_uint8(array: np.ndarray) -> np.ndarray:
     return array.astype(np.uint8)
 
 
-def read_image(path: Path) -> np.ndarray:
+def read_image(path: Path, min_side: int | None = None) -> np.ndarray:
     """(H, W, 3) uint8 RGB in COLMAP's frame: the stored pixel grid, EXIF orientation NOT applied.
 
     Grey, palette, bilevel, alpha (dropped, as COLMAP does), CMYK, 16-bit and float images are converted the
     way COLMAP's reader converts them (within one grey level). Raises ValueError for an unreadable file.
+    ``min_side``, for callers that downscale anyway: a JPEG is decoded at 1/2, 1/4 or 1/8 of its size
+    (libjpeg's DCT scaling) while its longer side stays at least ``min_side``; ``decoded_box`` tells
+    which part of that smaller grid the photo covers.
     """
     path = Path(path)
     with _pillow_strict(2 * default_conf["max_pixels"]):
         try:
             with Image.open(path) as im:
+                if min_side and im.format in ("JPEG", "MPO"):
+                    longer = max(im.size)
+                    im.draft(None, tuple(max(1, side * min_side // longer) for side in im.size))
                 mode = im.mode
                 if mode in ("I;16", "I;16B", "I;16L", "I;16N", "I", "F"):
                     grey = np.asarray(im)
@@ -196,9 +207,16 @@ def read_image(path: Path) -> np.ndarray:
                 rgb = _rgb_16bit(path, im) if mode == "RGB" and im.format in ("PNG", "TIFF") else None
                 if rgb is not None:
                     return rgb
-                return np.asarray(im.convert("RGB"))
+                return np.asarray(im if mode == "RGB" else im.convert("RGB"))  # (no copy of a scan)
         except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
             raise ValueError(f"Cannot read image {path} ({err}); run the reconstruction once to have it checked, or convert it to JPEG.") from err
+
+
+def decoded_box(size: tuple[int, int], shape: tuple) -> tuple[float, float, float, float]:
+    """The box that a photo of ``size`` (width, height) covers in the grid of ``shape`` (H, W, ...) that
+    ``read_image(path, min_side)`` decoded it to, for ``PIL.Image.resize``: a 1/s decode rounds up."""
+    s = 2 ** round(np.log2(max(size) / max(shape[:2])))
+    return 0.0, 0.0, size[0] / s, size[1] / s
 
 
 def _rgb_16bit(path: Path, im: Image.Image) -> np.ndarray | None:
@@ -263,4 +281,4 @@ def folder_digests(folder: Path) -> dict[str, tuple[str, int]]:
     return {p.relative_to(folder).as_posix(): (file_digest(p), p.stat().st_mtime_ns) for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
-__all__ = ["check_image", "check_images", "read_image", "read_thumbnail", "image_size", "folder_digests", "MIN_SIZE", "HUGE_PIXELS"]
+__all__ = ["check_image", "check_images", "read_image", "decoded_box", "read_thumbnail", "image_size", "folder_digests", "MIN_SIZE", "HUGE_PIXELS"]

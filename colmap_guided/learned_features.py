@@ -249,11 +249,13 @@ def load_model(conf: dict) -> tuple[ALIKED, torch.device]:
 def extract_image(model: ALIKED, device: torch.device, path: Path, conf: dict) -> tuple[np.ndarray, np.ndarray]:
     """ALIKED on one photo (read in COLMAP's frame, longer side at most max_image_size): COLMAP keypoints
     (N, 6) float32 and (N, 128) float32 unit descriptors."""
-    rgb = images.read_image(path)
-    height, width = rgb.shape[:2]
+    width, height = images.image_size(path)
     scale = min(1.0, conf["max_image_size"] / max(width, height))
+    rgb = images.read_image(path, 2 * conf["max_image_size"])  # a JPEG 4x that or more: decoded reduced
     if scale < 1.0:
-        rgb = np.asarray(Image.fromarray(rgb).resize((max(1, round(width * scale)), max(1, round(height * scale))), Image.BILINEAR, reducing_gap=None))
+        size = (max(1, round(width * scale)), max(1, round(height * scale)))
+        box = images.decoded_box((width, height), rgb.shape)
+        rgb = np.asarray(Image.fromarray(rgb).resize(size, Image.BILINEAR, box=box, reducing_gap=None))
     tensor = torch.from_numpy(np.array(rgb)).to(device).permute(2, 0, 1)[None].float() / 255.0
     kpts, desc = model(tensor, conf["max_num_keypoints"], conf["min_score"])
     kpts = kpts.cpu().numpy().astype(np.float64)

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import inspect
-import math
 import time
 from collections import Counter, defaultdict, deque
 from pathlib import Path
@@ -21,17 +20,11 @@ from . import database as dbio
 from . import features, matchers, verify
 from .conf import merge_conf
 from .log import logger
-from .image_data import PairKey
+from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey
 from .matchers import AUTO, DEFAULT_MATCHER, PRESETS, get_matcher, preset
 from .matchers.base import Matcher, scoped_torch_threads
 from .executor import EXECUTORS, get_executor
 from .pairs import DEFAULT_NUM_NEIGHBORS, PAIR_MODES, global_descriptors, select_pairs
-
-# Images whose keypoints, descriptors and backbone features the match stage holds at once (about 2 MB each
-# with 8k SIFT and the guided backbone): past it, the image needed latest is dropped and read again at its
-# next pair, so memory stays flat in N (recon_scripts/benchmark_scale.py measures how often that happens).
-MAX_IMAGES_HELD = 128
-
 
 def _progress(iterable, desc: str, total: int):
     return tqdm(iterable, desc=desc, total=total, unit="pair", disable=None, dynamic_ncols=True, leave=False)
@@ -98,7 +91,7 @@ def match_database(
         stats["num_pairs_matched_now"] = len(todo)
 
         start = time.time()
-        verify.verify_pairs(db, images, id_pairs, options)
+        verify.verify_pairs(db, images, pair_order(id_pairs), options, max_images_held)
         stats["verify_time"] = time.time() - start
         # Where the pairs' time went, in seconds summed over them (the matcher's steps: this process's only).
         stats["profile"] = {"read": seconds["read"], **matcher.steps, "write": seconds["write"], "verify": stats["verify_time"]}
@@ -156,38 +149,25 @@ def pair_order(todo: list[tuple]) -> list[tuple]:
 
 def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matcher: Matcher, run, max_held: int) -> tuple[dict, dict]:
     """Match ``todo`` (id_a, id_b, name_a, name_b) on the executor ``run``; the caller's process is the only
-    database writer (one transaction per batch of finished pairs). An image is read (and ``matcher.prepare``d:
-    the guided matcher's backbone features) at its first pair and dropped after its last one; at most ``max_held``
-    are held: past that, the one whose next pair comes last is dropped and read again then (Belady's rule).
+    database writer (one transaction per batch of finished pairs). Images are read (and
+    ``matcher.prepare``d: the guided matcher's backbone features) by ``HeldImages``: at most ``max_held``
+    at once.
     Returns the most images held at once and the image reads, and the seconds spent reading and writing."""
     remaining = Counter(name for p in todo for name in p[2:])  # unfinished pairs: the matcher's cache is released after the last
-    uses: dict[str, deque] = defaultdict(deque)  # positions in ``todo`` of each image's pairs not yet submitted
-    for i, key in enumerate(todo):
-        for name in key[2:]:
-            uses[name].append(i)
-    handles: dict[str, object] = {}
-    memory = {"images_held_max": 0, "image_reads": 0, "max_images_held": max_held}
-    seconds = {"read": 0.0, "write": 0.0}
     prepare_bar = tqdm(desc="prepare", total=len(remaining), unit="img", disable=None, dynamic_ncols=True, leave=False) if matcher.prepares_images else None
+    seconds = {"read": 0.0, "write": 0.0}
 
-    def handle(name: str, pair: tuple):
-        if name not in handles:
-            if len(handles) >= max_held:
-                drop = max((n for n in handles if n not in pair), key=lambda n: uses[n][0] if uses[n] else math.inf)
-                handles.pop(drop)
-                matcher.release(drop)
-            start = time.perf_counter()
-            image = dbio.read_image_data(db, images[name], image_path)
-            seconds["read"] += time.perf_counter() - start
-            with matcher.timed("prepare"):
-                matcher.prepare(image)
-            if prepare_bar is not None:
-                prepare_bar.update(1)
-            handles[name] = run.put(image)
-            memory["image_reads"] += 1
-            memory["images_held_max"] = max(memory["images_held_max"], len(handles))
-        return handles[name]
+    def load(name: str):
+        start = time.perf_counter()
+        image = dbio.read_image_data(db, images[name], image_path)
+        seconds["read"] += time.perf_counter() - start
+        with matcher.timed("prepare"):
+            matcher.prepare(image)
+        if prepare_bar is not None:
+            prepare_bar.update(1)
+        return run.put(image)
 
+    held = HeldImages(todo, load, max_held, on_drop=matcher.release)
     with _progress(None, "match", len(todo)) as bar:
 
         def write_done() -> None:
@@ -207,18 +187,14 @@ def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matche
                         matcher.release(name)
 
         for key in todo:
-            pair = tuple(key[2:])
-            run.submit(key, handle(key[2], pair), handle(key[3], pair))
-            for name in pair:
-                uses[name].popleft()
-                if not uses[name]:  # its last pair is submitted: the pair in flight holds what it needs
-                    handles.pop(name, None)
+            run.submit(key, *held.pair(key))  # an image dropped after its last pair: the pair holds it
             while run.in_flight >= run.capacity:
                 write_done()
         while run.in_flight:
             write_done()
     if prepare_bar is not None:
         prepare_bar.close()
+    memory = {"images_held_max": held.most_held, "image_reads": held.reads, "max_images_held": max_held}
     return memory, seconds
 
 

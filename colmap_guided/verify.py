@@ -11,7 +11,7 @@ import pycolmap
 from tqdm import tqdm
 
 from . import database as dbio
-from .image_data import PairKey
+from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey
 from .conf import merge_conf
 from .log import colmap_quiet
 
@@ -71,20 +71,24 @@ def agreement(geometry: pycolmap.TwoViewGeometry, kpts_a: np.ndarray, kpts_b: np
     return float(np.mean(np.asarray(errors) < max_error**2))
 
 
-def verify_pairs(db: pycolmap.Database, images: dict[str, pycolmap.Image], id_pairs: list[PairKey], options: pycolmap.TwoViewGeometryOptions) -> int:
+def verify_pairs(db: pycolmap.Database, images: dict[str, pycolmap.Image], id_pairs: list[PairKey],
+                 options: pycolmap.TwoViewGeometryOptions, max_images_held: int = MAX_IMAGES_HELD) -> int:
     """Two-view geometry of every matched, not yet verified pair (id_a, id_b, name_a, name_b) of the open
-    database ``db`` (``images``: name -> its image); returns how many were verified now."""
+    database ``db`` (``images``: name -> its image), in the order given; returns how many were verified
+    now. An image's camera and keypoints are read when ``HeldImages`` loads it (at most
+    ``max_images_held`` at once)."""
     unverified = [p for p in id_pairs if dbio.pair_has_matches(db, p[0], p[1]) and not dbio.pair_is_verified(db, p[0], p[1])]
-    cameras, keypoints = {}, {}  # read once per camera / image, not once per pair
+
+    def load(name: str) -> tuple[pycolmap.Camera, np.ndarray]:
+        image = images[name]
+        return dbio.read_camera(db, image.camera_id), dbio.read_keypoints(db, image.image_id)
+
+    held = HeldImages(unverified, load, max_images_held)
     with colmap_quiet():
-        for id_a, id_b, a, b in tqdm(unverified, desc="verify", total=len(unverified), unit="pair", disable=None, dynamic_ncols=True, leave=False):
-            for name in (a, b):
-                image = images[name]
-                if image.camera_id not in cameras:
-                    cameras[image.camera_id] = dbio.read_camera(db, image.camera_id)
-                if name not in keypoints:
-                    keypoints[name] = dbio.read_keypoints(db, image.image_id)
-            matches = dbio.read_pair_matches(db, id_a, id_b)
-            geometry = verify_pair(cameras[images[a].camera_id], keypoints[a], cameras[images[b].camera_id], keypoints[b], matches, options)
-            dbio.write_pair_geometry(db, id_a, id_b, geometry)
+        for key in tqdm(unverified, desc="verify", total=len(unverified), unit="pair", disable=None,
+                        dynamic_ncols=True, leave=False):
+            (camera_a, kpts_a), (camera_b, kpts_b) = held.pair(key)
+            matches = dbio.read_pair_matches(db, key[0], key[1])
+            geometry = verify_pair(camera_a, kpts_a, camera_b, kpts_b, matches, options)
+            dbio.write_pair_geometry(db, key[0], key[1], geometry)
     return len(unverified)

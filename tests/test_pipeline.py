@@ -2,6 +2,7 @@
 
 import hashlib
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -11,6 +12,8 @@ import pycolmap
 import pytest
 
 from colmap_guided import database as dbio
+from colmap_guided import verify
+from colmap_guided.image_data import HeldImages
 from colmap_guided.match import match_database
 from colmap_guided.matchers import get_matcher
 from colmap_guided.reconstruct import reconstruct
@@ -97,6 +100,32 @@ def test_matching_memory_is_bounded_and_the_matches_do_not_change(raw_run, synth
     assert all_matches(db) == all_matches(out / "database.db") and len(all_matches(db)) == 28
     with pytest.raises(ValueError, match="max_images_held must be at least 2"):
         match_database(db, synthetic_scene.image_dir, matcher="raw", max_images_held=1)
+
+
+def two_view_geometries(database_path: Path) -> dict:
+    with dbio.open_database(database_path) as db:
+        return {pair_id: (g.config, *(np.asarray(m).tolist() for m in (g.F, g.E, g.H, g.inlier_matches)))
+                for pair_id, g in zip(*db.read_two_view_geometries())}
+
+
+def test_verification_memory_is_bounded_and_the_geometries_do_not_change(raw_run, tmp_path,
+                                                                        monkeypatch):
+    """Verification holds at most ``max_images_held`` images' keypoints and cameras, reading the
+    others again, and writes the same two-view geometries as the run that held every image."""
+    _, _, out = raw_run
+    db_path = tmp_path / "db.db"
+    shutil.copy(out / "database.db", db_path)
+    made = []
+    monkeypatch.setattr(verify, "HeldImages", lambda *a: made.append(HeldImages(*a)) or made[-1])
+    with dbio.open_database(db_path) as db:
+        db.clear_two_view_geometries()
+        images = dbio.images_by_name(db)
+        names = sorted(images)
+        id_pairs = [(images[a].image_id, images[b].image_id, a, b) for a in names for b in names if a < b]
+        options = verify.two_view_options()
+        assert verify.verify_pairs(db, images, id_pairs, options, max_images_held=3) == 28
+    assert made[0].most_held == 3 and made[0].reads > 8
+    assert two_view_geometries(db_path) == two_view_geometries(out / "database.db")
 
 
 def test_pairs_are_ordered_to_hold_few_images_when_names_say_nothing():

@@ -24,7 +24,7 @@ from colmap_guided.coarse.geometry import ImageGeometry, as_rgb, resize_geometry
 from colmap_guided.coarse.model import CoarseNet
 from colmap_guided.coarse.weights import DEFAULT_WEIGHTS, fingerprint, has_backbone, load_filter_weights, net_conf_from_config, read_filter_weights
 from colmap_guided.conf import merge_conf
-from colmap_guided.images import read_image
+from colmap_guided.images import image_size, read_image
 
 PRECISIONS = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
 
@@ -102,9 +102,11 @@ class CoarseMatcher:
         return resize_geometry(width, height, self.conf["resize_max"], self.spec.stride, self.spec.cell_offset)
 
     @torch.no_grad()
-    def extract(self, image: np.ndarray, name: str | None = None) -> CoarseFeatures:
+    def extract(self, image: np.ndarray, name: str | None = None,
+                size: tuple[int, int] | None = None) -> CoarseFeatures:
         """Features of a uint8 HxW (gray) or HxWx3 (RGB) image. With ``name``, cached in memory (and in
-        ``cache_path`` if set): later calls with the same name return the cache without the image."""
+        ``cache_path`` if set): later calls with the same name return the cache without the image.
+        ``size``: the (width, height) of the photo that ``image`` is a reduced decode of."""
         if name is not None and name in self.cache:
             return self.cache[name]
         if name is not None and self.conf["cache_path"]:
@@ -115,7 +117,7 @@ class CoarseMatcher:
         if image is None:
             raise ValueError(f"No cached coarse features for {name!r}: pass the image (or extract_path)")
         rgb = as_rgb(image)
-        geo = self.geometry(rgb.shape[1], rgb.shape[0])
+        geo = self.geometry(*(size or (rgb.shape[1], rgb.shape[0])))
         x = torch.from_numpy(resize_image(rgb, geo)).to(self.device).permute(2, 0, 1)[None].float()
         feats = CoarseFeatures(self.net.extract_features(self.net.normalize(x))[0], geo, name)
         if name is not None:
@@ -129,7 +131,8 @@ class CoarseMatcher:
         key = name or str(path)
         if key in self.cache:
             return self.cache[key]
-        return self.extract(read_image(path), key)
+        # A JPEG 8x the network's input or more is decoded reduced: photos to 4095 px read as before.
+        return self.extract(read_image(path, 4 * self.conf["resize_max"]), key, image_size(path))
 
     def release(self, name: str) -> None:
         """Drop image ``name`` from the in-memory cache."""
