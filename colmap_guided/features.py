@@ -66,7 +66,7 @@ default_conf = {
 }
 # Lowe's ratio of the raw and guided matchers on ALIKED (reconstruct's default unless --ratio is given): 0.9
 # verified more related pairs than SIFT's 0.8 and no unrelated one (recon_scripts/benchmark_aliked.py,
-# 2026-11-30: sacre_coeur_hloc raw 43 vs 34 pairs, phototourism_superglue raw 3/13 vs 0/13 registered, 0 of
+# sacre_coeur_hloc raw 43 vs 34 pairs, phototourism_superglue raw 3/13 vs 0/13 registered, 0 of
 # its 60 different-landmark pairs verified either way).
 ALIKED_RATIO = 0.9
 # The guided matcher's min_agreement on ALIKED (reconstruct's default): its raw side (mutual NN of ALIKED

@@ -33,7 +33,7 @@ def warp_pair(image: np.ndarray):
 
 def test_raw_mode_on_a_homography(raw, shared_data):
     """Raw correlation (no weights) on a real photo and its known warp: PCK at original pixels (cells are
-    32 px here). Measured 2026-11-23: PCK@8/16/32 = 23.5/60.9/77.0 %, 83 % within 16 px among points
+    32 px here). Measured: PCK@8/16/32 = 23.5/60.9/77.0 %, 83 % within 16 px among points
     whose forward-backward error is under one cell."""
     a = read_image(IMAGES / "sacre_coeur1.jpg")
     b, H = warp_pair(a)

@@ -225,7 +225,7 @@ class GuidedMatcher(Matcher):
         "coarse": {},  # further CoarseMatcher options (backbone, resize_max, impl, cache_path, ...)
         # Defaults measured with recon_scripts/benchmark_matching.py --sweep, shipped filter, 20 same-scene
         # pairs (15 with reference correspondences: lund_door, WxBS) and 24 pairs of unrelated photos
-        # (2026-11-23). raw: 8/20 verified, 4 correct / 0 wrong, 0/24 unrelated. Guided without ratio test:
+        # raw: 8/20 verified, 4 correct / 0 wrong, 0/24 unrelated. Guided without ratio test:
         # 24/24 unrelated verify (27-59 inliers), so a ratio test among the candidates is required; 0.95:
         # 23/24, 0.9: 4/24 (15-16 inliers), 0.8: 0/24 with 1.34x raw's verified inliers (median), 5 correct /
         # 3 wrong geometries (WxBS day/night pairs, 15-20 inliers; the correct ones have 30-8569). W = 2 cells
