@@ -15,6 +15,7 @@ from colmap_guided.features import extract_features
 from colmap_guided.match import match_database
 from colmap_guided.paths import shared_data_dir
 from colmap_guided.reconstruct import reconstruct
+from colmap_guided.workspace import MARKER
 
 
 @pytest.fixture(scope="module")
@@ -97,9 +98,11 @@ def test_database_holds_aliked_as_pycolmap_does(aliked, aliked_run, synthetic_sc
 
 
 def copy_features(out, tmp_path):
-    """The run's database without matches: the extraction of another run on the same photos."""
+    """The run's workspace (its marker and database) without matches: the extraction of another run on the
+    same photos."""
     (tmp_path / "ws").mkdir()
-    shutil.copy(out / "database.db", tmp_path / "ws" / "database.db")
+    for name in (MARKER, "database.db"):
+        shutil.copy(out / name, tmp_path / "ws" / name)
     with dbio.open_database(tmp_path / "ws" / "database.db") as db:
         dbio.clear_matches(db)
     return tmp_path / "ws"
