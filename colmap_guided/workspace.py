@@ -49,7 +49,11 @@ def read_marker(path: Path) -> dict | None:
         marker = json.loads((Path(path) / MARKER).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
-    ok = isinstance(marker, dict) and isinstance(marker.get("kind"), str) and isinstance(marker.get("entries"), list)
+    ok = (
+        isinstance(marker, dict)
+        and isinstance(marker.get("kind"), str)
+        and isinstance(marker.get("entries"), list)
+    )
     return marker if ok else None
 
 
@@ -75,13 +79,21 @@ class Workspace:
         for protected in keep:
             protected = Path(protected).resolve()
             if _overlaps(path, protected):
-                where = "is" if path == protected else "contains" if path in protected.parents else "is inside"
+                where = (
+                    "is"
+                    if path == protected
+                    else "contains"
+                    if path in protected.parents
+                    else "is inside"
+                )
                 raise OutputRefused(
                     f"{flag} {path} {where} {protected}, whose files are only read; "
                     f"pass a new folder outside it, e.g. {flag} {_free_name(protected)}."
                 )
         if path.exists() and not path.is_dir():
-            raise OutputRefused(f"{flag} {path} is a file, not a folder; pass a new folder, e.g. {flag} {_free_name(path)}.")
+            raise OutputRefused(
+                f"{flag} {path} is a file, not a folder; pass a new folder, e.g. {flag} {_free_name(path)}."
+            )
         marker = read_marker(path) if path.is_dir() else None
         if marker is None and path.is_dir() and any(path.iterdir()):
             raise OutputRefused(
@@ -96,7 +108,14 @@ class Workspace:
         return path
 
     @classmethod
-    def claim(cls, path: Path, kind: str, keep: tuple = (), overwrite: bool = False, flag: str = "--output") -> Workspace:
+    def claim(
+        cls,
+        path: Path,
+        kind: str,
+        keep: tuple = (),
+        overwrite: bool = False,
+        flag: str = "--output",
+    ) -> Workspace:
         """``check``, then take ``path`` (created if needed); with ``overwrite`` what earlier runs wrote
         there is removed first."""
         workspace = cls(cls.check(path, kind, keep, flag), kind)
@@ -105,7 +124,9 @@ class Workspace:
             if read_marker(workspace.path) is None:
                 workspace._write([])
         except OSError as err:
-            raise OutputRefused(f"Cannot write to {flag} {workspace.path} ({err.strerror or err}); pass a writable folder.") from None
+            raise OutputRefused(
+                f"Cannot write to {flag} {workspace.path} ({err.strerror or err}); pass a writable folder."
+            ) from None
         if overwrite:
             workspace.clear()
         return workspace
@@ -125,7 +146,9 @@ class Workspace:
         names = [str(Path(n).as_posix()) for n in names]
         for name in names:
             if Path(name).is_absolute() or ".." in Path(name).parts:
-                raise ValueError(f"workspace entry {name!r} must be a relative path inside {self.path}")
+                raise ValueError(
+                    f"workspace entry {name!r} must be a relative path inside {self.path}"
+                )
         entries = self.entries
         if not set(names) <= set(entries):
             self._write(entries + names)
@@ -137,7 +160,9 @@ class Workspace:
     def remove(self, name: str) -> None:
         """Remove one recorded entry (file or folder the project made); anything else is left alone."""
         if not self.owns(name):
-            raise ValueError(f"{self.path / name} was not written by colmap_guided; it is left as it is.")
+            raise ValueError(
+                f"{self.path / name} was not written by colmap_guided; it is left as it is."
+            )
         _delete(self.path / name)
 
     def clear(self) -> None:
@@ -147,4 +172,8 @@ class Workspace:
             _delete(self.path / name)
         self._write([])
         if entries:
-            logger.info("Removed %d entries colmap_guided wrote in %s (--overwrite).", len(entries), self.path)
+            logger.info(
+                "Removed %d entries colmap_guided wrote in %s (--overwrite).",
+                len(entries),
+                self.path,
+            )

@@ -42,7 +42,10 @@ def user_tree(tmp_path):
     rng = np.random.default_rng(0)
     for i in range(3):
         small = rng.integers(0, 256, (15, 20, 3), dtype=np.uint8)
-        cv2.imwrite(str(scene / "images" / f"p{i}.jpg"), cv2.resize(small, (160, 120), interpolation=cv2.INTER_CUBIC))
+        cv2.imwrite(
+            str(scene / "images" / f"p{i}.jpg"),
+            cv2.resize(small, (160, 120), interpolation=cv2.INTER_CUBIC),
+        )
     (scene / "notes.txt").write_text("where each photo was bought\n")
     (tmp_path / "data" / "inventory.csv").write_text("p0,1912\n")
     letters = tmp_path / "letters"
@@ -76,7 +79,16 @@ def _one_line(err: str) -> str:
 def test_reconstruct_refuses_every_place_of_the_users_files(user_tree, capfd, place, overwrite):
     root, scene, places = user_tree
     before = _snapshot(root)
-    argv = ["reconstruct", scene, "--output", places[place], "--features", "sift", "--matcher", "raw"]
+    argv = [
+        "reconstruct",
+        scene,
+        "--output",
+        places[place],
+        "--features",
+        "sift",
+        "--matcher",
+        "raw",
+    ]
     code, err = _cli(argv + (["--overwrite"] if overwrite else []), capfd)
     line = _one_line(err)
     assert code == 2 and "--output" in line and "pass" in line, line
@@ -90,7 +102,14 @@ def test_archival_copies_never_land_on_the_users_files(user_tree, capfd, place, 
     before = _snapshot(root)
     photos = sorted((scene / "images").glob("*.jpg"))
     try:
-        code = archival.main([*map(str, photos), "--out", str(places[place]), *(["--overwrite"] if overwrite else [])])
+        code = archival.main(
+            [
+                *map(str, photos),
+                "--out",
+                str(places[place]),
+                *(["--overwrite"] if overwrite else []),
+            ]
+        )
     finally:
         set_verbosity(False, False)
     assert code == 2 and "--out" in _one_line(capfd.readouterr()[1])
@@ -110,16 +129,34 @@ def test_proxy_train_and_synthetic_outputs_refuse_the_users_files(user_tree, pla
     assert _snapshot(root) == before
 
 
-def test_export_and_report_refuse_the_users_files_and_overwrite_only_their_own(user_tree, synthetic_scene, capfd):
+def test_export_and_report_refuse_the_users_files_and_overwrite_only_their_own(
+    user_tree, synthetic_scene, capfd
+):
     root, scene, places = user_tree
     work = root / "work"
-    code, err = _cli(["reconstruct", synthetic_scene.image_dir, "--output", work, "--features", "sift", "--matcher", "raw", "--threads", "1"], capfd)
+    code, err = _cli(
+        [
+            "reconstruct",
+            synthetic_scene.image_dir,
+            "--output",
+            work,
+            "--features",
+            "sift",
+            "--matcher",
+            "raw",
+            "--threads",
+            "1",
+        ],
+        capfd,
+    )
     assert code == 0, err
     database = work / "database.db"
     before = _snapshot(root)
     for place, target in places.items():
         for extra in ([], ["--overwrite"]):
-            code, err = _cli(["export", "--database_path", database, "--output", target, *extra], capfd)
+            code, err = _cli(
+                ["export", "--database_path", database, "--output", target, *extra], capfd
+            )
             assert code == 2 and "--output" in _one_line(err), (place, err)
             code, err = _cli(["report", target], capfd)
             assert code == 2, (place, err)
@@ -133,15 +170,39 @@ def test_export_and_report_refuse_the_users_files_and_overwrite_only_their_own(u
     (work / "notes.txt").write_text("kept\n")
     code, err = _cli(["export", "--database_path", database, "--output", exported], capfd)
     assert code == 2 and "--overwrite" in _one_line(err)
-    assert _cli(["export", "--database_path", database, "--output", exported, "--overwrite"], capfd)[0] == 0
-    assert (exported / "my_pairs.txt").read_text() == "mine\n" and (exported / "matches.h5").is_file()
+    assert (
+        _cli(["export", "--database_path", database, "--output", exported, "--overwrite"], capfd)[0]
+        == 0
+    )
+    assert (exported / "my_pairs.txt").read_text() == "mine\n" and (
+        exported / "matches.h5"
+    ).is_file()
     old_db = database.stat().st_mtime_ns
-    argv = ["reconstruct", synthetic_scene.image_dir, "--output", work, "--features", "sift", "--matcher", "raw", "--threads", "1"]
+    argv = [
+        "reconstruct",
+        synthetic_scene.image_dir,
+        "--output",
+        work,
+        "--features",
+        "sift",
+        "--matcher",
+        "raw",
+        "--threads",
+        "1",
+    ]
     code, err = _cli([*argv, "--overwrite"], capfd)
     assert code == 0, err
     assert (work / "notes.txt").read_text() == "kept\n"
-    assert database.stat().st_mtime_ns != old_db and json.loads((work / "report.json").read_text())["num_registered"] >= 6
-    assert set(read_marker(work)["entries"]) >= {"database.db", "sparse", "report.json", "report.html"}
+    assert (
+        database.stat().st_mtime_ns != old_db
+        and json.loads((work / "report.json").read_text())["num_registered"] >= 6
+    )
+    assert set(read_marker(work)["entries"]) >= {
+        "database.db",
+        "sparse",
+        "report.json",
+        "report.html",
+    }
     assert _cli(["report", work], capfd)[0] == 0
     for image in synthetic_scene.names:
         assert (synthetic_scene.image_dir / image).is_file()
@@ -151,7 +212,10 @@ def test_an_unwritable_output_is_one_line(user_tree, capfd):
     root, scene, places = user_tree
     before = _snapshot(root)
     for target in (places["a file"] / "workspace", Path("/proc/colmap_guided_workspace")):
-        code, err = _cli(["reconstruct", scene, "--output", target, "--features", "sift", "--matcher", "raw"], capfd)
+        code, err = _cli(
+            ["reconstruct", scene, "--output", target, "--features", "sift", "--matcher", "raw"],
+            capfd,
+        )
         assert code == 2 and "writable" in _one_line(err), err
     assert _snapshot(root) == before
 
@@ -167,6 +231,9 @@ def test_coarse_drawing_never_replaces_a_file(user_tree, capfd):
 
 def test_a_marker_of_another_command_is_not_taken(tmp_path):
     render_scene(tmp_path / "synthetic", num_images=2, width=64, height=48)
-    assert read_marker(tmp_path / "synthetic")["kind"] == "synthetic" and (tmp_path / "synthetic" / MARKER).is_file()
+    assert (
+        read_marker(tmp_path / "synthetic")["kind"] == "synthetic"
+        and (tmp_path / "synthetic" / MARKER).is_file()
+    )
     with pytest.raises(OutputRefused, match="synthetic"):
         Trainer(tmp_path / "synthetic", {})
