@@ -134,21 +134,9 @@ def test_export_and_report_refuse_the_users_files_and_overwrite_only_their_own(
 ):
     root, scene, places = user_tree
     work = root / "work"
-    code, err = _cli(
-        [
-            "reconstruct",
-            synthetic_scene.image_dir,
-            "--output",
-            work,
-            "--features",
-            "sift",
-            "--matcher",
-            "raw",
-            "--threads",
-            "1",
-        ],
-        capfd,
-    )
+    argv = ["reconstruct", synthetic_scene.image_dir, "--output", work, "--features", "sift"]
+    argv += ["--matcher", "raw", "--threads", "1"]
+    code, err = _cli(argv, capfd)
     assert code == 0, err
     database = work / "database.db"
     before = _snapshot(root)
@@ -178,18 +166,6 @@ def test_export_and_report_refuse_the_users_files_and_overwrite_only_their_own(
         exported / "matches.h5"
     ).is_file()
     old_db = database.stat().st_mtime_ns
-    argv = [
-        "reconstruct",
-        synthetic_scene.image_dir,
-        "--output",
-        work,
-        "--features",
-        "sift",
-        "--matcher",
-        "raw",
-        "--threads",
-        "1",
-    ]
     code, err = _cli([*argv, "--overwrite"], capfd)
     assert code == 0, err
     assert (work / "notes.txt").read_text() == "kept\n"
