@@ -32,7 +32,7 @@ from pathlib import Path
 from colmap_guided.features import IMAGE_EXTENSIONS
 from colmap_guided.log import logger
 from colmap_guided.paths import shared_data_dir
-from colmap_guided.workspace import OutputRefused, Workspace
+from colmap_guided.workspace import Workspace
 
 ERAS = ("historical", "modern", "distractor")
 # A subset of a scene: the eras it keeps. Distractors stay in every subset: they must never register.
@@ -152,11 +152,7 @@ def layout_scene(manifest: dict, scene: dict, subset: str, out_dir: Path, copy: 
         return None
     src_dir = scene_image_dir(manifest, scene).resolve()
     workspace = Workspace.claim(out_dir, "evaluation", keep=(src_dir,))
-    name = f"{scene['name']}__{subset}"
-    scene_dir = workspace.path / name
-    if scene_dir.exists() and not workspace.owns(name):
-        raise OutputRefused(f"{scene_dir} was not written by colmap_guided; move it out of {workspace.path}.")
-    workspace.record(name)
+    scene_dir = workspace.take(f"{scene['name']}__{subset}")
     image_dir = scene_dir / "images"
     if image_dir.exists():
         shutil.rmtree(image_dir)  # our own links/copies from an earlier layout

@@ -34,7 +34,7 @@ from colmap_guided.features import list_images
 from colmap_guided.images import read_image
 from colmap_guided.log import logger
 from colmap_guided.paths import shared_data_dir, shared_dir
-from colmap_guided.workspace import OutputRefused, Workspace
+from colmap_guided.workspace import Workspace
 
 from .reference import reference_model_dir
 
@@ -147,12 +147,10 @@ def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int
         names = names[:max_images]
     hist = historical_half(names, key, seed)
     scene = key.split("/")[-1] + suffix
-    scene_dir = workspace.path / scene
+    scene_dir = workspace.take(scene)
     if workspace.owns(f"{scene}/images"):  # the images of an earlier build, redrawn below
         workspace.remove(f"{scene}/images")
-    elif scene_dir.exists():
-        raise OutputRefused(f"{scene_dir} was not written by colmap_guided; move it out of {workspace.path}.")
-    workspace.record(scene, f"{scene}/images", f"{scene}/manifest.json")
+    workspace.record(f"{scene}/images", f"{scene}/manifest.json")
     entries = []
     k = 0
     for name in names:
