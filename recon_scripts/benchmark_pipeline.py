@@ -51,6 +51,7 @@ def main(argv=None):
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
     parser.add_argument("--threads", type=int, default=-1, help="mapping threads (1: each seeded run repeats exactly)")
     parser.add_argument("--camera_mode", default="auto")
+    parser.add_argument("--peer", default="lightglue", help="the matcher spec of --matchers the others' times are also divided by")
     parser.add_argument("--output", type=Path, default=Path("outputs/benchmark_pipeline.json"))
     args = parser.parse_args(argv)
     set_verbosity(quiet=True)
@@ -111,6 +112,22 @@ def main(argv=None):
     print("| set | seed | pipeline | verified pairs | registered | correct (reference) | model check | 3D points | total s | time ratio |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(row_markdown(row) for row in rows))
+    print("\n".join(peer_ratios(rows, f"{args.peer} + {args.mappers[0]}", args.seeds[0])))
+
+
+def peer_ratios(rows: list[tuple], peer: str, seed: int) -> list[str]:
+    """Per set, each pipeline's end-to-end and match-stage (matching + verification) time over ``peer``'s, first
+    mapper and seed; nothing where ``peer`` did not run."""
+    stage = lambda stats: stats["timings"].get("match", 0.0) + stats["timings"].get("verify", 0.0)  # noqa: E731
+    first = {(row[0], row[2]): row for row in rows if row[1] == seed}
+    lines = [f"\nTimes over {peer}'s, same set and round\n", "| set | pipeline | total s | total ratio | match + verify s | match ratio |",
+             "|---|---|---|---|---|---|"]
+    for (name, label), row in first.items():
+        base = first.get((name, peer))
+        if base is not None:
+            lines.append(f"| {name} | {label} | {row[4]:.1f} | {row[4] / base[4]:.2f} | {stage(row[3]):.1f} | "
+                         f"{stage(row[3]) / max(stage(base[3]), 1e-9):.2f} |")
+    return lines if len(lines) > 3 else []
 
 
 def row_markdown(row: tuple) -> str:

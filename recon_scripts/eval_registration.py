@@ -41,7 +41,7 @@ def main(argv=None) -> int:
     parser.add_argument("--scenes", nargs="+", default=None)
     parser.add_argument("--max_scenes", type=int, default=0)
     parser.add_argument("--subsets", nargs="+", default=["historical", "all"], choices=sorted(mf.SUBSETS))
-    parser.add_argument("--methods", nargs="+", default=["pycolmap", "raw", "guided"], help="'pycolmap' and/or matcher specs of the registry; a spec may carry feature options (guided:stretch_contrast_below=none)")
+    parser.add_argument("--methods", nargs="+", default=["pycolmap", "raw", "guided"], help="'pycolmap' (its default pipeline), 'pycolmap_mapping' (its database, this project's mapping) and/or matcher specs of the registry; a spec may carry feature options (guided:stretch_contrast_below=none)")
     parser.add_argument("--max_rotation_deg", type=float, default=registration.MAX_ROTATION_DEG)
     parser.add_argument("--max_center_frac", type=float, default=registration.MAX_CENTER_FRAC)
     parser.add_argument("--wxbs_max_pairs", type=int, default=6, help="WxBS appearance pairs beside the table (0 = skip)")
@@ -79,7 +79,7 @@ def main(argv=None) -> int:
         logger.error("%s lists no scene with images (LTLL: pass --root and --scan).", manifest_path)
         return 2
     methods = args.methods
-    matcher_specs.parse_specs([registration.split_stage_options(m)[0] for m in methods if m != "pycolmap"])  # ValueError now, not after hours
+    matcher_specs.parse_specs([registration.split_stage_options(m)[0] for m in methods if m not in registration.PYCOLMAP_METHODS])  # ValueError now, not after hours
     extra = {"device": args.device, "weights": args.weights}
     tol = {"max_rotation_deg": args.max_rotation_deg, "max_center_frac": args.max_center_frac}
     results = []
@@ -97,7 +97,7 @@ def main(argv=None) -> int:
     distractors = sum(len(r["methods"][m].get("distractors_registered", [])) for r in results for m in methods if m in r["methods"])
     extra_text = f"\n\nDistractors registered, all runs: {distractors} (must be 0)\n"
 
-    specs = [registration.split_stage_options(m)[0] for m in methods if m != "pycolmap"]
+    specs = [registration.split_stage_options(m)[0] for m in methods if m not in registration.PYCOLMAP_METHODS]
     if args.wxbs_max_pairs and specs:
         w = two_view.run_wxbs_benchmark(specs, max_pairs=args.wxbs_max_pairs, categories=WXBS_APPEARANCE, extra_conf=extra)
         tables.write_json(args.output / "wxbs_appearance.json", w)

@@ -190,10 +190,15 @@ def _fresh_workspace(workspace: Path, database: Path | None) -> Path:
     return workspace.path / "database.db"
 
 
-def run_pycolmap_default(image_dir: Path, workspace: Path, camera_mode: str = "auto", seed: int | None = None, database: Path | None = None, threads: int | None = None) -> tuple[dict, dict]:
+# pycolmap's default pipeline, and its database mapped by this project's mapping stage (what the mapper alone gives)
+PYCOLMAP_METHODS = ("pycolmap", "pycolmap_mapping")
+
+
+def run_pycolmap_default(image_dir: Path, workspace: Path, camera_mode: str = "auto", seed: int | None = None, database: Path | None = None, threads: int | None = None, own_mapping: bool = False) -> tuple[dict, dict]:
     """pycolmap's default pipeline with default options (``seed``: only the mapper's random seed, and
     ``threads``: the mapper's threads, 1 = runs repeat exactly; ``database``: a finished database of this
-    pipeline to map again, extraction and matching skipped); returns (models, timings)."""
+    pipeline to map again, extraction and matching skipped; ``own_mapping``: the database mapped by
+    ``mapping.run_mapping`` with its defaults instead); returns (models, timings)."""
     db = _fresh_workspace(workspace, database)
     (Path(workspace) / "sparse").mkdir()
     timings = {}
@@ -205,12 +210,18 @@ def run_pycolmap_default(image_dir: Path, workspace: Path, camera_mode: str = "a
         pycolmap.match_exhaustive(db)
         timings["match"] = time.time() - start
     start = time.time()
-    options = pycolmap.IncrementalPipelineOptions()
-    if seed is not None:
-        options.random_seed = seed
-    if threads is not None:
-        options.num_threads = threads
-    models = pycolmap.incremental_mapping(db, image_dir, workspace / "sparse", options=options)
+    if own_mapping:
+        from colmap_guided.mapping import run_mapping
+
+        conf = {**({"random_seed": seed} if seed is not None else {}), **({"num_threads": threads} if threads is not None else {})}
+        models = run_mapping(db, image_dir, Path(workspace) / "sparse", conf)
+    else:
+        options = pycolmap.IncrementalPipelineOptions()
+        if seed is not None:
+            options.random_seed = seed
+        if threads is not None:
+            options.num_threads = threads
+        models = pycolmap.incremental_mapping(db, image_dir, workspace / "sparse", options=options)
     timings["map"] = time.time() - start
     return dict(models), timings
 
@@ -222,7 +233,7 @@ def split_stage_options(method: str) -> tuple[str, dict, dict]:
     from colmap_guided.features import default_conf as feature_defaults
     from colmap_guided.mapping import default_conf as mapping_defaults
 
-    if method == "pycolmap":
+    if method in PYCOLMAP_METHODS:
         return method, {}, {}
     spec = matcher_specs.parse_spec(method)
     feature = {k: v for k, v in spec.conf.items() if k in feature_defaults}
@@ -235,10 +246,12 @@ def database_key(method: str) -> tuple[str, str]:
     """What a method's database depends on: (features key, features + matching key). Mapping options do
     not change the database, so ``guided`` and ``guided:mapper=global`` share one; ``raw:type=aliked`` and
     ``guided:type=aliked`` share their keypoints."""
+    if method in PYCOLMAP_METHODS:  # one database, mapped two ways
+        return "pycolmap", "pycolmap|pycolmap"
     matcher, feature, _ = split_stage_options(method)
-    if method != "pycolmap":  # the features it extracts: 'guided' and 'guided:type=sift' share them
-        feature = {**feature, "type": resolve_auto(matcher_specs.parse_spec(matcher).name, feature.get("type", AUTO))[1]}
-    features = json.dumps(feature, sort_keys=True) if method != "pycolmap" else "pycolmap"
+    # the features it extracts: 'guided' and 'guided:type=sift' share them
+    feature = {**feature, "type": resolve_auto(matcher_specs.parse_spec(matcher).name, feature.get("type", AUTO))[1]}
+    features = json.dumps(feature, sort_keys=True)
     return features, f"{matcher}|{features}"
 
 
@@ -250,8 +263,9 @@ def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict |
     scene_dir = Path(scene_dir)
     image_dir = scene_dir / "images"
     start = time.time()
-    if method == "pycolmap":
-        models, timings = run_pycolmap_default(image_dir, workspace, seed=seed, database=database, threads=threads)
+    if method in PYCOLMAP_METHODS:
+        models, timings = run_pycolmap_default(image_dir, workspace, seed=seed, database=database, threads=threads,
+                                               own_mapping=method == "pycolmap_mapping")
         largest = largest_model(models)
         info = {"timings": timings, "num_models": len(models)}
     else:
@@ -289,7 +303,7 @@ def _reusable(runs_dirs: list[Path], methods: list[str], method: str) -> tuple[P
                 key = database_key(other)
                 if (key[1] if want_full else key[0]) != (full if want_full else features):
                     continue
-                if other == "pycolmap" and not want_full:
+                if other in PYCOLMAP_METHODS and not want_full:
                     continue
                 ws = Path(runs_dir) / method_slug(other)
                 if (ws / "database.db").is_file() and (ws / "eval.json").is_file():

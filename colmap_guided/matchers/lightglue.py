@@ -85,6 +85,7 @@ class LightGlueMatcher(Matcher):
         "filter_threshold": 0.1,  # LightGlue's match score threshold (its default)
         "depth_confidence": 0.95,  # LightGlue's early stopping (its default); -1 = off
         "width_confidence": 0.99,  # LightGlue's point pruning (its default); -1 = off
+        "max_keypoints": None,  # keypoints per photo that enter LightGlue, the best first (None = all)
         # Two-view verification: at least this many inliers (COLMAP: 15). LightGlue finds 15-51 inliers between
         # unrelated photos: phototourism_superglue 30 of its 60 different-landmark pairs verified with 15 (up to 38
         # inliers; its same-landmark pairs: 65-670), the historical proxy's distractors 62 pairs (15-51); 60 leaves
@@ -112,12 +113,13 @@ class LightGlueMatcher(Matcher):
 
     def match(self, a: ImageData, b: ImageData, keep_a: np.ndarray | None = None, keep_b: np.ndarray | None = None) -> np.ndarray:
         """LightGlue's matches (indices into a's and b's keypoints); ``keep_a`` / ``keep_b``: the keypoint
-        indices that enter it (None = all)."""
+        indices that may enter it, best first (None = all), of which the first ``max_keypoints`` do."""
         for image in (a, b):
             if image.descriptors.dtype != np.float32 or image.descriptors.shape[1] != 128:
                 raise ValueError(f"{image.name}: the lightglue matcher needs ALIKED features; run reconstruct with --features aliked.")
-        keep_a = np.arange(len(a.keypoints)) if keep_a is None else np.asarray(keep_a, np.int64)
-        keep_b = np.arange(len(b.keypoints)) if keep_b is None else np.asarray(keep_b, np.int64)
+        budget = self.conf["max_keypoints"]
+        keep_a = (np.arange(len(a.keypoints)) if keep_a is None else np.asarray(keep_a, np.int64))[:budget]
+        keep_b = (np.arange(len(b.keypoints)) if keep_b is None else np.asarray(keep_b, np.int64))[:budget]
 
         def side(image: ImageData, keep: np.ndarray) -> dict:
             return {
@@ -140,7 +142,7 @@ class GuidedLightGlueMatcher(Matcher):
 
     name = "guided_lightglue"
     feature_types = ("aliked",)
-    flow_options = ("window_cells", "prune_fb_cells")
+    flow_options = ("window_cells", "prune_fb_cells", "min_mutual")
     default_conf = {
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
         # Historical proxy, 10 scenes x 3 seeds, LightGlue's matches filtered with 3 cells (docs/RESULTS.md):
@@ -152,6 +154,9 @@ class GuidedLightGlueMatcher(Matcher):
         # the coarse flow: outside the covisible region) do not enter LightGlue; a pair left with fewer than
         # min_inliers keypoints on a side is not matched at all. None: every keypoint enters.
         "prune_fb_cells": None,
+        # Pairs whose share of mutual coarse cell matches is below this are matched with none, without LightGlue
+        # (a rerun does not redo them). None: every pair is matched.
+        "min_mutual": None,
         "weights": None,  # coarse filter weights, as the guided matcher's; None = the shipped ones
         "coarse": {},  # further CoarseMatcher options, as the guided matcher's
     }
@@ -183,6 +188,8 @@ class GuidedLightGlueMatcher(Matcher):
     def match_flows(self, a: ImageData, b: ImageData, flows, **overrides) -> np.ndarray:
         conf = self.flow_conf(overrides)
         window, keep_a, keep_b = conf["window_cells"], None, None
+        if conf["min_mutual"] is not None and flows.mutual < conf["min_mutual"]:  # the coarse network sees no overlap
+            return np.zeros((0, 2), np.uint32)
         if conf["prune_fb_cells"] is not None:  # the coarse flow restricts the candidates before matching
             keep_a = np.flatnonzero(flows.fb_ab <= conf["prune_fb_cells"] * flows.cell_b)
             keep_b = np.flatnonzero(flows.fb_ba <= conf["prune_fb_cells"] * flows.cell_a)

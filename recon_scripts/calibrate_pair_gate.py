@@ -1,0 +1,106 @@
+"""Which pairs are worth the fine matcher: the coarse network's pair-level evidence against the fine matcher's verdict.
+
+    python recon_scripts/calibrate_pair_gate.py --output outputs/pair_gate [--sources sacre_coeur_hloc ...]
+        [--max_images 8] [--matcher guided_lightglue]
+
+On development scenes of the historical proxy (half of each set a damaged print, plus distractors), every pair of
+photos is matched by the fine matcher and verified as the pipeline does; beside it, the coarse network's evidence
+for the pair (``CoarseFlows.mutual``: the share of grid cells whose coarse match is mutual; ``score``: paper eq. 3's
+image-level score). Prints, per threshold, the verified pairs a gate would lose and the pairs it would skip.
+Development split only: the gate's threshold is chosen here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from colmap_guided import database as dbio
+from colmap_guided import features, verify
+from colmap_guided.evaluation import matcher_specs, proxy
+from colmap_guided.log import colmap_quiet, set_verbosity
+from colmap_guided.matchers import get_matcher
+from colmap_guided.workspace import Workspace
+
+DEV_SOURCES = ("sacre_coeur_hloc", "lund_door_gtsfm", "train/dfsfm_sacre_coeur", "train/vggsfm_british_museum")
+
+
+def scene_pairs(scene_dir: Path, matcher, min_inliers: int) -> list[dict]:
+    """Every pair of the scene: related (neither a distractor), coarse evidence, verified inliers."""
+    eras = {im["name"]: im["era"] for im in json.loads((scene_dir / "manifest.json").read_text())["images"]}
+    database = scene_dir / "database.db"
+    features.extract_features(database, scene_dir / "images", conf={"type": "aliked"})
+    options = verify.two_view_options({"min_num_inliers": min_inliers})
+    rows = []
+    with dbio.open_database(database) as db:
+        images = {n: dbio.read_image_data(db, im, scene_dir / "images") for n, im in dbio.images_by_name(db).items()}
+        for image in images.values():
+            matcher.prepare(image)
+        for a, b in itertools.combinations(sorted(images), 2):
+            ia, ib = images[a], images[b]
+            flows = matcher.coarse_flows(ia, ib)
+            start = time.perf_counter()
+            m = matcher.match_flows(ia, ib, flows)
+            seconds = time.perf_counter() - start
+            cams = [verify.default_camera(im.width, im.height) for im in (ia, ib)]
+            with colmap_quiet():
+                geometry = verify.verify_pair(cams[0], ia.keypoints, cams[1], ib.keypoints, m, options)
+            inliers = len(geometry.inlier_matches)
+            rows.append({"scene": scene_dir.name, "a": a, "b": b, "related": "distractor" not in (eras[a], eras[b]),
+                         "mutual": flows.mutual, "score": flows.score, "inliers": inliers,
+                         "verified": inliers >= min_inliers, "fine_s": seconds})
+    return rows
+
+
+def gate_table(rows: list[dict], key: str, thresholds) -> list[str]:
+    verified = [r for r in rows if r["verified"]]
+    lines = [f"| {key} below | verified pairs lost | related pairs skipped | unrelated skipped | fine time skipped |",
+             "|---|---|---|---|---|"]
+    total = sum(r["fine_s"] for r in rows)
+    for t in thresholds:
+        gated = [r for r in rows if r[key] < t]
+        lost = [r for r in gated if r["verified"]]
+        lines.append(f"| {t:g} | {len(lost)} / {len(verified)} (max {max((r['inliers'] for r in lost), default=0)} inliers) "
+                     f"| {sum(r['related'] for r in gated)} / {sum(r['related'] for r in rows)} "
+                     f"| {sum(not r['related'] for r in gated)} / {sum(not r['related'] for r in rows)} "
+                     f"| {sum(r['fine_s'] for r in gated) / total:.0%} |")
+    return lines
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--output", type=Path, required=True, help="proxy scenes, databases and pairs.json go here")
+    parser.add_argument("--sources", nargs="+", default=DEV_SOURCES)
+    parser.add_argument("--max_images", type=int, default=8, help="photos per source (distractors added)")
+    parser.add_argument("--matcher", default="guided_lightglue", help="the fine matcher, a spec: preset[:key=value,...]")
+    args = parser.parse_args(argv)
+    set_verbosity(quiet=True)
+    leaked = set(args.sources) & set(proxy.SPLITS["test"])
+    if leaked:
+        parser.error(f"{sorted(leaked)} belong to the test split: the gate is chosen on development scenes only")
+    spec = matcher_specs.parse_spec(args.matcher)
+    matcher = get_matcher(spec.name, spec.conf)
+    min_inliers = matcher.verification_conf["min_num_inliers"]
+    rows = []
+    for key in args.sources:
+        scene_dir = proxy.build_scene(key, args.output, max_images=args.max_images)
+        Workspace(args.output, "proxy").record(f"{scene_dir.name}/database.db")
+        rows += scene_pairs(scene_dir, matcher, min_inliers)
+    Workspace(args.output, "proxy").record("pairs.json")[0].write_text(json.dumps(rows, indent=1) + "\n")
+    for key, thresholds in (("mutual", (0.02, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3)), ("score", (0.05, 0.1, 0.15, 0.2, 0.3))):
+        print("\n".join(gate_table(rows, key, thresholds)) + "\n")
+    for label, pick in (("verified", lambda r: r["verified"]), ("not verified", lambda r: not r["verified"])):
+        for key in ("mutual", "score"):
+            values = np.array([r[key] for r in rows if pick(r)])
+            if len(values):
+                print(f"{label} pairs ({len(values)}): {key} min {values.min():.3f}, "
+                      f"5% {np.percentile(values, 5):.3f}, median {np.median(values):.3f}, max {values.max():.3f}")
+
+
+if __name__ == "__main__":
+    main()
