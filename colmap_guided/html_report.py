@@ -297,6 +297,12 @@ def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: boo
     matcher_name = matcher.get("name", "?") if isinstance(matcher, dict) else str(matcher)
     rec = reconstruction if reconstruction is not None else _load_model(report)
     eras = read_manifest(Path(report["manifest_path"])) if report.get("manifest_path") else {}
+    localized = _localized(report)
+    if rec is not None and rec.num_reg_images() and localized:  # the localized photos' cameras, in their colour
+        from .localize import with_localized
+
+        rec, names = with_localized(rec, localized)
+        eras = {**{rec.images[i].name: "photo" for i in rec.reg_image_ids()}, **eras, **dict.fromkeys(names, "localized")}
     out = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
         f"<title>Reconstruction report: {esc(str(report.get('scene', '')))}</title><style>{CSS}{model_view.VIEW_CSS}</style></head><body>",

@@ -128,6 +128,9 @@ def test_the_report_shows_the_localized_photos(first, workspace):
     section = page[page.index("Photos localized in the model") :]
     assert "view_002.jpg" in section and "not placed: no image of the model matched" in section
     assert section.count("<img") >= 4  # each placed photo beside its best-matched model photo
+    data = json.loads(re.search(r"<script[^>]*id='model-data'[^>]*>(.*?)</script>", page, re.S).group(1))
+    shown = {c["name"] for c in data["cameras"] if c["era"] == "localized"}  # highlighted in the 3D view
+    assert {Path(name).name for name in shown} == set(HELD_OUT)
 
 
 @pytest.fixture(scope="module")
