@@ -34,10 +34,11 @@ import numpy as np
 import pycolmap
 
 from . import database as dbio
-from . import features, match, model_check
+from . import features, images, match, model_check
 from .conf import merge_conf
 from .log import colmap_quiet, logger
 from .matchers import AUTO, get_matcher
+from .matchers.base import scoped_torch_threads
 from .pairs import write_pairs
 from .workspace import Workspace, read_marker
 
@@ -193,14 +194,15 @@ def _retrieve(
             cached = dict(zip(saved["names"].tolist(), saved["descriptors"]))
     missing = [n for n in model_names if n not in cached]
     root = _root()
-    if missing:
-        computed = match._global_descriptors(matcher, root, [db_name(model_files[n]) for n in missing])
-        cached.update(zip(missing, computed))
-        tmp = workspace.path / f"{RETRIEVAL}.partial.npz"
-        np.savez(tmp, names=np.array(list(cached)), descriptors=np.stack(list(cached.values())))
-        os.replace(tmp, cache)
+    with scoped_torch_threads(matcher.torch_threads):  # the backbone as in matching
+        if missing:
+            computed = match._global_descriptors(matcher, root, [db_name(model_files[n]) for n in missing])
+            cached.update(zip(missing, computed))
+            tmp = workspace.path / f"{RETRIEVAL}.partial.npz"
+            np.savez(tmp, names=np.array(list(cached)), descriptors=np.stack(list(cached.values())))
+            os.replace(tmp, cache)
+        photo_desc = match._global_descriptors(matcher, root, [db_name(p) for p in photos.values()])
     model_desc = np.stack([cached[n] for n in model_names])
-    photo_desc = match._global_descriptors(matcher, root, [db_name(p) for p in photos.values()])
     top = np.argsort(-(photo_desc @ model_desc.T), axis=1, kind="stable")[:, :k]
     return {name: [model_names[j] for j in row] for name, row in zip(photos, top)}
 
@@ -365,15 +367,18 @@ def localize(
         if own:
             _copy_model_images(path / "database.db", database, own)
         root = _root()
-        extracted = features.extract_features(database, root, list(todo), feature_conf)
-        for name, reason in extracted["skipped"].items():
+        usable, unusable = images.check_images(root, list(todo), feature_conf.get("image_checks"))
+        if usable:
+            features.extract_features(database, root, usable, feature_conf, check=False)
+        for name, reason in unusable.items():
+            logger.warning("Skipped %s: %s.", todo[name], reason)
             results[str(todo[name])] = {
                 "photo": str(todo[name]),
                 "status": "skipped",
                 "confidence": f"not placed: {reason}",
             }
-        usable = {n: p for n, p in todo.items() if n not in extracted["skipped"]}
-        retrieved = _retrieve(chosen, ws, model_files, usable, conf["num_images"])
+        usable = {n: p for n, p in todo.items() if n not in unusable}
+        retrieved = _retrieve(chosen, ws, model_files, usable, conf["num_images"]) if usable else {}
         wanted = sorted({m for models in retrieved.values() for m in models})
         _copy_model_images(path / "database.db", database, {m: db_name(model_files[m]) for m in wanted})
         pairs = [
@@ -388,10 +393,10 @@ def localize(
         model_ids = {db_name(model_files[rec.images[i].name]): i for i in rec.reg_image_ids()}
         elapsed = (time.time() - start) / max(1, len(usable))  # extraction and matching, shared evenly
         with dbio.open_database(database) as db:
-            images = dbio.images_by_name(db)
+            rows = dbio.images_by_name(db)
             for name, photo in usable.items():
                 tic = time.time()
-                entry = localize_one(db, rec, images[name], model_ids, conf)
+                entry = localize_one(db, rec, rows[name], model_ids, conf)
                 entry = {"photo": str(photo), **entry, "time_s": round(elapsed + time.time() - tic, 2)}
                 results[str(photo)] = entry
                 write_results(path / RESULTS, results, header)

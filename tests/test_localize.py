@@ -72,12 +72,15 @@ def workspace(synthetic_scene, tmp_path_factory):
     photos = [synthetic_scene.image_dir / HELD_OUT[0], scans / HELD_OUT[1], other.image_dir / other.names[0]]
     before = {"sparse": digests(ws / "sparse"), "database": database_content(ws / "database.db")}
     before["photos"] = {str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in photos}
-    return {"ws": ws, "photos": photos, "missing": root / "lost.jpg", "before": before, "images": model_images}
+    broken = root / "broken.jpg"
+    broken.write_bytes(b"not a photo")
+    bad = {"missing": root / "lost.jpg", "broken": broken}
+    return {"ws": ws, "photos": photos, "before": before, "images": model_images, "root": root, **bad}
 
 
 @pytest.fixture(scope="module")
 def first(workspace):
-    out = loc.localize(workspace["ws"], [*workspace["photos"], workspace["missing"]])
+    out = loc.localize(workspace["ws"], [*workspace["photos"], workspace["missing"], workspace["broken"]])
     return out, {Path(e["photo"]).name + ("@scan" if "scans" in e["photo"] else ""): e for e in out["photos"]}
 
 
@@ -106,8 +109,10 @@ def test_a_photo_of_another_place_and_a_missing_file_are_not_placed(first, works
     assert other["status"] == "not placed" and other["confidence"].startswith("not placed")
     assert "qvec_wxyz" not in other
     assert out["skipped"] == {str(workspace["missing"]): "no such file"}
+    broken = by_name["broken.jpg"]
+    assert broken["status"] == "skipped" and broken["confidence"].startswith("not placed: ")
     text = loc.summary_text(out)
-    assert f"{workspace['missing']}: not placed: no such file" in text and "Placed 2 of 4 photo(s)" in text
+    assert f"{workspace['missing']}: not placed: no such file" in text and "Placed 2 of 5 photo(s)" in text
 
 
 def test_the_model_photos_and_user_files_are_only_read(first, workspace):
@@ -119,12 +124,12 @@ def test_the_model_photos_and_user_files_are_only_read(first, workspace):
     entries = set(read_marker(ws)["entries"])
     assert {"localized.json", "localize.db", "sparse_localized", "report.json", "sparse"} <= entries
     saved = json.loads((ws / "localized.json").read_text())
-    assert saved["model_sha256"] == loc.model_digest(ws / "sparse" / "0") and len(saved["photos"]) == 3
+    assert saved["model_sha256"] == loc.model_digest(ws / "sparse" / "0") and len(saved["photos"]) == 4
 
 
 def test_the_report_shows_the_localized_photos(first, workspace):
     page = (workspace["ws"] / "report.html").read_text(encoding="utf-8")
-    assert "Photos localized in the model (2 of 3 placed)" in page
+    assert "Photos localized in the model (2 of 4 placed)" in page
     section = page[page.index("Photos localized in the model") :]
     assert "view_002.jpg" in section and "not placed: no image of the model matched" in section
     assert section.count("<img") >= 4  # each placed photo beside its best-matched model photo
@@ -152,7 +157,7 @@ def test_a_rerun_redoes_nothing(first, second):
     out, messages = second
     assert any("3 of 3 photo(s) already localized" in m for m in messages), messages
     assert not any(m.startswith(("Extracting", "Matching")) for m in messages), messages
-    assert out["photos"] == first[0]["photos"]  # the same entries, times included: not computed again
+    assert out["photos"] == first[0]["photos"][:3]  # the same entries, times included: not computed again
 
 
 def test_add_writes_a_new_model_version_and_keeps_the_old_one(second, workspace, synthetic_scene):
@@ -201,3 +206,17 @@ def test_reconstruct_overwrite_removes_what_localize_wrote_and_nothing_else(seco
     shutil.copytree(workspace["ws"], copy)
     Workspace.claim(copy, "reconstruct", overwrite=True)  # what `reconstruct --overwrite` does first
     assert sorted(p.name for p in copy.iterdir()) == [".colmap_guided.json", "notes.txt"]
+
+
+def test_retrieval_picks_the_model_images_to_match(second, workspace, tmp_path):
+    copy = tmp_path / "ws"
+    shutil.copytree(workspace["ws"], copy)
+    photo = tmp_path / "again" / HELD_OUT[0]
+    photo.parent.mkdir()
+    shutil.copy(workspace["photos"][0], photo)  # another path: not localized yet
+    out = loc.localize(copy, [photo], conf={"num_images": 2})
+    (entry,) = out["photos"]
+    assert entry["status"] == "placed" and 1 <= len(entry["matched_images"]) <= 2  # the top 2 only
+    with np.load(copy / "localize_retrieval.npz") as saved:  # the model's descriptors, kept for the next run
+        model = pycolmap.Reconstruction(str(copy / "sparse" / "0"))
+        assert sorted(saved["names"].tolist()) == sorted(model.images[i].name for i in model.reg_image_ids())
