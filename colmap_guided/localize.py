@@ -215,30 +215,38 @@ def _reprojection_error(
     return float(np.mean(np.linalg.norm(proj - xy, axis=1))) if len(xy) else float("nan")
 
 
-def correspondences(
-    db, rec: pycolmap.Reconstruction, photo: str, model_ids: dict[str, int]
-) -> tuple[list, list, list]:
-    """(2D-3D correspondences (keypoint, point3D_id), matched model images [{image, matches, points3D}],
-    verified matches per model image [(model image_id, (N, 2) photo/model keypoint indices)])."""
-    images = dbio.images_by_name(db)
-    photo_id = images[photo].image_id
-    by_id = {images[n].image_id: model_id for n, model_id in model_ids.items() if n in images}
-    pairs, matched, corrs = [], [], {}
-    for (id_a, id_b), inliers in sorted(dbio.read_verified_inliers(db, {photo_id, *by_id}).items()):
-        if photo_id not in (id_a, id_b) or (id_b if id_a == photo_id else id_a) not in by_id:
-            continue
-        other = by_id[id_b if id_a == photo_id else id_a]
-        inliers = inliers if id_a == photo_id else inliers[:, ::-1]
+def verified_pairs(
+    db, photos: set[str], model_ids: dict[str, int]
+) -> dict[str, list[tuple[int, np.ndarray]]]:
+    """{photo: [(model image_id, (N, 2) verified matches: photo keypoint, model keypoint)]} of ``photos``
+    (names in localize.db) with the model's images ({name in localize.db: image_id in the model}), all
+    read in one pass over the database's two-view geometries."""
+    rows = dbio.images_by_name(db)
+    photo_ids = {rows[n].image_id: n for n in photos if n in rows}
+    model = {rows[n].image_id: model_id for n, model_id in model_ids.items() if n in rows}
+    out: dict[str, list] = {name: [] for name in photo_ids.values()}
+    for (id_a, id_b), inliers in sorted(dbio.read_verified_inliers(db).items()):
+        for photo, other, matches in ((id_a, id_b, inliers), (id_b, id_a, inliers[:, ::-1])):
+            if photo in photo_ids and other in model and photo != other:
+                out[photo_ids[photo]].append((model[other], matches))
+                break
+    return out
+
+
+def correspondences(rec: pycolmap.Reconstruction, pairs: list[tuple[int, np.ndarray]]) -> tuple[list, list]:
+    """(2D-3D correspondences (keypoint, point3D_id), matched model images [{image, matches, points3D}]) of one
+    photo's ``verified_pairs``: a matched keypoint of a model image leads to its 3D point."""
+    matched, corrs = [], {}
+    for other, inliers in pairs:
         points2D = rec.images[other].points2D
         found = 0
         for i, j in inliers:
             if points2D[int(j)].has_point3D():
                 corrs.setdefault((int(i), points2D[int(j)].point3D_id), None)
                 found += 1
-        pairs.append((other, inliers))
         matched.append({"image": rec.images[other].name, "matches": len(inliers), "points3D": found})
     matched.sort(key=lambda m: (-m["matches"], m["image"]))
-    return list(corrs), matched, pairs
+    return list(corrs), matched
 
 
 def estimate_pose(
@@ -394,9 +402,10 @@ def localize(
         elapsed = (time.time() - start) / max(1, len(usable))  # extraction and matching, shared evenly
         with dbio.open_database(database) as db:
             rows = dbio.images_by_name(db)
+            verified = verified_pairs(db, set(usable), model_ids)
             for name, photo in usable.items():
                 tic = time.time()
-                entry = localize_one(db, rec, rows[name], model_ids, conf)
+                entry = localize_one(db, rec, rows[name], verified[name], conf)
                 entry = {"photo": str(photo), **entry, "time_s": round(elapsed + time.time() - tic, 2)}
                 results[str(photo)] = entry
                 write_results(path / RESULTS, results, header)
@@ -414,11 +423,9 @@ def localize(
     return out
 
 
-def localize_one(
-    db, rec: pycolmap.Reconstruction, image: pycolmap.Image, model_ids: dict[str, int], conf: dict
-) -> dict:
-    """One photo's entry of localized.json (its matches are in ``db``)."""
-    corrs, matched, _ = correspondences(db, rec, image.name, model_ids)
+def localize_one(db, rec: pycolmap.Reconstruction, image: pycolmap.Image, pairs: list, conf: dict) -> dict:
+    """One photo's entry of localized.json (``pairs``: its ``verified_pairs``)."""
+    corrs, matched = correspondences(rec, pairs)
     camera = dbio.read_camera(db, image.camera_id)
     pose = None
     if len(corrs) >= max(4, conf["min_inliers"]):
@@ -467,11 +474,11 @@ def add_to_model(
     next_image = max([*new.images, *new.frames], default=0) + 1
     with dbio.open_database(database) as db:
         images = dbio.images_by_name(db)
-        for entry in placed:
-            image = images[db_name(Path(entry["photo"]))]
-            if image.name in model_ids:
-                continue  # a photo of the model itself
-            corrs, _, pairs = correspondences(db, rec, image.name, model_ids)
+        photos = {db_name(Path(e["photo"])) for e in placed} - set(model_ids)  # not the model's own photos
+        verified = verified_pairs(db, photos, model_ids)
+        for name in sorted(photos):
+            image, pairs = images[name], verified[name]
+            corrs, _ = correspondences(rec, pairs)
             camera = dbio.read_camera(db, image.camera_id)
             keypoints = dbio.read_keypoints(db, image.image_id)
             pose = estimate_pose(camera, keypoints, corrs, rec, conf)  # seeded: the pose of localized.json
@@ -489,9 +496,11 @@ def add_to_model(
                 ),
                 pose["cam_from_world"],
             )
+            seen = set()  # a 3D point is observed once per photo, a keypoint sees one 3D point
             for i, point3D_id in pose["inliers"]:
-                if not new.image(image_id).points2D[i].has_point3D():
+                if point3D_id not in seen and not new.image(image_id).points2D[i].has_point3D():
                     new.add_observation(point3D_id, pycolmap.TrackElement(image_id, i))
+                    seen.add(point3D_id)
             _triangulate(new, image_id, pairs, conf)
     options = pycolmap.BundleAdjustmentOptions()
     options.print_summary = False
@@ -556,7 +565,9 @@ def _good_point(xyz: np.ndarray, poses: tuple, cameras: tuple, xy: tuple, conf: 
     return True
 
 
-def with_localized(rec: pycolmap.Reconstruction, entries: list[dict]) -> tuple[pycolmap.Reconstruction, list[str]]:
+def with_localized(
+    rec: pycolmap.Reconstruction, entries: list[dict]
+) -> tuple[pycolmap.Reconstruction, list[str]]:
     """A copy of ``rec`` with the cameras of the placed and uncertain photos of localized.json (named by their
     path, no points), for the report's 3D view and map; and their names."""
     shown = pycolmap.Reconstruction(rec)
@@ -565,7 +576,9 @@ def with_localized(rec: pycolmap.Reconstruction, entries: list[dict]) -> tuple[p
         if entry.get("status") not in (PLACED, UNCERTAIN) or "qvec_wxyz" not in entry:
             continue
         cam = entry["camera"]
-        camera = pycolmap.Camera(model=cam["model"], width=cam["width"], height=cam["height"], params=cam["params"])
+        camera = pycolmap.Camera(
+            model=cam["model"], width=cam["width"], height=cam["height"], params=cam["params"]
+        )
         camera.camera_id = max([*shown.cameras, *shown.rigs], default=0) + 1
         image_id = max([*shown.images, *shown.frames], default=0) + 1
         w, x, y, z = entry["qvec_wxyz"]
