@@ -302,7 +302,8 @@ def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: boo
         from .localize import with_localized
 
         rec, names = with_localized(rec, localized)
-        eras = {**{rec.images[i].name: "photo" for i in rec.reg_image_ids()}, **eras, **dict.fromkeys(names, "localized")}
+        model_eras = {rec.images[i].name: "photo" for i in rec.reg_image_ids()}
+        eras = {**model_eras, **eras, **dict.fromkeys(names, "localized")}
     out = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
         f"<title>Reconstruction report: {esc(str(report.get('scene', '')))}</title><style>{CSS}{model_view.VIEW_CSS}</style></head><body>",

