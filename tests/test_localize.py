@@ -148,19 +148,24 @@ def test_the_report_shows_the_localized_photos(first, workspace):
     assert {Path(name).name for name in shown} == set(HELD_OUT)
 
 
-@pytest.fixture(scope="module")
-def second(first, workspace):
-    """The same command again, with --add: nothing is localized again, a new model version is written."""
+def logged(*args, **kwargs) -> tuple[dict, list[str]]:
+    """``localize(*args, **kwargs)`` and the messages it logged."""
     records = []
     handler = logging.Handler()
     handler.emit = records.append
     logger = logging.getLogger("colmap_guided")
     logger.addHandler(handler)
     try:
-        out = loc.localize(workspace["ws"], workspace["photos"], add=True)
+        out = loc.localize(*args, **kwargs)
     finally:
         logger.removeHandler(handler)
     return out, [r.getMessage() for r in records]
+
+
+@pytest.fixture(scope="module")
+def second(first, workspace):
+    """The same command again, with --add: nothing is localized again, a new model version is written."""
+    return logged(workspace["ws"], workspace["photos"], add=True)
 
 
 def test_a_rerun_redoes_nothing(first, second):
@@ -233,3 +238,19 @@ def test_the_command_retrieves_the_top_k_model_images(second, workspace, tmp_pat
     with np.load(copy / "localize_retrieval.npz") as saved:  # the model's descriptors, kept for the next run
         model = pycolmap.Reconstruction(str(copy / "sparse" / "0"))
         assert sorted(saved["names"].tolist()) == sorted(model.images[i].name for i in model.reg_image_ids())
+
+
+def test_a_run_killed_before_the_poses_continues_from_the_database(second, workspace, tmp_path):
+    """localize.db holds the photos' keypoints and matches: without localized.json (a run killed after
+    matching), the rerun extracts and matches nothing again and finds the same poses."""
+    copy = tmp_path / "ws"
+    shutil.copytree(workspace["ws"], copy)
+    (copy / "localized.json").unlink()
+    out, messages = logged(copy, workspace["photos"])
+    assert not any(m.startswith("Extracting") for m in messages), messages
+    assert any(m.startswith("Matching 0 file pairs") for m in messages), messages
+    before = {e["photo"]: e for e in second[0]["photos"]}
+    for entry in out["photos"]:
+        assert entry["status"] == before[entry["photo"]]["status"]
+        if "tvec" in entry:
+            assert np.allclose(entry["tvec"], before[entry["photo"]]["tvec"])
