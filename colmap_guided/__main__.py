@@ -1,4 +1,4 @@
-"""Command line: `python -m colmap_guided {reconstruct,match,export,import,report} ...`."""
+"""Command line: `python -m colmap_guided {reconstruct,localize,match,export,import,report} ...`."""
 
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from . import features, mapping, match
+    from .matchers import PRESETS
 
     parser = argparse.ArgumentParser(prog="python -m colmap_guided", description="Guided feature matching for COLMAP (Darmon et al., 3DV 2020).")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -41,6 +42,24 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--threads", type=int, default=mapping.default_conf["num_threads"], help="mapping threads (-1: all cores; 1: the same model on every rerun)")
     match.add_matcher_arguments(rec)
     _add_common(rec)
+
+    loc = sub.add_parser(
+        "localize", help="where was this photo taken? new photos localized in a reconstruct workspace's model"
+    )
+    loc.add_argument("workspace", type=Path, help="the --output folder of a reconstruct run (holds sparse/0)")
+    loc.add_argument("photos", type=Path, nargs="+", help="photos, or folders of photos, to localize (only read)")
+    loc.add_argument(
+        "--add", action="store_true",
+        help="also write WORKSPACE/sparse_localized/0: the model with the placed photos added (sparse/0 is kept)",
+    )
+    loc.add_argument("--num_images", type=int, default=10, help="model images matched with each photo (top k)")
+    loc.add_argument(
+        "--matcher", default="auto", choices=[*sorted(PRESETS), "auto"],
+        help="auto (default): the one reconstruct picks for the workspace database's features",
+    )
+    loc.add_argument("--weights", type=Path, default=None, help="coarse filter weights (guided matcher)")
+    loc.add_argument("--device", default=None, help="torch device for matching (cpu, cuda)")
+    _add_common(loc)
 
     mat = sub.add_parser("match", help="drop-in replacement of COLMAP's exhaustive_matcher on an existing database")
     mat.add_argument("--database_path", type=Path, required=True)
@@ -126,6 +145,14 @@ def main(argv=None) -> int:
                 match_options=match.match_options_from_args(args),
             )
             print(summary_text(result))
+        elif args.command == "localize":
+            from .localize import localize, summary_text
+
+            given = {"weights": str(args.weights) if args.weights else None, "device": args.device}
+            matcher_conf = {k: v for k, v in given.items() if v is not None}
+            conf = {"num_images": args.num_images}
+            out = localize(args.workspace, args.photos, args.matcher, matcher_conf, conf, add=args.add)
+            print(summary_text(out))
         elif args.command == "match":
             from . import database, features
 

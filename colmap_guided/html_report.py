@@ -5,7 +5,8 @@
 
 It shows the registered ratio, the largest model in 3D (points and cameras, ``model_view``), a map of where
 the photos were taken from, the ratio per era, each photo that was not registered with the stage where it
-dropped out and why (``report.explain_unregistered``), and drawings of the verified matches of a few pairs.
+dropped out and why (``report.explain_unregistered``), the photos placed later by ``localize``
+(localized.json beside report.json), and drawings of the verified matches of a few pairs.
 A panel is ``(title, image_a, image_b, matches)``: images as paths or uint8 RGB arrays, ``matches`` an
 (M, 4) array of x_a, y_a, x_b, y_b in COLMAP pixel coordinates (pixel centre = +0.5, EXIF rotation not
 applied, as ``images.read_image``).
@@ -217,6 +218,63 @@ def _why_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
     return out
 
 
+def _localized(report: dict) -> list[dict]:
+    """The entries of localized.json beside report.json (``localize``), [] when there is none."""
+    import json
+
+    path = Path(report["report_path"]).with_name("localized.json") if report.get("report_path") else None
+    try:
+        return list(json.loads(path.read_text(encoding="utf-8")).get("photos", [])) if path else []
+    except (OSError, ValueError, AttributeError):
+        return []
+
+
+def _img(path: Path, thumbnails: bool, side: int = 120) -> str:
+    if not thumbnails:
+        return ""
+    try:
+        return f"<img src='{_encode_jpeg(images.read_thumbnail(path, side)[0], 75)}' alt='{html.escape(path.name)}'>"
+    except Exception:  # noqa: BLE001 - a photo moved away since the run is listed without a picture
+        return ""
+
+
+def _localized_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
+    """Each photo of ``localize``: its thumbnail, the verdict, pose numbers and the model photo it matched best."""
+    entries = _localized(report)
+    if not entries:
+        return []
+    esc = html.escape
+    placed = sum(e.get("status") == "placed" for e in entries)
+    out = [
+        f"<h2>Photos localized in the model ({placed} of {len(entries)} placed)</h2>",
+        (
+            "<p>Photos added later with <code>localize</code>: where each was taken from, found by matching it "
+            "with the model's photos (results in localized.json).</p>"
+        ),
+        (
+            "<table class='why'><tr><th></th><th>photo</th><th>result</th><th>inliers</th><th>focal length</th>"
+            "<th>position (model units)</th><th>best-matched model photo</th><th></th></tr>"
+        ),
+    ]
+    for i, entry in enumerate(entries):
+        photo = Path(entry.get("photo", ""))
+        best = (entry.get("matched_images") or [{}])[0]
+        centre = entry.get("centre")
+        cls = "" if entry.get("status") == "placed" else " class='warn'"
+        cells = [
+            _img(photo, thumbnails and i < 60),
+            esc(photo.name),
+            f"<span{cls}>{esc(entry.get('confidence', ''))}</span>",
+            str(entry.get("num_inliers", "")), f"{entry['focal_length']:.0f} px" if entry.get("focal_length") else "",
+            ", ".join(f"{c:.2f}" for c in centre) if centre else "",
+            f"{esc(best['image'])} ({best['matches']} matches)" if best else "",
+            _img(image_path / best["image"], thumbnails and i < 60) if best else "",
+        ]
+        out.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+    out.append("</table>")
+    return out
+
+
 def _load_model(report: dict):
     """The largest model (sparse/0) of a report, or None."""
     path = Path(report.get("sparse_path") or "") / "0"
@@ -239,6 +297,13 @@ def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: boo
     matcher_name = matcher.get("name", "?") if isinstance(matcher, dict) else str(matcher)
     rec = reconstruction if reconstruction is not None else _load_model(report)
     eras = read_manifest(Path(report["manifest_path"])) if report.get("manifest_path") else {}
+    localized = _localized(report)
+    if rec is not None and rec.num_reg_images() and localized:  # the localized photos' cameras, in their colour
+        from .localize import with_localized
+
+        rec, names = with_localized(rec, localized)
+        model_eras = {rec.images[i].name: "photo" for i in rec.reg_image_ids()}
+        eras = {**model_eras, **eras, **dict.fromkeys(names, "localized")}
     out = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
         f"<title>Reconstruction report: {esc(str(report.get('scene', '')))}</title><style>{CSS}{model_view.VIEW_CSS}</style></head><body>",
@@ -270,6 +335,7 @@ def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: boo
     if timings:
         out.append("<p class='muted'>Time: " + ", ".join(f"{esc(k)} {v:.1f} s" for k, v in timings.items()) + "</p>")
     out += _why_table(report, image_path, thumbnails)
+    out += _localized_table(report, image_path, thumbnails)
 
     out.append("<h2>Matches of a few pairs</h2>")
     if panels:

@@ -36,20 +36,26 @@ default_conf = {
 }
 
 
+def implausible_focal(camera: pycolmap.Camera, conf: dict | None = None) -> str | None:
+    """The camera's first focal length outside the plausible range, in words; None when all are plausible."""
+    conf = merge_conf(default_conf, conf, "model check")
+    side = max(camera.width, camera.height)
+    for f in (camera.params[i] for i in camera.focal_length_idxs()):
+        if not conf["min_focal_ratio"] <= f / side <= conf["max_focal_ratio"]:
+            plausible = f"{conf['min_focal_ratio']}-{conf['max_focal_ratio']} x"
+            return f"focal length {f:.0f} px = {f / side:.3g} x the image side (plausible: {plausible})"
+    return None
+
+
 def focal_problems(rec: pycolmap.Reconstruction, conf: dict) -> list[str]:
     problems = []
     used = Counter(rec.images[i].camera_id for i in rec.reg_image_ids())
     for camera_id, count in sorted(used.items()):
-        camera = rec.cameras[camera_id]
-        side = max(camera.width, camera.height)
-        for f in (camera.params[i] for i in camera.focal_length_idxs()):
-            if not conf["min_focal_ratio"] <= f / side <= conf["max_focal_ratio"]:
-                names = sorted(rec.images[i].name for i in rec.reg_image_ids() if rec.images[i].camera_id == camera_id)
-                problems.append(
-                    f"focal length {f:.0f} px = {f / side:.3g} x the image side (plausible: {conf['min_focal_ratio']}-{conf['max_focal_ratio']} x) "
-                    f"for {', '.join(names[:3])}{' ...' if len(names) > 3 else ''} ({count} image(s))"
-                )
-                break
+        problem = implausible_focal(rec.cameras[camera_id], conf)
+        if problem is not None:
+            names = sorted(rec.images[i].name for i in rec.reg_image_ids() if rec.images[i].camera_id == camera_id)
+            more = " ..." if len(names) > 3 else ""
+            problems.append(f"{problem} for {', '.join(names[:3])}{more} ({count} image(s))")
     return problems
 
 

@@ -23,7 +23,8 @@ import pycolmap
 MAX_POINTS = 30000  # points drawn in the 3D view; a larger model is shown by an even random sample
 MAX_THUMBS = 300  # cameras that show their photo on hover (160 px JPEGs, ~6 KB each)
 FRUSTUM = 0.07  # frustum depth in units of the model's radius
-ERA_COLORS = {"historical": "#f0a030", "modern": "#3a8ee6"}  # amber / blue: visible on dark and light
+# amber / blue: visible on dark and light; red: photos placed later by `localize`
+ERA_COLORS = {"historical": "#f0a030", "modern": "#3a8ee6", "localized": "#e03c31"}
 OTHER_COLORS = ("#3a8ee6", "#e05a8a", "#4fb86b", "#a070e0")  # for a model without eras, or other era names
 
 
