@@ -199,7 +199,7 @@ class CoarseFlows:
     fb_ba: np.ndarray  # A pixels
     cell_a: float  # one coarse feature cell in A's / B's original pixels
     cell_b: float
-    pair_score: float = 1.0  # eq. 3's image-level score: mean over cells of the best s, the smaller direction
+    pair_score: float  # eq. 3's image-level score: mean over cells of the best s, the smaller direction
 
 
 def merge_matches(primary: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
