@@ -85,7 +85,6 @@ class LightGlueMatcher(Matcher):
         "filter_threshold": 0.1,  # LightGlue's match score threshold (its default)
         "depth_confidence": 0.95,  # LightGlue's early stopping (its default); -1 = off
         "width_confidence": 0.99,  # LightGlue's point pruning (its default); -1 = off
-        "max_keypoints": None,  # keypoints per photo that enter LightGlue, the best first (None = all)
         # Two-view verification: at least this many inliers (COLMAP: 15). LightGlue finds 15-51 inliers between
         # unrelated photos: phototourism_superglue 30 of its 60 different-landmark pairs verified with 15 (up to 38
         # inliers; its same-landmark pairs: 65-670), the historical proxy's distractors 62 pairs (15-51); 60 leaves
@@ -113,13 +112,12 @@ class LightGlueMatcher(Matcher):
 
     def match(self, a: ImageData, b: ImageData, keep_a: np.ndarray | None = None, keep_b: np.ndarray | None = None) -> np.ndarray:
         """LightGlue's matches (indices into a's and b's keypoints); ``keep_a`` / ``keep_b``: the keypoint
-        indices that may enter it, best first (None = all), of which the first ``max_keypoints`` do."""
+        indices that enter it (None = all)."""
         for image in (a, b):
             if image.descriptors.dtype != np.float32 or image.descriptors.shape[1] != 128:
                 raise ValueError(f"{image.name}: the lightglue matcher needs ALIKED features; run reconstruct with --features aliked.")
-        budget = self.conf["max_keypoints"]
-        keep_a = (np.arange(len(a.keypoints)) if keep_a is None else np.asarray(keep_a, np.int64))[:budget]
-        keep_b = (np.arange(len(b.keypoints)) if keep_b is None else np.asarray(keep_b, np.int64))[:budget]
+        keep_a = np.arange(len(a.keypoints)) if keep_a is None else np.asarray(keep_a, np.int64)
+        keep_b = np.arange(len(b.keypoints)) if keep_b is None else np.asarray(keep_b, np.int64)
 
         def side(image: ImageData, keep: np.ndarray) -> dict:
             return {
@@ -145,9 +143,9 @@ class GuidedLightGlueMatcher(Matcher):
     flow_options = ("window_cells", "prune_fb_cells", "min_pair_score")
     default_conf = {
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
-        # LightGlue's cost grows with the square of its keypoints: 1,024 per photo, a quarter of 2,048's; a pair
-        # left with fewer than min_inliers matches in the window is matched again on every keypoint (where the
-        # coarse flow is wrong, phototourism_superglue's Piazza San Marco, 1,024 leave too few)
+        # Keypoints per photo that enter LightGlue, the best first (None = all); its cost grows with their square.
+        # A pair left with fewer than min_inliers matches in the window is matched again on every keypoint (where
+        # the coarse flow is wrong, phototourism_superglue's Piazza San Marco, 1,024 leave too few).
         "max_keypoints": 1024,
         # Historical proxy, 10 scenes x 3 seeds, LightGlue's matches filtered with 3 cells (docs/RESULTS.md):
         # photos on the reference pose / off it 300 / 0 with all photos (LightGlue 294 / 6), 124 / 22
@@ -170,8 +168,7 @@ class GuidedLightGlueMatcher(Matcher):
         super().__init__(conf)
         from colmap_guided.matchers.guided import GuidedMatcher
 
-        options = {k: self.conf[k] for k in LightGlueMatcher.default_conf}
-        self.lightglue = LightGlueMatcher({**options, "max_keypoints": None})  # the budget is applied below
+        self.lightglue = LightGlueMatcher({k: self.conf[k] for k in LightGlueMatcher.default_conf})
         self.guide = GuidedMatcher({"weights": self.conf["weights"], "coarse": self.conf["coarse"], "device": self.conf["device"], "raw_matches": None, "workers": 1})
         self.device = self.lightglue.device
 
