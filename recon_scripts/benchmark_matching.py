@@ -32,7 +32,7 @@ import numpy as np
 import pycolmap
 import torch
 
-from colmap_guided import features, learned_features, verify
+from colmap_guided import features, learned_features, verify, xfeat
 from colmap_guided.images import image_size, read_image
 from colmap_guided.log import logger
 from colmap_guided.matchers import get_matcher
@@ -84,14 +84,23 @@ def sift_image(path: Path, cache_dir: Path) -> ImageData:
     return _cached(path, cache_dir, "", _sift)
 
 
-_aliked = {}  # the network, loaded once
+_networks = {}  # the learned extractors, loaded once
 
 
 def _aliked_features(path: Path):
-    if not _aliked:
+    if "aliked" not in _networks:
         conf = learned_features.check_conf({"device": "cpu"})
-        _aliked.update(conf=conf, net=learned_features.load_model(conf))
-    kp, desc = learned_features.extract_image(*_aliked["net"], path, _aliked["conf"])
+        _networks["aliked"] = conf, learned_features.load_model(conf)
+    conf, net = _networks["aliked"]
+    kp, desc = learned_features.extract_image(*net, path, conf)
+    return kp, desc, image_size(path)
+
+
+def _xfeat_features(path: Path):
+    if "xfeat" not in _networks:
+        _networks["xfeat"] = xfeat.XFeat({"device": "cpu"})
+    net = _networks["xfeat"]
+    kp, desc = learned_features.xfeat_image(net, path, net.conf)
     return kp, desc, image_size(path)
 
 
@@ -100,7 +109,12 @@ def aliked_image(path: Path, cache_dir: Path) -> ImageData:
     return _cached(path, cache_dir, "aliked__", _aliked_features)
 
 
-FEATURES = {"sift": sift_image, "aliked": aliked_image}
+def xfeat_image(path: Path, cache_dir: Path) -> ImageData:
+    """XFeat of one image as the pipeline extracts it, cached as .npz."""
+    return _cached(path, cache_dir, "xfeat__", _xfeat_features)
+
+
+FEATURES = {"sift": sift_image, "aliked": aliked_image, "xfeat": xfeat_image}
 
 
 def wxbs_corrs(pair_dir: Path) -> np.ndarray:
@@ -324,7 +338,7 @@ def main(argv=None) -> None:
     parser.add_argument("--pairs_per_set", type=int, default=3)
     parser.add_argument("--unrelated", type=int, default=24, help="number of unrelated-image pairs")
     parser.add_argument("--matchers", nargs="+", default=BASELINES, help="presets of colmap_guided.matchers.PRESETS (lightglue, guided_lightglue with --features aliked)")
-    parser.add_argument("--features", default="sift", choices=sorted(FEATURES), help="aliked: the pipeline's ALIKED, with its raw / guided defaults")
+    parser.add_argument("--features", default="sift", choices=sorted(FEATURES), help="aliked / xfeat: the pipeline's learned features (ALIKED: with its raw / guided defaults)")
     parser.add_argument("--guided_conf", type=json.loads, default={}, help="JSON overriding the guided matcher's options")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--max_ref_err", type=float, default=5.0, help="px: a verified geometry is correct below this median reference error")
