@@ -16,59 +16,21 @@ applied, as ``images.read_image``).
 
 from __future__ import annotations
 
-import base64
 import datetime
 import html
-import io
 from pathlib import Path
 
 import numpy as np
 
 from . import database as dbio
-from . import images
+from . import embed, images, model_view
 from .log import logger
 from .workspace import read_marker
 
 MAX_LINES = 150  # match lines drawn per pair (an even subset beyond)
 Panel = tuple  # (title: str, image_a: Path | np.ndarray, image_b: Path | np.ndarray, matches: (M, 4) ndarray)
 
-CSS = """
-body { font-family: Georgia, 'Times New Roman', serif; margin: 2em auto; max-width: 1100px; color: #222; background: #fdfcf8; }
-h1 { font-size: 1.7em; margin-bottom: 0.2em; } h2 { border-bottom: 1px solid #ccb; padding-bottom: 0.2em; margin-top: 1.6em; }
-.sub { color: #666; margin-top: 0; }
-.big { font-size: 2.4em; font-weight: bold; color: #2d5f2e; }
-table { border-collapse: collapse; margin: 0.5em 0; } td, th { border: 1px solid #ddd; padding: 0.25em 0.7em; text-align: left; }
-th { background: #f1efe6; } td.num { text-align: right; font-variant-numeric: tabular-nums; }
-figure.pair { margin: 1em 0; } figure.pair img { max-width: 100%; border: 1px solid #ccc; }
-.warn { color: #8a3b12; } .muted { color: #888; }
-table.why td { vertical-align: top; font-size: 0.9em; } table.why img { max-width: 120px; max-height: 120px; }
-"""
-
-
-def _data_uri(png_or_jpeg: bytes, mime: str) -> str:
-    return f"data:{mime};base64,{base64.b64encode(png_or_jpeg).decode('ascii')}"
-
-
-def _encode_jpeg(rgb: np.ndarray, quality: int = 85) -> str:
-    from PIL import Image
-
-    buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(rgb)).save(buf, format="JPEG", quality=quality)
-    return _data_uri(buf.getvalue(), "image/jpeg")
-
-
-def _figure_png(fig, photo: bool = False) -> str:
-    """The figure as a data URI: PNG for plots, JPEG for photo drawings (ten times smaller)."""
-    import matplotlib.pyplot as plt
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100, bbox_inches=None if photo else "tight")
-    plt.close(fig)
-    if not photo:
-        return _data_uri(buf.getvalue(), "image/png")
-    from PIL import Image
-
-    return _encode_jpeg(np.asarray(Image.open(io.BytesIO(buf.getvalue())).convert("RGB")), 88)
+CSS = embed.asset("report.css")  # the page's style sheet, the 3D view's included
 
 
 def _thumbnail(image, max_side: int) -> tuple[np.ndarray, float, float]:
@@ -114,7 +76,7 @@ def draw_matches(image_a, image_b, matches: np.ndarray, max_side: int = 560, max
     ax.set_xlim(-0.5, canvas.shape[1] - 0.5)
     ax.set_ylim(canvas.shape[0] - 0.5, -0.5)
     ax.axis("off")
-    return _figure_png(fig, photo=True)
+    return embed.figure_uri(fig, photo=True)
 
 
 def match_panels(databases: dict[str, Path], image_path: Path, num_pairs: int = 3, pairs: list[tuple[str, str]] | None = None) -> list[Panel]:
@@ -177,7 +139,7 @@ def ratio_plot(report: dict) -> str:
     ax.set_xlim(0, 1.35 * max(1, (reg + unreg + skip).max()))
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.55 if len(rows) == 1 else -0.25), ncol=3, fontsize=8, frameon=False)
     ax.spines[["top", "right"]].set_visible(False)
-    return _figure_png(fig)
+    return embed.figure_uri(fig)
 
 
 STAGE_WORDS = {
@@ -208,7 +170,7 @@ def _why_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
         img = ""
         if thumbnails and i < 60 and entry["stage"] != "reading":
             try:
-                img = f"<img src='{_encode_jpeg(images.read_thumbnail(image_path / name, 120)[0], 75)}' alt='{esc(name)}'>"
+                img = f"<img src='{embed.encode_jpeg(images.read_thumbnail(image_path / name, 120)[0], 75)}' alt='{esc(name)}'>"
             except Exception:  # noqa: BLE001 - a photo moved away since the run is listed without a picture
                 img = ""
         stage = STAGE_WORDS.get(entry["stage"], entry["stage"])
@@ -233,7 +195,7 @@ def _img(path: Path, thumbnails: bool, side: int = 120) -> str:
     if not thumbnails:
         return ""
     try:
-        return f"<img src='{_encode_jpeg(images.read_thumbnail(path, side)[0], 75)}' alt='{html.escape(path.name)}'>"
+        return f"<img src='{embed.encode_jpeg(images.read_thumbnail(path, side)[0], 75)}' alt='{html.escape(path.name)}'>"
     except Exception:  # noqa: BLE001 - a photo moved away since the run is listed without a picture
         return ""
 
@@ -287,7 +249,6 @@ def _load_model(report: dict):
 
 def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: bool = True, reconstruction=None) -> str:
     """The page. ``reconstruction``: the largest pycolmap.Reconstruction (default: read from report's sparse_path/0)."""
-    from . import model_view
     from .report import read_manifest
 
     model = report["model"]
@@ -306,7 +267,7 @@ def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: boo
         eras = {**model_eras, **eras, **dict.fromkeys(names, "localized")}
     out = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
-        f"<title>Reconstruction report: {esc(str(report.get('scene', '')))}</title><style>{CSS}{model_view.VIEW_CSS}</style></head><body>",
+        f"<title>Reconstruction report: {esc(str(report.get('scene', '')))}</title><style>\n{CSS}</style></head><body>",
         f"<h1>{esc(str(report.get('scene', 'Reconstruction')))}</h1>",
         f"<p class='sub'>{esc(matcher_name)} matching, COLMAP incremental mapping &middot; {datetime.datetime.now():%Y-%m-%d %H:%M} &middot; photos: {esc(str(image_path))}</p>",
         f"<p><span class='big'>{100 * model['registered_ratio']:.0f}&nbsp;%</span> &nbsp; {model['num_registered']} of {model['num_images']} images are placed in the largest 3D model"

@@ -25,7 +25,7 @@ from . import database as dbio
 from . import model_check
 from .conf import merge_conf
 from .log import colmap_quiet, logger
-from .train.geometry import skew
+from .geometry import essential_from_pose
 
 MAPPERS = ("auto", "incremental", "global", "hierarchical")
 default_conf = {
@@ -97,7 +97,7 @@ def pose_support(rec: pycolmap.Reconstruction, database_path: Path, max_error: f
         image_a, image_b = registered[ids[id_a]], registered[ids[id_b]]
         camera_a, camera_b = rec.cameras[image_a.camera_id], rec.cameras[image_b.camera_id]
         b_from_a = image_b.cam_from_world() * image_a.cam_from_world().inverse()
-        E = skew(np.asarray(b_from_a.translation, np.float64)) @ b_from_a.rotation.matrix()
+        E = essential_from_pose(b_from_a.rotation.matrix(), b_from_a.translation)
         x_a = camera_a.cam_from_img(keypoints[id_a][matches[:, 0]])
         x_b = camera_b.cam_from_img(keypoints[id_b][matches[:, 1]])
         focal = (camera_a.mean_focal_length() + camera_b.mean_focal_length()) / 2

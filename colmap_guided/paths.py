@@ -1,13 +1,19 @@
-"""Where the project finds data it does not ship: ../shared beside the checkout, or env vars."""
+"""Where the project finds data it does not ship (weights, photo sets: env vars, or ../shared beside a
+source checkout) and keeps its caches."""
 
 import os
 from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
+REPO_ROOT = Path(__file__).resolve().parent.parent  # the checkout; site-packages for an installed package
 
 
 def shared_dir() -> Path:
-    return Path(os.environ.get("COLMAP_GUIDED_SHARED", REPO_ROOT.parent / "shared"))
+    """$COLMAP_GUIDED_SHARED; else ../shared beside a source checkout (pyproject.toml in REPO_ROOT, an
+    editable install too). An installed package looks nowhere else (beside site-packages is no project's
+    folder): it gets the path ``$COLMAP_GUIDED_SHARED``, which does not exist and names what to set."""
+    in_checkout = (REPO_ROOT / "pyproject.toml").is_file()
+    default = REPO_ROOT.parent / "shared" if in_checkout else "$COLMAP_GUIDED_SHARED"
+    return Path(os.environ.get("COLMAP_GUIDED_SHARED", default))
 
 
 def shared_data_dir() -> Path:

@@ -25,11 +25,11 @@ import pycolmap
 
 from colmap_guided import verify
 from colmap_guided.database import open_database, read_image_data
+from colmap_guided.geometry import fundamental_from_poses
 from colmap_guided.log import colmap_quiet
 from colmap_guided.matchers import get_matcher
 from colmap_guided.matchers.raw import mutual_nn_match, normalize_descriptors
 from colmap_guided.paths import REPO_ROOT
-from colmap_guided.train.geometry import fundamental_from_poses
 
 BUCKETS = [(0.0, 0.3), (0.3, 0.6), (0.6, 0.8), (0.8, 0.9), (0.9, 1.01)]
 

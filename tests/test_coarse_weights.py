@@ -88,8 +88,9 @@ def test_shipped_weights_load_and_record_their_training(name):
         assert sorted(training["train_scenes"]) == sorted(PERMISSIVE_SCENES)
 
 
-def test_every_file_beside_the_weights_is_installed():
-    """The model card, the weights and the training curve it shows are package data (a wheel has them)."""
+def test_every_file_of_the_package_data_folders_is_installed():
+    """The model card, the weights and the training curve it shows, and the report page's script and style
+    sheet, are package data (a wheel has them)."""
     from fnmatch import fnmatchcase
 
     tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
@@ -97,9 +98,10 @@ def test_every_file_beside_the_weights_is_installed():
     from colmap_guided.paths import REPO_ROOT
 
     globs = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["colmap_guided"]
-    folder = REPO_ROOT / "colmap_guided" / "weights"
-    files = [p.relative_to(folder.parent).as_posix() for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")]
-    assert "coarse_filter_curves.png" in (folder / "MODEL_CARD.md").read_text()
+    package = REPO_ROOT / "colmap_guided"
+    folders = (package / "weights", package / "assets")
+    files = [p.relative_to(package).as_posix() for f in folders for p in f.iterdir() if p.is_file() and not p.name.startswith(".")]
+    assert "coarse_filter_curves.png" in (package / "weights" / "MODEL_CARD.md").read_text()
     assert [f for f in files if not any(fnmatchcase(f, g) for g in globs)] == []
 
 

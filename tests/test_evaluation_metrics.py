@@ -4,6 +4,7 @@ import numpy as np
 import pycolmap
 import pytest
 
+from colmap_guided import geometry
 from colmap_guided.evaluation import matcher_specs, metrics
 from colmap_guided.evaluation.registration import compare_poses
 
@@ -56,7 +57,7 @@ def test_rotation_and_translation_errors():
     assert metrics.translation_error([1, 0.1, 0], [-1, 0, 0]) == pytest.approx(np.degrees(np.arctan(0.1)))
     assert metrics.translation_error([1, 0, 0], [-1, 0, 0], sign_ambiguous=False) == pytest.approx(180.0)
     assert metrics.translation_error([1, 0, 0], [0, 0, 0]) == 0.0
-    R, t = metrics.relative_pose(np.eye(3), np.zeros(3), rot_z(20), np.array([1.0, 0, 0]))
+    R, t = geometry.relative_pose(np.eye(3), np.zeros(3), rot_z(20), np.array([1.0, 0, 0]))
     assert metrics.rotation_angle(R) == pytest.approx(20.0)
 
 
@@ -90,7 +91,7 @@ def test_essential_ransac_recovers_pose_and_fails_on_shuffled_matches(estimator)
 
 def test_symmetric_epipolar_distance_and_transfer_error():
     # Pure x-translation between normalised cameras: epipolar lines are horizontal (y2 = y1).
-    E = metrics.essential_from_pose(np.eye(3), np.array([1.0, 0, 0]))
+    E = geometry.essential_from_pose(np.eye(3), np.array([1.0, 0, 0]))
     x1 = np.array([[0.1, 0.2], [0.3, -0.1]])
     x2 = np.array([[0.5, 0.2], [0.0, -0.1 + 0.02]])
     d = metrics.symmetric_epipolar_distance(x1, x2, E)
@@ -105,13 +106,13 @@ def test_wxbs_scoring_with_an_exact_and_a_wrong_fundamental_matrix():
     rng = np.random.default_rng(2)
     cam, p1, p2, R, t = _two_views(rng, n=60)
     K = np.array([[500.0, 0, 320], [0, 520.0, 240], [0, 0, 1]])
-    F = np.linalg.inv(K).T @ metrics.essential_from_pose(R, t) @ np.linalg.inv(K)
+    F = np.linalg.inv(K).T @ geometry.essential_from_pose(R, t) @ np.linalg.inv(K)
     corrs = np.concatenate([p1, p2], 1)
     assert metrics.share_within(metrics.geometry_errors(corrs, F, "F")) == pytest.approx([1.0, 1.0, 1.0])
     est = metrics.estimate_geometry(p1, p2, "F")
     assert metrics.share_within(metrics.geometry_errors(corrs, est["M"], "F"))[0] > 0.95
     assert metrics.share_within(metrics.geometry_errors(corrs, None, "F")) == [0.0, 0.0, 0.0]
-    F_wrong = np.linalg.inv(K).T @ metrics.essential_from_pose(rot_z(30) @ R, t[::-1]) @ np.linalg.inv(K)
+    F_wrong = np.linalg.inv(K).T @ geometry.essential_from_pose(rot_z(30) @ R, t[::-1]) @ np.linalg.inv(K)
     assert metrics.share_within(metrics.geometry_errors(corrs, F_wrong, "F"))[0] < 0.3
 
 

@@ -1,5 +1,9 @@
 """Pairs files and workspace paths: what a user writes by hand must be read as meant."""
 
+import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -54,3 +58,28 @@ def test_caches_live_outside_the_package_and_the_repository(monkeypatch, tmp_pat
     package = Path(paths.__file__).resolve().parent
     for root in (paths.REPO_ROOT, package):
         assert root not in two_view.DEFAULT_CACHE.resolve().parents
+
+
+def test_an_installed_package_finds_shared_data_only_through_the_environment(tmp_path):
+    """paths.py copied into a site-packages layout (no pyproject.toml above the package): the ../shared beside
+    site-packages is not the project's; the variable is; a checkout keeps its ../shared."""
+    from colmap_guided import paths
+
+    site = tmp_path / "site-packages"
+    (site / "colmap_guided").mkdir(parents=True)
+    (site / "colmap_guided" / "__init__.py").write_text("")
+    shutil.copy(paths.__file__, site / "colmap_guided" / "paths.py")
+    (tmp_path / "shared" / "data").mkdir(parents=True)
+    env = {k: v for k, v in os.environ.items() if k not in ("COLMAP_GUIDED_SHARED", "COLMAP_GUIDED_DATA")}
+    code = ("import sys\nsys.path.insert(0, sys.argv[1])\n"  # the copy, before the checkout on the path
+            "from colmap_guided import paths\nprint(paths.shared_data_dir())")
+
+    def data_dir(**extra) -> Path:
+        run = [sys.executable, "-c", code, str(site)]
+        out = subprocess.run(run, env={**env, **extra}, cwd=tmp_path, capture_output=True, text=True, check=True)
+        return Path(out.stdout.strip())
+
+    assert not (tmp_path / data_dir()).exists()
+    assert data_dir(COLMAP_GUIDED_SHARED=str(tmp_path / "mine")) == tmp_path / "mine" / "data"
+    (site / "pyproject.toml").write_text("")
+    assert data_dir() == tmp_path / "shared" / "data"

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from colmap_guided.geometry import apply_h
 from colmap_guided.images import read_image
 from colmap_guided.train import augment, scenes, views
 from colmap_guided.train import data as D
@@ -68,7 +69,7 @@ def test_synthetic_homography_pair_is_exact(small_data):
     warped = augment.warp_image(photo.astype(np.uint8), view.H, view.geometry.width, view.geometry.height).astype(np.float32)
     rng = np.random.default_rng(0)
     pts = np.stack([rng.uniform(0, im.width, 4000), rng.uniform(0, im.height, 4000)], 1)
-    mapped = G.apply_h(view.H, pts)
+    mapped = apply_h(view.H, pts)
     ok = views.inside(mapped, view.geometry) & (mapped.min(1) > 2) & (mapped[:, 0] < view.geometry.width - 2) & (mapped[:, 1] < view.geometry.height - 2)
     assert ok.sum() > 200
     # pixel value in the photo at p (pixel centre convention) vs in the warp at H p

@@ -22,7 +22,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from colmap_guided.train.geometry import skew
+from colmap_guided.geometry import apply_h
 
 AUC_THRESHOLDS = (5.0, 10.0, 20.0)
 WXBS_THRESHOLDS = (3.0, 5.0, 10.0)
@@ -56,13 +56,6 @@ def translation_error(t_est: np.ndarray, t_gt: np.ndarray, sign_ambiguous: bool 
     cos = float(np.clip(t_est @ t_gt / (n_est * n_gt), -1.0, 1.0))
     angle = float(np.degrees(np.arccos(cos)))
     return min(angle, 180.0 - angle) if sign_ambiguous else angle
-
-
-def relative_pose(R1: np.ndarray, t1: np.ndarray, R2: np.ndarray, t2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """cam2_from_cam1 from two cam_from_world poses."""
-    R1, R2 = np.asarray(R1, float), np.asarray(R2, float)
-    R = R2 @ R1.T
-    return R, np.asarray(t2, float).ravel() - R @ np.asarray(t1, float).ravel()
 
 
 def relative_pose_error(R_est, t_est, R_gt, t_gt, sign_ambiguous: bool = True) -> dict:
@@ -172,10 +165,6 @@ def estimate_relative_pose(
     return {"R": best[1], "t": best[2], "inliers": best[3], "num_inliers": int(best[0])}
 
 
-def essential_from_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    return skew(np.asarray(t, float).ravel()) @ np.asarray(R, float)
-
-
 # ------------------------------------------------------------------------------------------- WxBS
 def _homogeneous(x: np.ndarray) -> np.ndarray:
     x = np.asarray(x, np.float64).reshape(-1, 2)
@@ -200,12 +189,10 @@ def symmetric_epipolar_distance(x1: np.ndarray, x2: np.ndarray, F: np.ndarray) -
 def homography_transfer_error(x1: np.ndarray, x2: np.ndarray, H: np.ndarray) -> np.ndarray:
     """Per correspondence mean of ||H x1 - x2|| and ||H^-1 x2 - x1|| (symmetric transfer error, px)."""
     H = np.asarray(H, float)
-    h1, h2 = _homogeneous(x1), _homogeneous(x2)
-    p2 = h1 @ H.T
-    p1 = h2 @ np.linalg.inv(H).T
+    x1, x2 = (np.asarray(x, np.float64).reshape(-1, 2) for x in (x1, x2))
     with np.errstate(divide="ignore", invalid="ignore"):
-        e2 = np.linalg.norm(p2[:, :2] / p2[:, 2:] - h2[:, :2], axis=1)
-        e1 = np.linalg.norm(p1[:, :2] / p1[:, 2:] - h1[:, :2], axis=1)
+        e2 = np.linalg.norm(apply_h(H, x1) - x2, axis=1)
+        e1 = np.linalg.norm(apply_h(np.linalg.inv(H), x2) - x1, axis=1)
     err = (e1 + e2) / 2.0
     return np.where(np.isfinite(err), err, np.inf)
 

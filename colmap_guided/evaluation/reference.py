@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from colmap_guided.geometry import relative_pose
 from colmap_guided.images import image_size
 from colmap_guided.paths import shared_data_dir
 
@@ -63,8 +64,7 @@ class RefScene:
         if not self.comparable(a, b):
             raise KeyError(f"{a} and {b} have no reference poses in one frame")
         va, vb = self.views[a], self.views[b]
-        R = vb.R @ va.R.T
-        return R, vb.t - R @ va.t
+        return relative_pose(va.R, va.t, vb.R, vb.t)
 
 
 def _observations(rec: pycolmap.Reconstruction) -> dict[str, set]:

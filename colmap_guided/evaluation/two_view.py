@@ -23,6 +23,7 @@ import numpy as np
 
 from colmap_guided import database as dbio
 from colmap_guided import features, paths
+from colmap_guided.geometry import essential_from_pose
 from colmap_guided.log import logger
 from colmap_guided.matchers.base import ImageData, scoped_torch_threads
 from colmap_guided.paths import shared_data_dir
@@ -158,7 +159,7 @@ def evaluate_pose_pair(ref: RefScene, a: ImageData, b: ImageData, matches: np.nd
     precision = float("nan")
     if len(matches):
         k1, k2 = metrics.normalize_points(va.camera, p1), metrics.normalize_points(vb.camera, p2)
-        e_px = metrics.symmetric_epipolar_distance(k1, k2, metrics.essential_from_pose(R_gt, t_gt)) * metrics.mean_focal(va.camera, vb.camera)
+        e_px = metrics.symmetric_epipolar_distance(k1, k2, essential_from_pose(R_gt, t_gt)) * metrics.mean_focal(va.camera, vb.camera)
         precision = float(np.mean(e_px < precision_px))
     return {
         "num_matches": int(len(matches)),

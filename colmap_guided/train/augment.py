@@ -17,7 +17,8 @@ import zlib
 import cv2
 import numpy as np
 
-from colmap_guided.train.geometry import apply_h, colmap_to_cv
+from colmap_guided.geometry import apply_h
+from colmap_guided.train.geometry import colmap_to_cv
 
 
 def random_homography(width: int, height: int, out_w: int, out_h: int, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:

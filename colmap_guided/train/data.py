@@ -20,11 +20,12 @@ from colmap_guided import archival, paths
 from colmap_guided.coarse.backbone import BACKBONES, DEFAULT_BACKBONE, build_backbone
 from colmap_guided.coarse.geometry import ImageGeometry, resize_geometry, resize_image, stack_padded
 from colmap_guided.conf import merge_conf
+from colmap_guided.geometry import apply_h
 from colmap_guided.images import read_image
 from colmap_guided.log import logger
 from colmap_guided.train.augment import random_epipole, random_homography, soft_scan, variant_seed, warp_image
 from colmap_guided.train.cache import FeatureCache
-from colmap_guided.train.geometry import apply_h, ideal_pixels, induced_fundamental, scale_fundamental
+from colmap_guided.train.geometry import ideal_pixels, induced_fundamental, scale_fundamental
 from colmap_guided.train.scenes import VAL_SCENES, SfmImage, SfmPair, SfmScene, all_scenes, load_scene, subset_scene
 from colmap_guided.train.views import PairSample, View, cells_in_window, crop_sample, inside, plain_centres
 

@@ -1,5 +1,5 @@
-"""Epipolar geometry of the training pairs (paper §4.2.2): F from poses, in scaled frames, induced by
-a homography; pixel-frame conversions.
+"""Epipolar geometry of the training pairs (paper §4.2.2): F in scaled frames, induced by a homography;
+pixel-frame conversions. F from poses and the shared two-view helpers: ``colmap_guided.geometry``.
 
 Coordinates. COLMAP's: (0, 0) is the top-left corner of the top-left pixel. The models of the training
 scenes are in the frame of the stored (downscaled) images. A training image is resized to at most
@@ -15,21 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 
-
-def skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]], dtype=np.float64)
-
-
-def fundamental_from_poses(K_a, R_a, t_a, K_b, R_b, t_b) -> np.ndarray:
-    """F with x_B^T F x_A = 0 for ideal pixels, from world-to-camera poses (R, t) and intrinsics.
-
-    Relative pose B←A: R = R_b R_a^T, t = t_b − R t_a; E = [t]_× R; F = K_b^{-T} E K_a^{-1},
-    normalised to unit Frobenius norm.
-    """
-    R = R_b @ R_a.T
-    t = t_b - R @ t_a
-    F = np.linalg.inv(K_b).T @ skew(t) @ R @ np.linalg.inv(K_a)
-    return F / np.linalg.norm(F)
+from colmap_guided.geometry import skew
 
 
 def scale_fundamental(F: np.ndarray, scale_a, scale_b) -> np.ndarray:
@@ -49,11 +35,6 @@ def colmap_to_cv(H: np.ndarray) -> np.ndarray:
     """A homography between COLMAP pixel frames → the same map in OpenCV's (centre-at-integer) frames."""
     T = np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1.0]])
     return np.linalg.inv(T) @ H @ T
-
-
-def apply_h(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    p = np.concatenate([pts, np.ones((len(pts), 1))], 1) @ H.T
-    return p[:, :2] / p[:, 2:3]
 
 
 def ideal_pixels(camera: pycolmap.Camera, xy: np.ndarray) -> np.ndarray:

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from colmap_guided.geometry import fundamental_from_poses
 from colmap_guided.log import logger
 from colmap_guided.paths import shared_data_dir
-from colmap_guided.train.geometry import fundamental_from_poses
 
 # Whole scenes held out for validation (the evaluation issue reports on them) ...
 VAL_SCENES = ["strecha_castle", "strecha_entry_P10", "instantngp_fox", "lund_door_gtsfm"]

@@ -1,0 +1,36 @@
+"""Two-view geometry shared by the stages, the evaluation and the training: poses are ``cam_from_world``
+(x_cam = R x_world + t), a relative pose is cam2_from_cam1, F and E map image 1 to epipolar lines in image 2
+(x_2^T F x_1 = 0)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]], dtype=np.float64)
+
+
+def relative_pose(R1: np.ndarray, t1: np.ndarray, R2: np.ndarray, t2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """cam2_from_cam1 from two cam_from_world poses."""
+    R1, R2 = np.asarray(R1, float), np.asarray(R2, float)
+    R = R2 @ R1.T
+    return R, np.asarray(t2, float).ravel() - R @ np.asarray(t1, float).ravel()
+
+
+def essential_from_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """E = [t]_× R of the relative pose cam2_from_cam1."""
+    return skew(np.asarray(t, float).ravel()) @ np.asarray(R, float)
+
+
+def fundamental_from_poses(K_a, R_a, t_a, K_b, R_b, t_b) -> np.ndarray:
+    """F with x_B^T F x_A = 0 for ideal pixels, from world-to-camera poses (R, t) and intrinsics:
+    F = K_b^{-T} E K_a^{-1} with E of the relative pose B←A, normalised to unit Frobenius norm."""
+    F = np.linalg.inv(K_b).T @ essential_from_pose(*relative_pose(R_a, t_a, R_b, t_b)) @ np.linalg.inv(K_a)
+    return F / np.linalg.norm(F)
+
+
+def apply_h(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Points (N, 2) mapped by the homography H."""
+    p = np.concatenate([pts, np.ones((len(pts), 1))], 1) @ H.T
+    return p[:, :2] / p[:, 2:3]
