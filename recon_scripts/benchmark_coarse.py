@@ -11,7 +11,7 @@ Prints a Markdown table of ms per pair at square grids (25x25 and 32x32 by defau
 with ratios vs naive; on CUDA (if present) dense, single and batched, in float32/float16/bfloat16. Features are real (two photos of
 the Sacre Coeur resized square to the grid), so sparse supports have realistic sizes. Filter weights:
 the default trained file if present, else random (the speed does not depend on the values). Then the
-backbone per image, and the issue's CPU target on one database of --sift-images sacre_coeur_hloc photos
+backbone per image, and the CPU target on one database of --sift-images photos of --sift-set
 (pycolmap SIFT): pycolmap's exhaustive matching + verification vs the guided match stage with 1 and 2
 pair workers, same run, and the guided parts (backbone, coarse, eq. 1) timed serially.
 """
@@ -133,9 +133,9 @@ def match_stage(images: list[Path], workers: list[int], rounds: int = 5) -> dict
         shutil.rmtree(work, ignore_errors=True)
 
 
-def print_match_stage(r: dict, n_images: int, workers: list[int]) -> None:
+def print_match_stage(r: dict, n_images: int, workers: list[int], set_name: str) -> None:
     ref = np.array(r["pycolmap"])
-    print(f"\nMatch stage on one database ({n_images} sacre_coeur_hloc images, {r['pairs']} pairs, {r['keypoints']} SIFT "
+    print(f"\nMatch stage on one database ({n_images} {set_name} images, {r['pairs']} pairs, {r['keypoints']} SIFT "
           f"keypoints/image, pycolmap {__import__('pycolmap').__version__}; wall ms per pair, median of {len(ref)} interleaved "
           f"rounds; vs pycolmap: median and range of the per-round ratios):\n")
     print("| matching + verification | ms / pair | vs pycolmap | verified pairs |")
@@ -159,7 +159,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--supports", nargs="+", default=["3,0", "5,0", "10,0", "3,1"], help="sparse supports 'k,radius'")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--no-naive", action="store_true", help="skip the slow naive loop")
-    parser.add_argument("--sift-images", type=int, default=10, help="sacre_coeur_hloc images for the SIFT reference (0: skip)")
+    parser.add_argument("--sift-images", type=int, default=10, help="photos of --sift-set for the SIFT reference (0: skip)")
+    parser.add_argument("--sift-set", default="sacre_coeur_hloc", help="the shared photo set of the SIFT reference (sceaux_castle: 6 MP)")
     parser.add_argument("--stage-rounds", type=int, default=5, help="interleaved repetitions of the match stage runs")
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="pair workers of the guided match stage rows")
     parser.add_argument("--batch", type=int, default=8, help="pairs per batch for the batched GPU row")
@@ -224,10 +225,11 @@ def main(argv: list[str] | None = None) -> int:
 
     sift = None
     if args.sift_images >= 2:
-        sc = sorted((shared_data_dir() / "sacre_coeur_hloc" / "images").glob("*.jpg"))[: args.sift_images]
+        sc = sorted(p for p in (shared_data_dir() / args.sift_set / "images").iterdir() if p.suffix.lower() in (".jpg", ".jpeg"))
+        sc = sc[: args.sift_images]
         stage = match_stage(sc, args.workers, args.stage_rounds)
         sift = float(np.median(stage["pycolmap"]))
-        print_match_stage(stage, len(sc), args.workers)
+        print_match_stage(stage, len(sc), args.workers, args.sift_set)
     naive_ms = {(d, g): ms for d, m, g, ms, _ in rows if m.startswith("naive")}
     print(f"\nCoarse filter ({label} weights, {torch.get_num_threads()} CPU threads, torch {torch.__version__}); "
           f"CPU = process time of all threads; vs SIFT = wall time / pycolmap's exhaustive matching + verification per pair\n")

