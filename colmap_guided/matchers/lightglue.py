@@ -143,10 +143,11 @@ class GuidedLightGlueMatcher(Matcher):
     flow_options = ("window_cells", "prune_fb_cells", "min_pair_score")
     default_conf = {
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
-        # Keypoints per photo that enter LightGlue, the best first (None = all); its cost grows with their square.
-        # A pair left with fewer than min_inliers matches in the window is matched again on every keypoint (where
-        # the coarse flow is wrong, phototourism_superglue's Piazza San Marco, 1,024 leave too few).
-        "max_keypoints": 1024,
+        # Keypoints per photo that enter LightGlue, the best first (None = all; its cost grows with their square);
+        # a pair left with fewer than min_inliers matches in the window is matched again on every keypoint.
+        # Historical proxy, development split: 1,024 placed 291 / 9 | 112 / 32 photos against all's 300 / 0 |
+        # 124 / 22 (docs/RESULTS.md), so all by default; the guided_lightglue_fast preset keeps 1,024.
+        "max_keypoints": None,
         # Historical proxy, 10 scenes x 3 seeds, LightGlue's matches filtered with 3 cells (docs/RESULTS.md):
         # photos on the reference pose / off it 300 / 0 with all photos (LightGlue 294 / 6), 124 / 22
         # with historical photos only (123 / 27). phototourism_superglue, where the coarse flow is wrong across
