@@ -302,8 +302,8 @@ def xfeat_image(model, path: Path, conf: dict) -> tuple[np.ndarray, np.ndarray]:
 
 
 def extract_features(database_path: Path, image_path: Path, image_names: list[str], conf: dict, camera_mode: pycolmap.CameraMode, camera_model: str, check: bool = True, kind: str = "aliked") -> dict:
-    """ALIKED (``kind`` 'aliked') or XFeat ('xfeat') for the images of ``image_names`` not yet in the database (a rerun continues where it
-    stopped). Cameras and images are made by COLMAP's own reader (``pycolmap.import_images``, same
+    """ALIKED (``kind`` 'aliked') or XFeat ('xfeat') for the images of ``image_names`` not yet in the
+    database (a rerun continues where it stopped). Cameras and images are made by COLMAP's own reader (``pycolmap.import_images``, same
     camera grouping as the SIFT stage). Returns {"num_extracted", "skipped", "time", "time_per_image"}."""
     if kind == "xfeat":
         from . import xfeat

@@ -242,7 +242,8 @@ class LighterGlueMatcher(LightGlueMatcher):
     def load_weights(self) -> None:
         from colmap_guided import xfeat
 
-        load_weights(self.net, xfeat.lighterglue_state(self.network["n_layers"]), xfeat.package_files().get("xfeat-lighterglue.pt"))
+        state = xfeat.lighterglue_state(self.network["n_layers"])
+        load_weights(self.net, state, xfeat.package_files().get("xfeat-lighterglue.pt"))
 
 
 class GuidedLighterGlueMatcher(GuidedLightGlueMatcher):
@@ -251,4 +252,5 @@ class GuidedLighterGlueMatcher(GuidedLightGlueMatcher):
     name = "guided_lighterglue"
     feature_types = ("xfeat",)
     fine = LighterGlueMatcher
-    default_conf = {**GuidedLightGlueMatcher.default_conf, **{k: LighterGlueMatcher.default_conf[k] for k in ("depth_confidence", "width_confidence")}}
+    default_conf = {**GuidedLightGlueMatcher.default_conf,
+                    **{k: LighterGlueMatcher.default_conf[k] for k in ("depth_confidence", "width_confidence")}}
