@@ -310,7 +310,7 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
 
         conf = xfeat.check_conf(conf)
         model = xfeat.XFeat(conf)  # first: a missing package fails before anything is written
-        extract, descriptor_type, label = (lambda path: xfeat_image(model, path, conf)), xfeat.DESCRIPTOR_TYPE, "XFeat"
+        extract, descriptor_type, label = (lambda path: xfeat_image(model, path, conf)), dbio.XFEAT, "XFeat"
     else:
         conf = check_conf(conf)
         model, device = load_model(conf)  # first: a missing weights file fails before anything is written

@@ -36,3 +36,17 @@ def package_files(distribution: str) -> dict[str, Path]:
         return {f.name: Path(f.locate()) for f in metadata.files(distribution) or []}
     except metadata.PackageNotFoundError:
         return {}
+
+
+def load_file_module(name: str, path: Path):
+    """The Python file ``path`` executed as module ``name`` (registered in sys.modules, once), without
+    importing the package it ships in."""
+    import importlib.util
+    import sys
+
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]

