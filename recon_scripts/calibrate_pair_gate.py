@@ -6,8 +6,9 @@
 On development scenes of the historical proxy (half of each set a damaged print, plus distractors), every pair of
 photos is matched by the fine matcher and verified as the pipeline does; beside it, the coarse network's evidence
 for the pair (``CoarseFlows.pair_score``, paper eq. 3's image-level score: the mean over grid cells of their best
-match probability, the smaller direction). Prints, per threshold, the verified pairs a gate would lose and the pairs
-it would skip (``guided_lightglue``'s ``min_pair_score``).
+match probability, the smaller direction) and the eq. 1 matches of the guided matcher on the same descriptors.
+Prints, per threshold, the verified pairs a gate would lose and the pairs it would skip (``guided_lightglue``'s
+``min_pair_score``), and the pairs whose eq. 1 matches would stand in for the fine matcher's (``eq1_enough``).
 Development split only: the gate's threshold is chosen here.
 """
 
@@ -48,13 +49,18 @@ def scene_pairs(scene_dir: Path, matcher, min_inliers: int) -> list[dict]:
             start = time.perf_counter()
             m = matcher.match_flows(ia, ib, flows)
             seconds = time.perf_counter() - start
+            eq1 = matcher.guide.match_flows(ia, ib, flows)
             cams = [verify.default_camera(im.width, im.height) for im in (ia, ib)]
             with colmap_quiet():
-                geometry = verify.verify_pair(cams[0], ia.keypoints, cams[1], ib.keypoints, m, options)
-            inliers = len(geometry.inlier_matches)
+                geometry, eq1_geometry = (verify.verify_pair(cams[0], ia.keypoints, cams[1], ib.keypoints, x, options)
+                                          for x in (m, eq1))
+            inliers, eq1_inliers = len(geometry.inlier_matches), len(eq1_geometry.inlier_matches)
+            agree = verify.agreement(geometry, ia.keypoints, ib.keypoints, eq1_geometry.inlier_matches,
+                                     options.ransac.max_error) if inliers >= min_inliers else 0.0
             rows.append({"scene": scene_dir.name, "a": a, "b": b, "related": "distractor" not in (eras[a], eras[b]),
                          "score": flows.pair_score, "inliers": inliers,
-                         "verified": inliers >= min_inliers, "fine_s": seconds})
+                         "verified": inliers >= min_inliers, "fine_s": seconds, "eq1": len(eq1),
+                         "eq1_inliers": eq1_inliers, "eq1_agreement": agree})
     return rows
 
 
@@ -70,6 +76,24 @@ def gate_table(rows: list[dict], key: str, thresholds) -> list[str]:
                      f"| {sum(r['related'] for r in gated)} / {sum(r['related'] for r in rows)} "
                      f"| {sum(not r['related'] for r in gated)} / {sum(not r['related'] for r in rows)} "
                      f"| {sum(r['fine_s'] for r in gated) / total:.0%} |")
+    return lines
+
+
+def eq1_table(rows: list[dict], thresholds, min_inliers: int) -> list[str]:
+    """Pairs whose eq. 1 matches reach each threshold: what the fine matcher would have given them."""
+    lines = ["| eq. 1 matches at least | pairs (unrelated) | fine-verified among them | eq. 1 inliers / fine's, "
+             "min · median | eq. 1 inliers on the fine geometry, min | verified by eq. 1 only | fine time skipped |",
+             "|---|---|---|---|---|---|---|"]
+    total = sum(r["fine_s"] for r in rows)
+    for t in thresholds:
+        took = [r for r in rows if r["eq1"] >= t]
+        both = [r for r in took if r["verified"]]
+        share = [r["eq1_inliers"] / r["inliers"] for r in both]
+        lines.append(f"| {t} | {len(took)} ({sum(not r['related'] for r in took)}) | {len(both)} "
+                     f"| {min(share, default=0):.2f} · {np.median(share) if share else 0:.2f} "
+                     f"| {min((r['eq1_agreement'] for r in both), default=0):.2f} "
+                     f"| {sum(not r['verified'] and r['eq1_inliers'] >= min_inliers for r in took)} "
+                     f"| {sum(r['fine_s'] for r in took) / total:.0%} |")
     return lines
 
 
@@ -97,6 +121,7 @@ def main(argv=None):
         rows += scene_pairs(scene_dir, matcher, min_inliers)
     workspace.record("pairs.json")[0].write_text(json.dumps(rows, indent=1) + "\n")
     print("\n".join(gate_table(rows, "score", (0.02, 0.05, 0.1, 0.15, 0.2, 0.3))) + "\n")
+    print("\n".join(eq1_table(rows, (50, 100, 150, 200, 300, 500), min_inliers)) + "\n")
     for label, pick in (("verified", lambda r: r["verified"]), ("not verified", lambda r: not r["verified"])):
         values = np.array([r["score"] for r in rows if pick(r)])
         if len(values):

@@ -135,7 +135,7 @@ class GuidedLightGlueMatcher(Matcher):
     name = "guided_lightglue"
     feature_types = ("aliked",)
     fine = LightGlueMatcher  # the matcher inside the window
-    flow_options = ("window_cells", "prune_fb_cells", "min_pair_score")
+    flow_options = ("window_cells", "prune_fb_cells", "min_pair_score", "eq1_enough")
     default_conf = {
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
         # Keypoints per photo that enter LightGlue, the best first (None = all; its cost grows with their square);
@@ -156,6 +156,9 @@ class GuidedLightGlueMatcher(Matcher):
         # (a rerun does not redo them); None: every pair is matched. Development pairs (calibrate_pair_gate.py,
         # docs/RESULTS.md): the 43 that verify score 0.082-0.999, 43 of the 63 unrelated ones below 0.05.
         "min_pair_score": 0.05,
+        # Pairs whose eq. 1 matches (the guided matcher's, on the same descriptors) number at least this keep
+        # them without LightGlue: the pairs that plain guided matching already solves; None: LightGlue on all.
+        "eq1_enough": None,
         "weights": None,  # coarse filter weights, as the guided matcher's; None = the shipped ones
         "coarse": {},  # further CoarseMatcher options, as the guided matcher's
     }
@@ -193,6 +196,10 @@ class GuidedLightGlueMatcher(Matcher):
         window, keep_a, keep_b = conf["window_cells"], None, None
         if conf["min_pair_score"] is not None and flows.pair_score < conf["min_pair_score"]:  # no overlap seen
             return np.zeros((0, 2), np.uint32)
+        if conf["eq1_enough"] is not None:
+            m = self.guide.match_flows(a, b, flows)
+            if len(m) >= conf["eq1_enough"]:
+                return m
         if conf["prune_fb_cells"] is not None:  # the coarse flow restricts the candidates before matching
             keep_a = np.flatnonzero(flows.fb_ab <= conf["prune_fb_cells"] * flows.cell_b)
             keep_b = np.flatnonzero(flows.fb_ba <= conf["prune_fb_cells"] * flows.cell_a)
