@@ -21,5 +21,7 @@ try:  # the installed version from its metadata: pycolmap itself is not imported
 except metadata.PackageNotFoundError:  # then importing it says what is missing
     _pycolmap = MIN_PYCOLMAP
 if _release(_pycolmap) < _release(MIN_PYCOLMAP):
-    raise ImportError(f"colmap_guided needs pycolmap >= {MIN_PYCOLMAP}, found {_pycolmap}: "
-                      f"pip install -U 'pycolmap>={MIN_PYCOLMAP}'")
+    raise ImportError(
+        f"colmap_guided needs pycolmap >= {MIN_PYCOLMAP}, found {_pycolmap}: "
+        f"pip install -U 'pycolmap>={MIN_PYCOLMAP}'"
+    )

@@ -72,7 +72,9 @@ def sepia(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> n
     amount = float(np.clip(rng.uniform(0.6, 1.0) * strength, 0, 1))
     gray = np.repeat(_luma(img)[..., None], 3, axis=2)
     toned = gray @ _SEPIA.T
-    toned /= max(float(_SEPIA.sum(1).max()), 1.0)  # keep white below saturation: a brown-ish paper tone
+    toned /= max(
+        float(_SEPIA.sum(1).max()), 1.0
+    )  # keep white below saturation: a brown-ish paper tone
     return (1 - amount) * img + amount * toned
 
 
@@ -148,7 +150,14 @@ def scratches(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) 
         x1, y1 = x0 + length * np.cos(angle), y0 + length * np.sin(angle)
         thick = max(1, int(round(size / 1000.0 * rng.uniform(0.8, 2.0))))
         target = mask_bright if rng.random() < 0.6 else mask_dark
-        cv2.line(target, (int(x0), int(y0)), (int(x1), int(y1)), float(rng.uniform(0.4, 0.9)), thick, cv2.LINE_AA)
+        cv2.line(
+            target,
+            (int(x0), int(y0)),
+            (int(x1), int(y1)),
+            float(rng.uniform(0.4, 0.9)),
+            thick,
+            cv2.LINE_AA,
+        )
     _dust_specks(mask_bright, mask_dark, rng, strength)
     return _apply_masks(img, mask_bright, mask_dark)
 
@@ -161,7 +170,9 @@ def dust(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np
     return _apply_masks(img, mask_bright, mask_dark)
 
 
-def _dust_specks(mask_bright: np.ndarray, mask_dark: np.ndarray, rng: np.random.Generator, strength: float) -> None:
+def _dust_specks(
+    mask_bright: np.ndarray, mask_dark: np.ndarray, rng: np.random.Generator, strength: float
+) -> None:
     h, w = mask_bright.shape
     size = max(h, w)
     n_dust = int(rng.integers(20, 60) * strength * (size / 1000.0) ** 2) + 5
@@ -199,16 +210,24 @@ PRESETS: dict[str, dict] = {
     "bw_print": {"effects": ["grayscale", "fade", "grain"], "strength": 0.8},
     "sepia_print": {"effects": ["sepia", "fade", "vignette", "grain"], "strength": 1.0},
     "faded_colour": {"effects": ["fade", "blur", "jpeg"], "strength": 1.0},
-    "damaged_scan": {"effects": ["grayscale", "fade", "vignette", "blur", "grain", "scratches", "jpeg"], "strength": 1.0},
+    "damaged_scan": {
+        "effects": ["grayscale", "fade", "vignette", "blur", "grain", "scratches", "jpeg"],
+        "strength": 1.0,
+    },
     "old_postcard": {"effects": ["sepia", "blur", "grain", "scratches", "jpeg"], "strength": 1.2},
     # Realistic prints, kept well: moderate fading, soft focus, fine grain, dust.
     "realistic_bw": {"effects": ["grayscale", "fade", "blur", "grain", "dust"], "strength": 0.5},
-    "realistic_sepia": {"effects": ["sepia", "fade", "vignette", "blur", "grain", "dust"], "strength": 0.5},
+    "realistic_sepia": {
+        "effects": ["sepia", "fade", "vignette", "blur", "grain", "dust"],
+        "strength": 0.5,
+    },
     "realistic_colour": {"effects": ["fade", "blur", "grain", "dust"], "strength": 0.5},
 }
 
 
-def random_crop(image: np.ndarray, rng: np.random.Generator, min_fraction: float) -> tuple[np.ndarray, tuple[int, int]]:
+def random_crop(
+    image: np.ndarray, rng: np.random.Generator, min_fraction: float
+) -> tuple[np.ndarray, tuple[int, int]]:
     """Crop keeping at least ``min_fraction`` of each side; returns the crop and its offset (x0, y0)."""
     h, w = image.shape[:2]
     cw = int(round(w * rng.uniform(min_fraction, 1.0)))
@@ -265,7 +284,12 @@ def apply_preset(image: np.ndarray, name: str, seed: int = 0) -> np.ndarray:
     if name not in PRESETS:
         raise ValueError(f"unknown archival preset {name!r}; known: {sorted(PRESETS)}")
     preset = PRESETS[name]
-    return degrade(image, np.random.default_rng(seed), strength=preset.get("strength", 1.0), effects=preset["effects"])
+    return degrade(
+        image,
+        np.random.default_rng(seed),
+        strength=preset.get("strength", 1.0),
+        effects=preset["effects"],
+    )
 
 
 def main(argv=None):
@@ -273,14 +297,22 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("images", nargs="+", type=Path)
     parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--preset", default=None, help=f"one of {sorted(PRESETS)}; default: random effects")
+    parser.add_argument(
+        "--preset", default=None, help=f"one of {sorted(PRESETS)}; default: random effects"
+    )
     parser.add_argument("--strength", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--overwrite", action="store_true", help="remove the copies an earlier run wrote in --out first")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="remove the copies an earlier run wrote in --out first",
+    )
     args = parser.parse_args(argv)
     sources = {path.resolve().parent for path in args.images}
     try:
-        out = Workspace.claim(args.out, "archival", keep=tuple(sources), overwrite=args.overwrite, flag="--out")
+        out = Workspace.claim(
+            args.out, "archival", keep=tuple(sources), overwrite=args.overwrite, flag="--out"
+        )
     except ValueError as err:
         logger.error("%s", err)
         return 2
@@ -289,7 +321,9 @@ def main(argv=None):
     for i, path in enumerate(args.images):
         target = out.path / path.name
         if names.count(path.name) > 1 or (target.exists() and not out.owns(path.name)):
-            logger.warning("%s: another file of that name is, or would be, in %s. Skipped.", path, out.path)
+            logger.warning(
+                "%s: another file of that name is, or would be, in %s. Skipped.", path, out.path
+            )
             continue
         try:
             rgb = read_image(path)
@@ -307,6 +341,7 @@ def main(argv=None):
         written += 1
     logger.info("Wrote %d of %d degraded images to %s.", written, len(args.images), out.path)
     return 0
+
 
 if __name__ == "__main__":
     raise SystemExit(main())

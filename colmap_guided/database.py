@@ -49,9 +49,15 @@ def check_database(path: Path) -> None:
     SQLite) without writing to it: pycolmap would add its tables to an empty or foreign file."""
     path = Path(path)
     with sqlite_connection(path, read_only=True) as conn:
-        tables = {name for (name,) in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        tables = {
+            name for (name,) in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")
+        }
     if not COLMAP_TABLES <= tables:
-        kind = "an empty file" if path.stat().st_size == 0 else "an SQLite file without COLMAP's tables"
+        kind = (
+            "an empty file"
+            if path.stat().st_size == 0
+            else "an SQLite file without COLMAP's tables"
+        )
         raise DatabaseError(f"{path} is {kind}, not a COLMAP database; {ANOTHER}.")
 
 
@@ -60,7 +66,9 @@ def open_database(path: Path, must_exist: bool = True) -> Iterator[pycolmap.Data
     """The COLMAP database at ``path``, checked first; created when absent unless ``must_exist``."""
     path = Path(path)
     if must_exist and not path.is_file():
-        raise DatabaseError(f"No COLMAP database at {path}: run `colmap feature_extractor` (or `python -m colmap_guided reconstruct`) first.")
+        raise DatabaseError(
+            f"No COLMAP database at {path}: run `colmap feature_extractor` (or `python -m colmap_guided reconstruct`) first."
+        )
     existed = path.exists()
     if existed:
         check_database(path)
@@ -72,7 +80,9 @@ def open_database(path: Path, must_exist: bool = True) -> Iterator[pycolmap.Data
                 conn.execute("BEGIN IMMEDIATE")
                 conn.rollback()
         first = str(err).splitlines()[0]
-        raise DatabaseError(f"{path} is not a readable COLMAP database; {ANOTHER} ({first}).") from err
+        raise DatabaseError(
+            f"{path} is not a readable COLMAP database; {ANOTHER} ({first})."
+        ) from err
     try:
         yield db
     finally:
@@ -95,12 +105,15 @@ def image_names(db: pycolmap.Database) -> dict[int, str]:
     return {image.image_id: image.name for image in db.read_all_images()}
 
 
-def images_with_keypoints(db: pycolmap.Database, descriptors: bool = False) -> dict[str, pycolmap.Image]:
+def images_with_keypoints(
+    db: pycolmap.Database, descriptors: bool = False
+) -> dict[str, pycolmap.Image]:
     """name -> image of the images whose keypoints (and, with ``descriptors``, descriptors) are written."""
     return {
         image.name: image
         for image in db.read_all_images()
-        if db.exists_keypoints(image.image_id) and (not descriptors or db.exists_descriptors(image.image_id))
+        if db.exists_keypoints(image.image_id)
+        and (not descriptors or db.exists_descriptors(image.image_id))
     }
 
 
@@ -149,12 +162,17 @@ def num_keypoints(db: pycolmap.Database, image_id: int) -> int:
     return db.num_keypoints_for_image(image_id) if db.exists_keypoints(image_id) else 0
 
 
-XFEAT = "XFEAT"  # COLMAP has no XFeat type: its 64 float32 per row are stored untyped, 256 bytes wide
+XFEAT = (
+    "XFEAT"  # COLMAP has no XFeat type: its 64 float32 per row are stored untyped, 256 bytes wide
+)
 
 
 def kind_name(descriptors: pycolmap.FeatureDescriptors) -> str:
     """The extractor type's name ('SIFT', 'ALIKED_N16ROT', ...; XFEAT for untyped 256-byte rows)."""
-    if descriptors.type == pycolmap.FeatureExtractorType.UNDEFINED and np.asarray(descriptors.data).shape[1] == 4 * 64:
+    if (
+        descriptors.type == pycolmap.FeatureExtractorType.UNDEFINED
+        and np.asarray(descriptors.data).shape[1] == 4 * 64
+    ):
         return XFEAT
     return descriptors.type.name
 
@@ -174,21 +192,42 @@ def read_descriptors(db: pycolmap.Database, image_id: int) -> tuple[np.ndarray, 
     return descriptor_array(descriptors), kind_name(descriptors)
 
 
-def write_features(db: pycolmap.Database, image_id: int, keypoints: np.ndarray, descriptors: np.ndarray | None, kind: str = "SIFT") -> None:
+def write_features(
+    db: pycolmap.Database,
+    image_id: int,
+    keypoints: np.ndarray,
+    descriptors: np.ndarray | None,
+    kind: str = "SIFT",
+) -> None:
     """Keypoints (and descriptors of extractor type ``kind``) of an image; call inside ``transaction``
     when other writes belong with them. Learned descriptors (float32) are stored as COLMAP stores its own."""
     db.write_keypoints(image_id, np.ascontiguousarray(keypoints, np.float32))
     if descriptors is None:
         return
     if kind == XFEAT:
-        rows = np.ascontiguousarray(descriptors, np.float32).view(np.uint8).reshape(len(descriptors), -1)
-        db.write_descriptors(image_id, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.UNDEFINED, rows))
+        rows = (
+            np.ascontiguousarray(descriptors, np.float32)
+            .view(np.uint8)
+            .reshape(len(descriptors), -1)
+        )
+        db.write_descriptors(
+            image_id, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.UNDEFINED, rows)
+        )
         return
     kind = getattr(pycolmap.FeatureExtractorType, kind)
     if descriptors.dtype == np.uint8:
-        db.write_descriptors(image_id, pycolmap.FeatureDescriptors(kind, np.ascontiguousarray(descriptors)))
+        db.write_descriptors(
+            image_id, pycolmap.FeatureDescriptors(kind, np.ascontiguousarray(descriptors))
+        )
     else:
-        db.write_descriptors(image_id, pycolmap.FeatureDescriptors.from_float(pycolmap.FeatureDescriptorsFloat(kind, np.ascontiguousarray(descriptors, np.float32))))
+        db.write_descriptors(
+            image_id,
+            pycolmap.FeatureDescriptors.from_float(
+                pycolmap.FeatureDescriptorsFloat(
+                    kind, np.ascontiguousarray(descriptors, np.float32)
+                )
+            ),
+        )
 
 
 def check_image_folder(db: pycolmap.Database, image_path: Path) -> None:
@@ -223,7 +262,10 @@ def descriptor_array(descriptors: pycolmap.FeatureDescriptors) -> np.ndarray:
     if kind_name(descriptors) == XFEAT:
         data = np.ascontiguousarray(descriptors.data)
         return data.view(np.float32).reshape(len(data), -1)
-    if descriptors.type in (pycolmap.FeatureExtractorType.SIFT, pycolmap.FeatureExtractorType.UNDEFINED):
+    if descriptors.type in (
+        pycolmap.FeatureExtractorType.SIFT,
+        pycolmap.FeatureExtractorType.UNDEFINED,
+    ):
         return np.asarray(descriptors.data)
     return np.asarray(descriptors.to_float().data, np.float32)
 
@@ -236,7 +278,9 @@ def check_feature_type(path: Path, expected: str) -> None:
             if db.exists_descriptors(image.image_id):
                 kind = kind_name(db.read_descriptors(image.image_id))
                 if kind != expected and {kind, expected} != {"SIFT", "UNDEFINED"}:
-                    raise DatabaseError(f"{path} holds {kind} features ({image.name}), not {expected}: pass another --output, or --overwrite to start a new database.")
+                    raise DatabaseError(
+                        f"{path} holds {kind} features ({image.name}), not {expected}: pass another --output, or --overwrite to start a new database."
+                    )
                 return
 
 
@@ -245,7 +289,9 @@ def read_image_data(db: pycolmap.Database, image: pycolmap.Image, image_path: Pa
     keypoints = read_keypoints(db, image.image_id)
     descriptors, _ = read_descriptors(db, image.image_id)
     if len(keypoints) != len(descriptors):
-        raise DatabaseError(f"Image {image.name}: {len(keypoints)} keypoints but {len(descriptors)} descriptors; rerun feature extraction (--overwrite).")
+        raise DatabaseError(
+            f"Image {image.name}: {len(keypoints)} keypoints but {len(descriptors)} descriptors; rerun feature extraction (--overwrite)."
+        )
     return ImageData(
         name=image.name,
         image_id=image.image_id,
@@ -266,9 +312,13 @@ def pair_is_verified(db: pycolmap.Database, id_a: int, id_b: int) -> bool:
     return db.exists_two_view_geometry(id_a, id_b)
 
 
-def read_two_view_geometry(db: pycolmap.Database, id_a: int, id_b: int) -> pycolmap.TwoViewGeometry | None:
+def read_two_view_geometry(
+    db: pycolmap.Database, id_a: int, id_b: int
+) -> pycolmap.TwoViewGeometry | None:
     """The pair's two-view geometry (inlier_matches index a's and b's keypoints); None when not verified."""
-    return db.read_two_view_geometry(id_a, id_b) if db.exists_two_view_geometry(id_a, id_b) else None
+    return (
+        db.read_two_view_geometry(id_a, id_b) if db.exists_two_view_geometry(id_a, id_b) else None
+    )
 
 
 def pair_match_counts(db: pycolmap.Database) -> dict[tuple[int, int], int]:
@@ -301,10 +351,14 @@ def write_pairs_matches(db: pycolmap.Database, batch: list[tuple[int, int, np.nd
                 db.delete_matches(id_a, id_b)
             if db.exists_two_view_geometry(id_a, id_b):
                 db.delete_two_view_geometry(id_a, id_b)
-            db.write_matches(id_a, id_b, np.ascontiguousarray(matches, dtype=np.uint32).reshape(-1, 2))
+            db.write_matches(
+                id_a, id_b, np.ascontiguousarray(matches, dtype=np.uint32).reshape(-1, 2)
+            )
 
 
-def write_pair_geometry(db: pycolmap.Database, id_a: int, id_b: int, geometry: pycolmap.TwoViewGeometry) -> None:
+def write_pair_geometry(
+    db: pycolmap.Database, id_a: int, id_b: int, geometry: pycolmap.TwoViewGeometry
+) -> None:
     with pycolmap.DatabaseTransaction(db):
         if db.exists_two_view_geometry(id_a, id_b):
             db.delete_two_view_geometry(id_a, id_b)
@@ -322,7 +376,9 @@ def read_pair_matches(db: pycolmap.Database, id_a: int, id_b: int) -> np.ndarray
     return np.asarray(db.read_matches(id_a, id_b), np.uint32).reshape(-1, 2)
 
 
-def read_verified_inliers(db: pycolmap.Database, image_ids: set[int] | None = None) -> dict[tuple[int, int], np.ndarray]:
+def read_verified_inliers(
+    db: pycolmap.Database, image_ids: set[int] | None = None
+) -> dict[tuple[int, int], np.ndarray]:
     """(image_id_a, image_id_b) -> (N, 2) inlier matches (indices into a's and b's keypoints) of every verified
     pair, or of the pairs between ``image_ids``."""
     out = {}
@@ -353,11 +409,18 @@ def remove_orphans(path: Path) -> tuple[int, int]:
         return 0, 0
     check_database(path)
     with sqlite_connection(path) as conn:
-        tables = {name for (name,) in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        tables = {
+            name for (name,) in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")
+        }
         if not {"rigs", "rig_sensors", "frames", "cameras", "images", "sqlite_sequence"} <= tables:
             return 0, 0  # a database of an older COLMAP: nothing of this kind to clean
         with conn:
-            rigs = [r for (r,) in conn.execute("SELECT rig_id FROM rigs WHERE rig_id NOT IN (SELECT rig_id FROM frames)")]
+            rigs = [
+                r
+                for (r,) in conn.execute(
+                    "SELECT rig_id FROM rigs WHERE rig_id NOT IN (SELECT rig_id FROM frames)"
+                )
+            ]
             conn.executemany("DELETE FROM rig_sensors WHERE rig_id = ?", [(r,) for r in rigs])
             conn.executemany("DELETE FROM rigs WHERE rig_id = ?", [(r,) for r in rigs])
             cameras = [
@@ -371,7 +434,10 @@ def remove_orphans(path: Path) -> tuple[int, int]:
             conn.executemany("DELETE FROM cameras WHERE camera_id = ?", [(c,) for c in cameras])
             if rigs or cameras:
                 for table, key in (("rigs", "rig_id"), ("cameras", "camera_id")):
-                    conn.execute(f"UPDATE sqlite_sequence SET seq = (SELECT COALESCE(MAX({key}), 0) FROM {table}) WHERE name = ?", (table,))
+                    conn.execute(
+                        f"UPDATE sqlite_sequence SET seq = (SELECT COALESCE(MAX({key}), 0) FROM {table}) WHERE name = ?",
+                        (table,),
+                    )
     return len(cameras), len(rigs)
 
 
@@ -385,4 +451,3 @@ def database_summary(db: pycolmap.Database) -> dict:
         "num_verified_pairs": num_verified_pairs(db),
         "num_inlier_matches": db.num_inlier_matches(),
     }
-

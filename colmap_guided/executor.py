@@ -83,24 +83,41 @@ def _pair_worker_class():
 class RayExecutor:
     """Pairs matched by actors on a Ray cluster; the driver (this process) stays the only database writer."""
 
-    def __init__(self, matcher: Matcher, address: str | None = None, num_cpus: int | None = None, tasks_per_worker: int = 2):
+    def __init__(
+        self,
+        matcher: Matcher,
+        address: str | None = None,
+        num_cpus: int | None = None,
+        tasks_per_worker: int = 2,
+    ):
         try:
             import ray
         except ImportError as err:
-            raise RuntimeError("--executor ray needs Ray: pip install 'colmap_guided[ray]' (or pip install ray).") from err
+            raise RuntimeError(
+                "--executor ray needs Ray: pip install 'colmap_guided[ray]' (or pip install ray)."
+            ) from err
         self.ray = ray
         address = address or os.environ.get("RAY_ADDRESS") or None
         self.owns = not ray.is_initialized()
         if self.owns:
             if address is None:  # a private instance: address="local" never joins a running cluster
-                cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+                cores = (
+                    len(os.sched_getaffinity(0))
+                    if hasattr(os, "sched_getaffinity")
+                    else os.cpu_count() or 1
+                )
                 # Ray runs workers at nice +15 by default: beside any other work they starve while the driver
                 # waits (4x fewer pairs/s than the local threads here). The pairs are the user's work: same priority.
                 saved = os.environ.get("RAY_worker_niceness")
                 os.environ.setdefault("RAY_worker_niceness", "0")
                 try:
-                    ray.init(address="local", num_cpus=num_cpus or cores, include_dashboard=False, log_to_driver=False,
-                             configure_logging=False)
+                    ray.init(
+                        address="local",
+                        num_cpus=num_cpus or cores,
+                        include_dashboard=False,
+                        log_to_driver=False,
+                        configure_logging=False,
+                    )
                 finally:
                     if saved is None:
                         os.environ.pop("RAY_worker_niceness")
@@ -108,22 +125,33 @@ class RayExecutor:
                 try:
                     ray.init(address=address, log_to_driver=False, configure_logging=False)
                 except Exception as err:  # noqa: BLE001 - Ray raises ConnectionError, RuntimeError, AuthenticationError
-                    raise RuntimeError(f"Could not connect to the Ray cluster at {address} ({err}); start it with `ray start --head` "
-                                       "and pass its address, or omit --ray_address for a private local instance.") from err
+                    raise RuntimeError(
+                        f"Could not connect to the Ray cluster at {address} ({err}); start it with `ray start --head` "
+                        "and pass its address, or omit --ray_address for a private local instance."
+                    ) from err
         self.workers: list = []
         self.refs: dict = {}  # object ref -> (key, worker index)
         try:
             cpus = int(ray.cluster_resources().get("CPU", 1))
             worker_class = _pair_worker_class()
             shipped = ray.put(matcher)
-            self.workers = [worker_class.remote(shipped, matcher.torch_threads or 1) for _ in range(max(1, cpus))]
+            self.workers = [
+                worker_class.remote(shipped, matcher.torch_threads or 1)
+                for _ in range(max(1, cpus))
+            ]
         except BaseException:
             self.close()
             raise
         self.num_workers = len(self.workers)
         self.capacity = tasks_per_worker * self.num_workers
         self.load = [0] * len(self.workers)
-        logger.info("Ray: %d pair workers on %s", len(self.workers), "a private local instance" if self.owns and address is None else address or "the running Ray session")
+        logger.info(
+            "Ray: %d pair workers on %s",
+            len(self.workers),
+            "a private local instance"
+            if self.owns and address is None
+            else address or "the running Ray session",
+        )
 
     def put(self, image: ImageData):
         return self.ray.put(image)
@@ -139,7 +167,15 @@ class RayExecutor:
 
     def wait(self) -> list[tuple[object, np.ndarray | BaseException]]:
         ready, _ = self.ray.wait(list(self.refs), num_returns=1)
-        ready += self.ray.wait([r for r in self.refs if r not in ready], num_returns=len(self.refs) - len(ready), timeout=0)[0] if len(self.refs) > 1 else []
+        ready += (
+            self.ray.wait(
+                [r for r in self.refs if r not in ready],
+                num_returns=len(self.refs) - len(ready),
+                timeout=0,
+            )[0]
+            if len(self.refs) > 1
+            else []
+        )
         out = []
         for ref in ready:
             key, worker = self.refs.pop(ref)

@@ -71,7 +71,9 @@ def _bar(total: int, desc: str, unit: str):
     return tqdm(total=total, desc=desc, unit=unit, disable=None, dynamic_ncols=True, leave=False)
 
 
-def export_h5(database_path: Path, output: Path, inliers_only: bool = False, overwrite: bool = False) -> dict:
+def export_h5(
+    database_path: Path, output: Path, inliers_only: bool = False, overwrite: bool = False
+) -> dict:
     """Write OUTPUT/features.h5, matches.h5 and pairs.txt from ``database_path``; returns counts.
 
     ``inliers_only``: matches.h5 holds the verified (inlier) matches instead of all putative matches.
@@ -81,7 +83,9 @@ def export_h5(database_path: Path, output: Path, inliers_only: bool = False, ove
     paths = {k: output / f"{k}.h5" for k in ("features", "matches")}
     for path in paths.values():
         if path.exists() and not overwrite:
-            raise FileExistsError(f"{path} exists; pass --overwrite to replace it, or another --output.")
+            raise FileExistsError(
+                f"{path} exists; pass --overwrite to replace it, or another --output."
+            )
     workspace.record(*WRITES)
     tmp = {k: p.with_suffix(".h5.partial") for k, p in paths.items()}
     pairs = []
@@ -92,9 +96,14 @@ def export_h5(database_path: Path, output: Path, inliers_only: bool = False, ove
         for im in images:
             key = im.name.replace("/", "-")
             if key in names_seen:
-                raise ValueError(f"Images {names_seen[key]!r} and {im.name!r} have the same hloc pair key {key!r}; rename one of them.")
+                raise ValueError(
+                    f"Images {names_seen[key]!r} and {im.name!r} have the same hloc pair key {key!r}; rename one of them."
+                )
             names_seen[key] = im.name
-        with h5py.File(tmp["features"], "w") as fd, _bar(len(images), "export features", "img") as bar:
+        with (
+            h5py.File(tmp["features"], "w") as fd,
+            _bar(len(images), "export features", "img") as bar,
+        ):
             for im in images:
                 if not dbio.has_keypoints(db, im.image_id):
                     bar.update(1)
@@ -106,7 +115,9 @@ def export_h5(database_path: Path, output: Path, inliers_only: bool = False, ove
                 grp.create_dataset("keypoints", data=kpts[:, :2] - 0.5)
                 grp.create_dataset("descriptors", data=np.ascontiguousarray(desc.T))
                 grp.create_dataset("scores", data=np.ones(len(kpts), np.float32))
-                grp.create_dataset("image_size", data=np.array([camera.width, camera.height], np.int64))
+                grp.create_dataset(
+                    "image_size", data=np.array([camera.width, camera.height], np.int64)
+                )
                 grp.create_dataset("colmap_keypoints", data=kpts)
                 grp.attrs["colmap_descriptor_type"] = kind
                 grp.attrs["colmap_camera_id"] = int(camera.camera_id)
@@ -115,15 +126,24 @@ def export_h5(database_path: Path, output: Path, inliers_only: bool = False, ove
                 grp.attrs["colmap_prior_focal_length"] = bool(camera.has_prior_focal_length)
                 bar.update(1)
         id_pairs = list(dbio.pair_match_counts(db))
-        with h5py.File(tmp["matches"], "w") as fd, _bar(len(id_pairs), "export matches", "pair") as bar:
-            for id_a, id_b in sorted(id_pairs, key=lambda p: tuple(sorted(by_id[i].name for i in p))):
+        with (
+            h5py.File(tmp["matches"], "w") as fd,
+            _bar(len(id_pairs), "export matches", "pair") as bar,
+        ):
+            for id_a, id_b in sorted(
+                id_pairs, key=lambda p: tuple(sorted(by_id[i].name for i in p))
+            ):
                 a, b = by_id[id_a], by_id[id_b]
                 if a.name > b.name:
                     a, b = b, a
                 matches = dbio.read_pair_matches(db, a.image_id, b.image_id)
                 geometry = dbio.read_two_view_geometry(db, a.image_id, b.image_id)
                 if inliers_only:
-                    matches = np.asarray(geometry.inlier_matches, np.uint32).reshape(-1, 2) if geometry is not None else np.zeros((0, 2), np.uint32)
+                    matches = (
+                        np.asarray(geometry.inlier_matches, np.uint32).reshape(-1, 2)
+                        if geometry is not None
+                        else np.zeros((0, 2), np.uint32)
+                    )
                 grp = fd.create_group(names_to_pair(a.name, b.name))
                 num0 = dbio.num_keypoints(db, a.image_id)
                 matches0 = np.full(num0, -1, np.int32)
@@ -131,8 +151,12 @@ def export_h5(database_path: Path, output: Path, inliers_only: bool = False, ove
                 grp.create_dataset("matches0", data=matches0)
                 grp.create_dataset("matching_scores0", data=(matches0 >= 0).astype(np.float16))
                 grp.attrs["colmap_names"] = [a.name, b.name]
-                representable = len(np.unique(matches[:, 0])) == len(matches) and np.all(np.diff(matches[:, 0].astype(np.int64)) > 0)
-                if not representable:  # a keypoint matched twice, or not in order: matches0 cannot hold it exactly
+                representable = len(np.unique(matches[:, 0])) == len(matches) and np.all(
+                    np.diff(matches[:, 0].astype(np.int64)) > 0
+                )
+                if (
+                    not representable
+                ):  # a keypoint matched twice, or not in order: matches0 cannot hold it exactly
                     grp.create_dataset("colmap_matches", data=matches)
                 if geometry is not None and not inliers_only:
                     _write_geometry(grp, geometry)
@@ -142,18 +166,28 @@ def export_h5(database_path: Path, output: Path, inliers_only: bool = False, ove
         tmp[key].replace(paths[key])
     write_pairs(output / "pairs.txt", pairs)
     logger.info("Exported %d images and %d pairs to %s", len(images), len(pairs), output)
-    return {"num_images": len(images), "num_pairs": len(pairs), "features": str(paths["features"]), "matches": str(paths["matches"]), "pairs": str(output / "pairs.txt")}
+    return {
+        "num_images": len(images),
+        "num_pairs": len(pairs),
+        "features": str(paths["features"]),
+        "matches": str(paths["matches"]),
+        "pairs": str(output / "pairs.txt"),
+    }
 
 
 def _write_geometry(grp: h5py.Group, geometry: pycolmap.TwoViewGeometry) -> None:
-    grp.create_dataset("colmap_inlier_matches", data=np.asarray(geometry.inlier_matches, np.uint32).reshape(-1, 2))
+    grp.create_dataset(
+        "colmap_inlier_matches", data=np.asarray(geometry.inlier_matches, np.uint32).reshape(-1, 2)
+    )
     grp.attrs["colmap_config"] = int(geometry.config)
     for key in ("F", "E", "H"):
         if getattr(geometry, key) is not None:
             grp.attrs[f"colmap_{key}"] = np.asarray(getattr(geometry, key), np.float64)
     pose = geometry.cam2_from_cam1
     if pose is not None:
-        grp.attrs["colmap_cam2_from_cam1"] = np.r_[np.asarray(pose.rotation.quat, np.float64), np.asarray(pose.translation, np.float64)]
+        grp.attrs["colmap_cam2_from_cam1"] = np.r_[
+            np.asarray(pose.rotation.quat, np.float64), np.asarray(pose.translation, np.float64)
+        ]
 
 
 def _read_geometry(grp: h5py.Group) -> pycolmap.TwoViewGeometry | None:
@@ -167,7 +201,9 @@ def _read_geometry(grp: h5py.Group) -> pycolmap.TwoViewGeometry | None:
     if "colmap_cam2_from_cam1" in grp.attrs:
         v = np.asarray(grp.attrs["colmap_cam2_from_cam1"], np.float64)
         geometry.cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(v[:4]), v[4:])
-    geometry.inlier_matches = np.ascontiguousarray(grp["colmap_inlier_matches"][()], np.uint32).reshape(-1, 2)
+    geometry.inlier_matches = np.ascontiguousarray(
+        grp["colmap_inlier_matches"][()], np.uint32
+    ).reshape(-1, 2)
     return geometry
 
 
@@ -186,7 +222,9 @@ def _feature_groups(fd: h5py.File) -> dict[str, h5py.Group]:
 def _new_camera(grp: h5py.Group, name: str, image_path: Path | None) -> pycolmap.Camera:
     if "colmap_camera_model" in grp.attrs:
         width, height = (int(v) for v in grp["image_size"][()])
-        camera = pycolmap.Camera.create_from_model_name(0, str(grp.attrs["colmap_camera_model"]), 1.0, width, height)
+        camera = pycolmap.Camera.create_from_model_name(
+            0, str(grp.attrs["colmap_camera_model"]), 1.0, width, height
+        )
         camera.params = np.asarray(grp.attrs["colmap_camera_params"], np.float64)
         camera.has_prior_focal_length = bool(grp.attrs["colmap_prior_focal_length"])
         return camera
@@ -197,7 +235,9 @@ def _new_camera(grp: h5py.Group, name: str, image_path: Path | None) -> pycolmap
 
         width, height = image_size(Path(image_path) / name)
     else:
-        raise ValueError(f"features.h5 has no image_size for {name!r}: pass --image_path so the camera size can be read from the photo.")
+        raise ValueError(
+            f"features.h5 has no image_size for {name!r}: pass --image_path so the camera size can be read from the photo."
+        )
     return verify.default_camera(width, height)
 
 
@@ -217,36 +257,64 @@ def import_h5(
     """
     database_path, features_path = Path(database_path), Path(features_path)
     if not features_path.is_file():
-        raise FileNotFoundError(f"No features file at {features_path}: pass the features.h5 written by `export` or hloc.")
+        raise FileNotFoundError(
+            f"No features file at {features_path}: pass the features.h5 written by `export` or hloc."
+        )
     if matches_path is not None and not Path(matches_path).is_file():
-        raise FileNotFoundError(f"No matches file at {matches_path}: pass the matches.h5 written by `export` or hloc.")
+        raise FileNotFoundError(
+            f"No matches file at {matches_path}: pass the matches.h5 written by `export` or hloc."
+        )
     database_path.parent.mkdir(parents=True, exist_ok=True)
     stats = {"num_images_added": 0, "num_pairs_added": 0, "num_pairs_verified": 0}
-    with h5py.File(features_path, "r") as fd, dbio.open_database(database_path, must_exist=False) as db:
+    with (
+        h5py.File(features_path, "r") as fd,
+        dbio.open_database(database_path, must_exist=False) as db,
+    ):
         groups = _feature_groups(fd)
         if not groups:
-            raise ValueError(f"{features_path} has no image groups with 'keypoints': not an hloc features file.")
+            raise ValueError(
+                f"{features_path} has no image groups with 'keypoints': not an hloc features file."
+            )
         existing = dbio.images_by_name(db)
         cameras: dict[int, int] = {}  # exported camera id -> camera id in this database
         with _bar(len(groups), "import features", "img") as bar:
             for name in sorted(groups):
                 grp = groups[name]
-                kpts = np.asarray(grp["colmap_keypoints"][()] if "colmap_keypoints" in grp else grp["keypoints"][()] + 0.5, np.float32)
-                desc = np.ascontiguousarray(np.asarray(grp["descriptors"][()]).T) if "descriptors" in grp else None
+                kpts = np.asarray(
+                    grp["colmap_keypoints"][()]
+                    if "colmap_keypoints" in grp
+                    else grp["keypoints"][()] + 0.5,
+                    np.float32,
+                )
+                desc = (
+                    np.ascontiguousarray(np.asarray(grp["descriptors"][()]).T)
+                    if "descriptors" in grp
+                    else None
+                )
                 if name in existing and dbio.has_keypoints(db, existing[name].image_id):
                     have = dbio.read_keypoints(db, existing[name].image_id)
-                    if have.shape[0] != kpts.shape[0] or not np.array_equal(have[:, :2], kpts[:, :2]):
-                        raise ValueError(f"{name}: the database has other keypoints than {features_path}; import into a new database (another --database_path).")
+                    if have.shape[0] != kpts.shape[0] or not np.array_equal(
+                        have[:, :2], kpts[:, :2]
+                    ):
+                        raise ValueError(
+                            f"{name}: the database has other keypoints than {features_path}; import into a new database (another --database_path)."
+                        )
                     bar.update(1)
                     continue
                 kind = str(grp.attrs.get("colmap_descriptor_type", "SIFT"))
                 if desc is not None and desc.dtype != np.uint8:
-                    raise ValueError(f"{name}: descriptors are {desc.dtype}; COLMAP's database holds uint8 (SIFT) descriptors — import keypoints and matches only by deleting 'descriptors' or convert them.")
+                    raise ValueError(
+                        f"{name}: descriptors are {desc.dtype}; COLMAP's database holds uint8 (SIFT) descriptors — import keypoints and matches only by deleting 'descriptors' or convert them."
+                    )
                 with dbio.transaction(db):
                     if name in existing:
                         image_id = existing[name].image_id
                     else:
-                        exported = int(grp.attrs["colmap_camera_id"]) if "colmap_camera_id" in grp.attrs else None
+                        exported = (
+                            int(grp.attrs["colmap_camera_id"])
+                            if "colmap_camera_id" in grp.attrs
+                            else None
+                        )
                         if exported is not None and exported in cameras:
                             camera = dbio.read_camera(db, cameras[exported])
                         else:
@@ -281,17 +349,29 @@ def import_h5(
                         idx = np.flatnonzero(matches0 >= 0)
                         matches = np.stack([idx, matches0[idx]], axis=1).astype(np.uint32)
                     num_a, num_b = dbio.num_keypoints(db, ia), dbio.num_keypoints(db, ib)
-                    if len(matches) and (matches[:, 0].max() >= num_a or matches[:, 1].max() >= num_b):
-                        raise ValueError(f"Pair {a} / {b}: matches index keypoints that {features_path} does not have; the two files do not belong together.")
+                    if len(matches) and (
+                        matches[:, 0].max() >= num_a or matches[:, 1].max() >= num_b
+                    ):
+                        raise ValueError(
+                            f"Pair {a} / {b}: matches index keypoints that {features_path} does not have; the two files do not belong together."
+                        )
                     dbio.write_pair_matches(db, ia, ib, matches)
                     geometry = _read_geometry(grp)
                     if geometry is not None:
                         dbio.write_pair_geometry(db, ia, ib, geometry)
                     stats["num_pairs_added"] += 1
                     bar.update(1)
-        stats["num_pairs_verified"] = verify.verify_pairs(db, images, id_pairs, verify.two_view_options(verification_conf))
+        stats["num_pairs_verified"] = verify.verify_pairs(
+            db, images, id_pairs, verify.two_view_options(verification_conf)
+        )
         stats.update(dbio.database_summary(db))
-    logger.info("Imported %d new images and %d pairs into %s (%d pairs verified here)", stats["num_images_added"], stats["num_pairs_added"], database_path, stats["num_pairs_verified"])
+    logger.info(
+        "Imported %d new images and %d pairs into %s (%d pairs verified here)",
+        stats["num_images_added"],
+        stats["num_pairs_added"],
+        database_path,
+        stats["num_pairs_verified"],
+    )
     return stats
 
 
@@ -301,7 +381,9 @@ def _match_groups(fm: h5py.File, by_key: dict[str, list[str]]):
     def resolve(key: str) -> str | None:
         names = by_key.get(key, [])
         if len(names) > 1:
-            raise ValueError(f"Images {names} have the same hloc pair key {key!r}: hloc's matches cannot tell them apart.")
+            raise ValueError(
+                f"Images {names} have the same hloc pair key {key!r}: hloc's matches cannot tell them apart."
+            )
         return names[0] if names else None
 
     for k0, g0 in fm.items():
@@ -318,7 +400,9 @@ def _match_groups(fm: h5py.File, by_key: dict[str, list[str]]):
                     yield a, b, g0
                     break
             else:
-                raise ValueError(f"Pair {k0!r} of the matches file names images that are not in the database; import the features first.")
+                raise ValueError(
+                    f"Pair {k0!r} of the matches file names images that are not in the database; import the features first."
+                )
             continue
         for k1, grp in g0.items():
             if not (isinstance(grp, h5py.Group) and "matches0" in grp):
@@ -328,5 +412,7 @@ def _match_groups(fm: h5py.File, by_key: dict[str, list[str]]):
             else:
                 a, b = resolve(k0), resolve(k1)
             if a is None or b is None:
-                raise ValueError(f"Pair {k0}/{k1} of the matches file names images that are not in the database; import the features first.")
+                raise ValueError(
+                    f"Pair {k0}/{k1} of the matches file names images that are not in the database; import the features first."
+                )
             yield a, b, grp

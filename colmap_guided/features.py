@@ -39,7 +39,18 @@ from .matchers import AUTO, Matcher, resolve_auto
 
 # COLMAP's grey conversion (Rec. 709 luma, rounded to 8 bits): its SIFT keypoints are reproduced exactly.
 GREY_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], np.float32)
-IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm", ".webp", ".jp2"}
+IMAGE_EXTENSIONS = {
+    ".jpg",
+    ".jpeg",
+    ".png",
+    ".tif",
+    ".tiff",
+    ".bmp",
+    ".ppm",
+    ".pgm",
+    ".webp",
+    ".jp2",
+}
 CAMERA_MODES = {
     "auto": pycolmap.CameraMode.AUTO,
     "single": pycolmap.CameraMode.SINGLE,
@@ -83,7 +94,11 @@ def matcher_defaults(feature_type: str, matcher: str, matcher_conf: dict | None)
     raw_ratio and min_agreement for guided) where it does not set them."""
     if feature_type != "aliked" or matcher not in ("raw", "guided"):
         return dict(matcher_conf or {})
-    guided = {"raw_ratio": ALIKED_RATIO, "min_agreement": ALIKED_MIN_AGREEMENT} if matcher == "guided" else {}
+    guided = (
+        {"raw_ratio": ALIKED_RATIO, "min_agreement": ALIKED_MIN_AGREEMENT}
+        if matcher == "guided"
+        else {}
+    )
     return {"ratio": ALIKED_RATIO, **guided, **(matcher_conf or {})}
 
 
@@ -93,7 +108,9 @@ FEATURE_TYPES = {"sift": "SIFT", "aliked": "ALIKED_N16ROT", "xfeat": dbio.XFEAT}
 
 def database_feature_type(db: pycolmap.Database) -> str:
     """The ``FEATURE_TYPES`` key of the database's descriptors ('sift' when it holds none)."""
-    return {kind: name for name, kind in FEATURE_TYPES.items()}.get(dbio.descriptor_type(db), "sift")
+    return {kind: name for name, kind in FEATURE_TYPES.items()}.get(
+        dbio.descriptor_type(db), "sift"
+    )
 
 
 def choose_auto(matcher, conf: dict | None, database_path: Path | None = None) -> tuple:
@@ -107,7 +124,9 @@ def choose_auto(matcher, conf: dict | None, database_path: Path | None = None) -
     if conf["type"] == AUTO and conf["aliked"]:
         conf["type"] = "aliked"
     if isinstance(matcher, Matcher):
-        conf["type"] = (matcher.feature_types or ("sift",))[0] if conf["type"] == AUTO else conf["type"]
+        conf["type"] = (
+            (matcher.feature_types or ("sift",))[0] if conf["type"] == AUTO else conf["type"]
+        )
     else:
         matcher, conf["type"] = resolve_auto(matcher, conf["type"])
     return matcher, check_conf(conf)
@@ -117,7 +136,9 @@ def check_matcher_features(matcher, feature_type: str) -> None:
     """A one-line ValueError when ``matcher`` cannot match ``feature_type`` features (LightGlue: ALIKED only),
     raised before anything is extracted or written."""
     if matcher.feature_types is not None and feature_type not in matcher.feature_types:
-        raise ValueError(f"The {matcher.name} matcher needs {' or '.join(matcher.feature_types)} features, not {feature_type}: run reconstruct with --features {matcher.feature_types[0]}.")
+        raise ValueError(
+            f"The {matcher.name} matcher needs {' or '.join(matcher.feature_types)} features, not {feature_type}: run reconstruct with --features {matcher.feature_types[0]}."
+        )
 
 
 # COLMAP's CPU SIFT needs about this many bytes per pixel of the (downscaled) image it works on
@@ -129,14 +150,20 @@ def list_images(image_path: Path) -> list[str]:
     """Image names (relative, '/'-separated, sorted) below ``image_path``, as COLMAP names them."""
     image_path = Path(image_path)
     if not image_path.is_dir():
-        raise FileNotFoundError(f"Image folder {image_path} does not exist: pass the folder holding your photos (or SCENE_DIR with an images/ sub-folder).")
+        raise FileNotFoundError(
+            f"Image folder {image_path} does not exist: pass the folder holding your photos (or SCENE_DIR with an images/ sub-folder)."
+        )
     names = sorted(
         p.relative_to(image_path).as_posix()
         for p in image_path.rglob("*")
-        if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS and not any(part.startswith(".") for part in p.relative_to(image_path).parts)
+        if p.is_file()
+        and p.suffix.lower() in IMAGE_EXTENSIONS
+        and not any(part.startswith(".") for part in p.relative_to(image_path).parts)
     )
     if not names:
-        raise FileNotFoundError(f"No images ({', '.join(sorted(IMAGE_EXTENSIONS))}) found in {image_path}.")
+        raise FileNotFoundError(
+            f"No images ({', '.join(sorted(IMAGE_EXTENSIONS))}) found in {image_path}."
+        )
     return names
 
 
@@ -166,11 +193,19 @@ def extraction_threads(conf: dict, max_pixels: int | None = None) -> int:
         return cores
     threads = max(1, min(cores, int(0.8 * free // (SIFT_BYTES_PER_PIXEL * pixels))))
     if threads < cores:
-        logger.debug("Extracting with %d thread(s) of %d: %.1f GB free, ~%.1f GB per thread.", threads, cores, free / 1e9, SIFT_BYTES_PER_PIXEL * pixels / 1e9)
+        logger.debug(
+            "Extracting with %d thread(s) of %d: %.1f GB free, ~%.1f GB per thread.",
+            threads,
+            cores,
+            free / 1e9,
+            SIFT_BYTES_PER_PIXEL * pixels / 1e9,
+        )
     return threads
 
 
-def extraction_options(conf: dict, max_pixels: int | None = None) -> pycolmap.FeatureExtractionOptions:
+def extraction_options(
+    conf: dict, max_pixels: int | None = None
+) -> pycolmap.FeatureExtractionOptions:
     options = pycolmap.FeatureExtractionOptions()
     options.max_image_size = conf["max_image_size"]
     options.sift.max_num_features = conf["max_num_features"]
@@ -191,7 +226,11 @@ def _camera_key(image_path: Path, name: str, mode: str):
         with Image.open(Path(image_path) / name) as im:
             exif = im.getexif()
             sub = exif.get_ifd(0x8769)
-            make, model, focal = exif.get(0x010F), exif.get(0x0110), sub.get(0xA405) or sub.get(0x920A)
+            make, model, focal = (
+                exif.get(0x010F),
+                exif.get(0x0110),
+                sub.get(0xA405) or sub.get(0x920A),
+            )
             if make and model and focal:
                 return (str(make).strip(), str(model).strip(), float(focal), im.size)
     except Exception:  # noqa: BLE001 - no usable EXIF: a camera of its own, as in COLMAP
@@ -199,7 +238,9 @@ def _camera_key(image_path: Path, name: str, mode: str):
     return None
 
 
-def _reader(conf: dict, existing_camera_id: int | None) -> tuple[pycolmap.ImageReaderOptions, pycolmap.CameraMode]:
+def _reader(
+    conf: dict, existing_camera_id: int | None
+) -> tuple[pycolmap.ImageReaderOptions, pycolmap.CameraMode]:
     """COLMAP's image reader options and camera mode (onto ``existing_camera_id`` if given)."""
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = conf["camera_model"]
@@ -209,7 +250,13 @@ def _reader(conf: dict, existing_camera_id: int | None) -> tuple[pycolmap.ImageR
     return reader, pycolmap.CameraMode.SINGLE
 
 
-def _import_new(database_path: Path, image_path: Path, names: list[str], reader: pycolmap.ImageReaderOptions, mode: pycolmap.CameraMode) -> None:
+def _import_new(
+    database_path: Path,
+    image_path: Path,
+    names: list[str],
+    reader: pycolmap.ImageReaderOptions,
+    mode: pycolmap.CameraMode,
+) -> None:
     """Write the image rows (and cameras) of the ``names`` not yet in the database, in the order given, by
     COLMAP's own reader. COLMAP's extractor reuses them; left to it, image ids would follow the order in
     which its threads finish, and a rerun would give another database (other pairs, another model)."""
@@ -220,15 +267,31 @@ def _import_new(database_path: Path, image_path: Path, names: list[str], reader:
             pycolmap.import_images(database_path, image_path, mode, image_names=new, options=reader)
 
 
-def _extract_chunk(database_path: Path, image_path: Path, names: list[str], conf: dict, existing_camera_id: int | None, options: pycolmap.FeatureExtractionOptions) -> None:
+def _extract_chunk(
+    database_path: Path,
+    image_path: Path,
+    names: list[str],
+    conf: dict,
+    existing_camera_id: int | None,
+    options: pycolmap.FeatureExtractionOptions,
+) -> None:
     """One pycolmap.extract_features call on a few images (onto ``existing_camera_id`` if given)."""
     reader, mode = _reader(conf, existing_camera_id)
     _import_new(database_path, image_path, names, reader, mode)
     try:
         with colmap_quiet():
-            pycolmap.extract_features(database_path, image_path, image_names=names, camera_mode=mode, reader_options=reader, extraction_options=options)
+            pycolmap.extract_features(
+                database_path,
+                image_path,
+                image_names=names,
+                camera_mode=mode,
+                reader_options=reader,
+                extraction_options=options,
+            )
     except Exception as err:  # noqa: BLE001 - pycolmap raises RuntimeError/ValueError from C++
-        raise RuntimeError(f"COLMAP feature extraction failed on {names[0]}... ({err}); rerun with --verbose to see COLMAP's log.") from err
+        raise RuntimeError(
+            f"COLMAP feature extraction failed on {names[0]}... ({err}); rerun with --verbose to see COLMAP's log."
+        ) from err
 
 
 def noise_level(grey: np.ndarray) -> float:
@@ -245,16 +308,24 @@ def sift_grey(path: Path, max_image_size: int) -> np.ndarray:
     the same keypoints and descriptors at full size), the longer side downscaled to ``max_image_size``."""
     width, height = images.image_size(path)
     scale = min(1.0, max_image_size / max(width, height))
-    rgb = images.read_image(path, 2 * max_image_size)  # a JPEG 4x SIFT's size or more: decoded reduced
+    rgb = images.read_image(
+        path, 2 * max_image_size
+    )  # a JPEG 4x SIFT's size or more: decoded reduced
     box = images.decoded_box((width, height), rgb.shape)
     grey = np.empty(rgb.shape[:2], np.uint8)
     for row in range(0, len(grey), 256):  # in bands of rows: no float copy of a large scan
         grey[row : row + 256] = np.round(rgb[row : row + 256].astype(np.float32) @ GREY_WEIGHTS)
     del rgb
-    if scale < 1.0:  # COLMAP's resampling differs slightly: 2062 vs its 2067 keypoints on a photo at 500 px
+    if (
+        scale < 1.0
+    ):  # COLMAP's resampling differs slightly: 2062 vs its 2067 keypoints on a photo at 500 px
         size = (max(1, round(width * scale)), max(1, round(height * scale)))
         # (a non-JPEG scan 4x SIFT's size or more is box-reduced in float first: Pillow's reducing_gap)
-        grey = Image.fromarray(grey).convert("F").resize(size, Image.BILINEAR, box=box, reducing_gap=2.0)
+        grey = (
+            Image.fromarray(grey)
+            .convert("F")
+            .resize(size, Image.BILINEAR, box=box, reducing_gap=2.0)
+        )
     return np.asarray(grey, np.float32) * np.float32(1 / 255)
 
 
@@ -277,7 +348,14 @@ def prepared_grey(path: Path, conf: dict) -> tuple[np.ndarray | None, list[str]]
     return (grey if steps else None), steps
 
 
-def _extract_prepared(database_path: Path, image_path: Path, names: list[str], conf: dict, existing_camera_id: int | None, options: pycolmap.FeatureExtractionOptions) -> None:
+def _extract_prepared(
+    database_path: Path,
+    image_path: Path,
+    names: list[str],
+    conf: dict,
+    existing_camera_id: int | None,
+    options: pycolmap.FeatureExtractionOptions,
+) -> None:
     """SIFT on prepared grey images (``prepared_grey``) through pycolmap's own extractor: cameras and images
     made by COLMAP's reader (as in ``_extract_chunk``), keypoints in the photo's pixels and uint8 descriptors
     stored as COLMAP stores them, so `colmap mapper` reads the database as usual."""
@@ -297,11 +375,20 @@ def _extract_prepared(database_path: Path, image_path: Path, names: list[str], c
             sx, sy = camera.width / grey.shape[1], camera.height / grey.shape[0]
             if (sx, sy) != (1.0, 1.0):
                 for keypoint in keypoints:
-                    keypoint.rescale(sx, sy)  # COLMAP's FeatureKeypoint::Rescale, as its extractor does
-            rows = np.array([(k.x, k.y, k.a11, k.a12, k.a21, k.a22) for k in keypoints], np.float32).reshape(-1, 6)
+                    keypoint.rescale(
+                        sx, sy
+                    )  # COLMAP's FeatureKeypoint::Rescale, as its extractor does
+            rows = np.array(
+                [(k.x, k.y, k.a11, k.a12, k.a21, k.a22) for k in keypoints], np.float32
+            ).reshape(-1, 6)
             with dbio.transaction(db):
                 dbio.write_features(db, image.image_id, rows, dbio.descriptor_array(descriptors))
-            logger.debug("%s: SIFT on a %s grey image, %d keypoints.", name, " and ".join(steps), len(keypoints))
+            logger.debug(
+                "%s: SIFT on a %s grey image, %d keypoints.",
+                name,
+                " and ".join(steps),
+                len(keypoints),
+            )
 
 
 def _sift_pixels(image_path: Path, names: list[str], conf: dict) -> int | None:
@@ -319,17 +406,25 @@ def check_conf(conf: dict | None) -> dict:
     """``conf`` over ``default_conf``, validated (unknown keys, camera mode, feature type, ALIKED options)."""
     conf = merge_conf(default_conf, conf, "feature")
     if conf["camera_mode"] not in CAMERA_MODES:
-        raise ValueError(f"Unknown camera_mode {conf['camera_mode']!r}; choose one of {sorted(CAMERA_MODES)}.")
+        raise ValueError(
+            f"Unknown camera_mode {conf['camera_mode']!r}; choose one of {sorted(CAMERA_MODES)}."
+        )
     if conf["type"] not in (*FEATURE_TYPES, AUTO):
-        raise ValueError(f"Unknown feature type {conf['type']!r}; choose one of {sorted(FEATURE_TYPES)} or auto.")
+        raise ValueError(
+            f"Unknown feature type {conf['type']!r}; choose one of {sorted(FEATURE_TYPES)} or auto."
+        )
     if conf["type"] == "sift" and conf["aliked"]:
-        raise ValueError(f"ALIKED options ({', '.join(sorted(conf['aliked']))}) apply to --features aliked only.")
+        raise ValueError(
+            f"ALIKED options ({', '.join(sorted(conf['aliked']))}) apply to --features aliked only."
+        )
     if conf["type"] == "aliked":
         from . import learned_features
 
         learned_features.weights_path(learned_features.check_conf(conf["aliked"]))
     if conf["xfeat"] and conf["type"] != "xfeat":
-        raise ValueError(f"XFeat options ({', '.join(sorted(conf['xfeat']))}) apply to --features xfeat only.")
+        raise ValueError(
+            f"XFeat options ({', '.join(sorted(conf['xfeat']))}) apply to --features xfeat only."
+        )
     if conf["type"] == "xfeat":
         from . import xfeat
 
@@ -339,7 +434,13 @@ def check_conf(conf: dict | None) -> dict:
     return conf
 
 
-def extract_features(database_path: Path, image_path: Path, image_names: list[str] | None = None, conf: dict | None = None, check: bool = True) -> dict:
+def extract_features(
+    database_path: Path,
+    image_path: Path,
+    image_names: list[str] | None = None,
+    conf: dict | None = None,
+    check: bool = True,
+) -> dict:
     """Extract SIFT for the images not yet in the database (a rerun continues where it stopped).
 
     Photos are checked first (``images.check_images``); the unusable ones are skipped and returned with
@@ -358,16 +459,32 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
 
         if database_path.exists():
             dbio.remove_orphans(database_path)
-        return learned_features.extract_features(database_path, image_path, image_names, conf[conf["type"]], CAMERA_MODES[conf["camera_mode"]],
-                                                 conf["camera_model"], check, kind=conf["type"])
+        return learned_features.extract_features(
+            database_path,
+            image_path,
+            image_names,
+            conf[conf["type"]],
+            CAMERA_MODES[conf["camera_mode"]],
+            conf["camera_model"],
+            check,
+            kind=conf["type"],
+        )
     done: dict[str, int] = {}
-    rows: dict[str, int] = {}  # every image row, extracted or not (a killed run leaves rows _import_new wrote)
+    rows: dict[
+        str, int
+    ] = {}  # every image row, extracted or not (a killed run leaves rows _import_new wrote)
     if database_path.exists():
         orphans = dbio.remove_orphans(database_path)
         if any(orphans):
-            logger.info("Removed %d camera(s) and %d rig(s) left without images by an interrupted extraction.", *orphans)
+            logger.info(
+                "Removed %d camera(s) and %d rig(s) left without images by an interrupted extraction.",
+                *orphans,
+            )
         with open_database(database_path) as db:
-            done = {name: image.camera_id for name, image in dbio.images_with_keypoints(db, descriptors=True).items()}
+            done = {
+                name: image.camera_id
+                for name, image in dbio.images_with_keypoints(db, descriptors=True).items()
+            }
             rows = {name: image.camera_id for name, image in dbio.images_by_name(db).items()}
     todo = [name for name in image_names if name not in done]
     skipped: dict[str, str] = {}
@@ -375,16 +492,29 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
         todo, skipped = images.check_images(image_path, todo, conf["image_checks"])
     if not done and not todo:
         reasons = "; ".join(f"{name}: {reason}" for name, reason in list(skipped.items())[:3])
-        raise ValueError(f"None of the {len(image_names)} image(s) in {image_path} can be used ({reasons}{' ...' if len(skipped) > 3 else ''}).")
+        raise ValueError(
+            f"None of the {len(image_names)} image(s) in {image_path} can be used ({reasons}{' ...' if len(skipped) > 3 else ''})."
+        )
     start = time.time()
     prepared: dict[str, bool] = {}
     if todo:
-        logger.info("Extracting SIFT for %d images (%d already in the database)", len(todo), len(done))
+        logger.info(
+            "Extracting SIFT for %d images (%d already in the database)", len(todo), len(done)
+        )
         mode = conf["camera_mode"]
-        keys = {name: _camera_key(image_path, name, mode) for name in todo} if mode != "per_image" else dict.fromkeys(todo)
+        keys = (
+            {name: _camera_key(image_path, name, mode) for name in todo}
+            if mode != "per_image"
+            else dict.fromkeys(todo)
+        )
         known = {}
         if any(key is not None for key in keys.values()):
-            for name, camera_id in rows.items():  # COLMAP's reader does not share a camera with a row it did not write
+            for (
+                name,
+                camera_id,
+            ) in (
+                rows.items()
+            ):  # COLMAP's reader does not share a camera with a row it did not write
                 known.setdefault(_camera_key(image_path, name, mode), camera_id)
             known.pop(None, None)
         # A few images per pycolmap call (one per thread, twice): the bar moves, and nothing but pycolmap
@@ -393,21 +523,44 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
         chunk = max(2, 2 * options.num_threads)
         prepared = {name: bool(prepared_grey(image_path / name, conf)[1]) for name in todo}
         if any(prepared.values()):
-            logger.info("%d photo(s) get SIFT on a contrast-stretched and/or smoothed grey copy (archival prints).", sum(prepared.values()))
-        with tqdm(total=len(todo), desc="extract", unit="img", disable=None, dynamic_ncols=True, leave=False) as bar:
+            logger.info(
+                "%d photo(s) get SIFT on a contrast-stretched and/or smoothed grey copy (archival prints).",
+                sum(prepared.values()),
+            )
+        with tqdm(
+            total=len(todo),
+            desc="extract",
+            unit="img",
+            disable=None,
+            dynamic_ncols=True,
+            leave=False,
+        ) as bar:
             i = 0
             while i < len(todo):
                 camera_id = known.get(keys[todo[i]])
                 j = i + 1
-                same = prepared[todo[i]]  # a chunk is extracted one way: COLMAP's, or on prepared grey images
+                same = prepared[
+                    todo[i]
+                ]  # a chunk is extracted one way: COLMAP's, or on prepared grey images
                 if camera_id is not None:  # onto a camera already in the database
-                    while j < min(len(todo), i + chunk) and prepared[todo[j]] == same and keys[todo[j]] is not None and known.get(keys[todo[j]]) == camera_id:
+                    while (
+                        j < min(len(todo), i + chunk)
+                        and prepared[todo[j]] == same
+                        and keys[todo[j]] is not None
+                        and known.get(keys[todo[j]]) == camera_id
+                    ):
                         j += 1
                 else:  # COLMAP makes (and shares) the cameras itself
-                    while j < min(len(todo), i + chunk) and prepared[todo[j]] == same and not (keys[todo[j]] is not None and keys[todo[j]] in known):
+                    while (
+                        j < min(len(todo), i + chunk)
+                        and prepared[todo[j]] == same
+                        and not (keys[todo[j]] is not None and keys[todo[j]] in known)
+                    ):
                         j += 1
                 run = todo[i:j]
-                (_extract_prepared if same else _extract_chunk)(database_path, image_path, run, conf, camera_id, options)
+                (_extract_prepared if same else _extract_chunk)(
+                    database_path, image_path, run, conf, camera_id, options
+                )
                 if camera_id is None and any(keys[name] is not None for name in run):
                     with open_database(database_path) as db:
                         for name in run:
@@ -420,20 +573,33 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
         present = set(dbio.images_with_keypoints(db))
     for name in todo:
         if name not in present:
-            skipped[name] = "COLMAP could not read it (unsupported variant of the format, or a size that differs from its camera's); convert it to JPEG"
+            skipped[name] = (
+                "COLMAP could not read it (unsupported variant of the format, or a size that differs from its camera's); convert it to JPEG"
+            )
             logger.warning("Skipped %s: %s.", name, skipped[name])
     prepared = sorted(name for name in todo if name in present and prepared.get(name))
-    return {"num_extracted": sum(name in present for name in todo), "prepared": prepared, "skipped": skipped, "time": time.time() - start}
+    return {
+        "num_extracted": sum(name in present for name in todo),
+        "prepared": prepared,
+        "skipped": skipped,
+        "time": time.time() - start,
+    }
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--database_path", type=Path, required=True)
     parser.add_argument("--image_path", type=Path, required=True)
-    parser.add_argument("--camera_mode", default=default_conf["camera_mode"], choices=sorted(CAMERA_MODES))
+    parser.add_argument(
+        "--camera_mode", default=default_conf["camera_mode"], choices=sorted(CAMERA_MODES)
+    )
     parser.add_argument("--camera_model", default=default_conf["camera_model"])
     args = parser.parse_args(argv)
-    extract_features(args.database_path, args.image_path, conf={"camera_mode": args.camera_mode, "camera_model": args.camera_model})
+    extract_features(
+        args.database_path,
+        args.image_path,
+        conf={"camera_mode": args.camera_mode, "camera_model": args.camera_model},
+    )
 
 
 if __name__ == "__main__":

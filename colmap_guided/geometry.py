@@ -11,7 +11,9 @@ def skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]], dtype=np.float64)
 
 
-def relative_pose(R1: np.ndarray, t1: np.ndarray, R2: np.ndarray, t2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def relative_pose(
+    R1: np.ndarray, t1: np.ndarray, R2: np.ndarray, t2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """cam2_from_cam1 from two cam_from_world poses."""
     R1, R2 = np.asarray(R1, float), np.asarray(R2, float)
     R = R2 @ R1.T
@@ -26,7 +28,11 @@ def essential_from_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 def fundamental_from_poses(K_a, R_a, t_a, K_b, R_b, t_b) -> np.ndarray:
     """F with x_B^T F x_A = 0 for ideal pixels, from world-to-camera poses (R, t) and intrinsics:
     F = K_b^{-T} E K_a^{-1} with E of the relative pose B←A, normalised to unit Frobenius norm."""
-    F = np.linalg.inv(K_b).T @ essential_from_pose(*relative_pose(R_a, t_a, R_b, t_b)) @ np.linalg.inv(K_a)
+    F = (
+        np.linalg.inv(K_b).T
+        @ essential_from_pose(*relative_pose(R_a, t_a, R_b, t_b))
+        @ np.linalg.inv(K_a)
+    )
     return F / np.linalg.norm(F)
 
 

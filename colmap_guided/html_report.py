@@ -45,7 +45,9 @@ def _thumbnail(image, max_side: int) -> tuple[np.ndarray, float, float]:
     return images.read_thumbnail(image, max_side)
 
 
-def draw_matches(image_a, image_b, matches: np.ndarray, max_side: int = 560, max_lines: int = MAX_LINES) -> str:
+def draw_matches(
+    image_a, image_b, matches: np.ndarray, max_side: int = 560, max_lines: int = MAX_LINES
+) -> str:
     """Side-by-side drawing of ``matches`` ((M, 4) COLMAP coordinates) as an embedded PNG data URI."""
     import matplotlib
 
@@ -79,7 +81,12 @@ def draw_matches(image_a, image_b, matches: np.ndarray, max_side: int = 560, max
     return embed.figure_uri(fig, photo=True)
 
 
-def match_panels(databases: dict[str, Path], image_path: Path, num_pairs: int = 3, pairs: list[tuple[str, str]] | None = None) -> list[Panel]:
+def match_panels(
+    databases: dict[str, Path],
+    image_path: Path,
+    num_pairs: int = 3,
+    pairs: list[tuple[str, str]] | None = None,
+) -> list[Panel]:
     """Verified matches of a few pairs in each database ({label: database.db}), the same pairs in all.
 
     Pairs: ``pairs`` if given, else the ``num_pairs`` pairs with the most inliers in the first database.
@@ -91,7 +98,11 @@ def match_panels(databases: dict[str, Path], image_path: Path, num_pairs: int = 
         by_id = dbio.image_names(db)
         if pairs is None:
             ranked = sorted(dbio.pair_inlier_counts(db).items(), key=lambda t: (-t[1], t[0]))
-            pairs = [(by_id[id_a], by_id[id_b]) for (id_a, id_b), count in ranked[:num_pairs] if count > 0]
+            pairs = [
+                (by_id[id_a], by_id[id_b])
+                for (id_a, id_b), count in ranked[:num_pairs]
+                if count > 0
+            ]
     panels = []
     for a, b in pairs:
         for label in labels:
@@ -101,11 +112,24 @@ def match_panels(databases: dict[str, Path], image_path: Path, num_pairs: int = 
                     continue
                 ia, ib = named[a], named[b]
                 geometry = dbio.read_two_view_geometry(db, ia.image_id, ib.image_id)
-                inliers = np.asarray(geometry.inlier_matches if geometry is not None else np.zeros((0, 2)), np.int64).reshape(-1, 2)
+                inliers = np.asarray(
+                    geometry.inlier_matches if geometry is not None else np.zeros((0, 2)), np.int64
+                ).reshape(-1, 2)
                 ka = dbio.read_keypoints(db, ia.image_id)[:, :2]
                 kb = dbio.read_keypoints(db, ib.image_id)[:, :2]
-            xy = np.concatenate([ka[inliers[:, 0]], kb[inliers[:, 1]]], axis=1) if len(inliers) else np.zeros((0, 4))
-            panels.append((f"{label}: {a} \u2194 {b} \u2014 {len(inliers)} verified matches", Path(image_path) / a, Path(image_path) / b, xy))
+            xy = (
+                np.concatenate([ka[inliers[:, 0]], kb[inliers[:, 1]]], axis=1)
+                if len(inliers)
+                else np.zeros((0, 4))
+            )
+            panels.append(
+                (
+                    f"{label}: {a} \u2194 {b} \u2014 {len(inliers)} verified matches",
+                    Path(image_path) / a,
+                    Path(image_path) / b,
+                    xy,
+                )
+            )
     return panels
 
 
@@ -117,9 +141,20 @@ def ratio_plot(report: dict) -> str:
     import matplotlib.pyplot as plt
 
     model = report["model"]
-    skipped = [name for name in (report.get("skipped_images") or {}) if name in set(model.get("unregistered_images") or [])]
+    skipped = [
+        name
+        for name in (report.get("skipped_images") or {})
+        if name in set(model.get("unregistered_images") or [])
+    ]
     # Skipped photos are among the unregistered ones: drawn apart, not twice.
-    rows = [("all images", model["num_registered"], model["num_images"] - model["num_registered"] - len(skipped), len(skipped))]
+    rows = [
+        (
+            "all images",
+            model["num_registered"],
+            model["num_images"] - model["num_registered"] - len(skipped),
+            len(skipped),
+        )
+    ]
     for era, r in (report.get("eras") or {}).items():
         rows.append((era, r["num_registered"], r["num_images"] - r["num_registered"], 0))
     labels = [r[0] for r in rows]
@@ -132,12 +167,24 @@ def ratio_plot(report: dict) -> str:
     for i in range(len(rows)):
         total = reg[i] + unreg[i] + skip[i]
         if total:
-            ax.text(reg[i] + unreg[i] + skip[i] + 0.02 * max(1, (reg + unreg + skip).max()), i, f"{100 * reg[i] / total:.0f} % registered", va="center", fontsize=9)
+            ax.text(
+                reg[i] + unreg[i] + skip[i] + 0.02 * max(1, (reg + unreg + skip).max()),
+                i,
+                f"{100 * reg[i] / total:.0f} % registered",
+                va="center",
+                fontsize=9,
+            )
     ax.set_yticks(y, labels)
     ax.invert_yaxis()
     ax.set_xlabel("images")
     ax.set_xlim(0, 1.35 * max(1, (reg + unreg + skip).max()))
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.55 if len(rows) == 1 else -0.25), ncol=3, fontsize=8, frameon=False)
+    ax.legend(
+        loc="upper center",
+        bbox_to_anchor=(0.5, -0.55 if len(rows) == 1 else -0.25),
+        ncol=3,
+        fontsize=8,
+        frameon=False,
+    )
     ax.spines[["top", "right"]].set_visible(False)
     return embed.figure_uri(fig)
 
@@ -158,15 +205,31 @@ def _why_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
     skipped = skipped if isinstance(skipped, dict) else dict.fromkeys(skipped, "unreadable")
     why = dict(report.get("unregistered") or {})
     for name, reason in skipped.items():  # a report.json written before the explanations
-        why.setdefault(name, {"stage": "reading", "reason": f"The file could not be used: {reason}.", "suggestion": ""})
+        why.setdefault(
+            name,
+            {
+                "stage": "reading",
+                "reason": f"The file could not be used: {reason}.",
+                "suggestion": "",
+            },
+        )
     names = list(report["model"].get("unregistered_images") or [])
     names += [n for n in why if n not in names]
     out = [f"<h2>Photos not registered, and why ({len(names)})</h2>"]
     if not names:
         return out + ["<p>None: every photo is in the model.</p>"]
-    out.append("<table class='why'><tr><th></th><th>photo</th><th>dropped out at</th><th>why</th><th>what to do</th></tr>")
+    out.append(
+        "<table class='why'><tr><th></th><th>photo</th><th>dropped out at</th><th>why</th><th>what to do</th></tr>"
+    )
     for i, name in enumerate(names):
-        entry = why.get(name, {"stage": "", "reason": "Too few matches with the other photos (a different view, era or landmark).", "suggestion": ""})
+        entry = why.get(
+            name,
+            {
+                "stage": "",
+                "reason": "Too few matches with the other photos (a different view, era or landmark).",
+                "suggestion": "",
+            },
+        )
         img = ""
         if thumbnails and i < 60 and entry["stage"] != "reading":
             try:
@@ -175,7 +238,9 @@ def _why_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
                 img = ""
         stage = STAGE_WORDS.get(entry["stage"], entry["stage"])
         cls = " class='warn'" if entry["stage"] == "reading" else ""
-        out.append(f"<tr><td>{img}</td><td>{esc(name)}</td><td{cls}>{esc(stage)}</td><td>{esc(entry['reason'])}</td><td>{esc(entry['suggestion'])}</td></tr>")
+        out.append(
+            f"<tr><td>{img}</td><td>{esc(name)}</td><td{cls}>{esc(stage)}</td><td>{esc(entry['reason'])}</td><td>{esc(entry['suggestion'])}</td></tr>"
+        )
     out.append("</table>")
     return out
 
@@ -184,7 +249,11 @@ def _localized(report: dict) -> list[dict]:
     """The entries of localized.json beside report.json (``localize``), [] when there is none."""
     import json
 
-    path = Path(report["report_path"]).with_name("localized.json") if report.get("report_path") else None
+    path = (
+        Path(report["report_path"]).with_name("localized.json")
+        if report.get("report_path")
+        else None
+    )
     try:
         return list(json.loads(path.read_text(encoding="utf-8")).get("photos", [])) if path else []
     except (OSError, ValueError, AttributeError):
@@ -227,7 +296,8 @@ def _localized_table(report: dict, image_path: Path, thumbnails: bool) -> list[s
             _img(photo, thumbnails and i < 60),
             esc(photo.name),
             f"<span{cls}>{esc(entry.get('confidence', ''))}</span>",
-            str(entry.get("num_inliers", "")), f"{entry['focal_length']:.0f} px" if entry.get("focal_length") else "",
+            str(entry.get("num_inliers", "")),
+            f"{entry['focal_length']:.0f} px" if entry.get("focal_length") else "",
             ", ".join(f"{c:.2f}" for c in centre) if centre else "",
             f"{esc(best['image'])} ({best['matches']} matches)" if best else "",
             _img(image_path / best["image"], thumbnails and i < 60) if best else "",
@@ -240,14 +310,18 @@ def _localized_table(report: dict, image_path: Path, thumbnails: bool) -> list[s
 def _load_model(report: dict):
     """The largest model (sparse/0) of a report, or None."""
     path = Path(report.get("sparse_path") or "") / "0"
-    if not report.get("sparse_path") or not ((path / "images.bin").is_file() or (path / "images.txt").is_file()):
+    if not report.get("sparse_path") or not (
+        (path / "images.bin").is_file() or (path / "images.txt").is_file()
+    ):
         return None
     import pycolmap
 
     return pycolmap.Reconstruction(str(path))
 
 
-def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: bool = True, reconstruction=None) -> str:
+def render_html(
+    report: dict, panels: list[Panel] | None = None, thumbnails: bool = True, reconstruction=None
+) -> str:
     """The page. ``reconstruction``: the largest pycolmap.Reconstruction (default: read from report's sparse_path/0)."""
     from .report import read_manifest
 
@@ -259,7 +333,9 @@ def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: boo
     rec = reconstruction if reconstruction is not None else _load_model(report)
     eras = read_manifest(Path(report["manifest_path"])) if report.get("manifest_path") else {}
     localized = _localized(report)
-    if rec is not None and rec.num_reg_images() and localized:  # the localized photos' cameras, in their colour
+    if (
+        rec is not None and rec.num_reg_images() and localized
+    ):  # the localized photos' cameras, in their colour
         from .localize import with_localized
 
         rec, names = with_localized(rec, localized)
@@ -271,21 +347,28 @@ def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: boo
         f"<h1>{esc(str(report.get('scene', 'Reconstruction')))}</h1>",
         f"<p class='sub'>{esc(matcher_name)} matching, COLMAP incremental mapping &middot; {datetime.datetime.now():%Y-%m-%d %H:%M} &middot; photos: {esc(str(image_path))}</p>",
         f"<p><span class='big'>{100 * model['registered_ratio']:.0f}&nbsp;%</span> &nbsp; {model['num_registered']} of {model['num_images']} images are placed in the largest 3D model"
-        + (f" ({model['num_models']} models in all)" if model.get("num_models", 1) > 1 else "") + ".</p>",
+        + (f" ({model['num_models']} models in all)" if model.get("num_models", 1) > 1 else "")
+        + ".</p>",
     ]
     if rec is not None and rec.num_reg_images():
         out.append("<h2>The 3D model</h2>")
         out.append(model_view.view_html(rec, eras, image_path if thumbnails else None))
         out.append("<h2>Where the photos were taken from</h2>")
-        out.append("<p>Seen from above: the points of the model, each photo's position (dot) and the direction it looks in (arrow).</p>")
-        out.append(f"<img src='{model_view.photo_map(rec, eras)}' alt='map of the camera positions'>")
+        out.append(
+            "<p>Seen from above: the points of the model, each photo's position (dot) and the direction it looks in (arrow).</p>"
+        )
+        out.append(
+            f"<img src='{model_view.photo_map(rec, eras)}' alt='map of the camera positions'>"
+        )
     out += [
         "<h2>Registered images</h2>",
         "<table><tr><th>images</th><th>registered</th><th>ratio</th></tr>",
         f"<tr><td>all</td><td class='num'>{model['num_registered']}/{model['num_images']}</td><td class='num'>{100 * model['registered_ratio']:.0f} %</td></tr>",
     ]
     for era, r in (report.get("eras") or {}).items():
-        out.append(f"<tr><td>{esc(era)}</td><td class='num'>{r['num_registered']}/{r['num_images']}</td><td class='num'>{100 * r['registered_ratio']:.0f} %</td></tr>")
+        out.append(
+            f"<tr><td>{esc(era)}</td><td class='num'>{r['num_registered']}/{r['num_images']}</td><td class='num'>{100 * r['registered_ratio']:.0f} %</td></tr>"
+        )
     out.append("</table>")
     out.append(f"<img src='{ratio_plot(report)}' alt='registered images per era'>")
     out.append(
@@ -294,13 +377,19 @@ def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: boo
     )
     timings = report.get("timings") or {}
     if timings:
-        out.append("<p class='muted'>Time: " + ", ".join(f"{esc(k)} {v:.1f} s" for k, v in timings.items()) + "</p>")
+        out.append(
+            "<p class='muted'>Time: "
+            + ", ".join(f"{esc(k)} {v:.1f} s" for k, v in timings.items())
+            + "</p>"
+        )
     out += _why_table(report, image_path, thumbnails)
     out += _localized_table(report, image_path, thumbnails)
 
     out.append("<h2>Matches of a few pairs</h2>")
     if panels:
-        out.append("<p>Lines join the same point seen in both photos (verified matches: they agree with one camera geometry).</p>")
+        out.append(
+            "<p>Lines join the same point seen in both photos (verified matches: they agree with one camera geometry).</p>"
+        )
         for title, image_a, image_b, matches in panels:
             try:
                 uri = draw_matches(image_a, image_b, matches)
@@ -308,22 +397,37 @@ def render_html(report: dict, panels: list[Panel] | None = None, thumbnails: boo
                 logger.warning("Could not draw %s (%s)", title, err)
                 continue
             shown = f" ({MAX_LINES} drawn)" if len(matches) > MAX_LINES else ""
-            out.append(f"<figure class='pair'><figcaption>{esc(title)}{shown}</figcaption><img src='{uri}' alt='{esc(title)}'></figure>")
+            out.append(
+                f"<figure class='pair'><figcaption>{esc(title)}{shown}</figcaption><img src='{uri}' alt='{esc(title)}'></figure>"
+            )
     else:
         out.append("<p>No pair was verified.</p>")
     database = report.get("database") or {}
     if database:
         out.append("<h2>Details</h2><table>")
-        out.extend(f"<tr><td>{esc(str(k))}</td><td class='num'>{esc(str(v))}</td></tr>" for k, v in database.items())
+        out.extend(
+            f"<tr><td>{esc(str(k))}</td><td class='num'>{esc(str(v))}</td></tr>"
+            for k, v in database.items()
+        )
         out.append("</table>")
     exports = report.get("exports") or {}
-    paths = {**{k: report.get(k) for k in ("database_path", "sparse_path", "report_path")}, "points (PLY, for MeshLab or CloudCompare)": exports.get("ply"), "model in COLMAP's text format": exports.get("text")}
-    out.extend(f"<p class='muted'>{esc(key.replace('_', ' '))}: {esc(str(value))}</p>" for key, value in paths.items() if value)
+    paths = {
+        **{k: report.get(k) for k in ("database_path", "sparse_path", "report_path")},
+        "points (PLY, for MeshLab or CloudCompare)": exports.get("ply"),
+        "model in COLMAP's text format": exports.get("text"),
+    }
+    out.extend(
+        f"<p class='muted'>{esc(key.replace('_', ' '))}: {esc(str(value))}</p>"
+        for key, value in paths.items()
+        if value
+    )
     out.append("</body></html>")
     return "\n".join(out)
 
 
-def write_html_report(path: Path, report: dict, panels: list[Panel] | None = None, reconstruction=None) -> Path:
+def write_html_report(
+    path: Path, report: dict, panels: list[Panel] | None = None, reconstruction=None
+) -> Path:
     """Write the page atomically (a partial file never replaces a good one)."""
     path = Path(path)
     tmp = path.with_suffix(".html.partial")
@@ -332,21 +436,34 @@ def write_html_report(path: Path, report: dict, panels: list[Panel] | None = Non
     return path
 
 
-def rewrite_report(output: Path, compare: dict[str, Path] | None = None, num_pairs: int = 3) -> Path:
+def rewrite_report(
+    output: Path, compare: dict[str, Path] | None = None, num_pairs: int = 3
+) -> Path:
     """report.html again from OUTPUT/report.json, optionally with the same pairs from other databases."""
     import json
 
     output = Path(output)
     report_path = output / "report.json"
     if not report_path.is_file():
-        raise FileNotFoundError(f"No report.json in {output}: run `python -m colmap_guided reconstruct` first.")
-    if (read_marker(output) or {}).get("kind") != "reconstruct":  # report.html there is not ours to replace
-        raise ValueError(f"{output} is not a workspace written by `reconstruct`: pass the folder of a run's report.json.")
+        raise FileNotFoundError(
+            f"No report.json in {output}: run `python -m colmap_guided reconstruct` first."
+        )
+    if (read_marker(output) or {}).get(
+        "kind"
+    ) != "reconstruct":  # report.html there is not ours to replace
+        raise ValueError(
+            f"{output} is not a workspace written by `reconstruct`: pass the folder of a run's report.json."
+        )
     result = json.loads(report_path.read_text(encoding="utf-8"))
     label = (result.get("matcher") or {}).get("name", "this run")
-    databases = {label: Path(result.get("database_path", output / "database.db")), **(compare or {})}
+    databases = {
+        label: Path(result.get("database_path", output / "database.db")),
+        **(compare or {}),
+    }
     for name, db in databases.items():
         if not Path(db).is_file():
-            raise FileNotFoundError(f"No database for {name!r} at {db}: pass --compare LABEL=PATH/database.db.")
+            raise FileNotFoundError(
+                f"No database for {name!r} at {db}: pass --compare LABEL=PATH/database.db."
+            )
     panels = match_panels(databases, Path(result["image_path"]), num_pairs)
     return write_html_report(output / "report.html", result, panels)

@@ -23,12 +23,16 @@ class ImageData:
     name: str  # COLMAP image name (path relative to the image folder, '/'-separated)
     image_id: int
     path: Path  # absolute path of the image file (read-only; never written)
-    keypoints: np.ndarray  # (N, >=2) float32, x, y first (COLMAP convention), then scale/orientation/affine
+    keypoints: (
+        np.ndarray
+    )  # (N, >=2) float32, x, y first (COLMAP convention), then scale/orientation/affine
     descriptors: np.ndarray  # (N, D) uint8 (SIFT) or float32
     width: int
     height: int
     camera: object = None  # pycolmap.Camera of the database, when there is one (COLMAP's guided matching needs it)
-    extra: dict = field(default_factory=dict)  # per-matcher caches (e.g. backbone features, see Matcher.prepare)
+    extra: dict = field(
+        default_factory=dict
+    )  # per-matcher caches (e.g. backbone features, see Matcher.prepare)
 
 
 # A pair to match: (image_id_a, image_id_b, name_a, name_b).
@@ -47,12 +51,21 @@ class HeldImages:
     ``max_held`` are held: past that, the one whose next pair comes last is dropped (``on_drop(name)``)
     and loaded again then (Belady's rule)."""
 
-    def __init__(self, pairs: list[tuple], load: Callable, max_held: int = MAX_IMAGES_HELD,
-                 on_drop: Callable | None = None):
+    def __init__(
+        self,
+        pairs: list[tuple],
+        load: Callable,
+        max_held: int = MAX_IMAGES_HELD,
+        on_drop: Callable | None = None,
+    ):
         if max_held < 2:
-            raise ValueError(f"max_images_held must be at least 2 (the two images of a pair), got {max_held}.")
+            raise ValueError(
+                f"max_images_held must be at least 2 (the two images of a pair), got {max_held}."
+            )
         self.load, self.max_held, self.on_drop = load, max_held, on_drop
-        self.uses: dict[str, deque] = defaultdict(deque)  # positions of each image's pairs not yet taken
+        self.uses: dict[str, deque] = defaultdict(
+            deque
+        )  # positions of each image's pairs not yet taken
         for i, key in enumerate(pairs):
             for name in key[2:]:
                 self.uses[name].append(i)

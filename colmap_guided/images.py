@@ -24,7 +24,9 @@ from PIL import Image, ImageFile, UnidentifiedImageError
 from .log import logger
 
 MIN_SIZE = 64  # pixels; smaller photos give (almost) no SIFT keypoints
-HUGE_PIXELS = 100_000_000  # from here on a warning: decoding takes ~3 bytes/pixel in COLMAP's reader
+HUGE_PIXELS = (
+    100_000_000  # from here on a warning: decoding takes ~3 bytes/pixel in COLMAP's reader
+)
 default_conf = {
     "min_size": MIN_SIZE,
     "max_pixels": 600_000_000,  # ~1.8 GB to decode in COLMAP; above that, ask the user to downscale
@@ -78,14 +80,26 @@ def check_image(path: Path, conf: dict | None = None) -> tuple[str | None, dict]
                         if orientation and orientation != 1:
                             info["exif_orientation"] = int(orientation)
                 if min(width, height) < conf["min_size"]:
-                    return f"too small ({width}x{height} px; at least {conf['min_size']} px per side are needed)", info
+                    return (
+                        f"too small ({width}x{height} px; at least {conf['min_size']} px per side are needed)",
+                        info,
+                    )
                 if width * height > conf["max_pixels"]:
-                    return f"too large ({width * height / 1e6:.0f} MP > {conf['max_pixels'] / 1e6:.0f} MP); downscale it", info
+                    return (
+                        f"too large ({width * height / 1e6:.0f} MP > {conf['max_pixels'] / 1e6:.0f} MP); downscale it",
+                        info,
+                    )
                 if im.format not in COLMAP_FORMATS and not _colmap_reads(path):
-                    return f"{im.format} files cannot be read by COLMAP; convert it to JPEG or PNG", info
+                    return (
+                        f"{im.format} files cannot be read by COLMAP; convert it to JPEG or PNG",
+                        info,
+                    )
                 if im.format in ("JPEG", "MPO"):
                     # Decoding at 1/8 scale still reads every entropy-coded byte: finds truncation/damage.
-                    im.draft(im.mode if im.mode in ("RGB", "L") else None, (max(1, width // 8), max(1, height // 8)))
+                    im.draft(
+                        im.mode if im.mode in ("RGB", "L") else None,
+                        (max(1, width // 8), max(1, height // 8)),
+                    )
                     im.load()
                     damage = _libjpeg_damage(path)
                     if damage:
@@ -98,11 +112,19 @@ def check_image(path: Path, conf: dict | None = None) -> tuple[str | None, dict]
                     except OSError as err:
                         if "truncated" in str(err).lower() or not _colmap_reads(path):
                             raise
-                        logger.debug("Pillow cannot decode %s (%s) but COLMAP can; keeping it.", path, err)
+                        logger.debug(
+                            "Pillow cannot decode %s (%s) but COLMAP can; keeping it.", path, err
+                        )
         except UnidentifiedImageError:
-            return "not an image file (or a format Pillow and COLMAP do not know); remove it or convert it to JPEG", info
+            return (
+                "not an image file (or a format Pillow and COLMAP do not know); remove it or convert it to JPEG",
+                info,
+            )
         except Image.DecompressionBombError:
-            return f"too large (more than {2 * conf['max_pixels'] / 1e6:.0f} MP); downscale it", info
+            return (
+                f"too large (more than {2 * conf['max_pixels'] / 1e6:.0f} MP); downscale it",
+                info,
+            )
         except (OSError, SyntaxError, ValueError) as err:
             return f"damaged or truncated image ({err}); copy or scan it again", info
     if width * height >= HUGE_PIXELS:
@@ -137,17 +159,28 @@ def _libjpeg_damage(path: Path) -> str | None:
         messages = capture.read().decode("utf-8", "replace").splitlines()
     for line in messages:
         low = line.lower()
-        if ("corrupt jpeg data" in low and "before marker 0xd9" not in low) or "premature end" in low:
+        if (
+            "corrupt jpeg data" in low and "before marker 0xd9" not in low
+        ) or "premature end" in low:
             return line.strip()
     return None
 
 
-def check_images(image_path: Path, names: list[str], conf: dict | None = None, progress: bool = True) -> tuple[list[str], dict[str, str]]:
+def check_images(
+    image_path: Path, names: list[str], conf: dict | None = None, progress: bool = True
+) -> tuple[list[str], dict[str, str]]:
     """Split ``names`` (relative to ``image_path``) into usable ones and {name: reason} for the others."""
     from tqdm import tqdm
 
     ok, skipped, huge, rotated = [], {}, [], []
-    for name in tqdm(names, desc="check images", unit="img", disable=None if progress else True, dynamic_ncols=True, leave=False):
+    for name in tqdm(
+        names,
+        desc="check images",
+        unit="img",
+        disable=None if progress else True,
+        dynamic_ncols=True,
+        leave=False,
+    ):
         reason, info = check_image(Path(image_path) / name, conf)
         if reason is None:
             ok.append(name)
@@ -159,9 +192,17 @@ def check_images(image_path: Path, names: list[str], conf: dict | None = None, p
             skipped[name] = reason
             logger.warning("Skipped %s: %s", name, reason)
     if huge:
-        logger.warning("%d photo(s) of 100 MP or more (e.g. %s): COLMAP decodes each at full size (~3 bytes per pixel) before downscaling for SIFT.", len(huge), huge[0])
+        logger.warning(
+            "%d photo(s) of 100 MP or more (e.g. %s): COLMAP decodes each at full size (~3 bytes per pixel) before downscaling for SIFT.",
+            len(huge),
+            huge[0],
+        )
     if rotated:
-        logger.info("%d photo(s) carry an EXIF rotation (e.g. %s); COLMAP works in the stored pixel frame, which is fine for reconstruction.", len(rotated), rotated[0])
+        logger.info(
+            "%d photo(s) carry an EXIF rotation (e.g. %s); COLMAP works in the stored pixel frame, which is fine for reconstruction.",
+            len(rotated),
+            rotated[0],
+        )
     return ok, skipped
 
 
@@ -204,12 +245,16 @@ def read_image(path: Path, min_side: int | None = None) -> np.ndarray:
                     if mode == "I" and grey.max(initial=0) <= 255:
                         grey = grey.astype(np.uint8)  # 8-bit data that Pillow widened
                     return np.repeat(_to_uint8(grey)[:, :, None], 3, axis=2)
-                rgb = _rgb_16bit(path, im) if mode == "RGB" and im.format in ("PNG", "TIFF") else None
+                rgb = (
+                    _rgb_16bit(path, im) if mode == "RGB" and im.format in ("PNG", "TIFF") else None
+                )
                 if rgb is not None:
                     return rgb
                 return np.asarray(im if mode == "RGB" else im.convert("RGB"))  # (no copy of a scan)
         except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
-            raise ValueError(f"Cannot read image {path} ({err}); run the reconstruction once to have it checked, or convert it to JPEG.") from err
+            raise ValueError(
+                f"Cannot read image {path} ({err}); run the reconstruction once to have it checked, or convert it to JPEG."
+            ) from err
 
 
 def decoded_box(size: tuple[int, int], shape: tuple) -> tuple[float, float, float, float]:
@@ -232,7 +277,9 @@ def _rgb_16bit(path: Path, im: Image.Image) -> np.ndarray | None:
         return None
     import cv2
 
-    data = cv2.imdecode(np.fromfile(str(path), np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+    data = cv2.imdecode(
+        np.fromfile(str(path), np.uint8), cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION
+    )
     if data is None or data.ndim != 3:
         return None
     return np.ascontiguousarray(_to_uint8(data[:, :, 2::-1]))
@@ -246,10 +293,14 @@ def read_thumbnail(path: Path, max_side: int = 640) -> tuple[np.ndarray, float, 
         width, height = im.size
         scale = min(1.0, max_side / max(width, height))
         size = (max(1, round(width * scale)), max(1, round(height * scale)))
-        if im.mode in ("1", "L", "P", "RGB", "RGBA", "LA", "CMYK", "YCbCr") and not (im.mode == "RGB" and im.format in ("PNG", "TIFF")):
+        if im.mode in ("1", "L", "P", "RGB", "RGBA", "LA", "CMYK", "YCbCr") and not (
+            im.mode == "RGB" and im.format in ("PNG", "TIFF")
+        ):
             if im.format in ("JPEG", "MPO"):
                 im.draft("RGB" if im.mode != "L" else "L", size)
-            thumb = np.asarray(im.convert("RGB").resize(size, Image.Resampling.BILINEAR, reducing_gap=2.0))
+            thumb = np.asarray(
+                im.convert("RGB").resize(size, Image.Resampling.BILINEAR, reducing_gap=2.0)
+            )
             return thumb, size[0] / width, size[1] / height
     import cv2
 
@@ -278,7 +329,21 @@ def file_digest(path: Path) -> str:
 def folder_digests(folder: Path) -> dict[str, tuple[str, int]]:
     """{relative path: (sha256, mtime_ns)} of every file below ``folder``."""
     folder = Path(folder)
-    return {p.relative_to(folder).as_posix(): (file_digest(p), p.stat().st_mtime_ns) for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        p.relative_to(folder).as_posix(): (file_digest(p), p.stat().st_mtime_ns)
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
-__all__ = ["check_image", "check_images", "read_image", "decoded_box", "read_thumbnail", "image_size", "folder_digests", "MIN_SIZE", "HUGE_PIXELS"]
+__all__ = [
+    "check_image",
+    "check_images",
+    "read_image",
+    "decoded_box",
+    "read_thumbnail",
+    "image_size",
+    "folder_digests",
+    "MIN_SIZE",
+    "HUGE_PIXELS",
+]

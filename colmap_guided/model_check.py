@@ -53,7 +53,11 @@ def focal_problems(rec: pycolmap.Reconstruction, conf: dict) -> list[str]:
     for camera_id, count in sorted(used.items()):
         problem = implausible_focal(rec.cameras[camera_id], conf)
         if problem is not None:
-            names = sorted(rec.images[i].name for i in rec.reg_image_ids() if rec.images[i].camera_id == camera_id)
+            names = sorted(
+                rec.images[i].name
+                for i in rec.reg_image_ids()
+                if rec.images[i].camera_id == camera_id
+            )
             more = " ..." if len(names) > 3 else ""
             problems.append(f"{problem} for {', '.join(names[:3])}{more} ({count} image(s))")
     return problems
@@ -69,7 +73,9 @@ def reprojection_errors(rec: pycolmap.Reconstruction) -> dict[int, float]:
             continue
         xy = np.array([o[0] for o in obs])
         xyz = np.array([o[1] for o in obs])
-        cam_pts = xyz @ image.cam_from_world().rotation.matrix().T + image.cam_from_world().translation
+        cam_pts = (
+            xyz @ image.cam_from_world().rotation.matrix().T + image.cam_from_world().translation
+        )
         proj = np.asarray(rec.cameras[image.camera_id].img_from_cam(cam_pts))
         err = np.linalg.norm(proj - xy, axis=1)
         out[image_id] = float(np.nanmean(np.where(cam_pts[:, 2] > 0, err, np.inf)))
@@ -94,7 +100,9 @@ def pose_jump_problems(rec: pycolmap.Reconstruction, conf: dict) -> list[str]:
             for x, y in ((a, b), (b, a)):
                 if n > best.get(x, (0, 0))[0]:
                     best[x] = (n, y)
-    axis = {i: rec.images[i].cam_from_world().rotation.matrix()[2] for i in rec.reg_image_ids()}  # optical axis in world
+    axis = {
+        i: rec.images[i].cam_from_world().rotation.matrix()[2] for i in rec.reg_image_ids()
+    }  # optical axis in world
     problems, seen = [], set()
     for image_id, (n, other) in sorted(best.items()):
         angle = float(np.degrees(np.arccos(np.clip(axis[image_id] @ axis[other], -1, 1))))
@@ -113,12 +121,18 @@ def check_model(rec: pycolmap.Reconstruction, conf: dict | None = None) -> list[
     problems = focal_problems(rec, conf)
     for image_id, err in sorted(reprojection_errors(rec).items()):
         if not err <= conf["max_reprojection_error"]:
-            problems.append(f"reprojection error {err:.1f} px (plausible: <= {conf['max_reprojection_error']} px) in {rec.images[image_id].name}")
+            problems.append(
+                f"reprojection error {err:.1f} px (plausible: <= {conf['max_reprojection_error']} px) in {rec.images[image_id].name}"
+            )
     return problems + pose_jump_problems(rec, conf)
 
 
 def check_models(models: dict[int, pycolmap.Reconstruction], conf: dict | None = None) -> dict:
     """``{"ok", "problems", "conf"}`` for report.json; problems are prefixed with the model's folder sparse/N."""
     conf = merge_conf(default_conf, conf, "model check")
-    problems = [f"sparse/{index}: {p}" for index, rec in sorted(models.items()) for p in check_model(rec, conf)]
+    problems = [
+        f"sparse/{index}: {p}"
+        for index, rec in sorted(models.items())
+        for p in check_model(rec, conf)
+    ]
     return {"ok": not problems, "problems": problems, "conf": conf}

@@ -29,7 +29,12 @@ MAX_THUMBS = 300  # cameras that show their photo on hover (160 px JPEGs, ~6 KB 
 FRUSTUM = 0.07  # frustum depth in units of the model's radius
 # amber / blue: visible on dark and light; red: photos placed later by `localize`
 ERA_COLORS = {"historical": "#f0a030", "modern": "#3a8ee6", "localized": "#e03c31"}
-OTHER_COLORS = ("#3a8ee6", "#e05a8a", "#4fb86b", "#a070e0")  # for a model without eras, or other era names
+OTHER_COLORS = (
+    "#3a8ee6",
+    "#e05a8a",
+    "#4fb86b",
+    "#a070e0",
+)  # for a model without eras, or other era names
 
 
 def era_colors(eras: dict[str, str], names: list[str]) -> dict[str, str]:
@@ -51,23 +56,37 @@ def ground_frame(rec: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray, 
     images = [rec.images[i] for i in rec.reg_image_ids()]
     centres = np.array([im.projection_center() for im in images]).reshape(-1, 3)
     xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
-    ups = -np.array([im.cam_from_world().rotation.matrix()[1] for im in images]).reshape(-1, 3)  # image y points down
+    ups = -np.array([im.cam_from_world().rotation.matrix()[1] for im in images]).reshape(
+        -1, 3
+    )  # image y points down
     up = ups.mean(axis=0) if len(ups) else np.array([0.0, 0.0, 1.0])
     if np.linalg.norm(up) < 0.5 and len(centres) >= 3:
         normal = np.linalg.svd(centres - centres.mean(axis=0))[2][2]
         up = normal if normal @ up >= 0 else -normal
     up = up / max(np.linalg.norm(up), 1e-12)
-    origin = np.median(xyz, axis=0) if len(xyz) else (centres.mean(axis=0) if len(centres) else np.zeros(3))
+    origin = (
+        np.median(xyz, axis=0)
+        if len(xyz)
+        else (centres.mean(axis=0) if len(centres) else np.zeros(3))
+    )
     flat = (xyz if len(xyz) >= 2 else centres) - origin
     flat = flat - np.outer(flat @ up, up)
-    x = np.linalg.svd(flat, full_matrices=False)[2][0] if len(flat) >= 2 else np.array([1.0, 0.0, 0.0])
+    x = (
+        np.linalg.svd(flat, full_matrices=False)[2][0]
+        if len(flat) >= 2
+        else np.array([1.0, 0.0, 0.0])
+    )
     x = x - (x @ up) * up
     if np.linalg.norm(x) < 1e-9:  # degenerate: any horizontal direction
         x = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
     x /= np.linalg.norm(x)
     axes = np.stack([x, np.cross(up, x), up])
     # The photos (a few, far out) count as much as the points: the first view shows them all.
-    dist = [np.percentile(np.linalg.norm(p - origin, axis=1), q) for p, q in ((xyz, 95), (centres, 90)) if len(p)]
+    dist = [
+        np.percentile(np.linalg.norm(p - origin, axis=1), q)
+        for p, q in ((xyz, 95), (centres, 90))
+        if len(p)
+    ]
     radius = float(max(max(dist, default=1.0), 1e-9))
     return origin, axes, radius
 
@@ -80,11 +99,20 @@ def _cameras(rec: pycolmap.Reconstruction, origin, axes, radius) -> list[dict]:
         camera = rec.cameras[image.camera_id]
         pose = image.cam_from_world()
         rot, t = pose.rotation.matrix(), np.asarray(pose.translation)
-        corners = np.array([[0, 0], [camera.width, 0], [camera.width, camera.height], [0, camera.height]], np.float64)
+        corners = np.array(
+            [[0, 0], [camera.width, 0], [camera.width, camera.height], [0, camera.height]],
+            np.float64,
+        )
         rays = np.c_[np.asarray(camera.cam_from_img(corners)), np.ones(4)]
         rays *= FRUSTUM * radius / np.linalg.norm(rays, axis=1).max()
         world = (rays - t) @ rot  # R^T (p - t)
-        out.append({"name": image.name, "c": _to_view(image.projection_center(), origin, axes, radius), "f": _to_view(world, origin, axes, radius)})
+        out.append(
+            {
+                "name": image.name,
+                "c": _to_view(image.projection_center(), origin, axes, radius),
+                "f": _to_view(world, origin, axes, radius),
+            }
+        )
     return out
 
 
@@ -92,7 +120,12 @@ def _to_view(points, origin, axes, radius) -> list:
     return np.round((np.asarray(points) - origin) @ axes.T / radius, 4).tolist()
 
 
-def view_data(rec: pycolmap.Reconstruction, eras: dict[str, str] | None = None, image_path: Path | None = None, max_points: int = MAX_POINTS) -> dict:
+def view_data(
+    rec: pycolmap.Reconstruction,
+    eras: dict[str, str] | None = None,
+    image_path: Path | None = None,
+    max_points: int = MAX_POINTS,
+) -> dict:
     """What the viewer draws (and what a test reads back): points, cameras, eras and the display frame."""
     eras = eras or {}
     origin, axes, radius = ground_frame(rec)
@@ -111,7 +144,9 @@ def view_data(rec: pycolmap.Reconstruction, eras: dict[str, str] | None = None, 
         cam["thumb"] = None
         if image_path is not None and i < MAX_THUMBS:
             try:
-                cam["thumb"] = embed.encode_jpeg(read_thumbnail(Path(image_path) / cam["name"], 160)[0], 75)
+                cam["thumb"] = embed.encode_jpeg(
+                    read_thumbnail(Path(image_path) / cam["name"], 160)[0], 75
+                )
             except Exception:  # noqa: BLE001 - a photo moved away since the run: the camera stays, without preview
                 pass
     centre = np.mean([c["c"][:2] for c in cameras], axis=0) if cameras else np.zeros(2)
@@ -125,7 +160,9 @@ def view_data(rec: pycolmap.Reconstruction, eras: dict[str, str] | None = None, 
         "cameras": cameras,
         "colors_by_era": era_colors(eras, [c["name"] for c in cameras]),
         # First view: from where most photos were taken, a little above.
-        "yaw": float(np.arctan2(centre[0], centre[1]) + np.pi) if np.linalg.norm(centre) > 1e-6 else -0.6,
+        "yaw": float(np.arctan2(centre[0], centre[1]) + np.pi)
+        if np.linalg.norm(centre) > 1e-6
+        else -0.6,
         # The eye's distance to the centre: beyond the farthest camera, so that every camera is in front of it.
         "dist": float(max(3.0, 1.5 * max((np.linalg.norm(c["c"]) for c in cameras), default=0.0))),
     }
@@ -144,12 +181,24 @@ def decode_points(data: dict) -> np.ndarray:
 VIEW_JS = embed.asset("model_view.js")
 
 
-def view_html(rec: pycolmap.Reconstruction, eras: dict[str, str] | None = None, image_path: Path | None = None, max_points: int = MAX_POINTS) -> str:
+def view_html(
+    rec: pycolmap.Reconstruction,
+    eras: dict[str, str] | None = None,
+    image_path: Path | None = None,
+    max_points: int = MAX_POINTS,
+) -> str:
     """The 3D view: a legend, the canvas, its data (JSON) and the viewer script; nothing loaded from outside."""
     data = view_data(rec, eras, image_path, max_points)
-    legend = "".join(f"<i style='background:{color}'></i>{html.escape(era)}" for era, color in data["colors_by_era"].items())
+    legend = "".join(
+        f"<i style='background:{color}'></i>{html.escape(era)}"
+        for era, color in data["colors_by_era"].items()
+    )
     shown, total = data["num_points_shown"], data["num_points_total"]
-    note = f"all {total:,} points" if shown == total else f"{shown:,} of the {total:,} points (an even random sample, to keep this page small)"
+    note = (
+        f"all {total:,} points"
+        if shown == total
+        else f"{shown:,} of the {total:,} points (an even random sample, to keep this page small)"
+    )
     payload = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
     return (
         f"<p class='legend'><span class='model-buttons'><button id='model-home'>Reset view</button><button id='model-top'>From above</button></span>"
@@ -185,12 +234,40 @@ def photo_map(rec: pycolmap.Reconstruction, eras: dict[str, str] | None = None) 
     arrow = 0.25 * radius
     for era, color in colors.items():
         sel = np.array([eras.get(im.name, "photo") == era for im in images], bool)
-        flat = dirs[sel, :2] / np.maximum(np.linalg.norm(dirs[sel, :2], axis=1, keepdims=True), 1e-9)
-        ax.quiver(centres[sel, 0], centres[sel, 1], flat[:, 0] * arrow, flat[:, 1] * arrow, color=color, angles="xy", scale_units="xy", scale=1, width=0.004)
-        ax.scatter(centres[sel, 0], centres[sel, 1], s=30, color=color, edgecolors="#222", linewidths=0.6, label=era, zorder=3)
+        flat = dirs[sel, :2] / np.maximum(
+            np.linalg.norm(dirs[sel, :2], axis=1, keepdims=True), 1e-9
+        )
+        ax.quiver(
+            centres[sel, 0],
+            centres[sel, 1],
+            flat[:, 0] * arrow,
+            flat[:, 1] * arrow,
+            color=color,
+            angles="xy",
+            scale_units="xy",
+            scale=1,
+            width=0.004,
+        )
+        ax.scatter(
+            centres[sel, 0],
+            centres[sel, 1],
+            s=30,
+            color=color,
+            edgecolors="#222",
+            linewidths=0.6,
+            label=era,
+            zorder=3,
+        )
     if len(images) <= 40:
         for im, c in zip(images, centres):
-            ax.annotate(Path(im.name).stem, c[:2], xytext=(4, 4), textcoords="offset points", fontsize=7, color="#333")
+            ax.annotate(
+                Path(im.name).stem,
+                c[:2],
+                xytext=(4, 4),
+                textcoords="offset points",
+                fontsize=7,
+                color="#333",
+            )
     both = np.concatenate([ground[:, :2], centres[:, :2]]) if len(ground) else centres[:, :2]
     lo = np.minimum(np.percentile(both, 1, axis=0), centres[:, :2].min(axis=0, initial=np.inf))
     hi = np.maximum(np.percentile(both, 99, axis=0), centres[:, :2].max(axis=0, initial=-np.inf))

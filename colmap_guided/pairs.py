@@ -32,7 +32,11 @@ def exhaustive_pairs(names: list[str]) -> list[tuple[str, str]]:
 def sequential_pairs(names: list[str], num_neighbors: int) -> list[tuple[str, str]]:
     """Each image with the ``num_neighbors`` images after it in name order."""
     names = sorted(names)
-    return [(a, names[j]) for i, a in enumerate(names) for j in range(i + 1, min(i + 1 + num_neighbors, len(names)))]
+    return [
+        (a, names[j])
+        for i, a in enumerate(names)
+        for j in range(i + 1, min(i + 1 + num_neighbors, len(names)))
+    ]
 
 
 def gem(features: np.ndarray, p: float = 3.0) -> np.ndarray:
@@ -44,7 +48,9 @@ def gem(features: np.ndarray, p: float = 3.0) -> np.ndarray:
     return (d / max(np.linalg.norm(d), 1e-12)).astype(np.float32)
 
 
-def retrieval_pairs(names: list[str], descriptors: np.ndarray, num_neighbors: int) -> list[tuple[str, str]]:
+def retrieval_pairs(
+    names: list[str], descriptors: np.ndarray, num_neighbors: int
+) -> list[tuple[str, str]]:
     """Top-``num_neighbors`` neighbours of each image by cosine similarity of ``descriptors`` (N, D),
     symmetric union, in name order (deterministic: a resumed run selects the same pairs)."""
     order = np.argsort(names, kind="stable")
@@ -68,7 +74,9 @@ def select_pairs(
     mode = "auto" if pairs is None else str(pairs)
     if mode not in PAIR_MODES:
         if not Path(mode).is_file():
-            raise FileNotFoundError(f"--pairs {mode}: no such pairs file; pass a file or one of {', '.join(PAIR_MODES)}.")
+            raise FileNotFoundError(
+                f"--pairs {mode}: no such pairs file; pass a file or one of {', '.join(PAIR_MODES)}."
+            )
         return read_pairs(Path(mode), names), "file"
     if num_neighbors < 1:
         raise ValueError(f"--num_neighbors must be at least 1, got {num_neighbors}.")
@@ -108,7 +116,9 @@ def read_pairs(path: Path, names: list[str]) -> list[tuple[str, str]]:
             raise ValueError(f"{path}:{lineno}: expected two image names per line, got {raw!r}.")
         for name in pair:
             if name not in known:
-                raise ValueError(f"{path}:{lineno}: image {name!r} is not in the database/image folder; fix the pairs file.")
+                raise ValueError(
+                    f"{path}:{lineno}: image {name!r} is not in the database/image folder; fix the pairs file."
+                )
         key = tuple(sorted(pair))
         if pair[0] != pair[1] and key not in seen:
             seen.add(key)
@@ -127,7 +137,9 @@ def global_descriptors(coarse, paths: dict[str, Path], desc: str = "retrieval") 
     from tqdm import tqdm
 
     out = []
-    for name, path in tqdm(paths.items(), desc=desc, unit="img", disable=None, dynamic_ncols=True, leave=False):
+    for name, path in tqdm(
+        paths.items(), desc=desc, unit="img", disable=None, dynamic_ncols=True, leave=False
+    ):
         out.append(gem(coarse.extract_path(path, name).features.float().cpu().numpy()))
         coarse.release(name)
     return np.stack(out) if out else np.zeros((0, 0), np.float32)

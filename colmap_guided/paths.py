@@ -4,7 +4,9 @@ source checkout) and keeps its caches."""
 import os
 from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parent.parent  # the checkout; site-packages for an installed package
+REPO_ROOT = (
+    Path(__file__).resolve().parent.parent
+)  # the checkout; site-packages for an installed package
 
 
 def shared_dir() -> Path:
@@ -24,7 +26,10 @@ def shared_data_dir() -> Path:
 def cache_dir(kind: str) -> Path:
     """Where the package keeps caches it can rebuild (never inside the installed package or the
     repository): $COLMAP_GUIDED_CACHE/<kind>, default ~/.cache/colmap_guided/<kind> (XDG_CACHE_HOME honoured)."""
-    root = os.environ.get("COLMAP_GUIDED_CACHE") or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "colmap_guided"
+    root = (
+        os.environ.get("COLMAP_GUIDED_CACHE")
+        or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "colmap_guided"
+    )
     return Path(root) / kind
 
 

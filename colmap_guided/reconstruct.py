@@ -20,8 +20,16 @@ from .workspace import Workspace
 
 # Everything a run writes in its workspace: --overwrite removes these and nothing else.
 WRITES = (
-    "database.db", "database.db-wal", "database.db-shm", "database.db-journal", "sparse", "sparse.partial",
-    "report.json", "report.json.partial", "report.html", "report.html.partial",
+    "database.db",
+    "database.db-wal",
+    "database.db-shm",
+    "database.db-journal",
+    "sparse",
+    "sparse.partial",
+    "report.json",
+    "report.json.partial",
+    "report.html",
+    "report.html.partial",
 )
 
 
@@ -32,7 +40,9 @@ AUTO_HINT = {
 }
 
 
-def resolve_paths(scene_dir: Path, image_path: Path | None, output: Path | None) -> tuple[Path, Path]:
+def resolve_paths(
+    scene_dir: Path, image_path: Path | None, output: Path | None
+) -> tuple[Path, Path]:
     """(photos, workspace); a workspace that would put a user's file at risk is refused here, before
     anything reads a database in it."""
     scene_dir = Path(scene_dir)
@@ -42,10 +52,12 @@ def resolve_paths(scene_dir: Path, image_path: Path | None, output: Path | None)
     if output is None:
         # Never inside the photos' folder: SCENE_DIR/colmap_guided when photos are in SCENE_DIR/images,
         # else a sibling folder SCENE_DIR_colmap_guided.
-        output = scene_dir / "colmap_guided" if image_path != scene_dir.resolve() else scene_dir.parent / f"{scene_dir.name}_colmap_guided"
+        output = (
+            scene_dir / "colmap_guided"
+            if image_path != scene_dir.resolve()
+            else scene_dir.parent / f"{scene_dir.name}_colmap_guided"
+        )
     return image_path, Workspace.check(output, "reconstruct", keep=(image_path,))
-
-
 
 
 def reconstruct(
@@ -68,11 +80,17 @@ def reconstruct(
     image_names = features.list_images(image_path)
     # The matcher first: a missing or broken --weights file fails now, not after the extraction.
     feature_conf = {"type": AUTO, **(feature_conf or {})}  # chosen with the matcher unless given
-    chosen, feature_conf = features.choose_auto(matcher, feature_conf, None if overwrite else output / "database.db")  # also a missing --aliked_weights file
+    chosen, feature_conf = features.choose_auto(
+        matcher, feature_conf, None if overwrite else output / "database.db"
+    )  # also a missing --aliked_weights file
     if matcher == AUTO:
-        logger.info("Matcher: %s on %s features%s", chosen, feature_conf["type"], AUTO_HINT.get(chosen, ""))
+        logger.info(
+            "Matcher: %s on %s features%s", chosen, feature_conf["type"], AUTO_HINT.get(chosen, "")
+        )
     if not isinstance(chosen, Matcher):  # ALIKED's own ratio and agreement unless given
-        chosen = get_matcher(chosen, features.matcher_defaults(feature_conf["type"], chosen, matcher_conf))
+        chosen = get_matcher(
+            chosen, features.matcher_defaults(feature_conf["type"], chosen, matcher_conf)
+        )
     matcher = chosen
     features.check_matcher_features(matcher, feature_conf["type"])
     Workspace.claim(output, "reconstruct", keep=(image_path,), overwrite=overwrite).record(*WRITES)
@@ -92,7 +110,15 @@ def reconstruct(
             "a reconstruction needs at least 2 overlapping photos of the landmark; add photos and run again."
         )
 
-    match_stats = match.match_database(database_path, image_path, pairs_path, matcher, None, verification_conf, **(match_options or {}))
+    match_stats = match.match_database(
+        database_path,
+        image_path,
+        pairs_path,
+        matcher,
+        None,
+        verification_conf,
+        **(match_options or {}),
+    )
     timings["match"] = match_stats.pop("match_time")
     timings["verify"] = match_stats.pop("verify_time")
 
@@ -113,7 +139,12 @@ def reconstruct(
         "sparse_path": str(sparse_path),
         "report_path": str(output / "report.json"),
         "matcher": match_stats.pop("matcher"),
-        "options": {"features": feature_conf, "verification": match_stats.pop("verification"), "mapping": mapping_conf, "pairs": match_stats.pop("pairs")},
+        "options": {
+            "features": feature_conf,
+            "verification": match_stats.pop("verification"),
+            "mapping": mapping_conf,
+            "pairs": match_stats.pop("pairs"),
+        },
         "model": stats,
         "model_check": checked,
         "eras": report.era_ratios(eras, stats["registered_images"], image_names) if eras else {},
@@ -122,12 +153,33 @@ def reconstruct(
         "manifest_path": str(Path(scene_dir).resolve() / "manifest.json") if eras else None,
         "exports": export.export_model(models[0], sparse_path / "0") if models else {},
         "timings": timings,
-        **{k: stats[k] for k in ("num_images", "num_registered", "registered_ratio", "num_points3D", "mean_track_length", "mean_reprojection_error")},
+        **{
+            k: stats[k]
+            for k in (
+                "num_images",
+                "num_registered",
+                "registered_ratio",
+                "num_points3D",
+                "mean_track_length",
+                "mean_reprojection_error",
+            )
+        },
     }
-    result["unregistered"] = report.explain_unregistered(database_path, models, image_names, extraction["skipped"], result["options"]["verification"]["min_num_inliers"])
+    result["unregistered"] = report.explain_unregistered(
+        database_path,
+        models,
+        image_names,
+        extraction["skipped"],
+        result["options"]["verification"]["min_num_inliers"],
+    )
     result["html_report_path"] = str(output / "report.html")
     try:
-        html_report.write_html_report(output / "report.html", result, html_report.match_panels({result["matcher"]["name"]: database_path}, image_path), models.get(0))
+        html_report.write_html_report(
+            output / "report.html",
+            result,
+            html_report.match_panels({result["matcher"]["name"]: database_path}, image_path),
+            models.get(0),
+        )
     except Exception as err:  # noqa: BLE001 - the reconstruction is done; a failed page must not hide it
         logger.warning("Could not write the HTML report (%s); report.json is complete.", err)
         result.pop("html_report_path")

@@ -25,8 +25,12 @@ def model_statistics(models: dict[int, pycolmap.Reconstruction], image_names: li
         "num_models": len(models),
         "num_registered_all_models": sum(rec.num_reg_images() for rec in models.values()),
         "num_points3D": largest.num_points3D() if largest else 0,
-        "mean_track_length": largest.compute_mean_track_length() if largest and largest.num_points3D() else 0.0,
-        "mean_reprojection_error": largest.compute_mean_reprojection_error() if largest and largest.num_points3D() else 0.0,
+        "mean_track_length": largest.compute_mean_track_length()
+        if largest and largest.num_points3D()
+        else 0.0,
+        "mean_reprojection_error": largest.compute_mean_reprojection_error()
+        if largest and largest.num_points3D()
+        else 0.0,
         "registered_images": registered,
         "unregistered_images": sorted(set(image_names) - set(registered)),
     }
@@ -48,11 +52,17 @@ def era_ratios(eras: dict[str, str], registered: list[str], image_names: list[st
     for era in sorted(set(eras.values())):
         names = [n for n in image_names if eras.get(n) == era]
         if names:
-            out[era] = {"num_images": len(names), "num_registered": sum(n in registered for n in names), "registered_ratio": sum(n in registered for n in names) / len(names)}
+            out[era] = {
+                "num_images": len(names),
+                "num_registered": sum(n in registered for n in names),
+                "registered_ratio": sum(n in registered for n in names) / len(names),
+            }
     return out
 
 
-MIN_KEYPOINTS = 100  # fewer SIFT keypoints than this: too little detail to match (blank, blurred, tiny scan)
+MIN_KEYPOINTS = (
+    100  # fewer SIFT keypoints than this: too little detail to match (blank, blurred, tiny scan)
+)
 SUGGEST = {
     "reading": "Check that the file opens in an image viewer; convert it to JPEG or scan it again, and run again.",
     "features": "Use a sharper, larger or better exposed scan of this photo.",
@@ -63,7 +73,11 @@ SUGGEST = {
 
 
 def explain_unregistered(
-    database_path: Path, models: dict[int, pycolmap.Reconstruction], image_names: list[str], skipped: dict[str, str], min_num_inliers: int = 15
+    database_path: Path,
+    models: dict[int, pycolmap.Reconstruction],
+    image_names: list[str],
+    skipped: dict[str, str],
+    min_num_inliers: int = 15,
 ) -> dict[str, dict]:
     """Why each photo outside the largest model dropped out, in plain words: {name: {stage, reason, suggestion, evidence}}.
 
@@ -83,7 +97,11 @@ def explain_unregistered(
     for name in todo:
         if name in skipped:
             reason, _, hint = skipped[name].partition("; ")
-            out[name] = {"stage": "reading", "reason": f"The file could not be used: {reason}.", "suggestion": (hint[:1].upper() + hint[1:] + ".") if hint else SUGGEST["reading"]}
+            out[name] = {
+                "stage": "reading",
+                "reason": f"The file could not be used: {reason}.",
+                "suggestion": (hint[:1].upper() + hint[1:] + ".") if hint else SUGGEST["reading"],
+            }
     if len(out) == len(todo):
         return out
     with dbio.open_database(database_path) as db:
@@ -91,20 +109,30 @@ def explain_unregistered(
         ids = {n: i for i, n in by_id.items()}
         verified: dict[str, list[tuple[int, str]]] = {}
         candidates: dict[str, list[tuple[int, str]]] = {}
-        for table, pairs_counts in ((verified, dbio.pair_inlier_counts(db)), (candidates, dbio.pair_match_counts(db))):
+        for table, pairs_counts in (
+            (verified, dbio.pair_inlier_counts(db)),
+            (candidates, dbio.pair_match_counts(db)),
+        ):
             for (id_a, id_b), count in pairs_counts.items():
                 if count <= 0 and table is verified:
                     continue
                 a, b = by_id[id_a], by_id[id_b]
                 table.setdefault(a, []).append((count, b))
                 table.setdefault(b, []).append((count, a))
-        keypoints = {n: dbio.num_keypoints(db, ids[n]) if n in ids else 0 for n in todo if n not in out}
+        keypoints = {
+            n: dbio.num_keypoints(db, ids[n]) if n in ids else 0 for n in todo if n not in out
+        }
     for name in todo:
         if name in out:
             continue
         pairs = sorted(verified.get(name, []), key=lambda t: (-t[0], t[1]))
         best_inliers, best = pairs[0] if pairs else (0, None)
-        entry = {"verified_pairs": len(pairs), "best_pair": best, "best_inliers": best_inliers, "num_keypoints": keypoints[name]}
+        entry = {
+            "verified_pairs": len(pairs),
+            "best_pair": best,
+            "best_inliers": best_inliers,
+            "num_keypoints": keypoints[name],
+        }
         other = next((k for k in models if k != largest and name in in_model[k]), None)
         if not pairs and keypoints[name] < MIN_KEYPOINTS:
             stage = "features"
@@ -119,11 +147,18 @@ def explain_unregistered(
                     f"tentative matches, but fewer than {min_num_inliers} of them fit one consistent pair of camera positions (the others are chance look-alikes)."
                 )
             elif tried:
-                count = f"only {tried[0][0]} tentative match{'es' if tried[0][0] != 1 else ''}" if tried[0][0] else "no tentative match"
+                count = (
+                    f"only {tried[0][0]} tentative match{'es' if tried[0][0] != 1 else ''}"
+                    if tried[0][0]
+                    else "no tentative match"
+                )
                 reason = f"None of the {len(tried)} photos it was compared with shares enough details with it: the best, {tried[0][1]}, had {count}, and at least {min_num_inliers} must fit one consistent pair of camera positions."
             else:
                 reason = "It was compared with no other photo (the pairs list leaves it out)."
-            entry.update(best_candidate=tried[0][1] if tried else None, best_candidate_matches=tried[0][0] if tried else 0)
+            entry.update(
+                best_candidate=tried[0][1] if tried else None,
+                best_candidate_matches=tried[0][0] if tried else 0,
+            )
         elif other is not None:
             stage = "separate model"
             reason = (
@@ -159,14 +194,20 @@ def summary_text(report: dict) -> str:
     ]
     problems = (report.get("model_check") or {}).get("problems", [])
     if problems:
-        lines.append(f"WARNING: the model check found {len(problems)} problem(s), e.g. {problems[0]} (all in report.json, model_check)")
+        lines.append(
+            f"WARNING: the model check found {len(problems)} problem(s), e.g. {problems[0]} (all in report.json, model_check)"
+        )
     for era, r in report.get("eras", {}).items():
-        lines.append(f"  {era}: {r['num_registered']}/{r['num_images']} registered ({100 * r['registered_ratio']:.0f} %)")
+        lines.append(
+            f"  {era}: {r['num_registered']}/{r['num_images']} registered ({100 * r['registered_ratio']:.0f} %)"
+        )
     skipped = report.get("skipped_images") or {}
     unregistered = [name for name in s["unregistered_images"] if name not in skipped]
     if unregistered:
         why = report.get("unregistered") or {}
-        shown = ", ".join(name + (f" ({why[name]['stage']})" if name in why else "") for name in unregistered[:10]) + (" ..." if len(unregistered) > 10 else "")
+        shown = ", ".join(
+            name + (f" ({why[name]['stage']})" if name in why else "") for name in unregistered[:10]
+        ) + (" ..." if len(unregistered) > 10 else "")
         lines.append(f"Not registered (stage where it dropped out): {shown}")
     if skipped:
         reasons = skipped if isinstance(skipped, dict) else dict.fromkeys(skipped, "unreadable")
@@ -180,7 +221,11 @@ def summary_text(report: dict) -> str:
         lines.append(f"Model: {report['sparse_path']}/0   Report: {report['report_path']}")
     else:
         db = report.get("database") or {}
-        verified = f" ({db['num_verified_pairs']} of {db['num_pairs']} photo pairs verified)" if "num_pairs" in db else ""
+        verified = (
+            f" ({db['num_verified_pairs']} of {db['num_pairs']} photo pairs verified)"
+            if "num_pairs" in db
+            else ""
+        )
         lines.append(
             f"No model was made{verified}: mapping found no starting pair it could trust. Try --camera_mode single "
             "if the photos come from one camera, or add photos taken between the existing ones."

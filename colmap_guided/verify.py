@@ -26,7 +26,9 @@ default_conf = {
 def default_camera(width: int, height: int) -> pycolmap.Camera:
     """COLMAP's camera for a photo without EXIF focal length (feature_extractor's default): SIMPLE_RADIAL,
     f = 1.2 * max(width, height), principal point at the centre."""
-    return pycolmap.Camera.create_from_model_id(0, pycolmap.CameraModelId.SIMPLE_RADIAL, 1.2 * max(width, height), width, height)
+    return pycolmap.Camera.create_from_model_id(
+        0, pycolmap.CameraModelId.SIMPLE_RADIAL, 1.2 * max(width, height), width, height
+    )
 
 
 def two_view_options(conf: dict | None = None) -> pycolmap.TwoViewGeometryOptions:
@@ -40,7 +42,12 @@ def two_view_options(conf: dict | None = None) -> pycolmap.TwoViewGeometryOption
 
 
 def verify_pair(
-    camera_a: pycolmap.Camera, kpts_a: np.ndarray, camera_b: pycolmap.Camera, kpts_b: np.ndarray, matches: np.ndarray, options: pycolmap.TwoViewGeometryOptions
+    camera_a: pycolmap.Camera,
+    kpts_a: np.ndarray,
+    camera_b: pycolmap.Camera,
+    kpts_b: np.ndarray,
+    matches: np.ndarray,
+    options: pycolmap.TwoViewGeometryOptions,
 ) -> pycolmap.TwoViewGeometry:
     """Two-view geometry of one pair; inlier_matches is empty when the pair does not verify."""
     if len(matches) < options.min_num_inliers:
@@ -57,7 +64,13 @@ def verify_pair(
     )
 
 
-def agreement(geometry: pycolmap.TwoViewGeometry, kpts_a: np.ndarray, kpts_b: np.ndarray, matches: np.ndarray, max_error: float) -> float:
+def agreement(
+    geometry: pycolmap.TwoViewGeometry,
+    kpts_a: np.ndarray,
+    kpts_b: np.ndarray,
+    matches: np.ndarray,
+    max_error: float,
+) -> float:
     """Share of ``matches`` (N, 2) that fit ``geometry``'s fundamental matrix (Sampson error under
     ``max_error`` pixels, the RANSAC threshold): do two matchers' verified pairs tell the same geometry?
     1.0 when there is nothing to compare (no match; no fundamental matrix, e.g. a pure rotation)."""
@@ -66,18 +79,29 @@ def agreement(geometry: pycolmap.TwoViewGeometry, kpts_a: np.ndarray, kpts_b: np
         return 1.0
     matches = np.asarray(matches, np.int64)
     errors = pycolmap.compute_squared_sampson_error(
-        np.ascontiguousarray(kpts_a[matches[:, 0], :2], np.float64), np.ascontiguousarray(kpts_b[matches[:, 1], :2], np.float64), F
+        np.ascontiguousarray(kpts_a[matches[:, 0], :2], np.float64),
+        np.ascontiguousarray(kpts_b[matches[:, 1], :2], np.float64),
+        F,
     )
     return float(np.mean(np.asarray(errors) < max_error**2))
 
 
-def verify_pairs(db: pycolmap.Database, images: dict[str, pycolmap.Image], id_pairs: list[PairKey],
-                 options: pycolmap.TwoViewGeometryOptions, max_images_held: int = MAX_IMAGES_HELD) -> int:
+def verify_pairs(
+    db: pycolmap.Database,
+    images: dict[str, pycolmap.Image],
+    id_pairs: list[PairKey],
+    options: pycolmap.TwoViewGeometryOptions,
+    max_images_held: int = MAX_IMAGES_HELD,
+) -> int:
     """Two-view geometry of every matched, not yet verified pair (id_a, id_b, name_a, name_b) of the open
     database ``db`` (``images``: name -> its image), in the order given; returns how many were verified
     now. An image's camera and keypoints are read when ``HeldImages`` loads it (at most
     ``max_images_held`` at once)."""
-    unverified = [p for p in id_pairs if dbio.pair_has_matches(db, p[0], p[1]) and not dbio.pair_is_verified(db, p[0], p[1])]
+    unverified = [
+        p
+        for p in id_pairs
+        if dbio.pair_has_matches(db, p[0], p[1]) and not dbio.pair_is_verified(db, p[0], p[1])
+    ]
 
     def load(name: str) -> tuple[pycolmap.Camera, np.ndarray]:
         image = images[name]
@@ -85,8 +109,15 @@ def verify_pairs(db: pycolmap.Database, images: dict[str, pycolmap.Image], id_pa
 
     held = HeldImages(unverified, load, max_images_held)
     with colmap_quiet():
-        for key in tqdm(unverified, desc="verify", total=len(unverified), unit="pair", disable=None,
-                        dynamic_ncols=True, leave=False):
+        for key in tqdm(
+            unverified,
+            desc="verify",
+            total=len(unverified),
+            unit="pair",
+            disable=None,
+            dynamic_ncols=True,
+            leave=False,
+        ):
             (camera_a, kpts_a), (camera_b, kpts_b) = held.pair(key)
             matches = dbio.read_pair_matches(db, key[0], key[1])
             geometry = verify_pair(camera_a, kpts_a, camera_b, kpts_b, matches, options)

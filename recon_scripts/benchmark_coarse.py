@@ -39,7 +39,9 @@ from colmap_guided.paths import REPO_ROOT, shared_data_dir
 
 def naive_reference():
     """``conv4d_naive`` from the tests (the naive loop lives there only)."""
-    spec = importlib.util.spec_from_file_location("test_coarse_conv4d", REPO_ROOT / "tests" / "test_coarse_conv4d.py")
+    spec = importlib.util.spec_from_file_location(
+        "test_coarse_conv4d", REPO_ROOT / "tests" / "test_coarse_conv4d.py"
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module.conv4d_naive
@@ -68,7 +70,11 @@ def square_features(net: CoarseNet, path: Path, grid: int, device) -> torch.Tens
 
 
 def cm_sparse(cm: CoarseMatcher) -> str:
-    return f", k={cm.conf['sparse_k']} radius={cm.conf['sparse_radius']}" if cm.impl == "sparse" else ""
+    return (
+        f", k={cm.conf['sparse_k']} radius={cm.conf['sparse_radius']}"
+        if cm.impl == "sparse"
+        else ""
+    )
 
 
 def match_stage(images: list[Path], workers: list[int], rounds: int = 5) -> dict:
@@ -93,12 +99,18 @@ def match_stage(images: list[Path], workers: list[int], rounds: int = 5) -> dict
         db = work / "db.db"
         t = time.perf_counter()
         pycolmap.extract_features(db, work / "images")
-        out = {"extract_s_per_image": (time.perf_counter() - t) / len(images), "pairs": len(images) * (len(images) - 1) // 2}
+        out = {
+            "extract_s_per_image": (time.perf_counter() - t) / len(images),
+            "pairs": len(images) * (len(images) - 1) // 2,
+        }
 
         cache = {"cache_path": str(work / "features.h5")}
         matcher = get_matcher("guided", {"workers": 1, "coarse": cache})
         with dbio.open_database(db) as database:
-            data = [dbio.read_image_data(database, im, work / "images") for im in dbio.images_by_name(database).values()]
+            data = [
+                dbio.read_image_data(database, im, work / "images")
+                for im in dbio.images_by_name(database).values()
+            ]
         out["keypoints"] = int(np.mean([len(d.keypoints) for d in data]))
         t = time.perf_counter()
         for d in data:
@@ -106,7 +118,7 @@ def match_stage(images: list[Path], workers: list[int], rounds: int = 5) -> dict
         out["backbone_ms_per_image"] = 1000 * (time.perf_counter() - t) / len(data)
         coarse = eq1 = 0.0
         for i, a in enumerate(data):
-            for b in data[i + 1:]:
+            for b in data[i + 1 :]:
                 t = time.perf_counter()
                 flows = matcher.coarse_flows(a, b)
                 coarse, t = coarse + time.perf_counter() - t, time.perf_counter()
@@ -114,9 +126,14 @@ def match_stage(images: list[Path], workers: list[int], rounds: int = 5) -> dict
                 eq1 += time.perf_counter() - t
         out["coarse_ms"], out["eq1_ms"] = 1000 * coarse / out["pairs"], 1000 * eq1 / out["pairs"]
 
-        runs = {"pycolmap": None, **{f"guided_{w}": {"workers": w} for w in workers},
-                "guided_cached": {"workers": max(workers), "coarse": cache}}
-        for _ in range(rounds):  # interleaved rounds: a shared machine's slow spells hit every row alike
+        runs = {
+            "pycolmap": None,
+            **{f"guided_{w}": {"workers": w} for w in workers},
+            "guided_cached": {"workers": max(workers), "coarse": cache},
+        }
+        for _ in range(
+            rounds
+        ):  # interleaved rounds: a shared machine's slow spells hit every row alike
             for name, conf in runs.items():
                 copy = work / f"{name}.db"
                 shutil.copy(db, copy)
@@ -127,7 +144,9 @@ def match_stage(images: list[Path], workers: list[int], rounds: int = 5) -> dict
                     match_database(copy, work / "images", matcher=get_matcher("guided", conf))
                 out.setdefault(name, []).append(1000 * (time.perf_counter() - t) / out["pairs"])
                 with dbio.open_database(copy) as database:
-                    out.setdefault(f"{name}_verified", set()).add(dbio.database_summary(database)["num_verified_pairs"])
+                    out.setdefault(f"{name}_verified", set()).add(
+                        dbio.database_summary(database)["num_verified_pairs"]
+                    )
         return out
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -135,43 +154,95 @@ def match_stage(images: list[Path], workers: list[int], rounds: int = 5) -> dict
 
 def print_match_stage(r: dict, n_images: int, workers: list[int], set_name: str) -> None:
     ref = np.array(r["pycolmap"])
-    print(f"\nMatch stage on one database ({n_images} {set_name} images, {r['pairs']} pairs, {r['keypoints']} SIFT "
-          f"keypoints/image, pycolmap {__import__('pycolmap').__version__}; wall ms per pair, median of {len(ref)} interleaved "
-          f"rounds; vs pycolmap: median and range of the per-round ratios):\n")
+    print(
+        f"\nMatch stage on one database ({n_images} {set_name} images, {r['pairs']} pairs, {r['keypoints']} SIFT "
+        f"keypoints/image, pycolmap {__import__('pycolmap').__version__}; wall ms per pair, median of {len(ref)} interleaved "
+        f"rounds; vs pycolmap: median and range of the per-round ratios):\n"
+    )
     print("| matching + verification | ms / pair | vs pycolmap | verified pairs |")
     print("|---|---|---|---|")
     rows = [("pycolmap", "pycolmap exhaustive (SIFT matching, all cores)")]
-    rows += [(f"guided_{w}", f"guided `match_database`, {w} pair worker(s): backbone + coarse + eq. 1 + verification") for w in workers]
-    rows += [("guided_cached", f"guided, {max(workers)} pair worker(s), backbone features from the cache: coarse + eq. 1 + verification")]
+    rows += [
+        (
+            f"guided_{w}",
+            f"guided `match_database`, {w} pair worker(s): backbone + coarse + eq. 1 + verification",
+        )
+        for w in workers
+    ]
+    rows += [
+        (
+            "guided_cached",
+            f"guided, {max(workers)} pair worker(s), backbone features from the cache: coarse + eq. 1 + verification",
+        )
+    ]
     for key, label in rows:
         ratio = np.array(r[key]) / ref
         verified = "/".join(map(str, sorted(r[f"{key}_verified"])))
-        print(f"| {label} | {np.median(r[key]):.0f} | {np.median(ratio):.2f} ({ratio.min():.2f}-{ratio.max():.2f}) | {verified} |")
+        print(
+            f"| {label} | {np.median(r[key]):.0f} | {np.median(ratio):.2f} ({ratio.min():.2f}-{ratio.max():.2f}) | {verified} |"
+        )
     ref, serial = np.median(ref), r["coarse_ms"] + r["eq1_ms"]
-    print(f"\nGuided parts, serial, 1 thread: backbone {r['backbone_ms_per_image']:.0f} ms/image; per pair coarse match + flows "
-          f"{r['coarse_ms']:.0f} ms + eq. 1 {r['eq1_ms']:.0f} ms = {serial:.0f} ms ({serial / ref:.2f}x pycolmap's matching + "
-          f"verification). SIFT extraction {r['extract_s_per_image']:.2f} s/image.")
+    print(
+        f"\nGuided parts, serial, 1 thread: backbone {r['backbone_ms_per_image']:.0f} ms/image; per pair coarse match + flows "
+        f"{r['coarse_ms']:.0f} ms + eq. 1 {r['eq1_ms']:.0f} ms = {serial:.0f} ms ({serial / ref:.2f}x pycolmap's matching + "
+        f"verification). SIFT extraction {r['extract_s_per_image']:.2f} s/image."
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--grids", type=int, nargs="+", default=[25, 32])
-    parser.add_argument("--supports", nargs="+", default=["3,0", "5,0", "10,0", "3,1"], help="sparse supports 'k,radius'")
+    parser.add_argument(
+        "--supports",
+        nargs="+",
+        default=["3,0", "5,0", "10,0", "3,1"],
+        help="sparse supports 'k,radius'",
+    )
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--no-naive", action="store_true", help="skip the slow naive loop")
-    parser.add_argument("--sift-images", type=int, default=10, help="photos of --sift-set for the SIFT reference (0: skip)")
-    parser.add_argument("--sift-set", default="sacre_coeur_hloc", help="the shared photo set of the SIFT reference (sceaux_castle: 6 MP)")
-    parser.add_argument("--stage-rounds", type=int, default=5, help="interleaved repetitions of the match stage runs")
-    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="pair workers of the guided match stage rows")
-    parser.add_argument("--batch", type=int, default=8, help="pairs per batch for the batched GPU row")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: as the pipeline matches on CPU, CoarseMatcher num_threads)")
+    parser.add_argument(
+        "--sift-images",
+        type=int,
+        default=10,
+        help="photos of --sift-set for the SIFT reference (0: skip)",
+    )
+    parser.add_argument(
+        "--sift-set",
+        default="sacre_coeur_hloc",
+        help="the shared photo set of the SIFT reference (sceaux_castle: 6 MP)",
+    )
+    parser.add_argument(
+        "--stage-rounds",
+        type=int,
+        default=5,
+        help="interleaved repetitions of the match stage runs",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        nargs="+",
+        default=[1, 2],
+        help="pair workers of the guided match stage rows",
+    )
+    parser.add_argument(
+        "--batch", type=int, default=8, help="pairs per batch for the batched GPU row"
+    )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch CPU threads (1: as the pipeline matches on CPU, CoarseMatcher num_threads)",
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
     torch.manual_seed(0)
     weights, label = DEFAULT_WEIGHTS, "trained"
     if not DEFAULT_WEIGHTS.is_file():  # the speed does not depend on the values
-        weights, label = Path(tempfile.mkdtemp(prefix="bench_coarse_")) / "random.safetensors", "random"
+        weights, label = (
+            Path(tempfile.mkdtemp(prefix="bench_coarse_")) / "random.safetensors",
+            "random",
+        )
         save_filter_weights(CoarseNet({"pretrained": False}), weights, resize_max=512)
     raw = CoarseNet({"filter": False}).eval()
     naive = None if args.no_naive else naive_reference()
@@ -182,7 +253,9 @@ def main(argv: list[str] | None = None) -> int:
     devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
     for device in devices:
         sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-        cm = CoarseMatcher({"mode": "filter", "weights": weights, "device": device.type, "num_threads": None})
+        cm = CoarseMatcher(
+            {"mode": "filter", "weights": weights, "device": device.type, "num_threads": None}
+        )
         net = cm.net
         raw.to(device)
         for grid in args.grids:
@@ -190,56 +263,145 @@ def main(argv: list[str] | None = None) -> int:
             with torch.no_grad():
                 vin = soft_mutual_nn(torch.relu(correlation(fa[None], fb[None])))
                 if naive is not None and device.type == "cpu":
+
                     def run_naive():
                         x = vin.unsqueeze(1)
                         for w, b, groups in net.filter.fused_layers():
                             x = torch.relu(naive(x, w, b, groups))
                         return x.mean(1)
-                    rows.append((device.type, "naive loop of conv3d (filter only)", grid, *timed(run_naive, 1, warmup=False)))
-                rows.append((device.type, "dense (filter only)", grid, *timed(lambda: net.filter(vin), args.repeats, sync)))
+
+                    rows.append(
+                        (
+                            device.type,
+                            "naive loop of conv3d (filter only)",
+                            grid,
+                            *timed(run_naive, 1, warmup=False),
+                        )
+                    )
+                rows.append(
+                    (
+                        device.type,
+                        "dense (filter only)",
+                        grid,
+                        *timed(lambda: net.filter(vin), args.repeats, sync),
+                    )
+                )
                 if device.type == "cuda":
                     vb = vin.expand(args.batch, -1, -1, -1, -1).contiguous()
                     ms, cpu = timed(lambda: net.filter(vb), args.repeats, sync)
-                    rows.append((device.type, f"dense batched x{args.batch} (filter only)", grid, ms / args.batch, cpu / args.batch))
-                    rows.append((device.type, "dense match (corr+filter+argmax)", grid,
-                                 *timed(lambda: net.match(fa, fb, "dense"), args.repeats, sync)))
-                    fab, fbb = (f[None].expand(args.batch, -1, -1, -1).contiguous() for f in (fa, fb))
-                    for name, dtype in PRECISIONS.items():  # the <= 2 ms/pair target: batched, features cached
-                        ms, cpu = timed(lambda: net.match_batch(fab, fbb, dtype), args.repeats, sync)
-                        rows.append((device.type, f"dense match batched x{args.batch}, {name} (corr+filter+argmax)", grid, ms / args.batch, cpu / args.batch))
+                    rows.append(
+                        (
+                            device.type,
+                            f"dense batched x{args.batch} (filter only)",
+                            grid,
+                            ms / args.batch,
+                            cpu / args.batch,
+                        )
+                    )
+                    rows.append(
+                        (
+                            device.type,
+                            "dense match (corr+filter+argmax)",
+                            grid,
+                            *timed(lambda: net.match(fa, fb, "dense"), args.repeats, sync),
+                        )
+                    )
+                    fab, fbb = (
+                        f[None].expand(args.batch, -1, -1, -1).contiguous() for f in (fa, fb)
+                    )
+                    for (
+                        name,
+                        dtype,
+                    ) in PRECISIONS.items():  # the <= 2 ms/pair target: batched, features cached
+                        ms, cpu = timed(
+                            lambda: net.match_batch(fab, fbb, dtype), args.repeats, sync
+                        )
+                        rows.append(
+                            (
+                                device.type,
+                                f"dense match batched x{args.batch}, {name} (corr+filter+argmax)",
+                                grid,
+                                ms / args.batch,
+                                cpu / args.batch,
+                            )
+                        )
                 for k, r in (map(int, sup.split(",")) for sup in args.supports):
-                    rows.append((device.type, f"sparse k={k} radius={r} match (corr+filter+argmax)", grid,
-                                 *timed(lambda: net.match(fa, fb, "sparse", k, r), args.repeats, sync)))
-                rows.append((device.type, "raw mode match (corr+argmax)", grid, *timed(lambda: raw.match(fa, fb), args.repeats, sync)))
-        img = torch.from_numpy(cv2.resize(read_image(pair[0]), (512, 368))).permute(2, 0, 1)[None].float().to(device)
+                    rows.append(
+                        (
+                            device.type,
+                            f"sparse k={k} radius={r} match (corr+filter+argmax)",
+                            grid,
+                            *timed(lambda: net.match(fa, fb, "sparse", k, r), args.repeats, sync),
+                        )
+                    )
+                rows.append(
+                    (
+                        device.type,
+                        "raw mode match (corr+argmax)",
+                        grid,
+                        *timed(lambda: raw.match(fa, fb), args.repeats, sync),
+                    )
+                )
+        img = (
+            torch.from_numpy(cv2.resize(read_image(pair[0]), (512, 368)))
+            .permute(2, 0, 1)[None]
+            .float()
+            .to(device)
+        )
         with torch.no_grad():
             times = timed(lambda: net.extract_features(net.normalize(img)), args.repeats, sync)
         rows.append((device.type, "backbone Lite0 per image (512x368)", 0, *times))
         fa, fb = (cm.extract(read_image(p)) for p in pair)
-        rows.append((device.type, f"CoarseMatcher.match, real pair 32x23 / 24x32 (default: {cm.impl}{cm_sparse(cm)})", 0,
-                     *timed(lambda: cm.match(fa, fb), args.repeats, sync)))
+        rows.append(
+            (
+                device.type,
+                f"CoarseMatcher.match, real pair 32x23 / 24x32 (default: {cm.impl}{cm_sparse(cm)})",
+                0,
+                *timed(lambda: cm.match(fa, fb), args.repeats, sync),
+            )
+        )
         if device.type == "cpu":
             for k, r in (map(int, sup.split(",")) for sup in args.supports):
-                rows.append((device.type, f"real pair 32x23 / 24x32, sparse k={k} radius={r}", 0,
-                             *timed(lambda: net.match(fa.features, fb.features, "sparse", k, r), args.repeats, sync)))
+                rows.append(
+                    (
+                        device.type,
+                        f"real pair 32x23 / 24x32, sparse k={k} radius={r}",
+                        0,
+                        *timed(
+                            lambda: net.match(fa.features, fb.features, "sparse", k, r),
+                            args.repeats,
+                            sync,
+                        ),
+                    )
+                )
 
     sift = None
     if args.sift_images >= 2:
-        sc = sorted(p for p in (shared_data_dir() / args.sift_set / "images").iterdir() if p.suffix.lower() in (".jpg", ".jpeg"))
+        sc = sorted(
+            p
+            for p in (shared_data_dir() / args.sift_set / "images").iterdir()
+            if p.suffix.lower() in (".jpg", ".jpeg")
+        )
         sc = sc[: args.sift_images]
         stage = match_stage(sc, args.workers, args.stage_rounds)
         sift = float(np.median(stage["pycolmap"]))
         print_match_stage(stage, len(sc), args.workers, args.sift_set)
     naive_ms = {(d, g): ms for d, m, g, ms, _ in rows if m.startswith("naive")}
-    print(f"\nCoarse filter ({label} weights, {torch.get_num_threads()} CPU threads, torch {torch.__version__}); "
-          f"CPU = process time of all threads; vs SIFT = wall time / pycolmap's exhaustive matching + verification per pair\n")
-    print("| device | method | grid | ms / pair (wall) | ms / pair (CPU) | vs naive (wall) | vs SIFT (wall) |")
+    print(
+        f"\nCoarse filter ({label} weights, {torch.get_num_threads()} CPU threads, torch {torch.__version__}); "
+        f"CPU = process time of all threads; vs SIFT = wall time / pycolmap's exhaustive matching + verification per pair\n"
+    )
+    print(
+        "| device | method | grid | ms / pair (wall) | ms / pair (CPU) | vs naive (wall) | vs SIFT (wall) |"
+    )
     print("|---|---|---|---|---|---|---|")
     for d, m, g, ms, cpu in rows:
         ref = naive_ms.get((d, g))
         ratio = f"{ref / ms:.1f}x faster" if ref and g else ""
         vs_sift = f"{ms / sift:.2f}" if sift and d == "cpu" else ""
-        print(f"| {d} | {m} | {f'{g}x{g}' if g else '-'} | {ms:.1f} | {cpu:.1f} | {ratio} | {vs_sift} |")
+        print(
+            f"| {d} | {m} | {f'{g}x{g}' if g else '-'} | {ms:.1f} | {cpu:.1f} | {ratio} | {vs_sift} |"
+        )
     return 0
 
 

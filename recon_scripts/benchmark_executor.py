@@ -28,8 +28,12 @@ from colmap_guided.paths import shared_data_dir
 def matches(path: Path) -> dict:
     with dbio.open_database(path) as db:
         ims = dbio.images_by_name(db)
-        return {(a, b): dbio.read_pair_matches(db, ims[a].image_id, ims[b].image_id).tolist()
-                for a in ims for b in ims if a < b and dbio.pair_has_matches(db, ims[a].image_id, ims[b].image_id)}
+        return {
+            (a, b): dbio.read_pair_matches(db, ims[a].image_id, ims[b].image_id).tolist()
+            for a in ims
+            for b in ims
+            if a < b and dbio.pair_has_matches(db, ims[a].image_id, ims[b].image_id)
+        }
 
 
 def main(argv=None):
@@ -47,7 +51,13 @@ def main(argv=None):
     start = time.time()
     if args.ray_address is None:
         cores = len(os.sched_getaffinity(0))
-        ray.init(address="local", num_cpus=cores, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        ray.init(
+            address="local",
+            num_cpus=cores,
+            include_dashboard=False,
+            log_to_driver=False,
+            configure_logging=False,
+        )
     else:
         ray.init(address=args.ray_address, log_to_driver=False, configure_logging=False)
     ray_start = time.time() - start
@@ -60,12 +70,30 @@ def main(argv=None):
             for executor in ("local", "ray"):
                 db = Path(tmp) / f"{executor}.db"
                 shutil.copy(base, db)
-                stats = match_database(db, image_path, args.pairs, "guided", num_neighbors=args.num_neighbors, executor=executor)
+                stats = match_database(
+                    db,
+                    image_path,
+                    args.pairs,
+                    "guided",
+                    num_neighbors=args.num_neighbors,
+                    executor=executor,
+                )
                 times[executor], dumps[executor] = stats["match_time"], matches(db)
                 workers = stats["executor"]["workers"]
-            rows.append((r, stats["num_pairs"], workers, times["local"], times["ray"], dumps["local"] == dumps["ray"]))
+            rows.append(
+                (
+                    r,
+                    stats["num_pairs"],
+                    workers,
+                    times["local"],
+                    times["ray"],
+                    dumps["local"] == dumps["ray"],
+                )
+            )
     ray.shutdown()
-    print(f"\nMatch stage, {args.set}, {args.pairs} pairs; Ray started in {ray_start:.1f} s (not in the times below)\n")
+    print(
+        f"\nMatch stage, {args.set}, {args.pairs} pairs; Ray started in {ray_start:.1f} s (not in the times below)\n"
+    )
     print("| round | pairs | Ray workers | local s | ray s | ray / local | same matches |")
     print("|---|---|---|---|---|---|---|")
     for r, n, w, lo, ra, same in rows:

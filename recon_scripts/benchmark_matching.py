@@ -67,17 +67,29 @@ def _cached(path: Path, cache_dir: Path, prefix: str, compute) -> ImageData:
 
 
 def _sift(path: Path):
-    gray = cv2.cvtColor(read_image(path), cv2.COLOR_RGB2GRAY)  # COLMAP's frame (EXIF orientation not applied)
+    gray = cv2.cvtColor(
+        read_image(path), cv2.COLOR_RGB2GRAY
+    )  # COLMAP's frame (EXIF orientation not applied)
     h, w = gray.shape
     scale = min(1.0, MAX_IMAGE_SIZE / max(h, w))
-    small = gray if scale == 1.0 else cv2.resize(gray, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
+    small = (
+        gray
+        if scale == 1.0
+        else cv2.resize(gray, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
+    )
     options = pycolmap.FeatureExtractionOptions()
     options.sift.max_num_features = MAX_NUM_FEATURES
     kp, desc = pycolmap.Sift(options).extract(np.ascontiguousarray(small))
     kp = kp.copy()
-    kp[:, :2] *= np.array([w / small.shape[1], h / small.shape[0]], np.float32)  # corner-origin: exact
+    kp[:, :2] *= np.array(
+        [w / small.shape[1], h / small.shape[0]], np.float32
+    )  # corner-origin: exact
     kp[:, 2] /= scale
-    return kp, np.clip(np.round(desc * 512), 0, 255).astype(np.uint8), (w, h)  # COLMAP's database encoding
+    return (
+        kp,
+        np.clip(np.round(desc * 512), 0, 255).astype(np.uint8),
+        (w, h),
+    )  # COLMAP's database encoding
 
 
 def sift_image(path: Path, cache_dir: Path) -> ImageData:
@@ -148,7 +160,9 @@ def related_pairs(per_set: int) -> list[dict]:
         pairs.append({"set": "lightglue_assets", "a": lg / a, "b": lg / b, "corrs": None})
     for category in WXBS_RELATED:
         for pair_dir in sorted((data / "wxbs_v1.1" / category).iterdir())[:per_set]:
-            a, b = (next(pair_dir.glob(f"{stem}.*[!t]")) for stem in ("01", "02"))  # .png or .jpg, not .txt
+            a, b = (
+                next(pair_dir.glob(f"{stem}.*[!t]")) for stem in ("01", "02")
+            )  # .png or .jpg, not .txt
             pairs.append({"set": f"wxbs/{category}", "a": a, "b": b, "corrs": wxbs_corrs(pair_dir)})
     return pairs
 
@@ -163,8 +177,15 @@ def unrelated_pairs(count: int, seed: int = 0) -> list[dict]:
         "alamo": sorted((data / "gtsfm_1dsfm_sample" / "images").iterdir()),
         "dsc_building": sorted((data / "lightglue_assets" / "images").glob("DSC_*")),
     }
-    for landmark in ("london_bridge", "piazza_san_marco", "st_pauls_cathedral", "united_states_capitol"):
-        groups[landmark] = sorted((data / "phototourism_superglue" / "images").glob(f"{landmark}_*"))
+    for landmark in (
+        "london_bridge",
+        "piazza_san_marco",
+        "st_pauls_cathedral",
+        "united_states_capitol",
+    ):
+        groups[landmark] = sorted(
+            (data / "phototourism_superglue" / "images").glob(f"{landmark}_*")
+        )
     rng = np.random.default_rng(seed)
     combos = list(itertools.combinations(sorted(groups), 2))
     rng.shuffle(combos)
@@ -181,10 +202,19 @@ def unrelated_pairs(count: int, seed: int = 0) -> list[dict]:
 # ------------------------------------------------------------------------------------------------
 
 
-def verify_matches(a: ImageData, b: ImageData, matches: np.ndarray, matcher) -> pycolmap.TwoViewGeometry:
+def verify_matches(
+    a: ImageData, b: ImageData, matches: np.ndarray, matcher
+) -> pycolmap.TwoViewGeometry:
     """COLMAP's two-view verification with the pipeline's options for ``matcher`` (raw: >= 15 inliers, guided: its min_inliers)."""
     options = verify.two_view_options(matcher.verification_conf)
-    return verify.verify_pair(verify.default_camera(a.width, a.height), a.keypoints, verify.default_camera(b.width, b.height), b.keypoints, matches, options)
+    return verify.verify_pair(
+        verify.default_camera(a.width, a.height),
+        a.keypoints,
+        verify.default_camera(b.width, b.height),
+        b.keypoints,
+        matches,
+        options,
+    )
 
 
 def reference_error(geometry: pycolmap.TwoViewGeometry, corrs: np.ndarray | None) -> float | None:
@@ -198,13 +228,18 @@ def reference_error(geometry: pycolmap.TwoViewGeometry, corrs: np.ndarray | None
     if np.any(F):
         lb, la = xa @ F.T, xb @ F
         alg = np.abs((xb * lb).sum(1))
-        d = 0.5 * (alg / np.linalg.norm(lb[:, :2], axis=1) + alg / np.linalg.norm(la[:, :2], axis=1))
+        d = 0.5 * (
+            alg / np.linalg.norm(lb[:, :2], axis=1) + alg / np.linalg.norm(la[:, :2], axis=1)
+        )
         return float(np.median(d))
     H = np.asarray(geometry.H)
     if not np.any(H):
         return None
     pb, pa = xa @ H.T, xb @ np.linalg.inv(H).T
-    d = 0.5 * (np.linalg.norm(pb[:, :2] / pb[:, 2:] - corrs[:, 2:], axis=1) + np.linalg.norm(pa[:, :2] / pa[:, 2:] - corrs[:, :2], axis=1))
+    d = 0.5 * (
+        np.linalg.norm(pb[:, :2] / pb[:, 2:] - corrs[:, 2:], axis=1)
+        + np.linalg.norm(pa[:, :2] / pa[:, 2:] - corrs[:, :2], axis=1)
+    )
     return float(np.median(d))
 
 
@@ -231,18 +266,28 @@ def extract_coarse(matcher: GuidedMatcher, a: ImageData, b: ImageData) -> None:
         matcher.prepare(image)
 
 
-def run_pair(pair: dict, matchers: dict, cache_dir: Path, max_ref_err: float, repeat: int, extract=sift_image) -> dict:
+def run_pair(
+    pair: dict, matchers: dict, cache_dir: Path, max_ref_err: float, repeat: int, extract=sift_image
+) -> dict:
     a, b = extract(pair["a"], cache_dir), extract(pair["b"], cache_dir)
-    row = {"set": pair["set"], "a": str(pair["a"].relative_to(shared_data_dir())), "b": str(pair["b"].relative_to(shared_data_dir())),
-           "num_keypoints": [len(a.keypoints), len(b.keypoints)]}
+    row = {
+        "set": pair["set"],
+        "a": str(pair["a"].relative_to(shared_data_dir())),
+        "b": str(pair["b"].relative_to(shared_data_dir())),
+        "num_keypoints": [len(a.keypoints), len(b.keypoints)],
+    }
     for name, matcher in matchers.items():
         timing = {}
         if isinstance(matcher, GuidedMatcher):
-            _, timing["coarse_extract_s"] = best_time(partial(extract_coarse, matcher, a, b), repeat)
+            _, timing["coarse_extract_s"] = best_time(
+                partial(extract_coarse, matcher, a, b), repeat
+            )
             flows, timing["coarse_match_s"] = best_time(partial(matcher.coarse_flows, a, b), repeat)
             matches, timing["eq1_s"] = best_time(partial(matcher.match_flows, a, b, flows), repeat)
             matcher.release(a.name), matcher.release(b.name)
-            timing["total_s"] = timing["coarse_extract_s"] + timing["coarse_match_s"] + timing["eq1_s"]
+            timing["total_s"] = (
+                timing["coarse_extract_s"] + timing["coarse_match_s"] + timing["eq1_s"]
+            )
         else:
             matches, timing["total_s"] = best_time(partial(matcher.match, a, b), repeat)
         geometry = verify_matches(a, b, matches, matcher)
@@ -258,7 +303,13 @@ def run_pair(pair: dict, matchers: dict, cache_dir: Path, max_ref_err: float, re
     return row
 
 
-def sweep(pairs: list[dict], unrelated: list[dict], guided: GuidedMatcher, cache_dir: Path, max_ref_err: float) -> list[dict]:
+def sweep(
+    pairs: list[dict],
+    unrelated: list[dict],
+    guided: GuidedMatcher,
+    cache_dir: Path,
+    max_ref_err: float,
+) -> list[dict]:
     """Verified inliers (related) and verified share (unrelated) over a grid of guided options."""
     grid = {
         "ratio": [None, 0.8, 0.9, 0.95],
@@ -267,20 +318,32 @@ def sweep(pairs: list[dict], unrelated: list[dict], guided: GuidedMatcher, cache
     }
     combos = [dict(zip(grid, values)) for values in itertools.product(*grid.values())]
     raw = get_matcher("raw", {"device": str(guided.device)})
-    results = {json.dumps(c): {"related_inliers": [], "related_correct": [], "related_wrong": [], "unrelated_inliers": []} for c in ["raw", *combos]}
+    results = {
+        json.dumps(c): {
+            "related_inliers": [],
+            "related_correct": [],
+            "related_wrong": [],
+            "unrelated_inliers": [],
+        }
+        for c in ["raw", *combos]
+    }
     for kind, plist in (("related", pairs), ("unrelated", unrelated)):
         for pair in plist:
             a, b = sift_image(pair["a"], cache_dir), sift_image(pair["b"], cache_dir)
             flows = guided.coarse_flows(a, b)
             for combo in ["raw", *combos]:
-                matches = raw.match(a, b) if combo == "raw" else guided.match_flows(a, b, flows, **combo)
+                matches = (
+                    raw.match(a, b) if combo == "raw" else guided.match_flows(a, b, flows, **combo)
+                )
                 geometry = verify_matches(a, b, matches, raw if combo == "raw" else guided)
                 r = results[json.dumps(combo)]
                 r[f"{kind}_inliers"].append(len(geometry.inlier_matches))
                 if kind == "related" and pair["corrs"] is not None:
                     err = reference_error(geometry, pair["corrs"])
                     r["related_correct"].append(err is not None and err < max_ref_err)
-                    r["related_wrong"].append(len(geometry.inlier_matches) > 0 and not r["related_correct"][-1])
+                    r["related_wrong"].append(
+                        len(geometry.inlier_matches) > 0 and not r["related_correct"][-1]
+                    )
             guided.release(a.name), guided.release(b.name)
             logger.info("sweep %s %s done", kind, pair["set"])
     return [{"conf": json.loads(k), **v} for k, v in results.items()]
@@ -290,40 +353,69 @@ def sweep_markdown(results: list[dict]) -> str:
     """One line per option set: related pairs verified / correct, inliers vs raw, unrelated verified."""
     raw = next(r for r in results if r["conf"] == "raw")
     keys = [k for k in results[1]["conf"]]
-    out = ["| matcher | " + " | ".join(keys) + " | related verified | correct / wrong (with reference) | median inliers / raw | unrelated verified |",
-           "|---|" + "---|" * (len(keys) + 4)]
+    out = [
+        "| matcher | "
+        + " | ".join(keys)
+        + " | related verified | correct / wrong (with reference) | median inliers / raw | unrelated verified |",
+        "|---|" + "---|" * (len(keys) + 4),
+    ]
     for r in results:
         c = r["conf"]
-        conf = "raw | " + " | ".join("–" for _ in keys) if c == "raw" else "guided | " + " | ".join(str(c[k]) for k in keys)
+        conf = (
+            "raw | " + " | ".join("–" for _ in keys)
+            if c == "raw"
+            else "guided | " + " | ".join(str(c[k]) for k in keys)
+        )
         ratios = [g / x for g, x in zip(r["related_inliers"], raw["related_inliers"]) if x > 0]
-        out.append(f"| {conf} | {sum(n > 0 for n in r['related_inliers'])}/{len(r['related_inliers'])} | "
-                   f"{sum(r['related_correct'])} / {sum(r['related_wrong'])} of {len(r['related_correct'])} | {np.median(ratios) if ratios else float('nan'):.2f} | "
-                   f"{sum(n > 0 for n in r['unrelated_inliers'])}/{len(r['unrelated_inliers'])} |")
+        out.append(
+            f"| {conf} | {sum(n > 0 for n in r['related_inliers'])}/{len(r['related_inliers'])} | "
+            f"{sum(r['related_correct'])} / {sum(r['related_wrong'])} of {len(r['related_correct'])} | {np.median(ratios) if ratios else float('nan'):.2f} | "
+            f"{sum(n > 0 for n in r['unrelated_inliers'])}/{len(r['unrelated_inliers'])} |"
+        )
     return "\n".join(out)
 
 
 def markdown(rows: list[dict], unrelated_rows: list[dict], names: list[str]) -> str:
-    out = ["| set | pair | " + " | ".join(f"{n} inliers" for n in names) + " | raw s | guided s | guided/raw time |",
-           "|---|---|" + "---|" * (len(names) + 3)]
+    out = [
+        "| set | pair | "
+        + " | ".join(f"{n} inliers" for n in names)
+        + " | raw s | guided s | guided/raw time |",
+        "|---|---|" + "---|" * (len(names) + 3),
+    ]
     for r in rows:
         cells = []
         for n in names:
             c = r[n]
             mark = "" if c["correct"] is None else (" ✓" if c["correct"] else " ✗")
             cells.append(f"{c['inliers']}{mark}")
-        pair = f"{Path(r['a']).name}–{Path(r['b']).name}" if not r["set"].startswith("wxbs") else Path(r["a"]).parent.name
+        pair = (
+            f"{Path(r['a']).name}–{Path(r['b']).name}"
+            if not r["set"].startswith("wxbs")
+            else Path(r["a"]).parent.name
+        )
         g = r.get("guided")
-        t = f"{r['raw']['total_s']:.2f} | {g['total_s']:.2f} | {g['total_s'] / r['raw']['total_s']:.1f}×" if g and "raw" in r else "– | – | –"
+        t = (
+            f"{r['raw']['total_s']:.2f} | {g['total_s']:.2f} | {g['total_s'] / r['raw']['total_s']:.1f}×"
+            if g and "raw" in r
+            else "– | – | –"
+        )
         out.append(f"| {r['set']} | {pair} | " + " | ".join(cells) + f" | {t} |")
     if "guided" in names and "raw" in names:
-        med = {k: np.median([r["guided"][k] for r in rows]) for k in ("coarse_extract_s", "coarse_match_s", "eq1_s", "total_s")}
+        med = {
+            k: np.median([r["guided"][k] for r in rows])
+            for k in ("coarse_extract_s", "coarse_match_s", "eq1_s", "total_s")
+        }
         raw_med = np.median([r["raw"]["total_s"] for r in rows])
         out.append("")
-        out.append(f"Median per pair: raw {raw_med:.2f} s; guided {med['total_s']:.2f} s = coarse features of both images "
-                   f"{med['coarse_extract_s']:.2f} + coarse match {med['coarse_match_s']:.2f} + eq. 1 {med['eq1_s']:.2f} "
-                   f"(median guided/raw time ratio {np.median([r['guided']['total_s'] / r['raw']['total_s'] for r in rows]):.2f}).")
+        out.append(
+            f"Median per pair: raw {raw_med:.2f} s; guided {med['total_s']:.2f} s = coarse features of both images "
+            f"{med['coarse_extract_s']:.2f} + coarse match {med['coarse_match_s']:.2f} + eq. 1 {med['eq1_s']:.2f} "
+            f"(median guided/raw time ratio {np.median([r['guided']['total_s'] / r['raw']['total_s'] for r in rows]):.2f})."
+        )
     out.append("")
-    out.append("Unrelated pairs (different scenes) passing verification (each matcher's minimum inliers):")
+    out.append(
+        "Unrelated pairs (different scenes) passing verification (each matcher's minimum inliers):"
+    )
     out.append("")
     out.append("| matcher | verified / pairs | max inliers |")
     out.append("|---|---|---|")
@@ -335,19 +427,52 @@ def markdown(rows: list[dict], unrelated_rows: list[dict], names: list[str]) -> 
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--pairs_per_set", type=int, default=3)
     parser.add_argument("--unrelated", type=int, default=24, help="number of unrelated-image pairs")
-    parser.add_argument("--matchers", nargs="+", default=BASELINES, help="presets of colmap_guided.matchers.PRESETS (lightglue, guided_lightglue with --features aliked)")
-    parser.add_argument("--features", default="sift", choices=sorted(FEATURES), help="aliked / xfeat: the pipeline's learned features (ALIKED: with its raw / guided defaults)")
-    parser.add_argument("--guided_conf", type=json.loads, default={}, help="JSON overriding the guided matcher's options")
+    parser.add_argument(
+        "--matchers",
+        nargs="+",
+        default=BASELINES,
+        help="presets of colmap_guided.matchers.PRESETS (lightglue, guided_lightglue with --features aliked)",
+    )
+    parser.add_argument(
+        "--features",
+        default="sift",
+        choices=sorted(FEATURES),
+        help="aliked / xfeat: the pipeline's learned features (ALIKED: with its raw / guided defaults)",
+    )
+    parser.add_argument(
+        "--guided_conf",
+        type=json.loads,
+        default={},
+        help="JSON overriding the guided matcher's options",
+    )
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--max_ref_err", type=float, default=5.0, help="px: a verified geometry is correct below this median reference error")
+    parser.add_argument(
+        "--max_ref_err",
+        type=float,
+        default=5.0,
+        help="px: a verified geometry is correct below this median reference error",
+    )
     parser.add_argument("--cache_dir", type=Path, default=Path("/tmp/colmap_guided_bench_sift"))
     parser.add_argument("--json", type=Path, default=None)
-    parser.add_argument("--sweep", action="store_true", help="grid over ratio / forward-backward / window for the guided matcher")
-    parser.add_argument("--repeat", type=int, default=3, help="timings: fastest of this many runs (related pairs)")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: stable timings on a shared machine)")
+    parser.add_argument(
+        "--sweep",
+        action="store_true",
+        help="grid over ratio / forward-backward / window for the guided matcher",
+    )
+    parser.add_argument(
+        "--repeat", type=int, default=3, help="timings: fastest of this many runs (related pairs)"
+    )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch CPU threads (1: stable timings on a shared machine)",
+    )
     args = parser.parse_args(argv)
     if args.sweep and args.features != "sift":
         parser.error("--sweep runs on SIFT only")
@@ -357,25 +482,55 @@ def main(argv=None) -> None:
     pairs = related_pairs(args.pairs_per_set)
     unrelated = unrelated_pairs(args.unrelated)
     extract = FEATURES[args.features]
-    specs = {n: matcher_specs.parse_spec(n) for n in args.matchers}  # a preset, optionally with name:key=value options
-    matchers = {n: get_matcher(sp.name, features.matcher_defaults(args.features, sp.name, {"device": args.device, **sp.conf,
-                                                                                             **(args.guided_conf if n == "guided" else {})}))
-                for n, sp in specs.items()}
+    specs = {
+        n: matcher_specs.parse_spec(n) for n in args.matchers
+    }  # a preset, optionally with name:key=value options
+    matchers = {
+        n: get_matcher(
+            sp.name,
+            features.matcher_defaults(
+                args.features,
+                sp.name,
+                {"device": args.device, **sp.conf, **(args.guided_conf if n == "guided" else {})},
+            ),
+        )
+        for n, sp in specs.items()
+    }
     for matcher in matchers.values():
         features.check_matcher_features(matcher, args.features)
-    result = {"features": args.features, "matchers": {n: m.describe() for n, m in matchers.items()}, "device": args.device, "torch_threads": torch.get_num_threads()}
+    result = {
+        "features": args.features,
+        "matchers": {n: m.describe() for n, m in matchers.items()},
+        "device": args.device,
+        "torch_threads": torch.get_num_threads(),
+    }
     if args.sweep:
-        guided = matchers.get("guided") or get_matcher("guided", {"device": args.device, **args.guided_conf})
+        guided = matchers.get("guided") or get_matcher(
+            "guided", {"device": args.device, **args.guided_conf}
+        )
         result["sweep"] = sweep(pairs, unrelated, guided, args.cache_dir, args.max_ref_err)
         print(sweep_markdown(result["sweep"]))
     else:
         rows, unrelated_rows = [], []
         for pair in pairs:
-            rows.append(run_pair(pair, matchers, args.cache_dir, args.max_ref_err, args.repeat, extract))
-            logger.info("%s %s: %s", pair["set"], pair["a"].name, {n: rows[-1][n]["inliers"] for n in matchers})
+            rows.append(
+                run_pair(pair, matchers, args.cache_dir, args.max_ref_err, args.repeat, extract)
+            )
+            logger.info(
+                "%s %s: %s",
+                pair["set"],
+                pair["a"].name,
+                {n: rows[-1][n]["inliers"] for n in matchers},
+            )
         for pair in unrelated:
-            unrelated_rows.append(run_pair(pair, matchers, args.cache_dir, args.max_ref_err, 1, extract))
-            logger.info("unrelated %s: %s", pair["set"], {n: unrelated_rows[-1][n]["inliers"] for n in matchers})
+            unrelated_rows.append(
+                run_pair(pair, matchers, args.cache_dir, args.max_ref_err, 1, extract)
+            )
+            logger.info(
+                "unrelated %s: %s",
+                pair["set"],
+                {n: unrelated_rows[-1][n]["inliers"] for n in matchers},
+            )
         result["related"], result["unrelated"] = rows, unrelated_rows
         print(markdown(rows, unrelated_rows, list(matchers)))
     if args.json:

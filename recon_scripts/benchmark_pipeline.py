@@ -25,33 +25,74 @@ from colmap_guided import features, model_check, report
 from colmap_guided.database import num_verified_pairs, open_database
 from colmap_guided.evaluation import matcher_specs
 from colmap_guided.evaluation.reference import load_colmap_model, reference_model_dir
-from colmap_guided.evaluation.registration import method_slug, run_pycolmap_default, score_registration, split_stage_options
+from colmap_guided.evaluation.registration import (
+    method_slug,
+    run_pycolmap_default,
+    score_registration,
+    split_stage_options,
+)
 from colmap_guided.log import set_verbosity
 from colmap_guided.mapping import MAPPERS, load_models, run_mapping
 from colmap_guided.paths import shared_data_dir
 from colmap_guided.reconstruct import reconstruct
 
-DEFAULT_SETS = ["sacre_coeur_hloc", "sceaux_castle", "opensfm_lund", "phototourism_superglue", "gtsfm_1dsfm_sample", "lund_door_gtsfm", "opensfm_berlin"]
+DEFAULT_SETS = [
+    "sacre_coeur_hloc",
+    "sceaux_castle",
+    "opensfm_lund",
+    "phototourism_superglue",
+    "gtsfm_1dsfm_sample",
+    "lund_door_gtsfm",
+    "opensfm_berlin",
+]
 
 
-def summarize(models: dict, image_names: list[str], reference, timings: dict, verified: int) -> dict:
+def summarize(
+    models: dict, image_names: list[str], reference, timings: dict, verified: int
+) -> dict:
     stats = report.model_statistics(models, image_names)
     largest = max(models.values(), key=lambda rec: rec.num_reg_images(), default=None)
-    score = score_registration(largest, [{"name": n, "era": "modern"} for n in image_names], reference) if reference else {}
+    score = (
+        score_registration(largest, [{"name": n, "era": "modern"} for n in image_names], reference)
+        if reference
+        else {}
+    )
     checked = model_check.check_models(models)
-    return {"timings": timings, "num_verified_pairs": verified, "correct": score.get("correct"), "wrong": score.get("wrong"),
-            "model_check": checked, **stats}
+    return {
+        "timings": timings,
+        "num_verified_pairs": verified,
+        "correct": score.get("correct"),
+        "wrong": score.get("wrong"),
+        "model_check": checked,
+        **stats,
+    }
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--sets", nargs="+", default=DEFAULT_SETS)
-    parser.add_argument("--matchers", nargs="+", default=["guided"], help="matcher specs, e.g. guided guided:raw_matches=none raw guided:type=aliked (feature options go to extraction)")
+    parser.add_argument(
+        "--matchers",
+        nargs="+",
+        default=["guided"],
+        help="matcher specs, e.g. guided guided:raw_matches=none raw guided:type=aliked (feature options go to extraction)",
+    )
     parser.add_argument("--mappers", nargs="+", default=["incremental", "global"], choices=MAPPERS)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
-    parser.add_argument("--threads", type=int, default=-1, help="mapping threads (1: each seeded run repeats exactly)")
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=-1,
+        help="mapping threads (1: each seeded run repeats exactly)",
+    )
     parser.add_argument("--camera_mode", default="auto")
-    parser.add_argument("--peer", default="lightglue", help="the matcher spec of --matchers the others' times are also divided by")
+    parser.add_argument(
+        "--peer",
+        default="lightglue",
+        help="the matcher spec of --matchers the others' times are also divided by",
+    )
     parser.add_argument("--output", type=Path, default=Path("outputs/benchmark_pipeline.json"))
     args = parser.parse_args(argv)
     set_verbosity(quiet=True)
@@ -79,37 +120,97 @@ def main(argv=None):
             work = Path(tmp) / name
             base_times = {}
             for seed in args.seeds:
-                models, timings = run_pycolmap_default(image_path, work / f"default_{seed}", args.camera_mode)
+                models, timings = run_pycolmap_default(
+                    image_path, work / f"default_{seed}", args.camera_mode
+                )
                 with open_database(work / f"default_{seed}" / "database.db") as database:
                     verified = num_verified_pairs(database)
                 base_times[seed] = sum(timings.values())
-                add(name, seed, "pycolmap default", summarize(models, names, reference, timings, verified), base_times[seed])
+                add(
+                    name,
+                    seed,
+                    "pycolmap default",
+                    summarize(models, names, reference, timings, verified),
+                    base_times[seed],
+                )
                 for mapper in args.mappers:  # pycolmap's database, our mapping
                     start = time.time()
-                    models = run_mapping(work / f"default_{seed}" / "database.db", image_path, work / f"default_{seed}" / mapper, {"mapper": mapper, "random_seed": seed, "num_threads": args.threads})
-                    t = {**{k: v for k, v in timings.items() if k != "map"}, "map": time.time() - start}
-                    add(name, seed, f"pycolmap matching + {mapper}", summarize(models, names, reference, t, verified), base_times[seed])
+                    models = run_mapping(
+                        work / f"default_{seed}" / "database.db",
+                        image_path,
+                        work / f"default_{seed}" / mapper,
+                        {"mapper": mapper, "random_seed": seed, "num_threads": args.threads},
+                    )
+                    t = {
+                        **{k: v for k, v in timings.items() if k != "map"},
+                        "map": time.time() - start,
+                    }
+                    add(
+                        name,
+                        seed,
+                        f"pycolmap matching + {mapper}",
+                        summarize(models, names, reference, t, verified),
+                        base_times[seed],
+                    )
             for label, spec, feature_conf in specs:
                 out = work / method_slug(label)
-                first = {"mapper": args.mappers[0], "random_seed": args.seeds[0], "num_threads": args.threads}
-                res = reconstruct(image_path.parent, image_path=image_path, output=out, matcher=matcher_specs.build(spec), feature_conf={"camera_mode": args.camera_mode, **feature_conf}, mapping_conf=first)
+                first = {
+                    "mapper": args.mappers[0],
+                    "random_seed": args.seeds[0],
+                    "num_threads": args.threads,
+                }
+                res = reconstruct(
+                    image_path.parent,
+                    image_path=image_path,
+                    output=out,
+                    matcher=matcher_specs.build(spec),
+                    feature_conf={"camera_mode": args.camera_mode, **feature_conf},
+                    mapping_conf=first,
+                )
                 verified = res["database"]["num_verified_pairs"]
                 # Where the run's time went: stages, and within matching the read / coarse / fine / write steps.
-                profile = {"extract": res["timings"]["extract"], **res["database"]["profile"], "map": res["timings"]["map"]}
+                profile = {
+                    "extract": res["timings"]["extract"],
+                    **res["database"]["profile"],
+                    "map": res["timings"]["map"],
+                }
                 results.setdefault(name, {}).setdefault("profile", {})[label] = profile
-                print(f"{name} {label}, {res['database']['num_pairs']} pairs: " + ", ".join(f"{k} {v:.1f} s" for k, v in profile.items()), flush=True)
+                print(
+                    f"{name} {label}, {res['database']['num_pairs']} pairs: "
+                    + ", ".join(f"{k} {v:.1f} s" for k, v in profile.items()),
+                    flush=True,
+                )
                 for seed in args.seeds:
                     for mapper in args.mappers:
                         if (mapper, seed) == (args.mappers[0], args.seeds[0]):
                             models, timings = load_models(out / "sparse"), res["timings"]
                         else:
                             start = time.time()
-                            models = run_mapping(out / "database.db", image_path, out / f"sparse_{mapper}_{seed}", {"mapper": mapper, "random_seed": seed, "num_threads": args.threads})
+                            models = run_mapping(
+                                out / "database.db",
+                                image_path,
+                                out / f"sparse_{mapper}_{seed}",
+                                {
+                                    "mapper": mapper,
+                                    "random_seed": seed,
+                                    "num_threads": args.threads,
+                                },
+                            )
                             timings = {**res["timings"], "map": time.time() - start}
-                        add(name, seed, f"{label} + {mapper}", summarize(models, names, reference, timings, verified), base_times[seed])
+                        add(
+                            name,
+                            seed,
+                            f"{label} + {mapper}",
+                            summarize(models, names, reference, timings, verified),
+                            base_times[seed],
+                        )
             shutil.rmtree(work, ignore_errors=True)
-    print(f"\nPipeline benchmark, camera_mode={args.camera_mode}, mapping threads {args.threads} (time ratio = total wall time / pycolmap default's, same set and seed round)\n")
-    print("| set | seed | pipeline | verified pairs | registered | correct (reference) | model check | 3D points | total s | time ratio |")
+    print(
+        f"\nPipeline benchmark, camera_mode={args.camera_mode}, mapping threads {args.threads} (time ratio = total wall time / pycolmap default's, same set and seed round)\n"
+    )
+    print(
+        "| set | seed | pipeline | verified pairs | registered | correct (reference) | model check | 3D points | total s | time ratio |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(row_markdown(row) for row in rows))
     print("\n".join(peer_ratios(rows, f"{args.peer} + {args.mappers[0]}", args.seeds[0])))
@@ -120,20 +221,29 @@ def peer_ratios(rows: list[tuple], peer: str, seed: int) -> list[str]:
     mapper and seed; nothing where ``peer`` did not run."""
     stage = lambda stats: stats["timings"].get("match", 0.0) + stats["timings"].get("verify", 0.0)  # noqa: E731
     first = {(row[0], row[2]): row for row in rows if row[1] == seed}
-    lines = [f"\nTimes over {peer}'s, same set and round\n", "| set | pipeline | total s | total ratio | match + verify s | match ratio |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        f"\nTimes over {peer}'s, same set and round\n",
+        "| set | pipeline | total s | total ratio | match + verify s | match ratio |",
+        "|---|---|---|---|---|---|",
+    ]
     for (name, label), row in first.items():
         base = first.get((name, peer))
         if base is not None:
-            lines.append(f"| {name} | {label} | {row[4]:.1f} | {row[4] / base[4]:.2f} | {stage(row[3]):.1f} | "
-                         f"{stage(row[3]) / max(stage(base[3]), 1e-9):.2f} |")
+            lines.append(
+                f"| {name} | {label} | {row[4]:.1f} | {row[4] / base[4]:.2f} | {stage(row[3]):.1f} | "
+                f"{stage(row[3]) / max(stage(base[3]), 1e-9):.2f} |"
+            )
     return lines if len(lines) > 3 else []
 
 
 def row_markdown(row: tuple) -> str:
     name, seed, label, stats, total, ratio = row
     correct = "–" if stats["correct"] is None else f"{stats['correct']}"
-    check = "ok" if stats["model_check"]["ok"] else f"{len(stats['model_check']['problems'])} problem(s)"
+    check = (
+        "ok"
+        if stats["model_check"]["ok"]
+        else f"{len(stats['model_check']['problems'])} problem(s)"
+    )
     return f"| {name} | {seed} | {label} | {stats['num_verified_pairs']} | {stats['num_registered']}/{stats['num_images']} | {correct} | {check} | {stats['num_points3D']} | {total:.1f} | {ratio:.2f} |"
 
 

@@ -65,27 +65,47 @@ def make_pool(out: Path, workers: int = 2) -> list[dict]:
     train = shared_data_dir() / "train"
     from colmap_guided.features import list_images
 
-    real = [{"name": f"t_{p.name}", "kind": "train", "files": [str(p / "images" / n) for n in list_images(p / "images")]}
-            for p in sorted(train.iterdir()) if (p / "images").is_dir()]
+    real = [
+        {
+            "name": f"t_{p.name}",
+            "kind": "train",
+            "files": [str(p / "images" / n) for n in list_images(p / "images")],
+        }
+        for p in sorted(train.iterdir())
+        if (p / "images").is_dir()
+    ]
     left = POOL_SIZE - sum(len(s["files"]) for s in real)
     jobs = []
     for i in range(SYNTHETIC["scenes"]):
         views = min(SYNTHETIC["views"], left)
         if views < 2:
             break
-        jobs.append((str(out / "synthetic" / f"s_{SYNTHETIC['seed'] + i}"), views, SYNTHETIC["seed"] + i))
+        jobs.append(
+            (str(out / "synthetic" / f"s_{SYNTHETIC['seed'] + i}"), views, SYNTHETIC["seed"] + i)
+        )
         left -= views
     from multiprocessing import Pool
 
     with Pool(workers) as pool:
         for done in pool.imap(_render, jobs):
             print("rendered", done, flush=True)
-    synth = [{"name": Path(o).name, "kind": "synthetic", "files": [str(Path(o) / "images" / f"view_{v:03d}.jpg") for v in range(n)]} for o, n, _ in jobs]
+    synth = [
+        {
+            "name": Path(o).name,
+            "kind": "synthetic",
+            "files": [str(Path(o) / "images" / f"view_{v:03d}.jpg") for v in range(n)],
+        }
+        for o, n, _ in jobs
+    ]
     random.Random(0).shuffle(real)
     random.Random(1).shuffle(synth)
     scenes = []
     for i in range(max(len(real), len(synth))):
-        scenes += [s for s in (real[i] if i < len(real) else None, synth[i] if i < len(synth) else None) if s]
+        scenes += [
+            s
+            for s in (real[i] if i < len(real) else None, synth[i] if i < len(synth) else None)
+            if s
+        ]
     (out / "pool.json").write_text(json.dumps(scenes, indent=1))
     return scenes
 
@@ -155,7 +175,11 @@ def stage_main(args) -> None:
     set_verbosity(quiet=True)
     run_dir, images = Path(args.run_dir), Path(args.images)
     db = run_dir / "database.db"
-    result = {"stage": args.stage, "load_before": load(), "start": time.strftime("%H:%M:%S", time.gmtime())}
+    result = {
+        "stage": args.stage,
+        "load_before": load(),
+        "start": time.strftime("%H:%M:%S", time.gmtime()),
+    }
     sampler = RssSampler()
     result["rss_start_mb"] = sampler.rss() >> 20
     t0, c0 = time.time(), time.process_time()
@@ -164,19 +188,36 @@ def stage_main(args) -> None:
         result["skipped"] = len(stats["skipped"])
     elif args.stage == "match":
         stats = match_database(db, images, args.pairs, "guided", num_neighbors=args.k)
-        result.update(num_pairs=stats["num_pairs"], select_time=stats["pairs"]["time"], match_time=stats["match_time"],
-                      verify_time=stats["verify_time"], num_verified_pairs=stats["num_verified_pairs"],
-                      memory=stats.get("memory"), executor=stats.get("executor"))
+        result.update(
+            num_pairs=stats["num_pairs"],
+            select_time=stats["pairs"]["time"],
+            match_time=stats["match_time"],
+            verify_time=stats["verify_time"],
+            num_verified_pairs=stats["num_verified_pairs"],
+            memory=stats.get("memory"),
+            executor=stats.get("executor"),
+        )
     elif args.stage == "map":
-        models = mapping.run_mapping(db, images, run_dir / f"sparse_{args.mapper}", {"mapper": args.mapper})
+        models = mapping.run_mapping(
+            db, images, run_dir / f"sparse_{args.mapper}", {"mapper": args.mapper}
+        )
         names = features.list_images(images)
         registered = {rec.images[i].name for rec in models.values() for i in rec.reg_image_ids()}
-        result.update(mapper=args.mapper, num_models=len(models), largest=report.model_statistics(models, names)["num_registered"],
-                      registered=len(registered), registered_train=sum(n.startswith("t_") for n in registered),
-                      registered_synthetic=sum(n.startswith("s_") for n in registered),
-                      num_images=len(names), images_in_verified_pairs=_in_verified_pairs(db))
+        result.update(
+            mapper=args.mapper,
+            num_models=len(models),
+            largest=report.model_statistics(models, names)["num_registered"],
+            registered=len(registered),
+            registered_train=sum(n.startswith("t_") for n in registered),
+            registered_synthetic=sum(n.startswith("s_") for n in registered),
+            num_images=len(names),
+            images_in_verified_pairs=_in_verified_pairs(db),
+        )
     result["wall"] = time.time() - t0
-    ru_self, ru_kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    ru_self, ru_kids = (
+        resource.getrusage(resource.RUSAGE_SELF),
+        resource.getrusage(resource.RUSAGE_CHILDREN),
+    )
     result["cpu"] = time.process_time() - c0 + ru_kids.ru_utime + ru_kids.ru_stime
     result["peak_rss_mb"] = ru_self.ru_maxrss >> 10
     result["rss_samples"] = sampler.close()
@@ -192,8 +233,11 @@ def _verified_pairs(db: Path) -> set:
     import pycolmap
 
     with dbio.open_database(db) as d:
-        return {pycolmap.pair_id_to_image_pair(pair_id) for pair_id, geometry in zip(*d.read_two_view_geometries())
-                if len(geometry.inlier_matches) > 0}
+        return {
+            pycolmap.pair_id_to_image_pair(pair_id)
+            for pair_id, geometry in zip(*d.read_two_view_geometries())
+            if len(geometry.inlier_matches) > 0
+        }
 
 
 def _in_verified_pairs(db: Path) -> int:
@@ -208,13 +252,36 @@ def _in_verified_pairs(db: Path) -> int:
         return len(ids)
 
 
-def run_stage(stage: str, run_dir: Path, images: Path, result: Path, timeout: float, **extra) -> dict | None:
+def run_stage(
+    stage: str, run_dir: Path, images: Path, result: Path, timeout: float, **extra
+) -> dict | None:
     if result.exists():
         return json.loads(result.read_text())
-    cmd = ["nice", "-n", "5", sys.executable, __file__, "_stage", stage, "--run_dir", str(run_dir), "--images", str(images),
-           "--result", str(result)] + [a for k, v in extra.items() for a in (f"--{k}", str(v))]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
-    print(f"[{time.strftime('%H:%M:%S', time.gmtime())}] {stage} {run_dir.name} {extra} (load {load()})", flush=True)
+    cmd = [
+        "nice",
+        "-n",
+        "5",
+        sys.executable,
+        __file__,
+        "_stage",
+        stage,
+        "--run_dir",
+        str(run_dir),
+        "--images",
+        str(images),
+        "--result",
+        str(result),
+    ] + [a for k, v in extra.items() for a in (f"--{k}", str(v))]
+    env = {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        "MKL_NUM_THREADS": "1",
+        "OPENBLAS_NUM_THREADS": "1",
+    }
+    print(
+        f"[{time.strftime('%H:%M:%S', time.gmtime())}] {stage} {run_dir.name} {extra} (load {load()})",
+        flush=True,
+    )
     try:
         proc = subprocess.run(cmd, env=env, timeout=timeout)
     except subprocess.TimeoutExpired:
@@ -224,7 +291,10 @@ def run_stage(stage: str, run_dir: Path, images: Path, result: Path, timeout: fl
         print(f"  failed (exit {proc.returncode})", flush=True)
         return None
     r = json.loads(result.read_text())
-    print(f"  {r['wall']:.0f} s wall, {r['cpu']:.0f} s CPU, peak RSS {r['peak_rss_mb']} MB, load {r['load_before']} -> {r['load_after']}", flush=True)
+    print(
+        f"  {r['wall']:.0f} s wall, {r['cpu']:.0f} s CPU, peak RSS {r['peak_rss_mb']} MB, load {r['load_before']} -> {r['load_after']}",
+        flush=True,
+    )
     return r
 
 
@@ -241,10 +311,28 @@ def run_main(args) -> None:
                 run_dir.mkdir(parents=True, exist_ok=True)
                 shutil.copy(base / "database.db", run_dir / "database.partial.db")
                 (run_dir / "database.partial.db").rename(run_dir / "database.db")
-            if run_stage("match", run_dir, images, run_dir / "match.json", args.timeout, pairs=mode, k=args.k) is None:
+            if (
+                run_stage(
+                    "match",
+                    run_dir,
+                    images,
+                    run_dir / "match.json",
+                    args.timeout,
+                    pairs=mode,
+                    k=args.k,
+                )
+                is None
+            ):
                 continue
             for mapper in args.mappers:
-                run_stage("map", run_dir, images, run_dir / f"map_{mapper}.json", args.map_timeout, mapper=mapper)
+                run_stage(
+                    "map",
+                    run_dir,
+                    images,
+                    run_dir / f"map_{mapper}.json",
+                    args.map_timeout,
+                    mapper=mapper,
+                )
 
 
 def map_main(args) -> None:
@@ -253,7 +341,14 @@ def map_main(args) -> None:
             run_dir = args.out / f"n{n}" / mode
             if (run_dir / "match.json").exists():
                 for mapper in args.mappers:
-                    run_stage("map", run_dir, args.out / f"n{n}" / "images", run_dir / f"map_{mapper}.json", args.map_timeout, mapper=mapper)
+                    run_stage(
+                        "map",
+                        run_dir,
+                        args.out / f"n{n}" / "images",
+                        run_dir / f"map_{mapper}.json",
+                        args.map_timeout,
+                        mapper=mapper,
+                    )
 
 
 # -- executors: throughput per worker ---------------------------------------------------------------
@@ -261,14 +356,45 @@ def map_main(args) -> None:
 
 def _ray_nodes(root: Path, port: int) -> tuple[str, list]:
     """A head node and a second node, one CPU each, on this machine (``ray start --block``, own process groups)."""
-    env = {**os.environ, "HOME": str(root), "RAY_TMPDIR": str(root), "OMP_NUM_THREADS": "1", "RAY_worker_niceness": "0"}
+    env = {
+        **os.environ,
+        "HOME": str(root),
+        "RAY_TMPDIR": str(root),
+        "OMP_NUM_THREADS": "1",
+        "RAY_worker_niceness": "0",
+    }
     ray_bin = str(Path(sys.executable).with_name("ray"))
-    procs = [subprocess.Popen([ray_bin, "start", "--head", "--num-cpus", "1", "--port", str(port), "--include-dashboard", "false", "--block"],
-                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=os.setpgrp)]
+    procs = [
+        subprocess.Popen(
+            [
+                ray_bin,
+                "start",
+                "--head",
+                "--num-cpus",
+                "1",
+                "--port",
+                str(port),
+                "--include-dashboard",
+                "false",
+                "--block",
+            ],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            preexec_fn=os.setpgrp,
+        )
+    ]
     address = f"127.0.0.1:{port}"
     time.sleep(10)
-    procs.append(subprocess.Popen([ray_bin, "start", "--address", address, "--num-cpus", "1", "--block"], env=env,
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=os.setpgrp))
+    procs.append(
+        subprocess.Popen(
+            [ray_bin, "start", "--address", address, "--num-cpus", "1", "--block"],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            preexec_fn=os.setpgrp,
+        )
+    )
     return address, procs
 
 
@@ -313,13 +439,18 @@ def ray_main(args) -> None:
     work = args.out / "executors"
     work.mkdir(exist_ok=True)
     pairs_file = work / "pairs.txt"
-    if not pairs_file.exists():  # the first retrieval pairs of the N-photo set (the match stage's selection)
+    if (
+        not pairs_file.exists()
+    ):  # the first retrieval pairs of the N-photo set (the match stage's selection)
         src = args.out / f"n{n}" / "retrieval" / "database.db"
         import pycolmap
 
         with dbio.open_database(src) as db:
             names = {im.image_id: im.name for im in db.read_all_images()}
-            pairs = sorted(tuple(sorted((names[a], names[b]))) for a, b in map(pycolmap.pair_id_to_image_pair, db.read_all_matches()[0]))
+            pairs = sorted(
+                tuple(sorted((names[a], names[b])))
+                for a, b in map(pycolmap.pair_id_to_image_pair, db.read_all_matches()[0])
+            )
         write_pairs(pairs_file, pairs[: args.num_pairs])
     root = Path(tempfile.mkdtemp(prefix="rayb", dir="/tmp"))
     saved = {k: os.environ.get(k) for k in ("HOME", "RAY_TMPDIR", "RAY_worker_niceness")}
@@ -336,11 +467,24 @@ def ray_main(args) -> None:
         before = load()
         stats = match_database(db, images, str(pairs_file), matcher, executor=executor)
         w = stats["executor"]["workers"]
-        rows.append({"config": label, "executor": executor, "workers": w, "pairs": stats["num_pairs"], "match_time": stats["match_time"],
-                     "pairs_per_s": stats["num_pairs"] / stats["match_time"], "load_before": before, "load_after": load()})
+        rows.append(
+            {
+                "config": label,
+                "executor": executor,
+                "workers": w,
+                "pairs": stats["num_pairs"],
+                "match_time": stats["match_time"],
+                "pairs_per_s": stats["num_pairs"] / stats["match_time"],
+                "load_before": before,
+                "load_after": load(),
+            }
+        )
         with dbio.open_database(db) as d:
             ims = dbio.images_by_name(d)
-            dumps[label] = {(a, b): dbio.read_pair_matches(d, ims[a].image_id, ims[b].image_id).tolist() for a, b in read_pairs(pairs_file, list(ims))}
+            dumps[label] = {
+                (a, b): dbio.read_pair_matches(d, ims[a].image_id, ims[b].image_id).tolist()
+                for a, b in read_pairs(pairs_file, list(ims))
+            }
         rows[-1]["same_matches_as_local_1"] = dumps[label] == dumps[rows[0]["config"]]
         print(rows[-1], flush=True)
         db.unlink()
@@ -352,7 +496,13 @@ def ray_main(args) -> None:
             one(f"local_2_r{r}", "local", 2)
             for cpus in (1, 2):
                 t = time.time()
-                ray.init(address="local", num_cpus=cpus, include_dashboard=False, log_to_driver=False, configure_logging=False)
+                ray.init(
+                    address="local",
+                    num_cpus=cpus,
+                    include_dashboard=False,
+                    log_to_driver=False,
+                    configure_logging=False,
+                )
                 print(f"  private Ray ({cpus} CPU) up in {time.time() - t:.1f} s", flush=True)
                 one(f"ray_private_{cpus}_r{r}", "ray", 1)
                 ray.shutdown()
@@ -368,7 +518,15 @@ def ray_main(args) -> None:
                     break
                 ray.shutdown()
                 time.sleep(2)
-            print("  nodes:", [(nd["NodeManagerAddress"], nd["Resources"].get("CPU")) for nd in ray.nodes() if nd["Alive"]], flush=True)
+            print(
+                "  nodes:",
+                [
+                    (nd["NodeManagerAddress"], nd["Resources"].get("CPU"))
+                    for nd in ray.nodes()
+                    if nd["Alive"]
+                ],
+                flush=True,
+            )
             one(f"ray_2nodes_r{r}", "ray", 1)
             ray.shutdown()
             _stop_nodes(procs, root)
@@ -408,8 +566,10 @@ def report_main(args) -> None:
                 synth += take
         return f"{train} train + {synth} rendered"
 
-    p("| N (photos) | pairs | pairs matched (of exhaustive) | verified (exhaustive's kept) | extract s | select s | match s | verify s | map (global) s | "
-      "total s (CPU s) | peak RSS: run / match stage (start) MB | images held max / reads | registered (train + rendered) | models | load 1-min |")
+    p(
+        "| N (photos) | pairs | pairs matched (of exhaustive) | verified (exhaustive's kept) | extract s | select s | match s | verify s | map (global) s | "
+        "total s (CPU s) | peak RSS: run / match stage (start) MB | images held max / reads | registered (train + rendered) | models | load 1-min |"
+    )
     p("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     per_pair, rows = {}, {}
     for n in args.n:
@@ -425,30 +585,57 @@ def report_main(args) -> None:
             pure_match = m["match_time"] + m["verify_time"]
             if mode == "exhaustive":
                 per_pair[n] = (pure_match / m["num_pairs"], m["cpu"] / m["num_pairs"])
-            rows[(n, mode)] = {"extract": ex["wall"], "select": m["select_time"], "match": m["match_time"], "verify": m["verify_time"],
-                               "map": g["wall"] if g else None, "total": total, "cpu": cpu, "rss_match": m["peak_rss_mb"],
-                               "rss_run": max(r["peak_rss_mb"] for r in stages), "held": (m.get("memory") or {}).get("images_held_max")}
+            rows[(n, mode)] = {
+                "extract": ex["wall"],
+                "select": m["select_time"],
+                "match": m["match_time"],
+                "verify": m["verify_time"],
+                "map": g["wall"] if g else None,
+                "total": total,
+                "cpu": cpu,
+                "rss_match": m["peak_rss_mb"],
+                "rss_run": max(r["peak_rss_mb"] for r in stages),
+                "held": (m.get("memory") or {}).get("images_held_max"),
+            }
             mem = m.get("memory") or {}
             kept = "–"
             if (out / f"n{n}" / "exhaustive" / "match.json").exists():
                 truth = _verified_pairs(out / f"n{n}" / "exhaustive" / "database.db")
                 kept = f"{len(_verified_pairs(out / f'n{n}' / mode / 'database.db') & truth)}/{len(truth)}"
-            reg = f"{g['registered']}/{n} ({g['registered_train']} + {g['registered_synthetic']})" if g else "–"
-            loads = [float(r[k].split("/")[0]) for r in stages for k in ("load_before", "load_after")]
-            p(f"| {n} ({composition(n)}) | {mode}" + (f" k={args.k}" if mode == "retrieval" else "") + f" | {m['num_pairs']} ({m['num_pairs'] / (n * (n - 1) / 2):.1%}) | "
-              f"{m['num_verified_pairs']} ({kept}) | {ex['wall']:.0f} | {m['select_time']:.0f} | {m['match_time']:.0f} | {m['verify_time']:.0f} | "
-              f"{g['wall']:.0f} | " if g else "– | ")
-            lines[-1] += (f"{total:.0f} ({cpu:.0f}) | {max(r['peak_rss_mb'] for r in stages)} / {m['peak_rss_mb']} ({m['rss_start_mb']}) | "
-                          f"{mem.get('images_held_max', '–')} / {mem.get('image_reads', '–')} | {reg} | {g['num_models'] if g else '–'} | "
-                          f"{min(loads):.1f}–{max(loads):.1f} |")
+            reg = (
+                f"{g['registered']}/{n} ({g['registered_train']} + {g['registered_synthetic']})"
+                if g
+                else "–"
+            )
+            loads = [
+                float(r[k].split("/")[0]) for r in stages for k in ("load_before", "load_after")
+            ]
+            p(
+                f"| {n} ({composition(n)}) | {mode}"
+                + (f" k={args.k}" if mode == "retrieval" else "")
+                + f" | {m['num_pairs']} ({m['num_pairs'] / (n * (n - 1) / 2):.1%}) | "
+                f"{m['num_verified_pairs']} ({kept}) | {ex['wall']:.0f} | {m['select_time']:.0f} | {m['match_time']:.0f} | {m['verify_time']:.0f} | "
+                f"{g['wall']:.0f} | "
+                if g
+                else "– | "
+            )
+            lines[-1] += (
+                f"{total:.0f} ({cpu:.0f}) | {max(r['peak_rss_mb'] for r in stages)} / {m['peak_rss_mb']} ({m['rss_start_mb']}) | "
+                f"{mem.get('images_held_max', '–')} / {mem.get('image_reads', '–')} | {reg} | {g['num_models'] if g else '–'} | "
+                f"{min(loads):.1f}–{max(loads):.1f} |"
+            )
     if per_pair:
         n0 = min(per_pair)
         wall_pp, cpu_pp = per_pair[n0]
         p("")
-        p(f"Exhaustive matching projected from its measured time per pair at N={n0} ({wall_pp:.2f} s wall match + verify per pair, "
-          f"{cpu_pp:.2f} s CPU with selection): a projection, not a measurement:")
+        p(
+            f"Exhaustive matching projected from its measured time per pair at N={n0} ({wall_pp:.2f} s wall match + verify per pair, "
+            f"{cpu_pp:.2f} s CPU with selection): a projection, not a measurement:"
+        )
         p("")
-        p("| N | exhaustive pairs | projected match + verify h (wall, this load) | projected CPU h |")
+        p(
+            "| N | exhaustive pairs | projected match + verify h (wall, this load) | projected CPU h |"
+        )
         p("|---|---|---|---|")
         for n in args.n:
             pairs = n * (n - 1) // 2
@@ -462,24 +649,36 @@ def report_main(args) -> None:
                     mapping.append((n, mode, r))
     if mapping:
         p("")
-        p("| N | pairs | mapper | wall s (CPU s) | models | registered (train + rendered) | largest model | photos in a verified pair | peak RSS MB | load 1-min |")
+        p(
+            "| N | pairs | mapper | wall s (CPU s) | models | registered (train + rendered) | largest model | photos in a verified pair | peak RSS MB | load 1-min |"
+        )
         p("|---|---|---|---|---|---|---|---|---|---|")
         for n, mode, r in mapping:
-            p(f"| {n} | {mode} | {r['mapper']} | {r['wall']:.0f} ({r['cpu']:.0f}) | {r['num_models']} | {r['registered']} ({r['registered_train']} + {r['registered_synthetic']}) | "
-              f"{r['largest']} | {r['images_in_verified_pairs']} | {r['peak_rss_mb']} | {r['load_before'].split('/')[0]}–{r['load_after'].split('/')[0]} |")
+            p(
+                f"| {n} | {mode} | {r['mapper']} | {r['wall']:.0f} ({r['cpu']:.0f}) | {r['num_models']} | {r['registered']} ({r['registered_train']} + {r['registered_synthetic']}) | "
+                f"{r['largest']} | {r['images_in_verified_pairs']} | {r['peak_rss_mb']} | {r['load_before'].split('/')[0]}–{r['load_after'].split('/')[0]} |"
+            )
     executors = _json(out / "executors" / "executors.json") or []
     if executors:
         base = {}
         for r in executors:
-            base.setdefault(("local" if r["executor"] == "local" else "ray", r["config"].split("_r")[-1]), r) if r["workers"] == 1 else None
+            base.setdefault(
+                ("local" if r["executor"] == "local" else "ray", r["config"].split("_r")[-1]), r
+            ) if r["workers"] == 1 else None
         p("")
-        p("| configuration | workers | pairs | match s | pairs/s | per worker vs 1 worker | same matches | load 1-min |")
+        p(
+            "| configuration | workers | pairs | match s | pairs/s | per worker vs 1 worker | same matches | load 1-min |"
+        )
         p("|---|---|---|---|---|---|---|---|")
         for r in executors:
-            b = base.get(("local" if r["executor"] == "local" else "ray", r["config"].split("_r")[-1]))
+            b = base.get(
+                ("local" if r["executor"] == "local" else "ray", r["config"].split("_r")[-1])
+            )
             ratio = r["pairs_per_s"] / (r["workers"] * b["pairs_per_s"]) if b else float("nan")
-            p(f"| {r['config']} | {r['workers']} | {r['pairs']} | {r['match_time']:.0f} | {r['pairs_per_s']:.2f} | {ratio:.2f} | "
-              f"{r['same_matches_as_local_1']} | {r['load_before'].split('/')[0]}–{r['load_after'].split('/')[0]} |")
+            p(
+                f"| {r['config']} | {r['workers']} | {r['pairs']} | {r['match_time']:.0f} | {r['pairs_per_s']:.2f} | {ratio:.2f} | "
+                f"{r['same_matches_as_local_1']} | {r['load_before'].split('/')[0]}–{r['load_after'].split('/')[0]} |"
+            )
     text = "\n".join(lines)
     print(text)
     (out / "report.md").write_text(text + "\n")
@@ -498,23 +697,69 @@ def _plot(path: Path, rows: dict, executors: list, per_pair: dict) -> None:
         ns = sorted(n for n, m in rows if m == mode)
         if ns:
             for key, colour in (("extract", "C0"), ("match", "C1"), ("total", "k")):
-                ax.plot(ns, [rows[(n, mode)][key] / 60 for n in ns], style, color=colour, label=f"{mode}: {key}")
-            ax.plot(ns, [rows[(n, mode)]["cpu"] / 60 for n in ns], style, color="C2", label=f"{mode}: CPU (all stages)")
+                ax.plot(
+                    ns,
+                    [rows[(n, mode)][key] / 60 for n in ns],
+                    style,
+                    color=colour,
+                    label=f"{mode}: {key}",
+                )
+            ax.plot(
+                ns,
+                [rows[(n, mode)]["cpu"] / 60 for n in ns],
+                style,
+                color="C2",
+                label=f"{mode}: CPU (all stages)",
+            )
     if per_pair:
         n0 = min(per_pair)
         ns = [n0, 200, 1000]
-        ax.plot(ns, [n * (n - 1) / 2 * per_pair[n0][0] / 60 for n in ns], ":", color="C3", label="exhaustive match, projected")
+        ax.plot(
+            ns,
+            [n * (n - 1) / 2 * per_pair[n0][0] / 60 for n in ns],
+            ":",
+            color="C3",
+            label="exhaustive match, projected",
+        )
     ax.axhline(60, color="grey", lw=0.8)
-    ax.set(xscale="log", yscale="log", xlabel="photos N", ylabel="minutes", title="time per stage (wall, shared machine)")
+    ax.set(
+        xscale="log",
+        yscale="log",
+        xlabel="photos N",
+        ylabel="minutes",
+        title="time per stage (wall, shared machine)",
+    )
     ax.legend(fontsize=7)
     ax = axes[1]
     ns = sorted(n for n, m in rows if m == "retrieval")
-    ax.plot(ns, [rows[(n, "retrieval")]["rss_match"] for n in ns], "o-", label="match stage peak RSS (MB)")
-    ax.plot(ns, [rows[(n, "retrieval")]["rss_run"] for n in ns], "s-", label="run peak RSS (MB, max over stages)")
+    ax.plot(
+        ns,
+        [rows[(n, "retrieval")]["rss_match"] for n in ns],
+        "o-",
+        label="match stage peak RSS (MB)",
+    )
+    ax.plot(
+        ns,
+        [rows[(n, "retrieval")]["rss_run"] for n in ns],
+        "s-",
+        label="run peak RSS (MB, max over stages)",
+    )
     ax2 = ax.twinx()
-    ax2.plot(ns, [rows[(n, "retrieval")]["held"] or 0 for n in ns], "^:", color="C3", label="images held at once (max)")
+    ax2.plot(
+        ns,
+        [rows[(n, "retrieval")]["held"] or 0 for n in ns],
+        "^:",
+        color="C3",
+        label="images held at once (max)",
+    )
     ax2.set_ylabel("images held")
-    ax.set(xscale="log", xlabel="photos N", ylabel="MB", title="memory (retrieval)", ylim=(0, 1.3 * max([r["rss_run"] for r in rows.values()] or [1])))
+    ax.set(
+        xscale="log",
+        xlabel="photos N",
+        ylabel="MB",
+        title="memory (retrieval)",
+        ylim=(0, 1.3 * max([r["rss_run"] for r in rows.values()] or [1])),
+    )
     ax2.set_ylim(0, 140)
     ax.legend(fontsize=7, loc="upper left")
     ax2.legend(fontsize=7, loc="lower right")
@@ -525,7 +770,13 @@ def _plot(path: Path, rows: dict, executors: list, per_pair: dict) -> None:
             ax.plot(*zip(*pts), marker, label=kind, ms=8)
     ones = [r["pairs_per_s"] for r in executors if r["workers"] == 1]
     if ones:
-        ax.plot([1, 2], [min(ones), 2 * min(ones)], ":", color="grey", label="linear from the slower 1-worker run")
+        ax.plot(
+            [1, 2],
+            [min(ones), 2 * min(ones)],
+            ":",
+            color="grey",
+            label="linear from the slower 1-worker run",
+        )
     ax.set(xlabel="workers", ylabel="pairs / s", title="matching throughput", xticks=[1, 2])
     ax.legend(fontsize=7)
     fig.tight_layout()
@@ -539,12 +790,18 @@ def main(argv=None):
         p = sub.add_parser(name)
         p.add_argument("--out", type=Path, default=Path("outputs/benchmark_scale"))
         p.add_argument("--n", type=int, nargs="+", default=[50, 200, 1000])
-        p.add_argument("--pairs", nargs="+", default=["retrieval"], choices=["retrieval", "exhaustive"])
+        p.add_argument(
+            "--pairs", nargs="+", default=["retrieval"], choices=["retrieval", "exhaustive"]
+        )
         p.add_argument("--k", type=int, default=10, help="retrieval: neighbours per photo")
         p.add_argument("--mappers", nargs="+", default=["global"])
-        p.add_argument("--timeout", type=float, default=3 * 3600, help="seconds per extract / match stage")
+        p.add_argument(
+            "--timeout", type=float, default=3 * 3600, help="seconds per extract / match stage"
+        )
         p.add_argument("--map_timeout", type=float, default=1800, help="seconds per mapping")
-        p.add_argument("--num_pairs", type=int, default=160, help="ray: pairs matched per configuration")
+        p.add_argument(
+            "--num_pairs", type=int, default=160, help="ray: pairs matched per configuration"
+        )
         p.add_argument("--rounds", type=int, default=1)
         p.add_argument("--port", type=int, default=6391)
     s = sub.add_parser("_stage")
@@ -558,7 +815,13 @@ def main(argv=None):
     args.out = args.out.resolve()
     args.out.mkdir(parents=True, exist_ok=True)
     make_pool(args.out)
-    {"pool": lambda a: None, "run": run_main, "map": map_main, "ray": ray_main, "report": report_main}[args.cmd](args)
+    {
+        "pool": lambda a: None,
+        "run": run_main,
+        "map": map_main,
+        "ray": ray_main,
+        "report": report_main,
+    }[args.cmd](args)
 
 
 if __name__ == "__main__":

@@ -22,21 +22,32 @@ from colmap_guided.train.trainer import Trainer
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--steps", type=int, default=6, help="iterations of the sparse and the windowed dense path")
-    p.add_argument("--dense_whole", type=int, default=1, help="iterations of the dense filter on whole grids")
+    p.add_argument(
+        "--steps", type=int, default=6, help="iterations of the sparse and the windowed dense path"
+    )
+    p.add_argument(
+        "--dense_whole", type=int, default=1, help="iterations of the dense filter on whole grids"
+    )
     p.add_argument("--resolution", type=int, default=512)
     p.add_argument("--batch_size", type=int, default=8)
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     data = {"resolution": args.resolution, "val_pairs_per_scene": 1}
-    paths = {"sparse, whole grids": ({"impl": "sparse"}, args.steps),
-             "dense, 12x12-cell windows": ({"impl": "dense", "data": {**data, "max_cells": 12}}, args.steps),
-             "dense, whole grids": ({"impl": "dense"}, args.dense_whole)}
+    paths = {
+        "sparse, whole grids": ({"impl": "sparse"}, args.steps),
+        "dense, 12x12-cell windows": (
+            {"impl": "dense", "data": {**data, "max_cells": 12}},
+            args.steps,
+        ),
+        "dense, whole grids": ({"impl": "dense"}, args.dense_whole),
+    }
     times: dict[str, list[float]] = {k: [] for k in paths}
     with tempfile.TemporaryDirectory() as tmp:
-        trainers = {k: Trainer(f"{tmp}/{i}", {"data": data, "batch_size": args.batch_size, **conf})
-                    for i, (k, (conf, _)) in enumerate(paths.items())}
+        trainers = {
+            k: Trainer(f"{tmp}/{i}", {"data": data, "batch_size": args.batch_size, **conf})
+            for i, (k, (conf, _)) in enumerate(paths.items())
+        }
         for r in range(max(n for _, n in paths.values())):
             for k, tr in trainers.items():
                 if r < paths[k][1]:

@@ -29,18 +29,29 @@ from colmap_guided.log import colmap_quiet, set_verbosity
 from colmap_guided.matchers import get_matcher
 from colmap_guided.workspace import Workspace
 
-DEV_SOURCES = ("sacre_coeur_hloc", "lund_door_gtsfm", "train/dfsfm_sacre_coeur", "train/vggsfm_british_museum")
+DEV_SOURCES = (
+    "sacre_coeur_hloc",
+    "lund_door_gtsfm",
+    "train/dfsfm_sacre_coeur",
+    "train/vggsfm_british_museum",
+)
 
 
 def scene_pairs(scene_dir: Path, matcher, min_inliers: int) -> list[dict]:
     """Every pair of the scene: related (neither a distractor), coarse evidence, verified inliers."""
-    eras = {im["name"]: im["era"] for im in json.loads((scene_dir / "manifest.json").read_text())["images"]}
+    eras = {
+        im["name"]: im["era"]
+        for im in json.loads((scene_dir / "manifest.json").read_text())["images"]
+    }
     database = scene_dir / "database.db"
     features.extract_features(database, scene_dir / "images", conf={"type": "aliked"})
     options = verify.two_view_options({"min_num_inliers": min_inliers})
     rows = []
     with dbio.open_database(database) as db:
-        images = {n: dbio.read_image_data(db, im, scene_dir / "images") for n, im in dbio.images_by_name(db).items()}
+        images = {
+            n: dbio.read_image_data(db, im, scene_dir / "images")
+            for n, im in dbio.images_by_name(db).items()
+        }
         for image in images.values():
             matcher.prepare(image)
         for a, b in itertools.combinations(sorted(images), 2):
@@ -52,62 +63,104 @@ def scene_pairs(scene_dir: Path, matcher, min_inliers: int) -> list[dict]:
             eq1 = matcher.guide.match_flows(ia, ib, flows)
             cams = [verify.default_camera(im.width, im.height) for im in (ia, ib)]
             with colmap_quiet():
-                geometry, eq1_geometry = (verify.verify_pair(cams[0], ia.keypoints, cams[1], ib.keypoints, x, options)
-                                          for x in (m, eq1))
+                geometry, eq1_geometry = (
+                    verify.verify_pair(cams[0], ia.keypoints, cams[1], ib.keypoints, x, options)
+                    for x in (m, eq1)
+                )
             inliers, eq1_inliers = len(geometry.inlier_matches), len(eq1_geometry.inlier_matches)
-            agree = verify.agreement(geometry, ia.keypoints, ib.keypoints, eq1_geometry.inlier_matches,
-                                     options.ransac.max_error) if inliers >= min_inliers else 0.0
-            rows.append({"scene": scene_dir.name, "a": a, "b": b, "related": "distractor" not in (eras[a], eras[b]),
-                         "score": flows.pair_score, "inliers": inliers,
-                         "verified": inliers >= min_inliers, "fine_s": seconds, "eq1": len(eq1),
-                         "eq1_inliers": eq1_inliers, "eq1_agreement": agree})
+            agree = (
+                verify.agreement(
+                    geometry,
+                    ia.keypoints,
+                    ib.keypoints,
+                    eq1_geometry.inlier_matches,
+                    options.ransac.max_error,
+                )
+                if inliers >= min_inliers
+                else 0.0
+            )
+            rows.append(
+                {
+                    "scene": scene_dir.name,
+                    "a": a,
+                    "b": b,
+                    "related": "distractor" not in (eras[a], eras[b]),
+                    "score": flows.pair_score,
+                    "inliers": inliers,
+                    "verified": inliers >= min_inliers,
+                    "fine_s": seconds,
+                    "eq1": len(eq1),
+                    "eq1_inliers": eq1_inliers,
+                    "eq1_agreement": agree,
+                }
+            )
     return rows
 
 
 def gate_table(rows: list[dict], key: str, thresholds) -> list[str]:
     verified = [r for r in rows if r["verified"]]
-    lines = [f"| {key} below | verified pairs lost | related pairs skipped | unrelated skipped | fine time skipped |",
-             "|---|---|---|---|---|"]
+    lines = [
+        f"| {key} below | verified pairs lost | related pairs skipped | unrelated skipped | fine time skipped |",
+        "|---|---|---|---|---|",
+    ]
     total = sum(r["fine_s"] for r in rows)
     for t in thresholds:
         gated = [r for r in rows if r[key] < t]
         lost = [r for r in gated if r["verified"]]
-        lines.append(f"| {t:g} | {len(lost)} / {len(verified)} (max {max((r['inliers'] for r in lost), default=0)} inliers) "
-                     f"| {sum(r['related'] for r in gated)} / {sum(r['related'] for r in rows)} "
-                     f"| {sum(not r['related'] for r in gated)} / {sum(not r['related'] for r in rows)} "
-                     f"| {sum(r['fine_s'] for r in gated) / total:.0%} |")
+        lines.append(
+            f"| {t:g} | {len(lost)} / {len(verified)} (max {max((r['inliers'] for r in lost), default=0)} inliers) "
+            f"| {sum(r['related'] for r in gated)} / {sum(r['related'] for r in rows)} "
+            f"| {sum(not r['related'] for r in gated)} / {sum(not r['related'] for r in rows)} "
+            f"| {sum(r['fine_s'] for r in gated) / total:.0%} |"
+        )
     return lines
 
 
 def eq1_table(rows: list[dict], thresholds, min_inliers: int) -> list[str]:
     """Pairs whose eq. 1 matches reach each threshold: what the fine matcher would have given them."""
-    lines = ["| eq. 1 matches at least | pairs (unrelated) | fine-verified among them | eq. 1 inliers / fine's, "
-             "min · median | eq. 1 inliers on the fine geometry, min | verified by eq. 1 only | fine time skipped |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| eq. 1 matches at least | pairs (unrelated) | fine-verified among them | eq. 1 inliers / fine's, "
+        "min · median | eq. 1 inliers on the fine geometry, min | verified by eq. 1 only | fine time skipped |",
+        "|---|---|---|---|---|---|---|",
+    ]
     total = sum(r["fine_s"] for r in rows)
     for t in thresholds:
         took = [r for r in rows if r["eq1"] >= t]
         both = [r for r in took if r["verified"]]
         share = [r["eq1_inliers"] / r["inliers"] for r in both]
-        lines.append(f"| {t} | {len(took)} ({sum(not r['related'] for r in took)}) | {len(both)} "
-                     f"| {min(share, default=0):.2f} · {np.median(share) if share else 0:.2f} "
-                     f"| {min((r['eq1_agreement'] for r in both), default=0):.2f} "
-                     f"| {sum(not r['verified'] and r['eq1_inliers'] >= min_inliers for r in took)} "
-                     f"| {sum(r['fine_s'] for r in took) / total:.0%} |")
+        lines.append(
+            f"| {t} | {len(took)} ({sum(not r['related'] for r in took)}) | {len(both)} "
+            f"| {min(share, default=0):.2f} · {np.median(share) if share else 0:.2f} "
+            f"| {min((r['eq1_agreement'] for r in both), default=0):.2f} "
+            f"| {sum(not r['verified'] and r['eq1_inliers'] >= min_inliers for r in took)} "
+            f"| {sum(r['fine_s'] for r in took) / total:.0%} |"
+        )
     return lines
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--output", type=Path, required=True, help="proxy scenes, databases and pairs.json go here")
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--output", type=Path, required=True, help="proxy scenes, databases and pairs.json go here"
+    )
     parser.add_argument("--sources", nargs="+", default=DEV_SOURCES)
-    parser.add_argument("--max_images", type=int, default=8, help="photos per source (distractors added)")
-    parser.add_argument("--matcher", default="guided_lightglue:min_pair_score=none", help="the fine matcher, a spec: preset[:key=value,...]")
+    parser.add_argument(
+        "--max_images", type=int, default=8, help="photos per source (distractors added)"
+    )
+    parser.add_argument(
+        "--matcher",
+        default="guided_lightglue:min_pair_score=none",
+        help="the fine matcher, a spec: preset[:key=value,...]",
+    )
     args = parser.parse_args(argv)
     set_verbosity(quiet=True)
     leaked = set(args.sources) & set(proxy.SPLITS["test"])
     if leaked:
-        parser.error(f"{sorted(leaked)} belong to the test split: the gate is chosen on development scenes only")
+        parser.error(
+            f"{sorted(leaked)} belong to the test split: the gate is chosen on development scenes only"
+        )
     spec = matcher_specs.parse_spec(args.matcher)
     matcher = get_matcher(spec.name, spec.conf)
     min_inliers = matcher.verification_conf["min_num_inliers"]
@@ -115,18 +168,25 @@ def main(argv=None):
     for key in args.sources:
         scene_dir = proxy.build_scene(key, args.output, max_images=args.max_images)
         workspace = Workspace(args.output, "proxy")
-        if workspace.owns(f"{scene_dir.name}/database.db"):  # an earlier run's, for photos drawn again
+        if workspace.owns(
+            f"{scene_dir.name}/database.db"
+        ):  # an earlier run's, for photos drawn again
             workspace.remove(f"{scene_dir.name}/database.db")
         workspace.record(f"{scene_dir.name}/database.db")
         rows += scene_pairs(scene_dir, matcher, min_inliers)
     workspace.record("pairs.json")[0].write_text(json.dumps(rows, indent=1) + "\n")
     print("\n".join(gate_table(rows, "score", (0.02, 0.05, 0.1, 0.15, 0.2, 0.3))) + "\n")
     print("\n".join(eq1_table(rows, (50, 100, 150, 200, 300, 500), min_inliers)) + "\n")
-    for label, pick in (("verified", lambda r: r["verified"]), ("not verified", lambda r: not r["verified"])):
+    for label, pick in (
+        ("verified", lambda r: r["verified"]),
+        ("not verified", lambda r: not r["verified"]),
+    ):
         values = np.array([r["score"] for r in rows if pick(r)])
         if len(values):
-            print(f"{label} pairs ({len(values)}): score min {values.min():.3f}, 5% {np.percentile(values, 5):.3f}, "
-                  f"median {np.median(values):.3f}, max {values.max():.3f}")
+            print(
+                f"{label} pairs ({len(values)}): score min {values.min():.3f}, 5% {np.percentile(values, 5):.3f}, "
+                f"median {np.median(values):.3f}, max {values.max():.3f}"
+            )
 
 
 if __name__ == "__main__":

@@ -44,11 +44,17 @@ def select_pairs(scenes: list[str], per_scene: int, max_points: int, seed: int =
     out = []
     for name in scenes:
         scene = load_scene(name)
-        idx = rng.choice(len(scene.pairs), min(per_scene, len(scene.pairs)), replace=False) if scene.pairs else []
+        idx = (
+            rng.choice(len(scene.pairs), min(per_scene, len(scene.pairs)), replace=False)
+            if scene.pairs
+            else []
+        )
         for i in sorted(idx):
             p = scene.pairs[i]
             keep = rng.choice(p.n_shared, min(max_points, p.n_shared), replace=False)
-            out.append((name, scene.images[p.a].path, scene.images[p.b].path, p.xy_a[keep], p.xy_b[keep]))
+            out.append(
+                (name, scene.images[p.a].path, scene.images[p.b].path, p.xy_a[keep], p.xy_b[keep])
+            )
     return out
 
 
@@ -76,20 +82,41 @@ def evaluate(matcher: CoarseMatcher, pairs, archival_preset: str | None, desc: s
         res = matcher.match(fa, fb)
         t_match += time.perf_counter() - t
         d_ab, d_ba = res.flow_ab(xy_a)[0] - xy_b, res.flow_ba(xy_b)[0] - xy_a
-        errors[""].setdefault(scene, []).append(np.linalg.norm(np.concatenate([d_ab, d_ba]), axis=1))
-        resized = np.concatenate([d_ab * fb.geometry.scale, d_ba * fa.geometry.scale])  # paper: resized pixels
+        errors[""].setdefault(scene, []).append(
+            np.linalg.norm(np.concatenate([d_ab, d_ba]), axis=1)
+        )
+        resized = np.concatenate(
+            [d_ab * fb.geometry.scale, d_ba * fa.geometry.scale]
+        )  # paper: resized pixels
         errors["resized_"].setdefault(scene, []).append(np.linalg.norm(resized, axis=1))
     result = {"per_scene": {}, "ms_per_pair": 1000 * t_match / max(len(pairs), 1)}
     for prefix, by_scene in errors.items():
         for scene, errs in by_scene.items():
             e = np.concatenate(errs)
             result["per_scene"].setdefault(scene, {"n": int(len(e)), "pairs": len(errs)})
-            result["per_scene"][scene].update({f"{prefix}pck{t}": float((e < t).mean()) for t in THRESHOLDS})
-        every = np.concatenate([np.concatenate(v) for v in by_scene.values()]) if by_scene else np.zeros(0)
-        result.update({f"{prefix}pck{t}": float((every < t).mean()) if len(every) else float("nan") for t in THRESHOLDS})
+            result["per_scene"][scene].update(
+                {f"{prefix}pck{t}": float((e < t).mean()) for t in THRESHOLDS}
+            )
+        every = (
+            np.concatenate([np.concatenate(v) for v in by_scene.values()])
+            if by_scene
+            else np.zeros(0)
+        )
+        result.update(
+            {
+                f"{prefix}pck{t}": float((every < t).mean()) if len(every) else float("nan")
+                for t in THRESHOLDS
+            }
+        )
         # mean over scenes (each held-out scene weighs the same, whatever its number of points)
-        result.update({f"{prefix}scene_mean_pck{t}": float(np.mean([v[f"{prefix}pck{t}"] for v in result["per_scene"].values()]))
-                       for t in THRESHOLDS})
+        result.update(
+            {
+                f"{prefix}scene_mean_pck{t}": float(
+                    np.mean([v[f"{prefix}pck{t}"] for v in result["per_scene"].values()])
+                )
+                for t in THRESHOLDS
+            }
+        )
         result["n_points"] = int(len(every))
     return result
 
@@ -112,23 +139,39 @@ def markdown(results: dict, conf: dict) -> str:
     ]
     for name, r in results.items():
         method, _, cond = name.partition("|")
-        lines.append(f"| {method} | {cond or 'clean'} | " + " | ".join(f"{100 * r[f'{p}pck{t}']:.1f}" for p in ("resized_", "") for t in THRESHOLDS)
-                     + f" | {100 * r['scene_mean_pck16']:.1f} | {r['ms_per_pair']:.0f} |")
-    lines += ["", "Per scene PCK@8/16/32 (original pixels):", "", "| method | images | " + " | ".join(conf["scenes"]) + " |",
-              "|---|---|" + "---|" * len(conf["scenes"])]
+        lines.append(
+            f"| {method} | {cond or 'clean'} | "
+            + " | ".join(
+                f"{100 * r[f'{p}pck{t}']:.1f}" for p in ("resized_", "") for t in THRESHOLDS
+            )
+            + f" | {100 * r['scene_mean_pck16']:.1f} | {r['ms_per_pair']:.0f} |"
+        )
+    lines += [
+        "",
+        "Per scene PCK@8/16/32 (original pixels):",
+        "",
+        "| method | images | " + " | ".join(conf["scenes"]) + " |",
+        "|---|---|" + "---|" * len(conf["scenes"]),
+    ]
     for name, r in results.items():
         method, _, cond = name.partition("|")
         cells = []
         for s in conf["scenes"]:
             v = r["per_scene"].get(s)
-            cells.append("–" if v is None else f"{100 * v['pck8']:.0f}/{100 * v['pck16']:.0f}/{100 * v['pck32']:.0f}")
+            cells.append(
+                "–"
+                if v is None
+                else f"{100 * v['pck8']:.0f}/{100 * v['pck16']:.0f}/{100 * v['pck32']:.0f}"
+            )
         lines.append(f"| {method} | {cond or 'clean'} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--weights", nargs="*", type=Path, default=[], help="trained filter .safetensors files")
+    p.add_argument(
+        "--weights", nargs="*", type=Path, default=[], help="trained filter .safetensors files"
+    )
     p.add_argument("--labels", nargs="*", default=None, help="names of the --weights in the table")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--scenes", nargs="+", default=VAL_SCENES)
@@ -136,11 +179,27 @@ def main(argv=None):
     p.add_argument("--max_points", type=int, default=500, help="GT matches per pair")
     p.add_argument("--resize_max", type=int, default=512)
     p.add_argument("--impl", choices=["auto", "dense", "sparse"], default="auto")
-    p.add_argument("--sparse_k", type=int, default=CoarseMatcher.default_conf["sparse_k"], help="sparse filter: best cells kept per cell (product default)")
+    p.add_argument(
+        "--sparse_k",
+        type=int,
+        default=CoarseMatcher.default_conf["sparse_k"],
+        help="sparse filter: best cells kept per cell (product default)",
+    )
     p.add_argument("--backbone", default="efficientnet-lite0")
-    p.add_argument("--archival", default=None, help=f"also evaluate with B degraded by a preset of {sorted(archival.PRESETS)}")
-    p.add_argument("--no_baselines", action="store_true", help="skip raw correlation and the untrained filter")
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (1: as the pipeline matches on CPU)")
+    p.add_argument(
+        "--archival",
+        default=None,
+        help=f"also evaluate with B degraded by a preset of {sorted(archival.PRESETS)}",
+    )
+    p.add_argument(
+        "--no_baselines", action="store_true", help="skip raw correlation and the untrained filter"
+    )
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="torch CPU threads (1: as the pipeline matches on CPU)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--verbose", action="store_true")
     args = p.parse_args(argv)
@@ -150,30 +209,66 @@ def main(argv=None):
     args.out.mkdir(parents=True, exist_ok=True)
     pairs = select_pairs(args.scenes, args.pairs_per_scene, args.max_points, args.seed)
     logger.info("%d held-out pairs from %s.", len(pairs), ", ".join(args.scenes))
-    common = {"backbone": args.backbone, "resize_max": args.resize_max, "impl": args.impl, "sparse_k": args.sparse_k}
+    common = {
+        "backbone": args.backbone,
+        "resize_max": args.resize_max,
+        "impl": args.impl,
+        "sparse_k": args.sparse_k,
+    }
     methods: list[tuple[str, dict]] = []
     tmp = tempfile.TemporaryDirectory()
     if not args.no_baselines:
         methods.append(("raw correlation", {"mode": "raw"}))
-        methods.append(("untrained filter", {"weights": str(untrained_weights(Path(tmp.name) / "untrained.safetensors", args.backbone, args.resize_max))}))
-    labels = args.labels or [w.parent.name if w.name == "coarse_filter.safetensors" else w.stem for w in args.weights]
+        methods.append(
+            (
+                "untrained filter",
+                {
+                    "weights": str(
+                        untrained_weights(
+                            Path(tmp.name) / "untrained.safetensors", args.backbone, args.resize_max
+                        )
+                    )
+                },
+            )
+        )
+    labels = args.labels or [
+        w.parent.name if w.name == "coarse_filter.safetensors" else w.stem for w in args.weights
+    ]
     methods += [(label, {"weights": str(w)}) for label, w in zip(labels, args.weights)]
     conditions = [None] + ([args.archival] if args.archival else [])
     results, shared_cache = {}, {}
     for label, conf in methods:
         matcher = CoarseMatcher({**common, **conf})
-        matcher.cache = shared_cache.setdefault(matcher.features_key, {})  # features computed once per backbone
+        matcher.cache = shared_cache.setdefault(
+            matcher.features_key, {}
+        )  # features computed once per backbone
         for cond in conditions:
             name = label + (f"|{cond}" if cond else "")
             results[name] = evaluate(matcher, pairs, cond, name)
             r = results[name]
-            logger.info("%-32s PCK@8/16/32 = %.1f / %.1f / %.1f %%", name, 100 * r["pck8"], 100 * r["pck16"], 100 * r["pck32"])
+            logger.info(
+                "%-32s PCK@8/16/32 = %.1f / %.1f / %.1f %%",
+                name,
+                100 * r["pck8"],
+                100 * r["pck16"],
+                100 * r["pck32"],
+            )
         if label not in ("raw correlation", "untrained filter"):
             results[label]["weights"] = str(dict(zip(labels, args.weights))[label])
             results[label]["training"] = matcher.weights_config.get("training", {})
-    conf = {"scenes": args.scenes, "n_pairs": len(pairs), "resize_max": args.resize_max, "impl": matcher.impl,
-            "pairs_per_scene": args.pairs_per_scene, "max_points": args.max_points, "seed": args.seed, "archival": args.archival}
-    (args.out / "coarse_pck.json").write_text(json.dumps({"conf": conf, "results": results}, indent=1))
+    conf = {
+        "scenes": args.scenes,
+        "n_pairs": len(pairs),
+        "resize_max": args.resize_max,
+        "impl": matcher.impl,
+        "pairs_per_scene": args.pairs_per_scene,
+        "max_points": args.max_points,
+        "seed": args.seed,
+        "archival": args.archival,
+    }
+    (args.out / "coarse_pck.json").write_text(
+        json.dumps({"conf": conf, "results": results}, indent=1)
+    )
     md = markdown(results, conf)
     (args.out / "coarse_pck.md").write_text(md)
     print(md)

@@ -42,13 +42,24 @@ def _pose(entry: dict) -> tuple[np.ndarray, np.ndarray]:
 
 
 def score(
-    model: pycolmap.Reconstruction, entries: dict, images: list[dict], reference: pycolmap.Reconstruction
+    model: pycolmap.Reconstruction,
+    entries: dict,
+    images: list[dict],
+    reference: pycolmap.Reconstruction,
 ) -> dict:
     """Counts of one run: ``entries`` = localized.json's entries by photo name, ``images`` the manifest's."""
     ref_poses = registration.model_poses(reference)
-    to_ref = {im["name"]: im.get("ref_name", im["name"]) for im in images if im["era"] != "distractor"}
+    to_ref = {
+        im["name"]: im.get("ref_name", im["name"]) for im in images if im["era"] != "distractor"
+    }
     est = registration.model_poses(model)
-    est.update({n: _pose(e) for n, e in entries.items() if "qvec_wxyz" in e and e["status"] != "not placed"})
+    est.update(
+        {
+            n: _pose(e)
+            for n, e in entries.items()
+            if "qvec_wxyz" in e and e["status"] != "not placed"
+        }
+    )
     pairs = {n: (est[n], ref_poses[r]) for n, r in to_ref.items() if n in est and r in ref_poses}
     depth = registration.scene_depth(reference, [to_ref[n] for n in pairs])
     checks = registration.compare_poses(
@@ -69,7 +80,9 @@ def score(
         names = [n for n in historical if entries.get(n, {}).get("status") == status]
         out[f"{status}_correct"] = sum(bool(checks.get(n, {}).get("ok")) for n in names)
         out[f"{status}_wrong"] = sorted(n for n in names if checks.get(n, {}).get("ok") is False)
-        out[f"{status}_unverified"] = sorted(n for n in names if checks.get(n, {}).get("ok") is None)
+        out[f"{status}_unverified"] = sorted(
+            n for n in names if checks.get(n, {}).get("ok") is None
+        )
     out["not_placed"] = sum(
         entries.get(n, {}).get("status") in (None, "not placed", "skipped") for n in historical
     )
@@ -98,7 +111,9 @@ def run_scene(scene: dict, root: Path, method: str, out: Workspace) -> dict:
     if model is None:
         return {"error": "no model of the modern photos", "reconstruct": info}
     photos = [
-        scene_dir / scene.get("image_dir", "images") / im["name"] for im in images if im["era"] != "modern"
+        scene_dir / scene.get("image_dir", "images") / im["name"]
+        for im in images
+        if im["era"] != "modern"
     ]
     matcher, _, _ = registration.split_stage_options(method)
     (spec,) = matcher_specs.parse_specs([matcher])
@@ -106,7 +121,9 @@ def run_scene(scene: dict, root: Path, method: str, out: Workspace) -> dict:
     result = loc.localize(workspace, photos, matcher=spec.name, matcher_conf=spec.conf)
     entries = {Path(e["photo"]).name: e for e in result["photos"]}
     reference = pycolmap.Reconstruction(str(scene["reference"]["path"]))
-    counts = score(pycolmap.Reconstruction(str(workspace / "sparse" / "0")), entries, images, reference)
+    counts = score(
+        pycolmap.Reconstruction(str(workspace / "sparse" / "0")), entries, images, reference
+    )
     counts.update(
         reconstruct_s=round(map_time, 1),
         localize_s=round(time.time() - start, 1),
@@ -145,7 +162,10 @@ def main(argv=None) -> int:
         epilog=__doc__,
     )
     parser.add_argument(
-        "--manifest", type=Path, required=True, help="PROXY/proxy_manifest.json of make_historical_proxy.py"
+        "--manifest",
+        type=Path,
+        required=True,
+        help="PROXY/proxy_manifest.json of make_historical_proxy.py",
     )
     parser.add_argument("--output", type=Path, required=True)
     parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS))
@@ -169,7 +189,9 @@ def main(argv=None) -> int:
             for method in args.methods:
                 logger.info("%s: %s", scene["name"], method)
                 results.setdefault(scene["name"], {})[method] = run_scene(scene, root, method, out)
-                (out.path / "results.json").write_text(json.dumps(results, indent=1) + "\n", encoding="utf-8")
+                (out.path / "results.json").write_text(
+                    json.dumps(results, indent=1) + "\n", encoding="utf-8"
+                )
         (out.path / "results.md").write_text(markdown(results), encoding="utf-8")
         print(markdown(results))
     except (ValueError, OSError) as err:

@@ -33,22 +33,70 @@ WXBS_APPEARANCE = ("WGABS", "WLABS", "WGALBS")
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    parser.add_argument("--manifest", type=Path, default=None, help="multi-scene manifest (default: the historical proxy)")
-    parser.add_argument("--proxy_dir", type=Path, default=DEFAULT_PROXY, help="where the default proxy is (built if missing)")
-    parser.add_argument("--root", type=Path, default=None, help="local copy of the dataset (overrides the manifest's root)")
-    parser.add_argument("--scan", action="store_true", help="fill the manifest from the folders under --root (LTLL)")
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__,
+    )
+    parser.add_argument(
+        "--manifest",
+        type=Path,
+        default=None,
+        help="multi-scene manifest (default: the historical proxy)",
+    )
+    parser.add_argument(
+        "--proxy_dir",
+        type=Path,
+        default=DEFAULT_PROXY,
+        help="where the default proxy is (built if missing)",
+    )
+    parser.add_argument(
+        "--root",
+        type=Path,
+        default=None,
+        help="local copy of the dataset (overrides the manifest's root)",
+    )
+    parser.add_argument(
+        "--scan", action="store_true", help="fill the manifest from the folders under --root (LTLL)"
+    )
     parser.add_argument("--scenes", nargs="+", default=None)
     parser.add_argument("--max_scenes", type=int, default=0)
-    parser.add_argument("--subsets", nargs="+", default=["historical", "all"], choices=sorted(mf.SUBSETS))
-    parser.add_argument("--methods", nargs="+", default=["pycolmap", "raw", "guided"], help="'pycolmap' (its default pipeline), 'pycolmap_mapping' (its database, this project's mapping) and/or matcher specs of the registry; a spec may carry feature options (guided:stretch_contrast_below=none)")
+    parser.add_argument(
+        "--subsets", nargs="+", default=["historical", "all"], choices=sorted(mf.SUBSETS)
+    )
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        default=["pycolmap", "raw", "guided"],
+        help="'pycolmap' (its default pipeline), 'pycolmap_mapping' (its database, this project's mapping) and/or matcher specs of the registry; a spec may carry feature options (guided:stretch_contrast_below=none)",
+    )
     parser.add_argument("--max_rotation_deg", type=float, default=registration.MAX_ROTATION_DEG)
     parser.add_argument("--max_center_frac", type=float, default=registration.MAX_CENTER_FRAC)
-    parser.add_argument("--wxbs_max_pairs", type=int, default=6, help="WxBS appearance pairs beside the table (0 = skip)")
-    parser.add_argument("--seeds", type=int, nargs="+", default=None, help="random seeds of every mapper (pycolmap's default pipeline too), one run each; runs go to runs/seed<N>/ and the later seeds map the first seed's databases again (default: one run, unseeded pycolmap, reconstruct's seed 0)")
+    parser.add_argument(
+        "--wxbs_max_pairs",
+        type=int,
+        default=6,
+        help="WxBS appearance pairs beside the table (0 = skip)",
+    )
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        default=None,
+        help="random seeds of every mapper (pycolmap's default pipeline too), one run each; runs go to runs/seed<N>/ and the later seeds map the first seed's databases again (default: one run, unseeded pycolmap, reconstruct's seed 0)",
+    )
     parser.add_argument("--resume", action="store_true", help="reuse finished runs")
-    parser.add_argument("--remap", action="store_true", help="with --resume: map the finished databases again (after a change of the mapping stage or of --threads), extraction and matching reused")
-    parser.add_argument("--threads", type=int, default=None, help="threads of every mapper (pycolmap's default pipeline too); 1 = every seeded run repeats exactly (default: each pipeline's, all cores)")
+    parser.add_argument(
+        "--remap",
+        action="store_true",
+        help="with --resume: map the finished databases again (after a change of the mapping stage or of --threads), extraction and matching reused",
+    )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="threads of every mapper (pycolmap's default pipeline too); 1 = every seeded run repeats exactly (default: each pipeline's, all cores)",
+    )
     parser.add_argument("--device", default=None)
     parser.add_argument("--weights", default=None)
     parser.add_argument("--output", type=Path, default=REPO_ROOT / "outputs" / "eval_registration")
@@ -79,7 +127,13 @@ def main(argv=None) -> int:
         logger.error("%s lists no scene with images (LTLL: pass --root and --scan).", manifest_path)
         return 2
     methods = args.methods
-    matcher_specs.parse_specs([registration.split_stage_options(m)[0] for m in methods if m not in registration.PYCOLMAP_METHODS])  # ValueError now, not after hours
+    matcher_specs.parse_specs(
+        [
+            registration.split_stage_options(m)[0]
+            for m in methods
+            if m not in registration.PYCOLMAP_METHODS
+        ]
+    )  # ValueError now, not after hours
     extra = {"device": args.device, "weights": args.weights}
     tol = {"max_rotation_deg": args.max_rotation_deg, "max_center_frac": args.max_center_frac}
     results = []
@@ -91,20 +145,57 @@ def main(argv=None) -> int:
                 logger.info("%s: fewer than 2 %s images, skipped.", scene["name"], subset)
                 continue
             for seed in args.seeds or [None]:
-                first = registration.seed_runs_dir(scene_dir, args.seeds[0]) if args.seeds and seed != args.seeds[0] else None
-                results.append(registration.evaluate_scene(scene_dir, methods, extra_conf=extra, resume=args.resume, seed=seed, databases_from=first, remap=args.remap, threads=args.threads, **tol))
-            tables.write_json(args.output / "results.json", {"manifest": str(manifest_path), "methods": methods, "scenes": results})
-    distractors = sum(len(r["methods"][m].get("distractors_registered", [])) for r in results for m in methods if m in r["methods"])
+                first = (
+                    registration.seed_runs_dir(scene_dir, args.seeds[0])
+                    if args.seeds and seed != args.seeds[0]
+                    else None
+                )
+                results.append(
+                    registration.evaluate_scene(
+                        scene_dir,
+                        methods,
+                        extra_conf=extra,
+                        resume=args.resume,
+                        seed=seed,
+                        databases_from=first,
+                        remap=args.remap,
+                        threads=args.threads,
+                        **tol,
+                    )
+                )
+            tables.write_json(
+                args.output / "results.json",
+                {"manifest": str(manifest_path), "methods": methods, "scenes": results},
+            )
+    distractors = sum(
+        len(r["methods"][m].get("distractors_registered", []))
+        for r in results
+        for m in methods
+        if m in r["methods"]
+    )
     extra_text = f"\n\nDistractors registered, all runs: {distractors} (must be 0)\n"
 
-    specs = [registration.split_stage_options(m)[0] for m in methods if m not in registration.PYCOLMAP_METHODS]
+    specs = [
+        registration.split_stage_options(m)[0]
+        for m in methods
+        if m not in registration.PYCOLMAP_METHODS
+    ]
     if args.wxbs_max_pairs and specs:
-        w = two_view.run_wxbs_benchmark(specs, max_pairs=args.wxbs_max_pairs, categories=WXBS_APPEARANCE, extra_conf=extra)
+        w = two_view.run_wxbs_benchmark(
+            specs, max_pairs=args.wxbs_max_pairs, categories=WXBS_APPEARANCE, extra_conf=extra
+        )
         tables.write_json(args.output / "wxbs_appearance.json", w)
-        rows = [[label, *r["summary"]["share"], f"{r['summary']['mean_matches']:.0f}"] for label, r in w["results"].items()]
+        rows = [
+            [label, *r["summary"]["share"], f"{r['summary']['mean_matches']:.0f}"]
+            for label, r in w["results"].items()
+        ]
         extra_text += f"\nWxBS appearance-change pairs ({w['config']['num_pairs']} of {', '.join(WXBS_APPEARANCE)}; share of hand-labelled correspondences consistent with the estimated F):\n\n"
-        extra_text += tables.markdown_table(["matcher", "@3 px", "@5 px", "@10 px", "matches"], rows) + "\n"
-    text = registration.write_report(args.output, data.get("name", "manifest"), manifest_path, methods, results, extra_text)
+        extra_text += (
+            tables.markdown_table(["matcher", "@3 px", "@5 px", "@10 px", "matches"], rows) + "\n"
+        )
+    text = registration.write_report(
+        args.output, data.get("name", "manifest"), manifest_path, methods, results, extra_text
+    )
     print(text)
     print(f"Results in {args.output}")
     return 0

@@ -43,7 +43,12 @@ def covisible_pairs(model_path: Path, min_shared: int) -> tuple[set[tuple[str, s
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--k", type=int, nargs="+", default=[3, 5, 10, 20])
-    parser.add_argument("--min_shared", type=int, default=15, help="3D points two images must share to count as a verified pair")
+    parser.add_argument(
+        "--min_shared",
+        type=int,
+        default=15,
+        help="3D points two images must share to count as a verified pair",
+    )
     parser.add_argument("--out", type=Path, default=Path("outputs/eval_retrieval"))
     args = parser.parse_args()
     root = shared_data_dir() / "train"
@@ -61,7 +66,14 @@ def main() -> None:
         else:
             d = global_descriptors(coarse, dict(zip(scene_names, files)))
             np.save(cache, d)
-        scenes.append((scene.name, scene_names, d, {(f"{scene.name}/{a}", f"{scene.name}/{b}") for a, b in pairs}))
+        scenes.append(
+            (
+                scene.name,
+                scene_names,
+                d,
+                {(f"{scene.name}/{a}", f"{scene.name}/{b}") for a, b in pairs},
+            )
+        )
         names += scene_names
         desc.append(d)
         truth |= scenes[-1][3]
@@ -84,29 +96,53 @@ def main() -> None:
     def row(label, scene_names, d, true_pairs, k):
         sel = set(retrieval_pairs(scene_names, d, k))
         n = len(scene_names)
-        truths = [t for _, sn, _, t in scenes if set(sn) <= set(scene_names)]  # largest connected per scene, summed
+        truths = [
+            t for _, sn, _, t in scenes if set(sn) <= set(scene_names)
+        ]  # largest connected per scene, summed
         cross = sum(a.split("/")[0] != b.split("/")[0] for a, b in sel)
         recall = len(sel & true_pairs) / max(len(true_pairs), 1)
-        return {"set": label, "k": k, "images": n, "covisible": len(true_pairs), "recall": recall,
-                "pairs": len(sel), "fraction": len(sel) / (n * (n - 1) / 2), "cross_scene": cross,
-                "connected": sum(largest_component(sel & t) for t in truths), "connected_exhaustive": sum(largest_component(t) for t in truths)}
+        return {
+            "set": label,
+            "k": k,
+            "images": n,
+            "covisible": len(true_pairs),
+            "recall": recall,
+            "pairs": len(sel),
+            "fraction": len(sel) / (n * (n - 1) / 2),
+            "cross_scene": cross,
+            "connected": sum(largest_component(sel & t) for t in truths),
+            "connected_exhaustive": sum(largest_component(t) for t in truths),
+        }
 
     rows = []
     for k in args.k:
         rows.append(row("pooled (all scenes)", names, desc, truth, k))
         per = [row(s, sn, d, t, k) for s, sn, d, t in scenes]
         rows += per
-    print("| set | k | images | co-visible pairs | recall | pairs / exhaustive | cross-scene pairs | images connected (exhaustive) |")
+    print(
+        "| set | k | images | co-visible pairs | recall | pairs / exhaustive | cross-scene pairs | images connected (exhaustive) |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         if r["set"].startswith("pooled"):
-            print(f"| {r['set']} | {r['k']} | {r['images']} | {r['covisible']} | {r['recall']:.3f} | {r['fraction']:.3f} | {r['cross_scene']} | {r['connected']} ({r['connected_exhaustive']}) |")
-    print("\nPer scene (alone): recall (pairs / exhaustive) [largest connected of the co-visible pairs selected, exhaustive's] at each k:")
+            print(
+                f"| {r['set']} | {r['k']} | {r['images']} | {r['covisible']} | {r['recall']:.3f} | {r['fraction']:.3f} | {r['cross_scene']} | {r['connected']} ({r['connected_exhaustive']}) |"
+            )
+    print(
+        "\nPer scene (alone): recall (pairs / exhaustive) [largest connected of the co-visible pairs selected, exhaustive's] at each k:"
+    )
     print("| scene | images | co-visible | " + " | ".join(f"k={k}" for k in args.k) + " |")
     print("|---|---|---|" + "---|" * len(args.k))
     for s, sn, _, t in scenes:
         rs = [r for r in rows if r["set"] == s]
-        print(f"| {s} | {len(sn)} | {len(t)} | " + " | ".join(f"{r['recall']:.2f} ({r['fraction']:.2f}) [{r['connected']}/{r['connected_exhaustive']}]" for r in rs) + " |")
+        print(
+            f"| {s} | {len(sn)} | {len(t)} | "
+            + " | ".join(
+                f"{r['recall']:.2f} ({r['fraction']:.2f}) [{r['connected']}/{r['connected_exhaustive']}]"
+                for r in rs
+            )
+            + " |"
+        )
     (args.out / "results.json").write_text(json.dumps(rows, indent=1))
 
 

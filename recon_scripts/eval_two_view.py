@@ -27,11 +27,29 @@ from colmap_guided.paths import REPO_ROOT
 
 
 def pose_table(result: dict) -> str:
-    headers = ["matcher", "AUC@5°", "AUC@10°", "AUC@20°", "matches", "RANSAC inliers", "precision % (<3 px)", "s/pair"]
+    headers = [
+        "matcher",
+        "AUC@5°",
+        "AUC@10°",
+        "AUC@20°",
+        "matches",
+        "RANSAC inliers",
+        "precision % (<3 px)",
+        "s/pair",
+    ]
     rows = []
     for label, r in result["results"].items():
         s = r["summary"]
-        rows.append([label, *s["auc"], f"{s['mean_matches']:.0f}", f"{s['mean_inliers']:.0f}", s["precision"], f"{s['time_per_pair']:.2f}"])
+        rows.append(
+            [
+                label,
+                *s["auc"],
+                f"{s['mean_matches']:.0f}",
+                f"{s['mean_inliers']:.0f}",
+                s["precision"],
+                f"{s['time_per_pair']:.2f}",
+            ]
+        )
     return tables.markdown_table(headers, rows)
 
 
@@ -40,23 +58,52 @@ def pose_scene_table(result: dict) -> str:
     headers = ["matcher"] + [f"{s.split('/')[-1]} AUC@5/10/20" for s in scenes]
     rows = []
     for label, r in result["results"].items():
-        rows.append([label] + [" / ".join(f"{v:.1f}" for v in r["per_scene"][s]["auc"]) + f" (n={r['per_scene'][s]['num_pairs']})" for s in scenes])
+        rows.append(
+            [label]
+            + [
+                " / ".join(f"{v:.1f}" for v in r["per_scene"][s]["auc"])
+                + f" (n={r['per_scene'][s]['num_pairs']})"
+                for s in scenes
+            ]
+        )
     return tables.markdown_table(headers, rows)
 
 
 def wxbs_table(result: dict) -> str:
-    headers = ["matcher", "share @3 px", "@5 px", "@10 px", "pairs ≥50 % @5 px", "matches", "inliers", "s/pair"]
+    headers = [
+        "matcher",
+        "share @3 px",
+        "@5 px",
+        "@10 px",
+        "pairs ≥50 % @5 px",
+        "matches",
+        "inliers",
+        "s/pair",
+    ]
     rows = []
     for label, r in result["results"].items():
         s = r["summary"]
-        rows.append([label, *s["share"], s.get("solved_5px", 0.0), f"{s['mean_matches']:.0f}", f"{s['mean_inliers']:.0f}", f"{s['time_per_pair']:.2f}"])
+        rows.append(
+            [
+                label,
+                *s["share"],
+                s.get("solved_5px", 0.0),
+                f"{s['mean_matches']:.0f}",
+                f"{s['mean_inliers']:.0f}",
+                f"{s['time_per_pair']:.2f}",
+            ]
+        )
     return tables.markdown_table(headers, rows)
 
 
 def wxbs_category_table(result: dict) -> str:
     cats = sorted({c for r in result["results"].values() for c in r["per_category"]})
     headers = ["matcher"] + [f"{c} @5 px" for c in cats]
-    rows = [[label] + [r["per_category"].get(c, {"share": [0, float("nan"), 0]})["share"][1] for c in cats] for label, r in result["results"].items()]
+    rows = [
+        [label]
+        + [r["per_category"].get(c, {"share": [0, float("nan"), 0]})["share"][1] for c in cats]
+        for label, r in result["results"].items()
+    ]
     return tables.markdown_table(headers, rows)
 
 
@@ -65,11 +112,24 @@ def plot_pose(result: dict, path: Path) -> None:
 
     fig, (ax1, ax2) = tables.figure(2, 6.5, 4.2)
     labels = list(result["results"])
-    tables.grouped_bars(None, [f"AUC@{t:g}°" for t in result["config"]["thresholds_deg"]], {k: result["results"][k]["summary"]["auc"] for k in labels}, "AUC (%)", "Relative pose AUC", (0, 100), ax=ax1)
+    tables.grouped_bars(
+        None,
+        [f"AUC@{t:g}°" for t in result["config"]["thresholds_deg"]],
+        {k: result["results"][k]["summary"]["auc"] for k in labels},
+        "AUC (%)",
+        "Relative pose AUC",
+        (0, 100),
+        ax=ax1,
+    )
     for label in labels:
         errs = np.sort([min(r["err_pose"], 90.0) for r in result["results"][label]["pairs"]])
         if len(errs):
-            ax2.plot(np.concatenate([[0], errs]), np.concatenate([[0], np.arange(1, len(errs) + 1) / len(errs)]), label=label, drawstyle="steps-post")
+            ax2.plot(
+                np.concatenate([[0], errs]),
+                np.concatenate([[0], np.arange(1, len(errs) + 1) / len(errs)]),
+                label=label,
+                drawstyle="steps-post",
+            )
     ax2.set_xlim(0, 20)
     ax2.set_ylim(0, 1)
     ax2.set_xlabel("pose error max(R, t) (°)")
@@ -82,22 +142,61 @@ def plot_pose(result: dict, path: Path) -> None:
 
 def plot_wxbs(result: dict, path: Path) -> None:
     labels = list(result["results"])
-    tables.grouped_bars(path, [f"@{t:g} px" for t in result["config"]["thresholds_px"]], {k: result["results"][k]["summary"]["share"] for k in labels}, "GT correspondences consistent (%)", "WxBS", (0, 100))
+    tables.grouped_bars(
+        path,
+        [f"@{t:g} px" for t in result["config"]["thresholds_px"]],
+        {k: result["results"][k]["summary"]["share"] for k in labels},
+        "GT correspondences consistent (%)",
+        "WxBS",
+        (0, 100),
+    )
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    parser.add_argument("--scenes", nargs="+", default=list(TWO_VIEW_SCENES), help="scenes of ../shared/data with reference cameras")
-    parser.add_argument("--matchers", nargs="+", default=list(matcher_specs.DEFAULT_TWO_VIEW_SPECS), help="matcher variants name[:key=value,...]")
-    parser.add_argument("--max_pairs", type=int, default=10, help="pairs per scene (0 = all covisible pairs)")
-    parser.add_argument("--min_covisible", type=int, default=50, help="shared 3D points for a pair to be sampled")
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__,
+    )
+    parser.add_argument(
+        "--scenes",
+        nargs="+",
+        default=list(TWO_VIEW_SCENES),
+        help="scenes of ../shared/data with reference cameras",
+    )
+    parser.add_argument(
+        "--matchers",
+        nargs="+",
+        default=list(matcher_specs.DEFAULT_TWO_VIEW_SPECS),
+        help="matcher variants name[:key=value,...]",
+    )
+    parser.add_argument(
+        "--max_pairs", type=int, default=10, help="pairs per scene (0 = all covisible pairs)"
+    )
+    parser.add_argument(
+        "--min_covisible", type=int, default=50, help="shared 3D points for a pair to be sampled"
+    )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--max_num_features", type=int, default=2000, help="SIFT per image (paper: 2000)")
-    parser.add_argument("--estimator", default="cv2", choices=["cv2", "pycolmap"], help="essential matrix RANSAC")
-    parser.add_argument("--reference", default="auto", choices=["auto", "reference", "pseudo_gt"], help="reference cameras or the train scenes' pseudo-GT")
+    parser.add_argument(
+        "--max_num_features", type=int, default=2000, help="SIFT per image (paper: 2000)"
+    )
+    parser.add_argument(
+        "--estimator", default="cv2", choices=["cv2", "pycolmap"], help="essential matrix RANSAC"
+    )
+    parser.add_argument(
+        "--reference",
+        default="auto",
+        choices=["auto", "reference", "pseudo_gt"],
+        help="reference cameras or the train scenes' pseudo-GT",
+    )
     parser.add_argument("--no_pose", action="store_true")
     parser.add_argument("--no_wxbs", action="store_true")
-    parser.add_argument("--wxbs_max_pairs", type=int, default=0, help="WxBS pairs (0 = all 34), round-robin over categories")
+    parser.add_argument(
+        "--wxbs_max_pairs",
+        type=int,
+        default=0,
+        help="WxBS pairs (0 = all 34), round-robin over categories",
+    )
     parser.add_argument("--wxbs_geometry", default="F", choices=["F", "H"])
     parser.add_argument("--device", default=None, help="torch device for the matchers")
     parser.add_argument("--weights", default=None, help="guided matcher weights")
@@ -121,13 +220,36 @@ def main(argv=None) -> int:
 
     if not args.no_pose:
         result = two_view.run_pose_benchmark(
-            args.scenes, specs, args.max_pairs or None, args.seed, args.min_covisible, args.max_num_features,
-            estimator=args.estimator, reference_source=args.reference, cache_dir=args.cache_dir,
+            args.scenes,
+            specs,
+            args.max_pairs or None,
+            args.seed,
+            args.min_covisible,
+            args.max_num_features,
+            estimator=args.estimator,
+            reference_source=args.reference,
+            cache_dir=args.cache_dir,
         )
-        publish("two_view", result, f"### Relative pose AUC ({sum(1 for _ in result['pairs'])} pairs; {note['date']}, {note['torch_device']}, {note['cpu_count']} CPUs)\n\n{pose_table(result)}\n\nPer scene:\n\n{pose_scene_table(result)}\n", plot_pose)
+        publish(
+            "two_view",
+            result,
+            f"### Relative pose AUC ({sum(1 for _ in result['pairs'])} pairs; {note['date']}, {note['torch_device']}, {note['cpu_count']} CPUs)\n\n{pose_table(result)}\n\nPer scene:\n\n{pose_scene_table(result)}\n",
+            plot_pose,
+        )
     if not args.no_wxbs:
-        result = two_view.run_wxbs_benchmark(specs, max_pairs=args.wxbs_max_pairs or None, geometry=args.wxbs_geometry, max_num_features=args.max_num_features, cache_dir=args.cache_dir)
-        publish("wxbs", result, f"### WxBS ({result['config']['num_pairs']} pairs, {args.wxbs_geometry} by MAGSAC++; {note['date']})\n\n{wxbs_table(result)}\n\nPer category (share @5 px):\n\n{wxbs_category_table(result)}\n", plot_wxbs)
+        result = two_view.run_wxbs_benchmark(
+            specs,
+            max_pairs=args.wxbs_max_pairs or None,
+            geometry=args.wxbs_geometry,
+            max_num_features=args.max_num_features,
+            cache_dir=args.cache_dir,
+        )
+        publish(
+            "wxbs",
+            result,
+            f"### WxBS ({result['config']['num_pairs']} pairs, {args.wxbs_geometry} by MAGSAC++; {note['date']})\n\n{wxbs_table(result)}\n\nPer category (share @5 px):\n\n{wxbs_category_table(result)}\n",
+            plot_wxbs,
+        )
     print(f"Results in {out}")
     return 0
 

@@ -20,20 +20,55 @@ DEFAULT_OUTPUT = REPO_ROOT / "outputs" / "historical_proxy"
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__,
+    )
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
-    parser.add_argument("--split", choices=sorted(proxy.SPLITS), default="dev", help="dev: thresholds are chosen here; test: landmarks the shipped weights never saw")
-    parser.add_argument("--sources", nargs="+", default=None, help="sets of ../shared/data instead of the split's (e.g. sceaux_castle)")
-    parser.add_argument("--distractors", type=int, default=3, help="images of unrelated scenes added to each scene")
-    parser.add_argument("--max_size", type=int, default=1024, help="long side of every image (0 = keep)")
-    parser.add_argument("--crop", type=float, default=0.1, help="historical images keep >= 1 - crop of each side")
-    parser.add_argument("--max_images", type=int, default=0, help="first N images of each set (0 = all)")
-    parser.add_argument("--looks", nargs="+", default=list(proxy.LOOKS), choices=list(proxy.LOOKS), help="realistic prints (<scene>_realistic) and/or damaged ones (<scene>)")
+    parser.add_argument(
+        "--split",
+        choices=sorted(proxy.SPLITS),
+        default="dev",
+        help="dev: thresholds are chosen here; test: landmarks the shipped weights never saw",
+    )
+    parser.add_argument(
+        "--sources",
+        nargs="+",
+        default=None,
+        help="sets of ../shared/data instead of the split's (e.g. sceaux_castle)",
+    )
+    parser.add_argument(
+        "--distractors", type=int, default=3, help="images of unrelated scenes added to each scene"
+    )
+    parser.add_argument(
+        "--max_size", type=int, default=1024, help="long side of every image (0 = keep)"
+    )
+    parser.add_argument(
+        "--crop", type=float, default=0.1, help="historical images keep >= 1 - crop of each side"
+    )
+    parser.add_argument(
+        "--max_images", type=int, default=0, help="first N images of each set (0 = all)"
+    )
+    parser.add_argument(
+        "--looks",
+        nargs="+",
+        default=list(proxy.LOOKS),
+        choices=list(proxy.LOOKS),
+        help="realistic prints (<scene>_realistic) and/or damaged ones (<scene>)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     try:  # a folder of the user's files, or one overlapping ../shared, is refused in one line
         path = proxy.build_proxy(
-            args.output, args.sources or proxy.SPLITS[args.split], looks=args.looks, seed=args.seed, n_distractors=args.distractors, max_size=args.max_size or None, crop=args.crop, max_images=args.max_images or None
+            args.output,
+            args.sources or proxy.SPLITS[args.split],
+            looks=args.looks,
+            seed=args.seed,
+            n_distractors=args.distractors,
+            max_size=args.max_size or None,
+            crop=args.crop,
+            max_images=args.max_images or None,
         )
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)

@@ -34,7 +34,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from summarize_registration import rescore  # noqa: E402
 
 
-def map_and_score(database: Path, scene: dict, seed: int, conf: dict, reference: pycolmap.Reconstruction, work: Path) -> dict:
+def map_and_score(
+    database: Path,
+    scene: dict,
+    seed: int,
+    conf: dict,
+    reference: pycolmap.Reconstruction,
+    work: Path,
+) -> dict:
     """The database mapped with ``conf`` (seeded, one thread); its largest model scored against the reference."""
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
@@ -45,7 +52,12 @@ def map_and_score(database: Path, scene: dict, seed: int, conf: dict, reference:
     largest = registration.largest_model(models)
     images = json.loads((Path(scene["scene_dir"]) / "manifest.json").read_text())["images"]
     score = registration.score_registration(largest, images, reference)
-    return {"registered": score["num_registered"], "correct": score["correct"], "wrong": len(score["wrong"] or []), "auto_key": list(mapping.auto_key(largest, database))}
+    return {
+        "registered": score["num_registered"],
+        "correct": score["correct"],
+        "wrong": len(score["wrong"] or []),
+        "auto_key": list(mapping.auto_key(largest, database)),
+    }
 
 
 def choose(models: dict[str, dict], rule: str) -> dict:
@@ -57,44 +69,119 @@ def choose(models: dict[str, dict], rule: str) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    parser.add_argument("results", type=Path, help="results.json of an eval_registration run of METHOD")
-    parser.add_argument("--baseline", type=Path, help="results.json with pycolmap's runs of the same scenes (default: RESULTS)")
-    parser.add_argument("--method", default="guided", help="the method whose databases are mapped again")
-    parser.add_argument("--reference", nargs="*", default=[], help="SCENE_PREFIX=MODEL_DIR: a reference for scenes without one")
-    parser.add_argument("--variant", nargs="*", default=[], help="NAME:key=value,...: incremental mapping under these mapping options too")
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__,
+    )
+    parser.add_argument(
+        "results", type=Path, help="results.json of an eval_registration run of METHOD"
+    )
+    parser.add_argument(
+        "--baseline",
+        type=Path,
+        help="results.json with pycolmap's runs of the same scenes (default: RESULTS)",
+    )
+    parser.add_argument(
+        "--method", default="guided", help="the method whose databases are mapped again"
+    )
+    parser.add_argument(
+        "--reference",
+        nargs="*",
+        default=[],
+        help="SCENE_PREFIX=MODEL_DIR: a reference for scenes without one",
+    )
+    parser.add_argument(
+        "--variant",
+        nargs="*",
+        default=[],
+        help="NAME:key=value,...: incremental mapping under these mapping options too",
+    )
     parser.add_argument("--json", type=Path, help="write every run's models here")
     args = parser.parse_args(argv)
     refs = {k: pycolmap.Reconstruction(v) for k, _, v in (r.partition("=") for r in args.reference)}
-    variants = {name: parse_spec(f"x:{options}").conf for name, _, options in (v.partition(":") for v in args.variant)}
+    variants = {
+        name: parse_spec(f"x:{options}").conf
+        for name, _, options in (v.partition(":") for v in args.variant)
+    }
     columns = ["incremental", "global", *variants, "auto", "oracle"]
-    baselines = {(s["scene"], s["subset"], s.get("seed")): s for s in json.loads((args.baseline or args.results).read_text())["scenes"]}
+    baselines = {
+        (s["scene"], s["subset"], s.get("seed")): s
+        for s in json.loads((args.baseline or args.results).read_text())["scenes"]
+    }
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         for scene in json.loads(args.results.read_text())["scenes"]:
             base_scene = baselines.get((scene["scene"], scene["subset"], scene.get("seed")), {})
-            record, baseline = scene["methods"].get(args.method), base_scene.get("methods", {}).get("pycolmap")
+            record, baseline = (
+                scene["methods"].get(args.method),
+                base_scene.get("methods", {}).get("pycolmap"),
+            )
             ref_path = scene.get("reference")
-            reference = pycolmap.Reconstruction(ref_path) if ref_path else next((r for k, r in refs.items() if scene["scene"] in (k, f"{k}_realistic")), None)
+            reference = (
+                pycolmap.Reconstruction(ref_path)
+                if ref_path
+                else next(
+                    (r for k, r in refs.items() if scene["scene"] in (k, f"{k}_realistic")), None
+                )
+            )
             if not record or "error" in record or reference is None:
                 continue
-            database = registration.seed_runs_dir(scene["scene_dir"], scene.get("seed")) / registration.method_slug(args.method) / "database.db"
-            confs = {"incremental": {"mapper": "incremental"}, "global": {"mapper": "global"}, **{n: {"mapper": "incremental", **c} for n, c in variants.items()}}
-            models = {name: map_and_score(database, scene, scene.get("seed") or 0, conf, reference, Path(tmp) / name) for name, conf in confs.items()}
+            database = (
+                registration.seed_runs_dir(scene["scene_dir"], scene.get("seed"))
+                / registration.method_slug(args.method)
+                / "database.db"
+            )
+            confs = {
+                "incremental": {"mapper": "incremental"},
+                "global": {"mapper": "global"},
+                **{n: {"mapper": "incremental", **c} for n, c in variants.items()},
+            }
+            models = {
+                name: map_and_score(
+                    database, scene, scene.get("seed") or 0, conf, reference, Path(tmp) / name
+                )
+                for name, conf in confs.items()
+            }
             if baseline and "error" not in baseline and baseline.get("correct") is None:
                 baseline = rescore(baseline, base_scene, "pycolmap", reference)
-            runs.append({"scene": scene["scene"], "subset": scene["subset"], "seed": scene.get("seed"), "models": models,
-                         "pycolmap": baseline.get("correct") if baseline and "error" not in baseline else None})
-    for subset, title in (("historical", "historical photos + distractors"), ("all", "historical + modern photos + distractors")):
+            runs.append(
+                {
+                    "scene": scene["scene"],
+                    "subset": scene["subset"],
+                    "seed": scene.get("seed"),
+                    "models": models,
+                    "pycolmap": baseline.get("correct")
+                    if baseline and "error" not in baseline
+                    else None,
+                }
+            )
+    for subset, title in (
+        ("historical", "historical photos + distractors"),
+        ("all", "historical + modern photos + distractors"),
+    ):
         chosen = [r for r in runs if r["subset"] == subset]
         if not chosen:
             continue
         rows = []
         for rule in columns:
             picks = [(r, choose(r["models"], rule)) for r in chosen]
-            below = [f"{r['scene']} s{r['seed']} {m['correct']}<{r['pycolmap']}" for r, m in picks if r["pycolmap"] is not None and m["correct"] < r["pycolmap"]]
-            rows.append([rule, sum(m["correct"] for _, m in picks), sum(m["wrong"] for _, m in picks), f"{len(below)} of {len(picks)}" + (f" ({'; '.join(below)})" if below else "")])
-        print(f"\n**{args.method}, {title}** — photos on the reference pose ✓ / off it ✗ summed over {len(chosen)} runs; runs below pycolmap's default pipeline (same seed)\n")
+            below = [
+                f"{r['scene']} s{r['seed']} {m['correct']}<{r['pycolmap']}"
+                for r, m in picks
+                if r["pycolmap"] is not None and m["correct"] < r["pycolmap"]
+            ]
+            rows.append(
+                [
+                    rule,
+                    sum(m["correct"] for _, m in picks),
+                    sum(m["wrong"] for _, m in picks),
+                    f"{len(below)} of {len(picks)}" + (f" ({'; '.join(below)})" if below else ""),
+                ]
+            )
+        print(
+            f"\n**{args.method}, {title}** — photos on the reference pose ✓ / off it ✗ summed over {len(chosen)} runs; runs below pycolmap's default pipeline (same seed)\n"
+        )
         print(markdown_table(["models chosen by", "✓", "✗", "runs below pycolmap"], rows))
     if args.json:
         write_json(args.json, runs)

@@ -47,11 +47,15 @@ def reference_fundamental(ref: pycolmap.Reconstruction, entry_a: dict, entry_b: 
         return K
 
     poses = [images[entry["ref_name"]].cam_from_world() for entry in (entry_a, entry_b)]
-    (R_a, t_a), (R_b, t_b) = ((pose.rotation.matrix(), np.asarray(pose.translation)) for pose in poses)
+    (R_a, t_a), (R_b, t_b) = (
+        (pose.rotation.matrix(), np.asarray(pose.translation)) for pose in poses
+    )
     return fundamental_from_poses(calibration(entry_a), R_a, t_a, calibration(entry_b), R_b, t_b)
 
 
-def share_right(F: np.ndarray, kp_a: np.ndarray, kp_b: np.ndarray, inliers: np.ndarray, max_px: float = 6.0) -> float | None:
+def share_right(
+    F: np.ndarray, kp_a: np.ndarray, kp_b: np.ndarray, inliers: np.ndarray, max_px: float = 6.0
+) -> float | None:
     """Share of ``inliers`` within ``max_px`` of the reference epipolar lines, in both images."""
     if len(inliers) == 0:
         return None
@@ -63,27 +67,62 @@ def share_right(F: np.ndarray, kp_a: np.ndarray, kp_b: np.ndarray, inliers: np.n
     return float(np.mean(err < max_px))
 
 
-def scene_pairs(scene_dir: Path, database: Path, ref: pycolmap.Reconstruction, guided) -> list[dict]:
-    entries = {im["name"]: im for im in json.loads((scene_dir / "manifest.json").read_text())["images"]}
+def scene_pairs(
+    scene_dir: Path, database: Path, ref: pycolmap.Reconstruction, guided
+) -> list[dict]:
+    entries = {
+        im["name"]: im for im in json.loads((scene_dir / "manifest.json").read_text())["images"]
+    }
     covered = {im.name for im in ref.images.values()}
     with open_database(database) as db:
-        images = {im.name: read_image_data(db, im, scene_dir / "images") for im in db.read_all_images()}
-    names = sorted(n for n in images if entries[n]["era"] != "distractor" and entries[n]["ref_name"] in covered)
+        images = {
+            im.name: read_image_data(db, im, scene_dir / "images") for im in db.read_all_images()
+        }
+    names = sorted(
+        n for n in images if entries[n]["era"] != "distractor" and entries[n]["ref_name"] in covered
+    )
     options = verify.two_view_options({"min_num_inliers": 15})
     rows = []
     for name_a, name_b in itertools.combinations(names, 2):
         a, b = images[name_a], images[name_b]
-        raw = mutual_nn_match(normalize_descriptors(a.descriptors, "cpu"), normalize_descriptors(b.descriptors, "cpu"), guided.conf["ratio"]).cpu().numpy()
+        raw = (
+            mutual_nn_match(
+                normalize_descriptors(a.descriptors, "cpu"),
+                normalize_descriptors(b.descriptors, "cpu"),
+                guided.conf["ratio"],
+            )
+            .cpu()
+            .numpy()
+        )
         with colmap_quiet():
-            geometries = [verify.verify_pair(a.camera, a.keypoints, b.camera, b.keypoints, m.astype(np.uint32), options) for m in (guided.match(a, b), raw)]
+            geometries = [
+                verify.verify_pair(
+                    a.camera, a.keypoints, b.camera, b.keypoints, m.astype(np.uint32), options
+                )
+                for m in (guided.match(a, b), raw)
+            ]
         g_inl, r_inl = (np.asarray(g.inlier_matches, np.int64).reshape(-1, 2) for g in geometries)
         F = reference_fundamental(ref, entries[name_a], entries[name_b])
-        rows.append({
-            "scene": scene_dir.name, "a": name_a, "b": name_b, "eras": entries[name_a]["era"][0] + entries[name_b]["era"][0],
-            "guided": len(g_inl), "raw": len(r_inl),
-            "guided_right": share_right(F, a.keypoints, b.keypoints, g_inl), "raw_right": share_right(F, a.keypoints, b.keypoints, r_inl),
-            "agreement": min(verify.agreement(geometries[0], a.keypoints, b.keypoints, r_inl, options.ransac.max_error), verify.agreement(geometries[1], a.keypoints, b.keypoints, g_inl, options.ransac.max_error)),
-        })
+        rows.append(
+            {
+                "scene": scene_dir.name,
+                "a": name_a,
+                "b": name_b,
+                "eras": entries[name_a]["era"][0] + entries[name_b]["era"][0],
+                "guided": len(g_inl),
+                "raw": len(r_inl),
+                "guided_right": share_right(F, a.keypoints, b.keypoints, g_inl),
+                "raw_right": share_right(F, a.keypoints, b.keypoints, r_inl),
+                "agreement": min(
+                    verify.agreement(
+                        geometries[0], a.keypoints, b.keypoints, r_inl, options.ransac.max_error
+                    ),
+                    verify.agreement(
+                        geometries[1], a.keypoints, b.keypoints, g_inl, options.ransac.max_error
+                    ),
+                ),
+            }
+        )
     for name in images:
         guided.release(name)  # the backbone cache is by image name, and scenes share names
     return rows
@@ -105,15 +144,33 @@ def table(rows: list[dict], guided_min: int, raw_min: int) -> str:
         wrong_g = sum(s["guided"] * (1 - s["guided_right"]) for s in sel)
         wrong_r = sum(s["raw"] * (1 - s["raw_right"]) for s in sel)
         span = f"≥ {lo}" if hi > 1 else (f"< {hi}" if lo == 0 else f"{lo}–{hi}")
-        lines.append(f"| {span} | {len(sel)} | {100 * np.median(g):.0f} % | {100 * np.median(r):.0f} % | {np.sum(r > g + 0.05)} / {np.sum(g > r + 0.05)} | {wrong_g:.0f} / {wrong_r:.0f} |")
+        lines.append(
+            f"| {span} | {len(sel)} | {100 * np.median(g):.0f} % | {100 * np.median(r):.0f} % | {np.sum(r > g + 0.05)} / {np.sum(g > r + 0.05)} | {wrong_g:.0f} / {wrong_r:.0f} |"
+        )
     return "\n".join(lines)
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    parser.add_argument("--results", type=Path, required=True, help="an eval_registration output with guided runs (their keypoints are used)")
-    parser.add_argument("--proxy_dir", type=Path, default=REPO_ROOT / "outputs" / "historical_proxy_s5")
-    parser.add_argument("--reference", nargs="*", default=[], help="SCENE_PREFIX=MODEL_DIR: a reference for scenes without one")
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__,
+    )
+    parser.add_argument(
+        "--results",
+        type=Path,
+        required=True,
+        help="an eval_registration output with guided runs (their keypoints are used)",
+    )
+    parser.add_argument(
+        "--proxy_dir", type=Path, default=REPO_ROOT / "outputs" / "historical_proxy_s5"
+    )
+    parser.add_argument(
+        "--reference",
+        nargs="*",
+        default=[],
+        help="SCENE_PREFIX=MODEL_DIR: a reference for scenes without one",
+    )
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     refs = {k: v for k, _, v in (r.partition("=") for r in args.reference)}
@@ -121,10 +178,24 @@ def main(argv=None) -> int:
     rows = []
     for scene_dir in sorted(p for p in args.proxy_dir.iterdir() if (p / "manifest.json").is_file()):
         manifest = json.loads((scene_dir / "manifest.json").read_text())
-        ref_path = next((v for k, v in refs.items() if scene_dir.name in (k, f"{k}_realistic")), (manifest.get("reference") or {}).get("path"))
-        database = args.results / "scenes" / f"{scene_dir.name}__all" / "runs" / "seed0" / "guided" / "database.db"
+        ref_path = next(
+            (v for k, v in refs.items() if scene_dir.name in (k, f"{k}_realistic")),
+            (manifest.get("reference") or {}).get("path"),
+        )
+        database = (
+            args.results
+            / "scenes"
+            / f"{scene_dir.name}__all"
+            / "runs"
+            / "seed0"
+            / "guided"
+            / "database.db"
+        )
         if not ref_path or not database.is_file():
-            print(f"{scene_dir.name}: skipped (no reference or no guided run in {args.results})", file=sys.stderr)
+            print(
+                f"{scene_dir.name}: skipped (no reference or no guided run in {args.results})",
+                file=sys.stderr,
+            )
             continue
         rows += scene_pairs(scene_dir, database, pycolmap.Reconstruction(str(ref_path)), guided)
     if args.json:

@@ -33,14 +33,24 @@ def find_chromium() -> str | None:
     return None
 
 
-def screenshot(html_path: Path, out_png: Path, size: tuple[int, int] = (1200, 1600), timeout: float = 120.0, photo: str | None = None) -> Path:
+def screenshot(
+    html_path: Path,
+    out_png: Path,
+    size: tuple[int, int] = (1200, 1600),
+    timeout: float = 120.0,
+    photo: str | None = None,
+) -> Path:
     """Screenshot of ``html_path`` (a local file) at ``size`` pixels, with the 3D view showing ``photo``; raises RuntimeError when it fails."""
     browser = find_chromium()
     if browser is None:
-        raise RuntimeError("No Chromium found: install it (Debian: apt-get install chromium) to check the page renders.")
+        raise RuntimeError(
+            "No Chromium found: install it (Debian: apt-get install chromium) to check the page renders."
+        )
     html_path, out_png = Path(html_path).resolve(), Path(out_png).resolve()
     if not html_path.is_file():
-        raise RuntimeError(f"No page at {html_path}: run `python -m colmap_guided reconstruct` first.")
+        raise RuntimeError(
+            f"No page at {html_path}: run `python -m colmap_guided reconstruct` first."
+        )
     out_png.parent.mkdir(parents=True, exist_ok=True)
     out_png.unlink(missing_ok=True)
     with tempfile.TemporaryDirectory(prefix="chromium-profile-") as profile:
@@ -63,7 +73,9 @@ def screenshot(html_path: Path, out_png: Path, size: tuple[int, int] = (1200, 16
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     if not out_png.is_file() or out_png.stat().st_size == 0:
         tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
-        raise RuntimeError(f"Chromium wrote no screenshot (exit {proc.returncode}): {' | '.join(tail)}")
+        raise RuntimeError(
+            f"Chromium wrote no screenshot (exit {proc.returncode}): {' | '.join(tail)}"
+        )
     return out_png
 
 
@@ -83,13 +95,22 @@ def make_demo(scene_dir: Path) -> Path:
     eras = {name: "historical" if i % 3 == 1 else "modern" for i, name in enumerate(info.names)}
     for name, era in eras.items():
         if era == "historical":  # a sepia print: luminance mapped between dark brown and cream
-            grey = np.asarray(Image.open(info.image_dir / name).convert("L"), np.float32)[:, :, None] / 255
+            grey = (
+                np.asarray(Image.open(info.image_dir / name).convert("L"), np.float32)[:, :, None]
+                / 255
+            )
             toned = (1 - grey) * np.array([40, 28, 18]) + grey * np.array([238, 222, 190])
             Image.fromarray(toned.astype(np.uint8)).save(info.image_dir / name, quality=90)
-    other = render_scene(scene_dir.with_name(scene_dir.name + "_other"), num_images=2, width=1024, height=768, seed=7)
-    (info.image_dir / "other_building.jpg").write_bytes((other.image_dir / other.names[0]).read_bytes())
+    other = render_scene(
+        scene_dir.with_name(scene_dir.name + "_other"), num_images=2, width=1024, height=768, seed=7
+    )
+    (info.image_dir / "other_building.jpg").write_bytes(
+        (other.image_dir / other.names[0]).read_bytes()
+    )
     eras["other_building.jpg"] = "historical"
-    (scene_dir / "manifest.json").write_text(json.dumps({"images": [{"name": n, "era": e} for n, e in eras.items()]}, indent=1))
+    (scene_dir / "manifest.json").write_text(
+        json.dumps({"images": [{"name": n, "era": e} for n, e in eras.items()]}, indent=1)
+    )
     return Path(reconstruct(scene_dir, overwrite=True)["html_report_path"])
 
 
@@ -101,17 +122,33 @@ def small_png(path: Path, max_bytes: int = 300_000) -> Path:
     for colors in (256, 128, 64):
         if path.stat().st_size <= max_bytes:
             break
-        image.quantize(colors, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(path, optimize=True)
+        image.quantize(colors, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(
+            path, optimize=True
+        )
     return path
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("html", type=Path, nargs="?", help="a report.html (not with --demo)")
-    parser.add_argument("--demo", type=Path, default=None, help="make the demo scene in this folder, reconstruct it and take its screenshot")
-    parser.add_argument("--out", type=Path, default=None, help="PNG path (default: next to the page, report_screenshot.png)")
+    parser.add_argument(
+        "--demo",
+        type=Path,
+        default=None,
+        help="make the demo scene in this folder, reconstruct it and take its screenshot",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="PNG path (default: next to the page, report_screenshot.png)",
+    )
     parser.add_argument("--size", default="1400,1000", help="window width,height in pixels")
-    parser.add_argument("--photo", default=None, help="show this photo in the 3D view (the page opened as report.html#photo=NAME)")
+    parser.add_argument(
+        "--photo",
+        default=None,
+        help="show this photo in the 3D view (the page opened as report.html#photo=NAME)",
+    )
     args = parser.parse_args(argv)
     if (args.html is None) == (args.demo is None):
         parser.error("pass a report.html or --demo DIR")

@@ -32,24 +32,48 @@ from colmap_guided.workspace import Workspace
 def shared_manifest(data_dir: Path | None = None) -> dict:
     """The manifest of ../shared/data: every multi-view set, all era=modern (no real historical set)."""
     data_dir = Path(data_dir) if data_dir else shared_data_dir()
-    skip = {"wxbs_v1.1": "two-view pairs, not a scene", "lightglue_assets": "two unrelated pairs, not a scene"}
+    skip = {
+        "wxbs_v1.1": "two-view pairs, not a scene",
+        "lightglue_assets": "two unrelated pairs, not a scene",
+    }
     scenes = []
     keys = [d.name for d in sorted(data_dir.iterdir()) if d.is_dir() and d.name != "train"]
-    keys += [f"train/{d.name}" for d in sorted((data_dir / "train").iterdir()) if d.is_dir()] if (data_dir / "train").is_dir() else []
+    keys += (
+        [f"train/{d.name}" for d in sorted((data_dir / "train").iterdir()) if d.is_dir()]
+        if (data_dir / "train").is_dir()
+        else []
+    )
     for key in keys:
         if key in skip or not (data_dir / key / "images").is_dir():
             continue
-        ref = next((sub for sub in ("colmap_ground_truth", "colmap") if (data_dir / key / sub).is_dir()), None)
-        scenes.append({
-            "name": key.split("/")[-1], "path": key, "image_dir": "images",
-            "reference": {"type": "colmap", "path": ref, "kind": "reference" if ref == "colmap_ground_truth" else "pseudo_gt"} if ref else None,
-            "images": [{"name": n, "era": "modern"} for n in list_images(data_dir / key / "images")],
-        })
+        ref = next(
+            (sub for sub in ("colmap_ground_truth", "colmap") if (data_dir / key / sub).is_dir()),
+            None,
+        )
+        scenes.append(
+            {
+                "name": key.split("/")[-1],
+                "path": key,
+                "image_dir": "images",
+                "reference": {
+                    "type": "colmap",
+                    "path": ref,
+                    "kind": "reference" if ref == "colmap_ground_truth" else "pseudo_gt",
+                }
+                if ref
+                else None,
+                "images": [
+                    {"name": n, "era": "modern"} for n in list_images(data_dir / key / "images")
+                ],
+            }
+        )
     return {
         "name": "shared_data",
         "description": "The real photo sets of ../shared/data described with the LTLL manifest schema. All photos are modern (no real "
         "historical multi-view set is available offline); for historical images use the proxy of recon_scripts/make_historical_proxy.py "
-        "(its OUTPUT/proxy_manifest.json has the same schema). Skipped: " + "; ".join(f"{k} ({v})" for k, v in skip.items()) + ".",
+        "(its OUTPUT/proxy_manifest.json has the same schema). Skipped: "
+        + "; ".join(f"{k} ({v})" for k, v in skip.items())
+        + ".",
         "source": "../shared/data/README.md and each set's _source.json (provenance, licences: research/test use only)",
         "root": "$COLMAP_GUIDED_DATA",
         "reference_paths": "relative to the scene's path; 'colmap_ground_truth' is a reference model, 'colmap' the train scenes' pseudo ground truth",
@@ -58,19 +82,57 @@ def shared_manifest(data_dir: Path | None = None) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    parser.add_argument("--manifest", type=Path, default=REPO_ROOT / "datasets" / "ltll_manifest.json")
-    parser.add_argument("--root", type=Path, default=None, help="local copy of the dataset (overrides the manifest's root)")
-    parser.add_argument("--scan", action="store_true", help="fill the scenes/images from the folders under --root")
-    parser.add_argument("--scanned_manifest", type=Path, default=None, help="where --scan writes the filled manifest (default OUTPUT/manifest_scanned.json)")
-    parser.add_argument("--write_shared_manifest", type=Path, default=None, help="write the ../shared/data manifest here and exit")
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__,
+    )
+    parser.add_argument(
+        "--manifest", type=Path, default=REPO_ROOT / "datasets" / "ltll_manifest.json"
+    )
+    parser.add_argument(
+        "--root",
+        type=Path,
+        default=None,
+        help="local copy of the dataset (overrides the manifest's root)",
+    )
+    parser.add_argument(
+        "--scan", action="store_true", help="fill the scenes/images from the folders under --root"
+    )
+    parser.add_argument(
+        "--scanned_manifest",
+        type=Path,
+        default=None,
+        help="where --scan writes the filled manifest (default OUTPUT/manifest_scanned.json)",
+    )
+    parser.add_argument(
+        "--write_shared_manifest",
+        type=Path,
+        default=None,
+        help="write the ../shared/data manifest here and exit",
+    )
     parser.add_argument("--scenes", nargs="+", default=None)
     parser.add_argument("--max_scenes", type=int, default=0)
-    parser.add_argument("--subsets", nargs="+", default=["historical", "all"], choices=sorted(mf.SUBSETS))
-    parser.add_argument("--methods", nargs="+", default=["raw"], help="'pycolmap' and/or matcher specs (raw, guided, ...)")
-    parser.add_argument("--layout_only", action="store_true", help="lay the scenes out, do not reconstruct")
-    parser.add_argument("--copy", action="store_true", help="copy the photos instead of symlinking them")
-    parser.add_argument("--resume", action="store_true", help="reuse finished runs (OUTPUT/<scene>__<subset>/runs/<method>/eval.json)")
+    parser.add_argument(
+        "--subsets", nargs="+", default=["historical", "all"], choices=sorted(mf.SUBSETS)
+    )
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        default=["raw"],
+        help="'pycolmap' and/or matcher specs (raw, guided, ...)",
+    )
+    parser.add_argument(
+        "--layout_only", action="store_true", help="lay the scenes out, do not reconstruct"
+    )
+    parser.add_argument(
+        "--copy", action="store_true", help="copy the photos instead of symlinking them"
+    )
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="reuse finished runs (OUTPUT/<scene>__<subset>/runs/<method>/eval.json)",
+    )
     parser.add_argument("--device", default=None)
     parser.add_argument("--weights", default=None)
     parser.add_argument("--output", type=Path, default=REPO_ROOT / "outputs" / "run_manifest")
@@ -98,7 +160,10 @@ def main(argv=None) -> int:
         print(f"Scanned {len(data['scenes'])} scenes -> {out}")
     scenes = mf.select_scenes(data, args.scenes, args.max_scenes or None)
     if not scenes:
-        logger.error("The manifest %s lists no scene with images: pass --root and --scan for a local copy.", args.manifest)
+        logger.error(
+            "The manifest %s lists no scene with images: pass --root and --scan for a local copy.",
+            args.manifest,
+        )
         return 2
     results = []
     for scene in scenes:
@@ -110,10 +175,19 @@ def main(argv=None) -> int:
             if args.layout_only:
                 print(scene_dir)
                 continue
-            results.append(registration.evaluate_scene(scene_dir, args.methods, extra_conf={"device": args.device, "weights": args.weights}, resume=args.resume))
+            results.append(
+                registration.evaluate_scene(
+                    scene_dir,
+                    args.methods,
+                    extra_conf={"device": args.device, "weights": args.weights},
+                    resume=args.resume,
+                )
+            )
     if args.layout_only or not results:
         return 0
-    text = registration.write_report(args.output, data.get("name", "manifest"), args.manifest, args.methods, results)
+    text = registration.write_report(
+        args.output, data.get("name", "manifest"), args.manifest, args.methods, results
+    )
     print(text)
     print(f"\nResults in {args.output}")
     return 0

@@ -36,27 +36,51 @@ def _span(values: list) -> str:
 def rescore(record: dict, scene: dict, method: str, reference: pycolmap.Reconstruction) -> dict:
     """Score a finished run again against ``reference`` from the models it wrote."""
     images = json.loads((Path(scene["scene_dir"]) / "manifest.json").read_text())["images"]
-    workspace = registration.seed_runs_dir(scene["scene_dir"], scene.get("seed")) / registration.method_slug(method)
+    workspace = registration.seed_runs_dir(
+        scene["scene_dir"], scene.get("seed")
+    ) / registration.method_slug(method)
     models = load_models(workspace / "sparse")
-    return {**record, **registration.score_registration(registration.largest_model(models), images, reference)}
+    return {
+        **record,
+        **registration.score_registration(registration.largest_model(models), images, reference),
+    }
 
 
 def era_checks(record: dict, scene: dict) -> tuple[int | None, int | None]:
     """(correct, wrong) among the historical photos of one run."""
     if record.get("correct") is None:
         return None, None
-    eras = {im["name"]: im["era"] for im in json.loads((Path(scene["scene_dir"]) / "manifest.json").read_text())["images"]}
+    eras = {
+        im["name"]: im["era"]
+        for im in json.loads((Path(scene["scene_dir"]) / "manifest.json").read_text())["images"]
+    }
     checks = record.get("pose_checks") or {}
     ok = sum(1 for n, c in checks.items() if eras.get(n) == "historical" and c.get("ok"))
-    wrong = sum(1 for n, c in checks.items() if eras.get(n) == "historical" and c.get("ok") is False)
+    wrong = sum(
+        1 for n, c in checks.items() if eras.get(n) == "historical" and c.get("ok") is False
+    )
     return ok, wrong
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=__doc__,
+    )
     parser.add_argument("results", nargs="+", type=Path)
-    parser.add_argument("--reference", nargs="*", default=[], help="SCENE_PREFIX=MODEL_DIR: a reference for scenes without one")
-    parser.add_argument("--label", nargs="*", default=[], help="METHOD=LABEL: one row for runs of the same method under different specs; RESULTS:METHOD=LABEL: that file's runs of METHOD only (the same method before and after a change)")
+    parser.add_argument(
+        "--reference",
+        nargs="*",
+        default=[],
+        help="SCENE_PREFIX=MODEL_DIR: a reference for scenes without one",
+    )
+    parser.add_argument(
+        "--label",
+        nargs="*",
+        default=[],
+        help="METHOD=LABEL: one row for runs of the same method under different specs; RESULTS:METHOD=LABEL: that file's runs of METHOD only (the same method before and after a change)",
+    )
     args = parser.parse_args(argv)
     labels = dict(r.rsplit("=", 1) for r in args.label)
     refs = {k: pycolmap.Reconstruction(v) for k, _, v in (r.partition("=") for r in args.reference)}
@@ -68,21 +92,31 @@ def main(argv=None) -> int:
                 if "error" in record:
                     continue
                 column = labels.get(f"{path}:{method}", labels.get(method, method))
-                ref = next((r for k, r in refs.items() if scene["scene"] in (k, f"{k}_realistic")), None)
+                ref = next(
+                    (r for k, r in refs.items() if scene["scene"] in (k, f"{k}_realistic")), None
+                )
                 if ref is not None and record.get("correct") is None:
                     record = rescore(record, scene, method, ref)
-                runs.setdefault((scene["scene"], scene["subset"]), {}).setdefault(column, []).append((scene.get("seed"), record, scene))
+                runs.setdefault((scene["scene"], scene["subset"]), {}).setdefault(
+                    column, []
+                ).append((scene.get("seed"), record, scene))
                 if column not in methods:
                     methods.append(column)
     baseline = "pycolmap" if "pycolmap" in methods else None
     totals: dict = {}  # method -> subset -> [on the pose, off it, runs below the baseline, runs]
-    for subset, title in (("historical", "historical photos + distractors"), ("all", "historical + modern photos + distractors")):
+    for subset, title in (
+        ("historical", "historical photos + distractors"),
+        ("all", "historical + modern photos + distractors"),
+    ):
         scenes = sorted(name for name, sub in runs if sub == subset)
         if not scenes:
             continue
         # the baseline's count per scene and seed, the one the goal is about (historical only: historical photos)
         base_counts = {
-            name: {seed: (era_checks(rec, sc)[0] if subset == "historical" else rec["correct"]) for seed, rec, sc in runs[(name, subset)].get(baseline, [])}
+            name: {
+                seed: (era_checks(rec, sc)[0] if subset == "historical" else rec["correct"])
+                for seed, rec, sc in runs[(name, subset)].get(baseline, [])
+            }
             for name in scenes
         }
         rows = []
@@ -98,7 +132,10 @@ def main(argv=None) -> int:
                 checks = [era_checks(rec, sc) for _, rec, sc in entries]
                 distr += [len(rec["distractors_registered"]) for _, rec, _ in entries]
                 if checks[0][0] is None:
-                    hist = [int(rec.get("historical_registered", "0/0").split("/")[0]) for _, rec, _ in entries]
+                    hist = [
+                        int(rec.get("historical_registered", "0/0").split("/")[0])
+                        for _, rec, _ in entries
+                    ]
                     row.append(f"{_span(hist)} reg. (no ref.)")
                     continue
                 cell = f"{_span([c[0] for c in checks])} ✓ {_span([c[1] for c in checks])} ✗"
@@ -111,7 +148,9 @@ def main(argv=None) -> int:
                     total[1] += c[1] if subset == "historical" else len(rec.get("wrong") or [])
                     total[3] += 1
                 wrong.append(max(c[1] for c in checks))
-                if all(by_method.get(other) for other in methods):  # means over the scenes every method ran
+                if all(
+                    by_method.get(other) for other in methods
+                ):  # means over the scenes every method ran
                     shares.append(np.mean([c[0] for c in checks]) / max(n_hist, 1))
                 if baseline and m != baseline and base_counts[name]:
                     base = base_counts[name]
@@ -123,31 +162,77 @@ def main(argv=None) -> int:
             if m in totals and subset in totals[m]:
                 totals[m][subset][2] = len(below)
             runs_total = sum(len(runs[(n, subset)].get(m, [])) for n in scenes)
-            row += [f"{100 * np.mean(shares):.0f} %" if shares else "–", str(sum(wrong)), str(sum(distr))]
+            row += [
+                f"{100 * np.mean(shares):.0f} %" if shares else "–",
+                str(sum(wrong)),
+                str(sum(distr)),
+            ]
             if baseline:
-                row += ["–" if m == baseline else f"{len(below)} of {runs_total}" + (f" ({'; '.join(below)})" if below else ""), "–" if m == baseline else str(above)]
+                row += [
+                    "–"
+                    if m == baseline
+                    else f"{len(below)} of {runs_total}"
+                    + (f" ({'; '.join(below)})" if below else ""),
+                    "–" if m == baseline else str(above),
+                ]
             rows.append(row)
-        head = ["method", *scenes, "historical ✓ (mean share)", "historical ✗ (worst seed, summed)", "distractors"]
+        head = [
+            "method",
+            *scenes,
+            "historical ✓ (mean share)",
+            "historical ✗ (worst seed, summed)",
+            "distractors",
+        ]
         if baseline:
             head += ["runs below pycolmap", "runs ≥ 1.25× pycolmap"]
-        what = "historical photos on the reference pose ✓ / off it ✗" + (", then all photos on the reference pose / all" if subset == "all" else "")
-        print(f"\n**Protocol: {title}** — {what}, over the seeds (a range when they differ); mean share over the scenes that every method ran; "
-              f"runs below pycolmap: (scene, seed) runs with fewer {'historical ' if subset == 'historical' else ''}photos on the reference pose than pycolmap's default pipeline with the same seed\n")
+        what = "historical photos on the reference pose ✓ / off it ✗" + (
+            ", then all photos on the reference pose / all" if subset == "all" else ""
+        )
+        print(
+            f"\n**Protocol: {title}** — {what}, over the seeds (a range when they differ); mean share over the scenes that every method ran; "
+            f"runs below pycolmap: (scene, seed) runs with fewer {'historical ' if subset == 'historical' else ''}photos on the reference pose than pycolmap's default pipeline with the same seed\n"
+        )
         print(markdown_table(head, rows))
     if totals:
-        print("\n**Totals** — photos on the reference pose ✓ / off it ✗, summed over the scenes (scored against a reference) and seeds"
-              + ("; runs below pycolmap's default pipeline" if baseline else "") + "\n")
-        def total_cell(m, t):
-            return "–" if t is None else f"{t[0]} / {t[1]}" + ("" if m == baseline or not baseline else f", {t[2]} of {t[3]} below")
+        print(
+            "\n**Totals** — photos on the reference pose ✓ / off it ✗, summed over the scenes (scored against a reference) and seeds"
+            + ("; runs below pycolmap's default pipeline" if baseline else "")
+            + "\n"
+        )
 
-        rows = [[m, total_cell(m, totals[m].get("all")), total_cell(m, totals[m].get("historical"))] for m in methods if m in totals]
-        print(markdown_table(["method", "historical + modern (all photos)", "historical only (historical photos)"], rows))
-    print("\n**Time** (first seed; extract per image, match per pair of the exhaustive pairs, distractors included)\n")
+        def total_cell(m, t):
+            return (
+                "–"
+                if t is None
+                else f"{t[0]} / {t[1]}"
+                + ("" if m == baseline or not baseline else f", {t[2]} of {t[3]} below")
+            )
+
+        rows = [
+            [m, total_cell(m, totals[m].get("all")), total_cell(m, totals[m].get("historical"))]
+            for m in methods
+            if m in totals
+        ]
+        print(
+            markdown_table(
+                [
+                    "method",
+                    "historical + modern (all photos)",
+                    "historical only (historical photos)",
+                ],
+                rows,
+            )
+        )
+    print(
+        "\n**Time** (first seed; extract per image, match per pair of the exhaustive pairs, distractors included)\n"
+    )
     rows = []
     for m in methods:
         extract, match, total = [], [], []
         for (name, subset), by_method in sorted(runs.items()):
-            entries = [e for e in by_method.get(m, []) if e[0] == min(s for s, _, _ in by_method[m])]
+            entries = [
+                e for e in by_method.get(m, []) if e[0] == min(s for s, _, _ in by_method[m])
+            ]
             for _, rec, sc in entries[:1]:
                 n = sum(sc["eras"].values())
                 t = rec.get("timings", {})
@@ -155,8 +240,20 @@ def main(argv=None) -> int:
                 match.append((t.get("match", 0) + t.get("verify", 0)) / (n * (n - 1) / 2))
                 total.append(rec.get("wall_time", 0))
         if extract:
-            rows.append([m, f"{np.median(extract):.2f}", f"{np.median(match):.2f}", f"{np.sum(total):.0f}"])
-    print(markdown_table(["method", "extract s/image (median)", "match + verify s/pair (median)", "wall s (sum over scenes)"], rows))
+            rows.append(
+                [m, f"{np.median(extract):.2f}", f"{np.median(match):.2f}", f"{np.sum(total):.0f}"]
+            )
+    print(
+        markdown_table(
+            [
+                "method",
+                "extract s/image (median)",
+                "match + verify s/pair (median)",
+                "wall s (sum over scenes)",
+            ],
+            rows,
+        )
+    )
     return 0
 
 

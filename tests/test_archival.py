@@ -17,7 +17,9 @@ def photo(shared_data):
     bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
     assert bgr is not None, path
     rgb = np.ascontiguousarray(bgr[..., ::-1])
-    return cv2.resize(rgb, (480, int(round(480 * rgb.shape[0] / rgb.shape[1]))), interpolation=cv2.INTER_AREA)
+    return cv2.resize(
+        rgb, (480, int(round(480 * rgb.shape[0] / rgb.shape[1]))), interpolation=cv2.INTER_AREA
+    )
 
 
 def _colourfulness(img):
@@ -46,11 +48,15 @@ def test_deterministic_by_seed(photo):
     assert np.array_equal(a, b)
     assert a.shape != c.shape or not np.array_equal(a, c)
     for name in archival.PRESETS:
-        assert np.array_equal(archival.apply_preset(photo, name, 3), archival.apply_preset(photo, name, 3))
+        assert np.array_equal(
+            archival.apply_preset(photo, name, 3), archival.apply_preset(photo, name, 3)
+        )
 
 
 def test_zero_strength_is_identity(photo):
-    assert np.array_equal(archival.degrade(photo, 0, strength=0.0, effects=list(archival.EFFECTS)), photo)
+    assert np.array_equal(
+        archival.degrade(photo, 0, strength=0.0, effects=list(archival.EFFECTS)), photo
+    )
     assert np.array_equal(archival.apply_preset(photo, "none"), photo)
 
 
@@ -67,7 +73,11 @@ def test_each_effect_changes_the_image_the_way_it_should(photo):
     assert s[..., 0].mean() > s[..., 2].mean() + 10  # warm: red over blue
     faded = run("fade")
     assert faded.std() < 0.8 * f.std() and faded.min() > f.min() + 5  # less contrast, lifted blacks
-    lap = lambda im: float(np.abs(cv2.Laplacian(cv2.cvtColor(im.astype(np.uint8), cv2.COLOR_RGB2GRAY), cv2.CV_32F)).mean())
+    lap = lambda im: float(
+        np.abs(
+            cv2.Laplacian(cv2.cvtColor(im.astype(np.uint8), cv2.COLOR_RGB2GRAY), cv2.CV_32F)
+        ).mean()
+    )
     assert lap(run("blur")) < 0.7 * lap(f)  # high frequencies removed
     grain = run("grain")
     assert lap(grain) > 1.3 * lap(f) and abs(grain.mean() - f.mean()) < 3  # noise, same brightness
@@ -75,7 +85,10 @@ def test_each_effect_changes_the_image_the_way_it_should(photo):
     assert 0.5 < np.abs(jp - f).mean() < 10  # lossy but recognisable
     v = run("vignette")
     h, w = photo.shape[:2]
-    corner = lambda im: im[: h // 8, : w // 8].mean() / max(im[3 * h // 8 : 5 * h // 8, 3 * w // 8 : 5 * w // 8].mean(), 1)
+    corner = lambda im: (
+        im[: h // 8, : w // 8].mean()
+        / max(im[3 * h // 8 : 5 * h // 8, 3 * w // 8 : 5 * w // 8].mean(), 1)
+    )
     assert corner(v) < 0.85 * corner(f)  # corners darker relative to the centre
     sc = run("scratches")
     changed = np.abs(sc - f).max(axis=2) > 30
@@ -85,7 +98,10 @@ def test_each_effect_changes_the_image_the_way_it_should(photo):
 def test_crop_offset_maps_points(photo):
     out, (x0, y0) = archival.degrade(photo, 5, strength=0.0, crop=0.3, return_offset=True)
     h, w = out.shape[:2]
-    assert 0.69 * photo.shape[0] <= h <= photo.shape[0] and 0.69 * photo.shape[1] <= w <= photo.shape[1]
+    assert (
+        0.69 * photo.shape[0] <= h <= photo.shape[0]
+        and 0.69 * photo.shape[1] <= w <= photo.shape[1]
+    )
     # a pixel of the output at (x, y) is the input pixel at (x + x0, y + y0)
     assert np.array_equal(out, photo[y0 : y0 + h, x0 : x0 + w])
 

@@ -39,7 +39,9 @@ def _exif_rotated(rgb: np.ndarray, path: Path) -> None:
     """Pixels stored rotated 90° CCW with orientation 6 ('rotate 90° CW to display')."""
     exif = Image.Exif()
     exif[0x0112] = 6
-    Image.fromarray(np.ascontiguousarray(np.rot90(rgb, 1))).save(path, exif=exif.tobytes(), quality=92)
+    Image.fromarray(np.ascontiguousarray(np.rot90(rgb, 1))).save(
+        path, exif=exif.tobytes(), quality=92
+    )
 
 
 def write_bad_files(folder: Path, rgb: np.ndarray) -> dict[str, str]:
@@ -50,7 +52,9 @@ def write_bad_files(folder: Path, rgb: np.ndarray) -> dict[str, str]:
     (folder / "_good.jpg").unlink()
     (folder / "truncated.jpg").write_bytes(good[: len(good) // 2])
     damaged = bytearray(good)
-    damaged[len(damaged) // 3 : len(damaged) // 3 + 1500] = np.random.default_rng(1).integers(0, 256, 1500, dtype=np.uint8).tobytes()
+    damaged[len(damaged) // 3 : len(damaged) // 3 + 1500] = (
+        np.random.default_rng(1).integers(0, 256, 1500, dtype=np.uint8).tobytes()
+    )
     (folder / "corrupt.jpg").write_bytes(bytes(damaged))
     (folder / "notes.jpg").write_text("These are the archivist's notes, not a photo.\n")
     (folder / "empty.png").write_bytes(b"")
@@ -76,15 +80,33 @@ def write_good_variants(folder: Path, views: list[np.ndarray]) -> list[str]:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "sub a").mkdir()
     (folder / "sub b").mkdir()
-    Image.fromarray(views[0]).save(folder / "sub a" / "photo.jpg", quality=92)  # duplicate file names in sub-folders
+    Image.fromarray(views[0]).save(
+        folder / "sub a" / "photo.jpg", quality=92
+    )  # duplicate file names in sub-folders
     Image.fromarray(views[1]).save(folder / "sub b" / "photo.jpg", quality=92)
-    Image.fromarray(views[2]).convert("CMYK").save(folder / "Sacré Cœur 1890.jpg", quality=92)  # CMYK, unicode, spaces
-    cv2.imwrite(str(folder / "gray16.png"), cv2.cvtColor(views[3], cv2.COLOR_RGB2GRAY).astype(np.uint16) * 257)
-    Image.fromarray(np.dstack([views[4], np.full(views[4].shape[:2], 180, np.uint8)])).save(folder / "alpha.png")
+    Image.fromarray(views[2]).convert("CMYK").save(
+        folder / "Sacré Cœur 1890.jpg", quality=92
+    )  # CMYK, unicode, spaces
+    cv2.imwrite(
+        str(folder / "gray16.png"),
+        cv2.cvtColor(views[3], cv2.COLOR_RGB2GRAY).astype(np.uint16) * 257,
+    )
+    Image.fromarray(np.dstack([views[4], np.full(views[4].shape[:2], 180, np.uint8)])).save(
+        folder / "alpha.png"
+    )
     _exif_rotated(views[5], folder / "exif_rotated.jpg")
     cv2.imwrite(str(folder / "rgb16.tif"), (views[6].astype(np.uint16) * 257)[:, :, ::-1])
     Image.fromarray(views[7]).convert("LA").save(folder / "gray_alpha.png")
-    return ["Sacré Cœur 1890.jpg", "alpha.png", "exif_rotated.jpg", "gray16.png", "gray_alpha.png", "rgb16.tif", "sub a/photo.jpg", "sub b/photo.jpg"]
+    return [
+        "Sacré Cœur 1890.jpg",
+        "alpha.png",
+        "exif_rotated.jpg",
+        "gray16.png",
+        "gray_alpha.png",
+        "rgb16.tif",
+        "sub a/photo.jpg",
+        "sub b/photo.jpg",
+    ]
 
 
 def test_check_images_gives_a_reason_for_each_unusable_file(tmp_path):
@@ -92,11 +114,15 @@ def test_check_images_gives_a_reason_for_each_unusable_file(tmp_path):
     expected = write_bad_files(tmp_path, rgb)
     good = {
         "cmyk.jpg": lambda p: Image.fromarray(rgb).convert("CMYK").save(p),
-        "gray16.tif": lambda p: cv2.imwrite(str(p), cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.uint16) * 257),
+        "gray16.tif": lambda p: cv2.imwrite(
+            str(p), cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.uint16) * 257
+        ),
         "rgba.tif": lambda p: Image.fromarray(rgb).convert("RGBA").save(p),
         "palette.png": lambda p: Image.fromarray(rgb).convert("P").save(p),
         "bilevel.png": lambda p: Image.fromarray(rgb).convert("1").save(p),
-        "float.tif": lambda p: Image.fromarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255).save(p),
+        "float.tif": lambda p: Image.fromarray(
+            cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255
+        ).save(p),
         "exif6.jpg": lambda p: _exif_rotated(rgb, p),
         "progressive.jpg": lambda p: Image.fromarray(rgb).save(p, progressive=True),
         "photo.bmp": lambda p: Image.fromarray(rgb).save(p),
@@ -112,7 +138,9 @@ def test_check_images_gives_a_reason_for_each_unusable_file(tmp_path):
     # What the checks let through, COLMAP reads; what they skip is damaged (COLMAP would silently use grey fill).
     for name in ok:
         assert pycolmap.Bitmap.read(str(tmp_path / name), True) is not None, name
-    assert pycolmap.Bitmap.read(str(tmp_path / "truncated.jpg"), True) is not None  # why the check is needed
+    assert (
+        pycolmap.Bitmap.read(str(tmp_path / "truncated.jpg"), True) is not None
+    )  # why the check is needed
 
 
 def test_read_image_is_colmaps_frame_and_pixels(tmp_path):
@@ -127,7 +155,9 @@ def test_read_image_is_colmaps_frame_and_pixels(tmp_path):
         "rgb16.tif": lambda p: cv2.imwrite(str(p), deep),
         "la.png": lambda p: Image.fromarray(rgb).convert("LA").save(p),
         "rgba.png": lambda p: Image.fromarray(np.dstack([rgb, rgb[:, :, 0]])).save(p),
-        "float.tif": lambda p: Image.fromarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255).save(p),
+        "float.tif": lambda p: Image.fromarray(
+            cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) / 255
+        ).save(p),
         "palette.png": lambda p: Image.fromarray(rgb).convert("P").save(p),
     }
     for name, make in files.items():
@@ -160,26 +190,40 @@ def test_every_reader_reads_exif_rotated_photos_in_colmaps_frame(tmp_path, monke
     for i in range(2):
         _exif_rotated(_texture(160, 96, seed=i), photos / f"p{i}.jpg")  # stored 160 wide, 96 high
     stored = (160, 96)
-    assert images.image_size(photos / "p0.jpg") == stored and cv2.imread(str(photos / "p0.jpg")).shape[:2] == (160, 96)
+    assert images.image_size(photos / "p0.jpg") == stored and cv2.imread(
+        str(photos / "p0.jpg")
+    ).shape[:2] == (160, 96)
 
     archival.main([str(photos / "p0.jpg"), "--out", str(tmp_path / "degraded")])
     assert images.image_size(tmp_path / "degraded" / "p0.jpg") == stored
 
-    scene = proxy.build_scene("rotated_set", tmp_path / "proxy", data_dir=tmp_path / "data", n_distractors=0, max_size=None, crop=0.0)
+    scene = proxy.build_scene(
+        "rotated_set",
+        tmp_path / "proxy",
+        data_dir=tmp_path / "data",
+        n_distractors=0,
+        max_size=None,
+        crop=0.0,
+    )
     manifest = json.loads((scene / "manifest.json").read_text(encoding="utf-8"))
     assert {e["era"] for e in manifest["images"]} == {"historical", "modern"}
     for entry in manifest["images"]:
         assert images.image_size(scene / "images" / entry["name"]) == stored, entry
 
     monkeypatch.setenv("COLMAP_GUIDED_DATA", str(tmp_path / "data"))
-    spec = importlib.util.spec_from_file_location("benchmark_matching", REPO_ROOT / "recon_scripts" / "benchmark_matching.py")
+    spec = importlib.util.spec_from_file_location(
+        "benchmark_matching", REPO_ROOT / "recon_scripts" / "benchmark_matching.py"
+    )
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     sift = bench.sift_image(photos / "p1.jpg", tmp_path / "sift_cache")
     assert (sift.width, sift.height) == stored and len(sift.keypoints) > 20
     assert sift.keypoints[:, 0].max() > 100  # x along the stored 160 px side
     # Training views and anything else: no second decoder of photo files in the package or the scripts.
-    sources = [*(REPO_ROOT / "colmap_guided").rglob("*.py"), *(REPO_ROOT / "recon_scripts").glob("*.py")]
+    sources = [
+        *(REPO_ROOT / "colmap_guided").rglob("*.py"),
+        *(REPO_ROOT / "recon_scripts").glob("*.py"),
+    ]
     assert [p.name for p in sources if "cv2.imread(" in p.read_text(encoding="utf-8")] == []
 
 
@@ -187,9 +231,17 @@ def _huge_png(path: Path, side: int = 10240) -> None:
     """A ~105 MP grey PNG written row by row (a flat page with a textured square): cheap to make."""
 
     def chunk(tag: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+        return (
+            struct.pack(">I", len(data))
+            + tag
+            + data
+            + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+        )
 
-    patch = np.kron(np.random.default_rng(0).integers(0, 256, (128, 128), dtype=np.uint8), np.ones((8, 8), np.uint8))
+    patch = np.kron(
+        np.random.default_rng(0).integers(0, 256, (128, 128), dtype=np.uint8),
+        np.ones((8, 8), np.uint8),
+    )
     comp = zlib.compressobj(1)
     flat = b"\x00" + bytes([128]) * side
     parts = []
@@ -202,7 +254,10 @@ def _huge_png(path: Path, side: int = 10240) -> None:
             parts.append(comp.compress(flat))
     parts.append(comp.flush())
     with open(path, "wb") as f:
-        f.write(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0)))
+        f.write(
+            b"\x89PNG\r\n\x1a\n"
+            + chunk(b"IHDR", struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0))
+        )
         f.write(chunk(b"IDAT", b"".join(parts)) + chunk(b"IEND", b""))
 
 
@@ -219,10 +274,14 @@ def test_huge_image_is_checked_without_decoding_it(tmp_path):
         print(ok, skipped, grown)
         """
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True
+    )
     grown = int(out.stdout.split()[-1])
     assert "['huge.png'] {}" in out.stdout
-    assert grown < 40_000, f"the check grew the process by {grown} kB"  # ru_maxrss is in kB on Linux
+    assert grown < 40_000, (
+        f"the check grew the process by {grown} kB"
+    )  # ru_maxrss is in kB on Linux
     assert "100 MP or more" in out.stderr
 
 
@@ -254,7 +313,9 @@ def test_bad_and_odd_photos_end_to_end(tmp_path, capfd, matcher):
     guided matcher sees the same pixels as COLMAP (a 16-bit grey scan is not white to its coarse network)."""
     scene = render_scene(tmp_path / "render", num_images=8, width=400, height=300)
     views = [cv2.imread(str(scene.image_dir / n))[:, :, ::-1] for n in scene.names]
-    folder = tmp_path / "Archives Saint-Jacques — fonds 1890" / "images"  # unicode and spaces in the path
+    folder = (
+        tmp_path / "Archives Saint-Jacques — fonds 1890" / "images"
+    )  # unicode and spaces in the path
     good = write_good_variants(folder, views)
     bad = write_bad_files(folder, views[0])
     before = images.folder_digests(folder)
@@ -282,7 +343,10 @@ def test_bad_and_odd_photos_end_to_end(tmp_path, capfd, matcher):
         assert name in text
     with pycolmap.Database.open(str(out / "database.db")) as db:
         cameras = {im.name: db.read_camera(im.camera_id) for im in db.read_all_images()}
-    assert (cameras["exif_rotated.jpg"].width, cameras["exif_rotated.jpg"].height) == (300, 400)  # stored frame
+    assert (cameras["exif_rotated.jpg"].width, cameras["exif_rotated.jpg"].height) == (
+        300,
+        400,
+    )  # stored frame
     assert "Sacré Cœur 1890.jpg" in (out / "report.html").read_text(encoding="utf-8")
 
 
@@ -306,28 +370,62 @@ def _one_error_line(err: str) -> str:
 def test_cli_errors_are_one_actionable_line(tmp_path, capfd):
     empty = tmp_path / "empty"
     empty.mkdir()
-    code, _, err = _cli(["reconstruct", empty, "--output", tmp_path / "o1", "--matcher", "raw"], capfd)
+    code, _, err = _cli(
+        ["reconstruct", empty, "--output", tmp_path / "o1", "--matcher", "raw"], capfd
+    )
     assert code == 2 and "No images" in _one_error_line(err)
 
-    code, _, err = _cli(["reconstruct", tmp_path / "nowhere", "--output", tmp_path / "o2", "--matcher", "raw"], capfd)
+    code, _, err = _cli(
+        ["reconstruct", tmp_path / "nowhere", "--output", tmp_path / "o2", "--matcher", "raw"],
+        capfd,
+    )
     assert code == 2 and "does not exist" in _one_error_line(err)
 
     allbad = tmp_path / "allbad"
     write_bad_files(allbad, _texture())
-    code, _, err = _cli(["reconstruct", allbad, "--output", tmp_path / "o3", "--matcher", "raw"], capfd)
+    code, _, err = _cli(
+        ["reconstruct", allbad, "--output", tmp_path / "o3", "--matcher", "raw"], capfd
+    )
     assert code == 2 and "None of the 7 image(s)" in _one_error_line(err)
 
-    for weights, word in ((tmp_path / "missing.safetensors", "no such file"), (tmp_path / "broken.safetensors", "not a readable safetensors")):
+    for weights, word in (
+        (tmp_path / "missing.safetensors", "no such file"),
+        (tmp_path / "broken.safetensors", "not a readable safetensors"),
+    ):
         if "broken" in weights.name:
             weights.write_bytes(b"\x00\x01garbage" * 100)
-        code, _, err = _cli(["reconstruct", allbad, "--output", tmp_path / "o4", "--matcher", "guided", "--weights", weights], capfd)
+        code, _, err = _cli(
+            [
+                "reconstruct",
+                allbad,
+                "--output",
+                tmp_path / "o4",
+                "--matcher",
+                "guided",
+                "--weights",
+                weights,
+            ],
+            capfd,
+        )
         assert code == 2 and word in _one_error_line(err)
         assert not (tmp_path / "o4").exists(), "a bad --weights must fail before any work"
     # A readable safetensors file that is not coarse-filter weights: refused by the guided matcher, before extraction.
     from safetensors.numpy import save_file
 
     save_file({"w": np.zeros((2, 2), np.float32)}, str(tmp_path / "other.safetensors"))
-    code, _, err = _cli(["reconstruct", allbad, "--output", tmp_path / "o5", "--matcher", "guided", "--weights", tmp_path / "other.safetensors"], capfd)
+    code, _, err = _cli(
+        [
+            "reconstruct",
+            allbad,
+            "--output",
+            tmp_path / "o5",
+            "--matcher",
+            "guided",
+            "--weights",
+            tmp_path / "other.safetensors",
+        ],
+        capfd,
+    )
     assert code == 2 and "other.safetensors" in _one_error_line(err)
     assert not (tmp_path / "o5" / "database.db").exists()
 
@@ -336,10 +434,15 @@ def test_single_image_one_line_and_verbose_shows_colmap_log(tmp_path, capfd):
     folder = tmp_path / "one"
     folder.mkdir()
     Image.fromarray(_texture(240, 320)).save(folder / "only.jpg")
-    code, _, err = _cli(["reconstruct", folder, "--output", tmp_path / "out", "--matcher", "raw", "--verbose"], capfd)
+    code, _, err = _cli(
+        ["reconstruct", folder, "--output", tmp_path / "out", "--matcher", "raw", "--verbose"],
+        capfd,
+    )
     assert code == 2 and "Only 1 usable image" in _one_error_line(err)
     assert GLOG_LINE.search(err), "--verbose must show COLMAP's own log"
-    code, _, err = _cli(["reconstruct", folder, "--output", tmp_path / "out2", "--matcher", "raw"], capfd)  # extracts again
+    code, _, err = _cli(
+        ["reconstruct", folder, "--output", tmp_path / "out2", "--matcher", "raw"], capfd
+    )  # extracts again
     assert code == 2 and "Only 1 usable image" in _one_error_line(err)
     assert not GLOG_LINE.search(err), "COLMAP's log must be quiet by default"
 
@@ -351,7 +454,9 @@ def test_no_model_is_said_plainly_with_what_to_try(tmp_path, capfd):
     folder.mkdir()
     for seed in range(3):
         Image.fromarray(_texture(240, 320, seed=seed)).save(folder / f"photo_{seed}.png")
-    code, out, _ = _cli(["reconstruct", folder, "--output", tmp_path / "out", "--matcher", "raw"], capfd)
+    code, out, _ = _cli(
+        ["reconstruct", folder, "--output", tmp_path / "out", "--matcher", "raw"], capfd
+    )
     assert code == 0
     report = json.loads((tmp_path / "out" / "report.json").read_text(encoding="utf-8"))
     assert report["model"]["num_models"] == 0 and report["num_registered"] == 0
@@ -376,7 +481,13 @@ def test_a_matcher_that_cannot_match_the_features_fails_before_any_work(syntheti
     assert LightGlueMatcher.feature_types == ("aliked",)
     line = "needs aliked features, not sift: run reconstruct with --features aliked"
     with pytest.raises(ValueError, match=line):
-        reconstruct(synthetic_scene.image_dir.parent, image_path=synthetic_scene.image_dir, output=tmp_path / "ws", matcher=AlikedOnly(), feature_conf={"type": "sift"})
+        reconstruct(
+            synthetic_scene.image_dir.parent,
+            image_path=synthetic_scene.image_dir,
+            output=tmp_path / "ws",
+            matcher=AlikedOnly(),
+            feature_conf={"type": "sift"},
+        )
     assert not (tmp_path / "ws").exists()
     db = tmp_path / "sift" / "database.db"
     db.parent.mkdir()
@@ -388,6 +499,19 @@ def test_a_matcher_that_cannot_match_the_features_fails_before_any_work(syntheti
 
 
 def test_an_option_the_matcher_does_not_take_names_a_matcher_that_does(tmp_path):
-    with pytest.raises(SystemExit, match="--weights does not apply to the raw matcher; pass --matcher guided "):
-        main(["reconstruct", str(tmp_path / "scene"), "--output", str(tmp_path / "out"), "--matcher", "raw", "--weights", str(tmp_path / "w.safetensors")])
+    with pytest.raises(
+        SystemExit, match="--weights does not apply to the raw matcher; pass --matcher guided "
+    ):
+        main(
+            [
+                "reconstruct",
+                str(tmp_path / "scene"),
+                "--output",
+                str(tmp_path / "out"),
+                "--matcher",
+                "raw",
+                "--weights",
+                str(tmp_path / "w.safetensors"),
+            ]
+        )
     assert not (tmp_path / "out").exists()

@@ -37,15 +37,23 @@ def receptive_field_centre(net, height, width, row, col):
     net(x)[0, :, row, col].sum().backward()
     g = x.grad[0].abs().sum(0)
     rows, cols = torch.nonzero(g.sum(1))[:, 0], torch.nonzero(g.sum(0))[:, 0]
-    assert rows.min() > 0 and cols.min() > 0 and rows.max() < height - 1 and cols.max() < width - 1, "field touches the border"
-    return (cols.min().item() + cols.max().item() + 1) / 2, (rows.min().item() + rows.max().item() + 1) / 2
+    assert (
+        rows.min() > 0 and cols.min() > 0 and rows.max() < height - 1 and cols.max() < width - 1
+    ), "field touches the border"
+    return (cols.min().item() + cols.max().item() + 1) / 2, (
+        rows.min().item() + rows.max().item() + 1
+    ) / 2
 
 
 def test_cell_centre_efficientnet(lite0):
     """TF 'same' padding puts cell i's receptive-field centre at 16 i + 15.5, not 16 i + 8."""
     for row, col in [(11, 12), (10, 11)]:  # receptive field 339 px, inside the 384 x 400 input
         cx, cy = receptive_field_centre(lite0, 384, 400, row, col)
-        assert (cx, cy) == (16 * col + lite0.cell_offset, 16 * row + lite0.cell_offset) == (16 * col + 15.5, 16 * row + 15.5)
+        assert (
+            (cx, cy)
+            == (16 * col + lite0.cell_offset, 16 * row + lite0.cell_offset)
+            == (16 * col + 15.5, 16 * row + 15.5)
+        )
 
 
 def test_cell_centre_resnet():
@@ -59,8 +67,14 @@ def test_resnet101_wiring_random():
     net = build_backbone("resnet101", pretrained=False)
     keys = net.state_dict().keys()
     # torchvision's names, so that its ImageNet checkpoint loads as is
-    for k in ("conv1.weight", "bn1.running_var", "layer1.0.downsample.0.weight", "layer2.3.conv3.weight",
-              "layer3.22.bn3.bias", "layer3.0.downsample.1.running_mean"):
+    for k in (
+        "conv1.weight",
+        "bn1.running_var",
+        "layer1.0.downsample.0.weight",
+        "layer2.3.conv3.weight",
+        "layer3.22.bn3.bias",
+        "layer3.0.downsample.1.running_mean",
+    ):
         assert k in keys
     assert not any(k.startswith(("layer4", "fc")) for k in keys)
     assert sum(k.endswith("conv1.weight") and k.startswith("layer3") for k in keys) == 23
@@ -71,7 +85,9 @@ def test_resnet101_wiring_random():
 def test_resnet101_loads_torchvision_layout(tmp_path):
     """A full torchvision-style checkpoint (with layer4/fc) loads; a foreign one is a clear error."""
     net = build_backbone("resnet101", pretrained=False)
-    state = {k: torch.randn_like(v) if v.is_floating_point() else v for k, v in net.state_dict().items()}
+    state = {
+        k: torch.randn_like(v) if v.is_floating_point() else v for k, v in net.state_dict().items()
+    }
     state["layer4.0.conv1.weight"] = torch.zeros(1)
     state["fc.weight"] = torch.zeros(1)
     torch.save(state, tmp_path / "r101.pth")

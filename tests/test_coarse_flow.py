@@ -16,7 +16,10 @@ def test_interpolation_exact_on_affine_flow():
     t = np.array([40.0, -25.0])
     table = g.cell_centers() @ A.T + t
     rng = np.random.default_rng(0)
-    lo, hi = g.cell_to_pixel([[0, 0]])[0], g.cell_to_pixel([[g.grid_width - 1, g.grid_height - 1]])[0]
+    lo, hi = (
+        g.cell_to_pixel([[0, 0]])[0],
+        g.cell_to_pixel([[g.grid_width - 1, g.grid_height - 1]])[0],
+    )
     xy = rng.uniform(lo, hi, size=(5000, 2))
     out, clamped = interpolate_grid(g, table, xy)
     np.testing.assert_allclose(out, xy @ A.T + t, atol=1e-9)
@@ -28,7 +31,9 @@ def test_interpolation_clamps_outside_the_centres():
     table = g.cell_centers()  # identity flow
     corner = np.array([[0.0, 0.0], [639.9, 479.9]])
     out, clamped = interpolate_grid(g, table, corner)
-    np.testing.assert_allclose(out, g.cell_to_pixel([[0, 0], [g.grid_width - 1, g.grid_height - 1]]), atol=1e-9)
+    np.testing.assert_allclose(
+        out, g.cell_to_pixel([[0, 0], [g.grid_width - 1, g.grid_height - 1]]), atol=1e-9
+    )
     np.testing.assert_allclose(out, clamped, atol=1e-9)
 
 
@@ -73,7 +78,11 @@ def test_flow_vectorised_many_points():
     res, _ = shift_result(1)
     xy = np.random.default_rng(1).uniform(0, [1024, 768], size=(20000, 2))
     xy_b, score, fb = res.flow_ab(xy)
-    assert xy_b.shape == (20000, 2) and score.shape == fb.shape == (20000,) and xy_b.dtype == np.float32
+    assert (
+        xy_b.shape == (20000, 2)
+        and score.shape == fb.shape == (20000,)
+        and xy_b.dtype == np.float32
+    )
 
 
 def test_grid_matches_and_mutual():

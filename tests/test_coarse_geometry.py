@@ -7,14 +7,19 @@ import torch
 from colmap_guided.coarse.geometry import as_rgb, resize_geometry, resize_image, stack_padded
 
 
-@pytest.mark.parametrize("w,h", [(1024, 731), (780, 1063), (1296, 1936), (300, 451), (4000, 100), (512, 512)])
+@pytest.mark.parametrize(
+    "w,h", [(1024, 731), (780, 1063), (1296, 1936), (300, 451), (4000, 100), (512, 512)]
+)
 def test_resize_geometry(w, h):
     g = resize_geometry(w, h, 512, 16, 15.5)
     assert g.resized_width % 16 == 0 and g.resized_height % 16 == 0
     assert max(g.resized_width, g.resized_height) == 512
     assert g.grid_width <= 32 and g.grid_height <= 32
     # aspect kept up to the rounding to a multiple of 16 (half a cell per side)
-    assert abs(g.resized_width - w * 512 / max(w, h)) <= 8 and abs(g.resized_height - h * 512 / max(w, h)) <= 8
+    assert (
+        abs(g.resized_width - w * 512 / max(w, h)) <= 8
+        and abs(g.resized_height - h * 512 / max(w, h)) <= 8
+    )
 
 
 def test_resize_max_not_multiple_of_stride():
@@ -29,7 +34,9 @@ def test_round_trip_pixel_cell():
     np.testing.assert_allclose(g.cell_to_pixel(g.pixel_to_cell(xy)), xy, rtol=0, atol=1e-9)
     # cell (0, 0) centre: 15.5 resized pixels from the corner; cells are 16 resized px apart
     sx, sy = g.scale
-    np.testing.assert_allclose(g.cell_to_pixel([[0, 0], [1, 2]]), [[15.5 / sx, 15.5 / sy], [31.5 / sx, 47.5 / sy]])
+    np.testing.assert_allclose(
+        g.cell_to_pixel([[0, 0], [1, 2]]), [[15.5 / sx, 15.5 / sy], [31.5 / sx, 47.5 / sy]]
+    )
     assert g.cell_size == pytest.approx(16 / min(sx, sy))
     assert len(g.cell_centers()) == g.grid_width * g.grid_height
 

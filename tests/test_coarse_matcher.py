@@ -25,10 +25,14 @@ def warp_pair(image: np.ndarray):
     cv2 = pytest.importorskip("cv2")
     h, w = image.shape[:2]
     corners = np.float32([[0, 0], [w, 0], [w, h], [0, h]])
-    moved = corners + np.float32([[0.08 * w, 0.05 * h], [-0.05 * w, 0.1 * h], [-0.1 * w, -0.06 * h], [0.06 * w, -0.08 * h]])
+    moved = corners + np.float32(
+        [[0.08 * w, 0.05 * h], [-0.05 * w, 0.1 * h], [-0.1 * w, -0.06 * h], [0.06 * w, -0.08 * h]]
+    )
     H = cv2.getPerspectiveTransform(corners, moved)  # cv2: pixel centres at integers
     shift = np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1]])
-    return cv2.warpPerspective(image, H, (w, h), flags=cv2.INTER_LINEAR), shift @ H @ np.linalg.inv(shift)
+    return cv2.warpPerspective(image, H, (w, h), flags=cv2.INTER_LINEAR), shift @ H @ np.linalg.inv(
+        shift
+    )
 
 
 def test_raw_mode_on_a_homography(raw, shared_data):
@@ -38,7 +42,7 @@ def test_raw_mode_on_a_homography(raw, shared_data):
     a = read_image(IMAGES / "sacre_coeur1.jpg")
     b, H = warp_pair(a)
     res = raw.match(raw.extract(a), raw.extract(b))
-    ys, xs = np.mgrid[4:a.shape[0]:8, 4:a.shape[1]:8]
+    ys, xs = np.mgrid[4 : a.shape[0] : 8, 4 : a.shape[1] : 8]
     xy = np.stack([xs.ravel(), ys.ravel()], 1).astype(float)
     p = np.c_[xy, np.ones(len(xy))] @ H.T
     gt = p[:, :2] / p[:, 2:]
@@ -89,7 +93,9 @@ def test_extract_path_reads_16bit_grey_and_exif_rotated_files_like_colmap(raw, t
     from PIL import Image
 
     rng = np.random.default_rng(0)
-    grey = cv2.resize(rng.integers(0, 256, (12, 16), dtype=np.uint8), (256, 192), interpolation=cv2.INTER_CUBIC)
+    grey = cv2.resize(
+        rng.integers(0, 256, (12, 16), dtype=np.uint8), (256, 192), interpolation=cv2.INTER_CUBIC
+    )
     cv2.imwrite(str(tmp_path / "grey8.png"), grey)
     cv2.imwrite(str(tmp_path / "grey16.png"), grey.astype(np.uint16) * 257)
     f8, f16 = (raw.extract_path(tmp_path / n) for n in ("grey8.png", "grey16.png"))
@@ -97,7 +103,9 @@ def test_extract_path_reads_16bit_grey_and_exif_rotated_files_like_colmap(raw, t
 
     exif = Image.Exif()
     exif[0x0112] = 6
-    Image.fromarray(np.dstack([grey] * 3)).save(tmp_path / "rot.jpg", exif=exif.tobytes(), quality=95)
+    Image.fromarray(np.dstack([grey] * 3)).save(
+        tmp_path / "rot.jpg", exif=exif.tobytes(), quality=95
+    )
     geo = raw.extract_path(tmp_path / "rot.jpg").geometry
     assert (geo.width, geo.height) == (256, 192)
     with pytest.raises(ValueError, match="Cannot read image"):
@@ -106,8 +114,21 @@ def test_extract_path_reads_16bit_grey_and_exif_rotated_files_like_colmap(raw, t
 
 def test_cli_writes_png(tmp_path, shared_data):
     out = tmp_path / "m.png"
-    assert main([str(IMAGES / "DSC_0410.JPG"), str(IMAGES / "DSC_0411.JPG"), "--out", str(out), "--mode", "raw",
-                 "--resize-max", "256"]) == 0
+    assert (
+        main(
+            [
+                str(IMAGES / "DSC_0410.JPG"),
+                str(IMAGES / "DSC_0411.JPG"),
+                "--out",
+                str(out),
+                "--mode",
+                "raw",
+                "--resize-max",
+                "256",
+            ]
+        )
+        == 0
+    )
     img = read_image(out)
     assert img.shape[0] == 600 and img.shape[1] > 1000 and img.std() > 10
 
@@ -115,9 +136,16 @@ def test_cli_writes_png(tmp_path, shared_data):
 def test_match_pairs_batches_like_single_pairs(tmp_path, shared_data):
     """Dense impl: pairs of equal grid shapes go through the filter as one batch, with the same result."""
     torch.manual_seed(0)
-    weights = save_filter_weights(CoarseNet({"pretrained": False}), tmp_path / "f.safetensors", resize_max=128)
-    cm = CoarseMatcher({"mode": "filter", "weights": weights, "impl": "dense", "resize_max": 128, "device": "cpu"})
-    f = [cm.extract(read_image(IMAGES / n), n) for n in ("sacre_coeur1.jpg", "DSC_0410.JPG", "DSC_0411.JPG")]
+    weights = save_filter_weights(
+        CoarseNet({"pretrained": False}), tmp_path / "f.safetensors", resize_max=128
+    )
+    cm = CoarseMatcher(
+        {"mode": "filter", "weights": weights, "impl": "dense", "resize_max": 128, "device": "cpu"}
+    )
+    f = [
+        cm.extract(read_image(IMAGES / n), n)
+        for n in ("sacre_coeur1.jpg", "DSC_0410.JPG", "DSC_0411.JPG")
+    ]
     pairs = [(f[0], f[1]), (f[0], f[2]), (f[1], f[0])]
     assert f[1].features.shape == f[2].features.shape  # the first two pairs form one batch
     for batched, (fa, fb) in zip(cm.match_pairs(pairs), pairs):
@@ -132,7 +160,9 @@ def test_half_precision_dense_filter_keeps_the_matches(precision, shared_data):
     the shipped filter on a real pair. Measured at 384 px: fp16 99.7-100 %, bf16 99.0-99.8 % agreement."""
     conf = {"impl": "dense", "resize_max": 256, "device": "cpu"}
     full, half = CoarseMatcher(conf), CoarseMatcher({**conf, "precision": precision})
-    fa, fb = (full.extract(read_image(IMAGES / n)) for n in ("sacre_coeur1.jpg", "sacre_coeur2.jpg"))
+    fa, fb = (
+        full.extract(read_image(IMAGES / n)) for n in ("sacre_coeur1.jpg", "sacre_coeur2.jpg")
+    )
     m32, m16 = full.match(fa, fb).matches, half.match(fa, fb).matches
     assert (m32.ab == m16.ab).mean() > 0.97 and (m32.ba == m16.ba).mean() > 0.97
     np.testing.assert_allclose(m16.score_ab, m32.score_ab, atol=0.15)

@@ -6,7 +6,14 @@ import torch
 import torch.nn.functional as F
 
 from colmap_guided.coarse.conv4d import conv4d
-from colmap_guided.coarse.model import CoarseNet, NeighConsensus, correlation, soft_mutual_nn, sparse_support, transpose_volume
+from colmap_guided.coarse.model import (
+    CoarseNet,
+    NeighConsensus,
+    correlation,
+    soft_mutual_nn,
+    sparse_support,
+    transpose_volume,
+)
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -55,12 +62,18 @@ def test_softmaxes_and_padded_batch(net):
         single = [net(fa1, fb1), net(fa2, fb2)]
         fa = torch.cat([F.pad(fa1, (0, 0, 0, 1)), F.pad(fa2, (0, 2))])
         fb = torch.cat([fb1, F.pad(fb2, (0, 1, 0, 2))])
-        ma = torch.zeros(2, 4, 4, dtype=torch.bool); ma[0, :3] = True; ma[1, :, :2] = True
-        mb = torch.zeros(2, 4, 4, dtype=torch.bool); mb[0] = True; mb[1, :2, :3] = True
+        ma = torch.zeros(2, 4, 4, dtype=torch.bool)
+        ma[0, :3] = True
+        ma[1, :, :2] = True
+        mb = torch.zeros(2, 4, 4, dtype=torch.bool)
+        mb[0] = True
+        mb[1, :2, :3] = True
         batch = net(fa, fb, ma, mb)
     for i, (h_a, w_a, h_b, w_b) in enumerate([(3, 4, 4, 4), (4, 2, 2, 3)]):
         for key in ("volume", "s_ab", "s_ba"):
-            torch.testing.assert_close(batch[key][i, :h_a, :w_a, :h_b, :w_b], single[i][key][0], rtol=1e-5, atol=1e-6)
+            torch.testing.assert_close(
+                batch[key][i, :h_a, :w_a, :h_b, :w_b], single[i][key][0], rtol=1e-5, atol=1e-6
+            )
     assert batch["s_ab"][~(ma[:, :, :, None, None] & mb[:, None, None])].abs().max() == 0
     torch.testing.assert_close(single[0]["s_ab"].sum(dim=(3, 4)), torch.ones(1, 3, 4))
     torch.testing.assert_close(single[0]["s_ba"].sum(dim=(1, 2)), torch.ones(1, 4, 4))
@@ -92,7 +105,9 @@ def test_raw_mode_is_mutual_nn_of_the_correlation():
     c = correlation(fa, fb)[0].reshape(30, 30)
     np.testing.assert_array_equal(g.ab, c.argmax(1).numpy())
     np.testing.assert_array_equal(g.ba, c.argmax(0).numpy())
-    np.testing.assert_allclose(g.score_ab, torch.softmax(c / net.conf["raw_temperature"], 1).amax(1).numpy(), rtol=1e-5)
+    np.testing.assert_allclose(
+        g.score_ab, torch.softmax(c / net.conf["raw_temperature"], 1).amax(1).numpy(), rtol=1e-5
+    )
     assert g.mutual_ab.sum() == g.mutual_ba.sum() > 0
 
 
@@ -115,7 +130,10 @@ def test_sparse_support():
     mask = torch.zeros(20, 18, dtype=torch.bool)
     mask.view(-1)[lin] = True
     assert mask.sum(1).min() >= 2 and mask.sum(0).min() >= 2
-    assert mask.gather(1, c2.topk(2, dim=1).indices).all() and mask.gather(0, c2.topk(2, dim=0).indices).all()
+    assert (
+        mask.gather(1, c2.topk(2, dim=1).indices).all()
+        and mask.gather(0, c2.topk(2, dim=0).indices).all()
+    )
     b = c2[7].argmax().item()  # A cell 7's best B cell and its 3x3 neighbourhood in B's 6x3 grid
     rows, cols = b // 3, b % 3
     for r in range(max(rows - 1, 0), min(rows + 2, 6)):

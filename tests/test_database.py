@@ -28,7 +28,16 @@ def test_no_module_but_database_py_calls_pycolmap_database(tmp_path):
     import colmap_guided
 
     package = Path(colmap_guided.__file__).parent
-    calls = ("Database.open", "DatabaseTransaction", "db.read_", "db.write_", "db.exists_", "db.num_", "db.clear_", "db.delete_")
+    calls = (
+        "Database.open",
+        "DatabaseTransaction",
+        "db.read_",
+        "db.write_",
+        "db.exists_",
+        "db.num_",
+        "db.clear_",
+        "db.delete_",
+    )
     offenders = [
         f"{path.relative_to(package)}: {call}"
         for path in sorted(package.rglob("*.py"))
@@ -48,7 +57,15 @@ def _match_cli(database: Path, capfd) -> tuple[int, str]:
     """`python -m colmap_guided match` in this process; returns its exit code and its one error line."""
     (database.parent / "images").mkdir(exist_ok=True)
     try:
-        code = main(["match", "--database_path", str(database), "--image_path", str(database.parent / "images")])
+        code = main(
+            [
+                "match",
+                "--database_path",
+                str(database),
+                "--image_path",
+                str(database.parent / "images"),
+            ]
+        )
     finally:
         set_verbosity(False, False)
     err = capfd.readouterr().err
@@ -59,7 +76,10 @@ def _match_cli(database: Path, capfd) -> tuple[int, str]:
 def _library_errors(database: Path) -> list[str]:
     """The messages of open_database (must exist, or not) and remove_orphans on ``database``."""
     messages = []
-    for call in (lambda: dbio.open_database(database), lambda: dbio.open_database(database, must_exist=False)):
+    for call in (
+        lambda: dbio.open_database(database),
+        lambda: dbio.open_database(database, must_exist=False),
+    ):
         with pytest.raises(dbio.DatabaseError) as err, call():
             pass
         messages.append(str(err.value))
@@ -68,15 +88,24 @@ def _library_errors(database: Path) -> list[str]:
     return [*messages, str(err.value)]
 
 
-@pytest.mark.parametrize("case, says", [("corrupt", "not a COLMAP database, or a damaged one"),
-                                        ("foreign", "an SQLite file without COLMAP's tables"),
-                                        ("empty", "an empty file, not a COLMAP database")])
-def test_a_file_that_is_not_a_colmap_database_is_one_line_and_left_as_it_is(tmp_path, capfd, case, says):
+@pytest.mark.parametrize(
+    "case, says",
+    [
+        ("corrupt", "not a COLMAP database, or a damaged one"),
+        ("foreign", "an SQLite file without COLMAP's tables"),
+        ("empty", "an empty file, not a COLMAP database"),
+    ],
+)
+def test_a_file_that_is_not_a_colmap_database_is_one_line_and_left_as_it_is(
+    tmp_path, capfd, case, says
+):
     """Random bytes, another program's SQLite database, an empty file: one line naming the file and
     what to do, from the library and the CLI (exit 2); the file's bytes unchanged, nothing beside it."""
     database = tmp_path / "database.db"
     if case == "corrupt":
-        database.write_bytes(np.random.default_rng(0).integers(0, 256, 8192, dtype=np.uint8).tobytes())
+        database.write_bytes(
+            np.random.default_rng(0).integers(0, 256, 8192, dtype=np.uint8).tobytes()
+        )
     elif case == "foreign":
         with contextlib.closing(sqlite3.connect(database)) as conn, conn:
             conn.execute("CREATE TABLE letters (sender TEXT, body TEXT)")
@@ -89,18 +118,33 @@ def test_a_file_that_is_not_a_colmap_database_is_one_line_and_left_as_it_is(tmp_
         assert "\n" not in message and str(database) in message and says in message
         assert "pass another --database_path or a new --output" in message
     assert code == 2
-    assert database.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["database.db", "images"]
+    assert database.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [
+        "database.db",
+        "images",
+    ]
 
 
-def test_a_database_locked_by_another_program_is_one_line_and_left_as_it_is(tmp_path, capfd, monkeypatch):
+def test_a_database_locked_by_another_program_is_one_line_and_left_as_it_is(
+    tmp_path, capfd, monkeypatch
+):
     """Another program writing to the database: one line saying so (library and CLI), nothing written;
     once it is done the same database works (its orphan camera removed)."""
     database = tmp_path / "database.db"
-    with dbio.open_database(database, must_exist=False) as db:  # a camera without images: remove_orphans writes
-        dbio.write_camera(db, pycolmap.Camera(model="PINHOLE", width=80, height=60, params=[90.0, 90.0, 40.0, 30.0]))
+    with dbio.open_database(
+        database, must_exist=False
+    ) as db:  # a camera without images: remove_orphans writes
+        dbio.write_camera(
+            db,
+            pycolmap.Camera(model="PINHOLE", width=80, height=60, params=[90.0, 90.0, 40.0, 30.0]),
+        )
     before = database.read_bytes()
     monkeypatch.setattr(dbio, "BUSY_TIMEOUT_S", 0.5)
-    holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(database)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLD_LOCK, str(database)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "locked"
         code, line = _match_cli(database, capfd)
@@ -110,7 +154,11 @@ def test_a_database_locked_by_another_program_is_one_line_and_left_as_it_is(tmp_
         holder.wait(timeout=60)
     assert code == 2
     for message in errors:
-        assert "\n" not in message and str(database) in message and "is locked by another program" in message
+        assert (
+            "\n" not in message
+            and str(database) in message
+            and "is locked by another program" in message
+        )
     assert database.read_bytes() == before
     assert dbio.remove_orphans(database) == (1, 0)
 
@@ -120,4 +168,6 @@ def test_no_module_but_database_py_opens_sqlite(tmp_path):
     import colmap_guided
 
     package = Path(colmap_guided.__file__).parent
-    assert [p.name for p in sorted(package.rglob("*.py")) if "sqlite3" in p.read_text(encoding="utf-8")] == ["database.py"]
+    assert [
+        p.name for p in sorted(package.rglob("*.py")) if "sqlite3" in p.read_text(encoding="utf-8")
+    ] == ["database.py"]

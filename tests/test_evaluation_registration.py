@@ -27,17 +27,29 @@ def tiny_proxy(tmp_path_factory):
     if not shared_data_dir().is_dir():
         pytest.skip("real photo sets not found")
     out = tmp_path_factory.mktemp("proxy")
-    path = proxy.build_proxy(out, sources=["train/strecha_entry_P10"], n_distractors=2, max_size=480, max_images=4)
+    path = proxy.build_proxy(
+        out, sources=["train/strecha_entry_P10"], n_distractors=2, max_size=480, max_images=4
+    )
     return path
 
 
 def test_proxy_scene_layout_and_determinism(tiny_proxy, tmp_path):
     data = mf.load_manifest(tiny_proxy)
-    assert [(s["name"], s["look"]) for s in data["scenes"]] == [("strecha_entry_P10", "damaged"), ("strecha_entry_P10_realistic", "realistic")]
+    assert [(s["name"], s["look"]) for s in data["scenes"]] == [
+        ("strecha_entry_P10", "damaged"),
+        ("strecha_entry_P10_realistic", "realistic"),
+    ]
     for scene in data["scenes"]:
         eras = [im["era"] for im in scene["images"]]
-        assert eras.count("historical") == 2 and eras.count("modern") == 2 and eras.count("distractor") == 2
-    for name, presets in (("strecha_entry_P10", proxy.HISTORICAL_PRESETS), ("strecha_entry_P10_realistic", proxy.REALISTIC_PRESETS)):
+        assert (
+            eras.count("historical") == 2
+            and eras.count("modern") == 2
+            and eras.count("distractor") == 2
+        )
+    for name, presets in (
+        ("strecha_entry_P10", proxy.HISTORICAL_PRESETS),
+        ("strecha_entry_P10_realistic", proxy.REALISTIC_PRESETS),
+    ):
         one = json.loads((tiny_proxy.parent / name / "manifest.json").read_text())
         assert one["reference"]["path"].endswith("strecha_entry_P10/colmap")
         for im in one["images"]:
@@ -48,7 +60,13 @@ def test_proxy_scene_layout_and_determinism(tiny_proxy, tmp_path):
             if im["era"] == "distractor":
                 assert not im["source"].startswith("train/strecha")
     one = json.loads((tiny_proxy.parent / "strecha_entry_P10" / "manifest.json").read_text())
-    again = proxy.build_proxy(tmp_path / "again", sources=["train/strecha_entry_P10"], n_distractors=2, max_size=480, max_images=4)
+    again = proxy.build_proxy(
+        tmp_path / "again",
+        sources=["train/strecha_entry_P10"],
+        n_distractors=2,
+        max_size=480,
+        max_images=4,
+    )
     for im in one["images"]:
         a = (tiny_proxy.parent / "strecha_entry_P10" / "images" / im["name"]).read_bytes()
         assert a == (again.parent / "strecha_entry_P10" / "images" / im["name"]).read_bytes()
@@ -64,7 +82,9 @@ def test_the_test_split_shows_no_landmark_the_shipped_weights_saw():
     assert "dfsfm_sacre_coeur" in seen and "lund_door_gtsfm" in seen  # the metadata is read
     for key in proxy.SPLITS["test"]:
         assert not proxy.same_landmark(key) & seen, key
-        assert not proxy.same_landmark(key) & {n for k in proxy.SPLITS["dev"] for n in proxy.same_landmark(k)}, key
+        assert not proxy.same_landmark(key) & {
+            n for k in proxy.SPLITS["dev"] for n in proxy.same_landmark(k)
+        }, key
     assert proxy.same_landmark("sacre_coeur_hloc") & seen  # a leak is seen as one
 
 
@@ -75,7 +95,11 @@ def test_distractors_never_come_from_the_same_landmark():
         assert chosen and not same & set(chosen)
     names = [f"{i}.jpg" for i in range(11)]
     half = proxy.historical_half(names, "x")
-    assert len(half) == 5 and half == proxy.historical_half(names, "x") and half != proxy.historical_half(names, "y")
+    assert (
+        len(half) == 5
+        and half == proxy.historical_half(names, "x")
+        and half != proxy.historical_half(names, "y")
+    )
 
 
 def _fake_image(path):
@@ -89,7 +113,11 @@ def test_scan_and_layout_of_a_local_ltll_copy(tmp_path, era_first):
     for scene in ("gare_de_lyon", "sacre_coeur"):
         for era, folder in (("historical", "old"), ("modern", "New")):
             for i in range(3):
-                _fake_image(root / folder / scene / f"{i}.jpg" if era_first else root / scene / folder / f"{i}.jpg")
+                _fake_image(
+                    root / folder / scene / f"{i}.jpg"
+                    if era_first
+                    else root / scene / folder / f"{i}.jpg"
+                )
     _fake_image(root / "sacre_coeur" / "misc.png") if not era_first else None
     before = sorted(p.relative_to(root).as_posix() for p in root.rglob("*"))
     data = mf.load_manifest(REPO_ROOT / "datasets" / "ltll_manifest.json", root)
@@ -98,29 +126,45 @@ def test_scan_and_layout_of_a_local_ltll_copy(tmp_path, era_first):
     assert [s["name"] for s in data["scenes"]] == ["gare_de_lyon", "sacre_coeur"]
     scene = data["scenes"][1]
     counts = registration.era_counts(scene["images"])
-    assert counts["historical"] == 3 and counts["modern"] == 3 and counts.get("unknown", 0) == (0 if era_first else 1)
+    assert (
+        counts["historical"] == 3
+        and counts["modern"] == 3
+        and counts.get("unknown", 0) == (0 if era_first else 1)
+    )
     hist = mf.layout_scene(data, scene, "historical", tmp_path / "out")
     full = mf.layout_scene(data, scene, "all", tmp_path / "out")
     one = json.loads((hist / "manifest.json").read_text())
     assert {im["era"] for im in one["images"]} == {"historical"} and len(one["images"]) == 3
-    assert len(json.loads((full / "manifest.json").read_text())["images"]) == (6 if era_first else 7)
+    assert len(json.loads((full / "manifest.json").read_text())["images"]) == (
+        6 if era_first else 7
+    )
     links = [p for p in (hist / "images").rglob("*") if p.is_file()]
     assert len(links) == 3 and all(p.is_symlink() and root in p.resolve().parents for p in links)
-    mf.layout_scene(data, scene, "historical", tmp_path / "out")  # a second layout replaces the first
-    assert sorted(p.relative_to(root).as_posix() for p in root.rglob("*")) == before  # source untouched
+    mf.layout_scene(
+        data, scene, "historical", tmp_path / "out"
+    )  # a second layout replaces the first
+    assert (
+        sorted(p.relative_to(root).as_posix() for p in root.rglob("*")) == before
+    )  # source untouched
     with pytest.raises(ValueError):
         mf.layout_scene(data, scene, "all", root / "sacre_coeur")  # never inside the source
 
 
 def test_manifests_in_the_repository_are_valid(shared_data):
     ltll = json.loads((REPO_ROOT / "datasets" / "ltll_manifest.json").read_text())
-    assert ltll["num_scenes_expected"] == 25 and "Fernando" in ltll["citation"] and ltll["scenes"] == []
+    assert (
+        ltll["num_scenes_expected"] == 25
+        and "Fernando" in ltll["citation"]
+        and ltll["scenes"] == []
+    )
     shared = mf.load_manifest(REPO_ROOT / "datasets" / "shared_manifest.json")
     regenerated = load_script("run_manifest").shared_manifest()
     assert [s["name"] for s in shared["scenes"]] == [s["name"] for s in regenerated["scenes"]]
     for scene in shared["scenes"]:
         assert all(im["era"] == "modern" for im in scene["images"])
-        assert all((mf.scene_image_dir(shared, scene) / im["name"]).is_file() for im in scene["images"])
+        assert all(
+            (mf.scene_image_dir(shared, scene) / im["name"]).is_file() for im in scene["images"]
+        )
         ref = mf.scene_reference(shared, scene)
         assert ref is None or ref.is_dir()
     lund = next(s for s in shared["scenes"] if s["name"] == "lund_door_gtsfm")
@@ -130,15 +174,28 @@ def test_manifests_in_the_repository_are_valid(shared_data):
 def test_score_registration_against_a_reference(shared_data):
     ref = pycolmap.Reconstruction(str(shared_data / "lund_door_gtsfm" / "colmap_ground_truth"))
     names = sorted(im.name for im in ref.images.values())
-    images = [{"name": n, "era": "historical" if i % 2 else "modern"} for i, n in enumerate(names)] + [{"name": "d.jpg", "era": "distractor"}]
+    images = [
+        {"name": n, "era": "historical" if i % 2 else "modern"} for i, n in enumerate(names)
+    ] + [{"name": "d.jpg", "era": "distractor"}]
     s = registration.score_registration(ref, images, ref)
-    assert s["num_registered"] == s["correct"] == len(names) and s["wrong"] == [] and s["distractors_registered"] == []
-    assert s["registered_ratio"] == 1.0 and s["historical_registered"] == f"{len(names) // 2}/{len(names) // 2}"
+    assert (
+        s["num_registered"] == s["correct"] == len(names)
+        and s["wrong"] == []
+        and s["distractors_registered"] == []
+    )
+    assert (
+        s["registered_ratio"] == 1.0
+        and s["historical_registered"] == f"{len(names) // 2}/{len(names) // 2}"
+    )
     bad = pycolmap.Reconstruction(ref)
     image = bad.images[min(bad.images)]
     pose = image.cam_from_world()
-    turn = pycolmap.Rotation3d(np.array([0.0, np.sin(np.radians(5)), 0.0, np.cos(np.radians(5))]))  # 10 deg about y
-    bad.frames[image.frame_id].rig_from_world = pycolmap.Rigid3d(turn * pose.rotation, pose.translation)
+    turn = pycolmap.Rotation3d(
+        np.array([0.0, np.sin(np.radians(5)), 0.0, np.cos(np.radians(5))])
+    )  # 10 deg about y
+    bad.frames[image.frame_id].rig_from_world = pycolmap.Rigid3d(
+        turn * pose.rotation, pose.translation
+    )
     s = registration.score_registration(bad, images, ref)
     assert s["wrong"] == [image.name] and s["correct"] == len(names) - 1
     assert registration.score_registration(None, images, ref)["num_registered"] == 0
@@ -147,14 +204,37 @@ def test_score_registration_against_a_reference(shared_data):
 def test_eval_registration_on_a_tiny_proxy_scene(tiny_proxy, tmp_path, capsys):
     """The full script (layout, reconstruct with the raw matcher, reference check, table, plot)."""
     out = tmp_path / "eval"
-    argv = ["--manifest", str(tiny_proxy), "--subsets", "all", "--methods", "raw", "--wxbs_max_pairs", "0", "--output", str(out), "-q"]
+    argv = [
+        "--manifest",
+        str(tiny_proxy),
+        "--subsets",
+        "all",
+        "--methods",
+        "raw",
+        "--wxbs_max_pairs",
+        "0",
+        "--output",
+        str(out),
+        "-q",
+    ]
     assert load_script("eval_registration").main(argv) == 0
     text = capsys.readouterr().out
-    assert "| strecha_entry_P10 | all | 2/2/2 |" in text and "Distractors registered, all runs: 0" in text
+    assert (
+        "| strecha_entry_P10 | all | 2/2/2 |" in text
+        and "Distractors registered, all runs: 0" in text
+    )
     data = json.loads((out / "results.json").read_text())
     rec = data["scenes"][0]["methods"]["raw"]
-    assert rec["num_images"] == 4 and rec["num_distractors"] == 2 and rec["distractors_registered"] == []
-    assert rec["num_registered"] >= 3 and rec["correct"] == rec["num_registered"] and rec["wrong"] == []
+    assert (
+        rec["num_images"] == 4
+        and rec["num_distractors"] == 2
+        and rec["distractors_registered"] == []
+    )
+    assert (
+        rec["num_registered"] >= 3
+        and rec["correct"] == rec["num_registered"]
+        and rec["wrong"] == []
+    )
     assert (out / "registered.png").is_file() and (out / "results.md").is_file()
 
 
@@ -164,13 +244,39 @@ def test_run_manifest_scans_and_lays_out_a_local_copy(tmp_path, capsys):
         for i in range(2):
             _fake_image(root / "some_landmark" / era / f"{i}.jpg")
     out = tmp_path / "out"
-    argv = ["--manifest", str(REPO_ROOT / "datasets" / "ltll_manifest.json"), "--root", str(root), "--scan", "--layout_only", "--output", str(out), "-q"]
+    argv = [
+        "--manifest",
+        str(REPO_ROOT / "datasets" / "ltll_manifest.json"),
+        "--root",
+        str(root),
+        "--scan",
+        "--layout_only",
+        "--output",
+        str(out),
+        "-q",
+    ]
     assert load_script("run_manifest").main(argv) == 0
     scanned = json.loads((out / "manifest_scanned.json").read_text())
     assert scanned["root"] == str(root.resolve()) and len(scanned["scenes"][0]["images"]) == 4
-    assert sorted(p.name for p in out.iterdir()) == [MARKER, "manifest_scanned.json", "some_landmark__all", "some_landmark__historical"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        MARKER,
+        "manifest_scanned.json",
+        "some_landmark__all",
+        "some_landmark__historical",
+    ]
     # without a local copy the LTLL manifest has nothing to run, and says so
-    assert load_script("run_manifest").main(["--manifest", str(REPO_ROOT / "datasets" / "ltll_manifest.json"), "--output", str(out), "-q"]) == 2
+    assert (
+        load_script("run_manifest").main(
+            [
+                "--manifest",
+                str(REPO_ROOT / "datasets" / "ltll_manifest.json"),
+                "--output",
+                str(out),
+                "-q",
+            ]
+        )
+        == 2
+    )
 
 
 @pytest.mark.slow
@@ -179,56 +285,118 @@ def test_eval_registration_all_methods_on_a_tiny_proxy_scene(tiny_proxy, tmp_pat
     registered image is counted once as correct, wrong or unverified (pycolmap's default pipeline has
     been seen to register one image of this 4-image scene 26° off: a failure, not a success)."""
     out = tmp_path / "eval"
-    argv = ["--manifest", str(tiny_proxy), "--methods", "pycolmap", "raw", "guided", "--wxbs_max_pairs", "1", "--output", str(out), "-q"]
+    argv = [
+        "--manifest",
+        str(tiny_proxy),
+        "--methods",
+        "pycolmap",
+        "raw",
+        "guided",
+        "--wxbs_max_pairs",
+        "1",
+        "--output",
+        str(out),
+        "-q",
+    ]
     assert load_script("eval_registration").main(argv) == 0
     data = json.loads((out / "results.json").read_text())
-    assert [(s["scene"], s["subset"]) for s in data["scenes"]] == [(n, sub) for n in ("strecha_entry_P10", "strecha_entry_P10_realistic") for sub in ("historical", "all")]
+    assert [(s["scene"], s["subset"]) for s in data["scenes"]] == [
+        (n, sub)
+        for n in ("strecha_entry_P10", "strecha_entry_P10_realistic")
+        for sub in ("historical", "all")
+    ]
     for scene in data["scenes"]:
         for method in ("pycolmap", "raw", "guided"):
             rec = scene["methods"][method]
             assert rec["distractors_registered"] == []
             if rec["num_registered"]:
-                assert rec["correct"] + len(rec["wrong"]) + len(rec["unverified"]) == rec["num_registered"]
+                assert (
+                    rec["correct"] + len(rec["wrong"]) + len(rec["unverified"])
+                    == rec["num_registered"]
+                )
     assert (out / "wxbs_appearance.json").is_file()
 
 
 def test_method_specs_split_into_matcher_feature_and_mapping_options():
     split = registration.split_stage_options
-    assert split("guided:type=aliked,ratio=0.9,mapper=global") == ("guided:ratio=0.9", {"type": "aliked"}, {"mapper": "global"})
+    assert split("guided:type=aliked,ratio=0.9,mapper=global") == (
+        "guided:ratio=0.9",
+        {"type": "aliked"},
+        {"mapper": "global"},
+    )
     assert split("pycolmap") == ("pycolmap", {}, {})
     key = registration.database_key
-    assert key("guided") == key("guided:mapper=incremental") != key("raw")  # the mapper does not change the database
-    assert key("raw:type=aliked")[0] == key("lightglue:type=aliked")[0] != key("raw")[0]  # shared ALIKED keypoints
+    assert (
+        key("guided") == key("guided:mapper=incremental") != key("raw")
+    )  # the mapper does not change the database
+    assert (
+        key("raw:type=aliked")[0] == key("lightglue:type=aliked")[0] != key("raw")[0]
+    )  # shared ALIKED keypoints
     assert key("pycolmap")[0] != key("raw")[0]  # pycolmap's own SIFT is not reconstruct's
 
 
-def test_eval_registration_reuses_databases_across_mappers_and_matchers(tiny_proxy, tmp_path, capsys):
+def test_eval_registration_reuses_databases_across_mappers_and_matchers(
+    tiny_proxy, tmp_path, capsys
+):
     """A mapper variant maps the same database again (only mapping runs) and a matcher with the same
     features reuses the keypoints (extraction skipped); the reused stages' times are counted."""
     out = tmp_path / "eval"
-    argv = ["--manifest", str(tiny_proxy), "--subsets", "all", "--methods", "raw", "raw:mapper=global", "guided", "--wxbs_max_pairs", "0", "--output", str(out), "-q"]
+    argv = [
+        "--manifest",
+        str(tiny_proxy),
+        "--subsets",
+        "all",
+        "--methods",
+        "raw",
+        "raw:mapper=global",
+        "guided",
+        "--wxbs_max_pairs",
+        "0",
+        "--output",
+        str(out),
+        "-q",
+    ]
     assert load_script("eval_registration").main(argv) == 0
     methods = json.loads((out / "results.json").read_text())["scenes"][0]["methods"]
     raw, raw_global, guided = (methods[m] for m in ("raw", "raw:mapper=global", "guided"))
     assert "reused" not in raw
-    assert raw_global["reused"]["stages"] == ["extract", "match", "verify"] and raw_global["timings"]["match"] >= raw["timings"]["match"]
+    assert (
+        raw_global["reused"]["stages"] == ["extract", "match", "verify"]
+        and raw_global["timings"]["match"] >= raw["timings"]["match"]
+    )
     assert guided["reused"]["stages"] == ["extract"] and guided["matcher"]["name"] == "guided"
     runs = out / "scenes" / "strecha_entry_P10__all" / "runs"
-    with open_database(runs / "raw" / "database.db") as a, open_database(runs / "raw_mapper=global" / "database.db") as b, open_database(runs / "guided" / "database.db") as c:
+    with (
+        open_database(runs / "raw" / "database.db") as a,
+        open_database(runs / "raw_mapper=global" / "database.db") as b,
+        open_database(runs / "guided" / "database.db") as c,
+    ):
         for image in a.read_all_images():
-            assert np.array_equal(read_keypoints(a, image.image_id), read_keypoints(c, image.image_id))
+            assert np.array_equal(
+                read_keypoints(a, image.image_id), read_keypoints(c, image.image_id)
+            )
         assert pair_inlier_counts(a) == pair_inlier_counts(b) and len(pair_inlier_counts(a)) >= 1
     # --remap maps each finished database again (a change of the mapping stage) and keeps the stage times
     assert load_script("eval_registration").main(argv + ["--resume", "--remap"]) == 0
     again = json.loads((out / "results.json").read_text())["scenes"][0]["methods"]
-    assert again["guided"]["reused"]["database"].endswith("(--remap)") and again["guided"]["timings"]["match"] >= guided["timings"]["match"]
-    assert again["raw"]["num_registered"] == raw["num_registered"] and not list(runs.glob("*.remap"))
+    assert (
+        again["guided"]["reused"]["database"].endswith("(--remap)")
+        and again["guided"]["timings"]["match"] >= guided["timings"]["match"]
+    )
+    assert again["raw"]["num_registered"] == raw["num_registered"] and not list(
+        runs.glob("*.remap")
+    )
     # --threads 1: every mapper on one thread, so a seeded run repeats exactly (here: mapping it twice)
     poses = []
     for _ in range(2):
-        assert load_script("eval_registration").main(argv + ["--resume", "--remap", "--threads", "1"]) == 0
+        assert (
+            load_script("eval_registration").main(argv + ["--resume", "--remap", "--threads", "1"])
+            == 0
+        )
         model = pycolmap.Reconstruction(str(runs / "guided" / "sparse" / "0"))
-        poses.append({im.name: im.cam_from_world().matrix() for im in model.images.values() if im.has_pose})
+        poses.append(
+            {im.name: im.cam_from_world().matrix() for im in model.images.values() if im.has_pose}
+        )
     assert poses[0].keys() == poses[1].keys() and len(poses[0]) >= 3
     assert all(np.array_equal(poses[0][n], poses[1][n]) for n in poses[0])
     # the summary: one table per LTLL protocol (rows = methods, columns = scenes) and the time per stage
@@ -237,38 +405,86 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(tiny_pro
     assert "**Protocol: historical + modern photos + distractors**" in text and "**Time**" in text
     row = next(line for line in text.splitlines() if line.startswith("| raw:mapper=global |"))
     assert f"· {again['raw:mapper=global']['correct']}/4 |" in row
-    total = next(line for line in text.split("**Totals**")[1].splitlines() if line.startswith("| raw:mapper=global |"))
-    assert total == f"| raw:mapper=global | {again['raw:mapper=global']['correct']} / {len(again['raw:mapper=global']['wrong'] or [])} | – |"  # all photos only
+    total = next(
+        line
+        for line in text.split("**Totals**")[1].splitlines()
+        if line.startswith("| raw:mapper=global |")
+    )
+    assert (
+        total
+        == f"| raw:mapper=global | {again['raw:mapper=global']['correct']} / {len(again['raw:mapper=global']['wrong'] or [])} | – |"
+    )  # all photos only
     # one results file's runs of a method under their own label (the same method before and after a change)
-    load_script("summarize_registration").main([str(out / "results.json"), "--label", f"{out / 'results.json'}:raw=raw (this run)"])
+    load_script("summarize_registration").main(
+        [str(out / "results.json"), "--label", f"{out / 'results.json'}:raw=raw (this run)"]
+    )
     assert "| raw (this run) |" in capsys.readouterr().out
     # mapper_choice maps the run's database again with each mapper: its `auto` pick is the pipeline's own model
-    assert load_script("mapper_choice").main([str(out / "results.json"), "--method", "guided", "--json", str(tmp_path / "choice.json")]) == 0
+    assert (
+        load_script("mapper_choice").main(
+            [
+                str(out / "results.json"),
+                "--method",
+                "guided",
+                "--json",
+                str(tmp_path / "choice.json"),
+            ]
+        )
+        == 0
+    )
     lines = capsys.readouterr().out.splitlines()
-    final = [scene["methods"]["guided"] for scene in json.loads((out / "results.json").read_text())["scenes"]]
+    final = [
+        scene["methods"]["guided"]
+        for scene in json.loads((out / "results.json").read_text())["scenes"]
+    ]
     right, wrong = sum(f["correct"] for f in final), sum(len(f["wrong"]) for f in final)
-    assert f"| auto | {right} | {wrong} | 0 of {len(final)} |" in lines  # no pycolmap run: none below it
+    assert (
+        f"| auto | {right} | {wrong} | 0 of {len(final)} |" in lines
+    )  # no pycolmap run: none below it
     choice = json.loads((tmp_path / "choice.json").read_text())
     oracle = int(next(line for line in lines if line.startswith("| oracle |")).split("|")[2])
-    assert len(choice) == len(final) and all(set(run["models"]) == {"incremental", "global"} for run in choice)
-    assert oracle == sum(max(m["correct"] for m in run["models"].values()) for run in choice) >= right
+    assert len(choice) == len(final) and all(
+        set(run["models"]) == {"incremental", "global"} for run in choice
+    )
+    assert (
+        oracle == sum(max(m["correct"] for m in run["models"].values()) for run in choice) >= right
+    )
 
 
-def test_reference_check_accepts_true_correspondences_of_resized_cropped_photos_and_rejects_shuffled_ones(tmp_path):
+def test_reference_check_accepts_true_correspondences_of_resized_cropped_photos_and_rejects_shuffled_ones(
+    tmp_path,
+):
     """Two photos of a synthetic scene, resized (x0.5) and cropped as the proxy makes its prints: the
     projections of the same 3D points are all within the 6 px of the reference epipolar lines, the same
     keypoints paired at random mostly are not."""
     script = load_script("pair_agreement")  # recon_scripts/pair_agreement.py
     options = pycolmap.SyntheticDatasetOptions()
-    options.num_rigs, options.num_cameras_per_rig, options.num_frames_per_rig, options.num_points3D = 1, 1, 2, 200
+    (
+        options.num_rigs,
+        options.num_cameras_per_rig,
+        options.num_frames_per_rig,
+        options.num_points3D,
+    ) = 1, 1, 2, 200
     pycolmap.set_random_seed(0)
     with pycolmap.Database.open(str(tmp_path / "db.db")) as db:
         ref = pycolmap.synthesize_dataset(options, db)
     a, b = (ref.images[i] for i in sorted(ref.reg_image_ids()))
-    entries = [{"ref_name": im.name, "scale": 0.5, "crop_offset": off} for im, off in ((a, [10, 20]), (b, [0, 5]))]
+    entries = [
+        {"ref_name": im.name, "scale": 0.5, "crop_offset": off}
+        for im, off in ((a, [10, 20]), (b, [0, 5]))
+    ]
     in_b = {p.point3D_id: k for k, p in enumerate(b.points2D) if p.has_point3D()}
-    pairs = np.array([(k, in_b[p.point3D_id]) for k, p in enumerate(a.points2D) if p.has_point3D() and p.point3D_id in in_b])
-    kp = [np.array([p.xy for p in im.points2D]) * 0.5 - np.asarray(e["crop_offset"], float) for im, e in zip((a, b), entries)]
+    pairs = np.array(
+        [
+            (k, in_b[p.point3D_id])
+            for k, p in enumerate(a.points2D)
+            if p.has_point3D() and p.point3D_id in in_b
+        ]
+    )
+    kp = [
+        np.array([p.xy for p in im.points2D]) * 0.5 - np.asarray(e["crop_offset"], float)
+        for im, e in zip((a, b), entries)
+    ]
     F = script.reference_fundamental(ref, *entries)
     assert len(pairs) > 50 and script.share_right(F, kp[0], kp[1], pairs) == 1.0
     shuffled = np.c_[pairs[:, 0], np.random.default_rng(0).permutation(pairs[:, 1])]

@@ -20,7 +20,12 @@ def test_reference_cameras_agree_with_the_pseudo_ground_truth(shared_data, key):
     assert ref.source == "reference" and pseudo.source == "pseudo_gt"
     pairs = two_view.sample_pairs(ref, 12, seed=0)
     assert len(pairs) == 12
-    errs = [metrics.relative_pose_error(*pseudo.relative_pose(p["a"], p["b"]), *ref.relative_pose(p["a"], p["b"]))["R"] for p in pairs]
+    errs = [
+        metrics.relative_pose_error(
+            *pseudo.relative_pose(p["a"], p["b"]), *ref.relative_pose(p["a"], p["b"])
+        )["R"]
+        for p in pairs
+    ]
     assert np.median(errs) < 2.0
     # sampling is deterministic and only yields covisible pairs with a reference pose
     assert pairs == two_view.sample_pairs(ref, 12, seed=0)
@@ -29,7 +34,9 @@ def test_reference_cameras_agree_with_the_pseudo_ground_truth(shared_data, key):
 
 def test_strecha_castle_frames_are_not_mixed(shared_data):
     ref = load_reference("train/strecha_castle")
-    assert not ref.comparable("castle-P19_0000.jpg", "castle-P30_0020.jpg")  # two calibration frames
+    assert not ref.comparable(
+        "castle-P19_0000.jpg", "castle-P30_0020.jpg"
+    )  # two calibration frames
     assert all(ref.comparable(p["a"], p["b"]) for p in two_view.sample_pairs(ref, None))
 
 
@@ -47,7 +54,10 @@ def load_script(name):
 
 def test_pose_protocol_on_real_pairs(shared_data, sift_cache):
     result = two_view.run_pose_benchmark(
-        scenes=("train/strecha_entry_P10",), specs=["raw:ratio=0.8"], max_pairs=2, cache_dir=sift_cache
+        scenes=("train/strecha_entry_P10",),
+        specs=["raw:ratio=0.8"],
+        max_pairs=2,
+        cache_dir=sift_cache,
     )
     r = result["results"]["raw:ratio=0.8"]
     errors = [p["err_pose"] for p in r["pairs"]]
@@ -60,7 +70,9 @@ def test_pose_protocol_on_real_pairs(shared_data, sift_cache):
     # the metric itself: reference poses score 100, the poses of the other pair score ~0
     ref = load_reference("train/strecha_entry_P10")
     gts = [ref.relative_pose(p["a"], p["b"]) for p in result["pairs"]]
-    assert metrics.pose_auc([metrics.relative_pose_error(*gt, *gt)["pose"] for gt in gts]) == pytest.approx([1, 1, 1])
+    assert metrics.pose_auc(
+        [metrics.relative_pose_error(*gt, *gt)["pose"] for gt in gts]
+    ) == pytest.approx([1, 1, 1])
     swapped = [metrics.relative_pose_error(*gts[1 - i], *gts[i])["pose"] for i in range(2)]
     assert min(swapped) > 5.0 and metrics.pose_auc(swapped)[0] == 0.0
 
@@ -82,8 +94,21 @@ def test_eval_two_view_script_in_process(shared_data, sift_cache, tmp_path, caps
     """The script on one pair (features cached by the test above) and one WxBS pair; a matcher it cannot
     run stops it before any work (a table never loses a row silently)."""
     out = tmp_path / "out"
-    argv = ["--scenes", "train/strecha_entry_P10", "--max_pairs", "1", "--matchers", "raw:ratio=0.8",
-            "--wxbs_max_pairs", "1", "--cache_dir", str(sift_cache), "--output", str(out), "-q"]
+    argv = [
+        "--scenes",
+        "train/strecha_entry_P10",
+        "--max_pairs",
+        "1",
+        "--matchers",
+        "raw:ratio=0.8",
+        "--wxbs_max_pairs",
+        "1",
+        "--cache_dir",
+        str(sift_cache),
+        "--output",
+        str(out),
+        "-q",
+    ]
     script = load_script("eval_two_view")
     with pytest.raises(ValueError, match="no_such_matcher"):
         script.main([*argv, "--matchers", "raw:ratio=0.8", "no_such_matcher"])
@@ -91,7 +116,14 @@ def test_eval_two_view_script_in_process(shared_data, sift_cache, tmp_path, caps
     assert script.main(argv) == 0
     text = capsys.readouterr().out
     assert "| raw:ratio=0.8 |" in text and "AUC@5°" in text and "WxBS" in text
-    for name in ("two_view.json", "two_view.md", "two_view.png", "wxbs.json", "wxbs.md", "wxbs.png"):
+    for name in (
+        "two_view.json",
+        "two_view.md",
+        "two_view.png",
+        "wxbs.json",
+        "wxbs.md",
+        "wxbs.png",
+    ):
         assert (out / name).is_file()
     data = json.loads((out / "two_view.json").read_text())
     assert list(data["results"]) == ["raw:ratio=0.8"] and len(data["pairs"]) == 1
@@ -103,12 +135,34 @@ def test_eval_two_view_script_in_process(shared_data, sift_cache, tmp_path, caps
 @pytest.mark.slow
 def test_eval_two_view_script(shared_data, tmp_path):
     out = tmp_path / "out"
-    cmd = [sys.executable, str(REPO_ROOT / "recon_scripts" / "eval_two_view.py"), "--scenes", "train/strecha_entry_P10", "--max_pairs", "1",
-           "--matchers", "raw:ratio=0.8", "--wxbs_max_pairs", "1", "--cache_dir", str(tmp_path / "cache"), "--output", str(out), "-q"]
+    cmd = [
+        sys.executable,
+        str(REPO_ROOT / "recon_scripts" / "eval_two_view.py"),
+        "--scenes",
+        "train/strecha_entry_P10",
+        "--max_pairs",
+        "1",
+        "--matchers",
+        "raw:ratio=0.8",
+        "--wxbs_max_pairs",
+        "1",
+        "--cache_dir",
+        str(tmp_path / "cache"),
+        "--output",
+        str(out),
+        "-q",
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "| raw:ratio=0.8 |" in proc.stdout and "AUC@5°" in proc.stdout
-    for name in ("two_view.json", "two_view.md", "two_view.png", "wxbs.json", "wxbs.md", "wxbs.png"):
+    for name in (
+        "two_view.json",
+        "two_view.md",
+        "two_view.png",
+        "wxbs.json",
+        "wxbs.md",
+        "wxbs.png",
+    ):
         assert (out / name).is_file()
     data = json.loads((out / "two_view.json").read_text())
     assert list(data["results"]) == ["raw:ratio=0.8"] and len(data["pairs"]) == 1

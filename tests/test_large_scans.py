@@ -78,8 +78,13 @@ def faded_scan(tmp_path_factory) -> Path:
 def test_a_large_scan_is_extracted_in_a_few_bytes_per_pixel(faded_scan, tmp_path):
     if not Path("/proc/self/clear_refs").exists():
         pytest.skip("needs Linux's /proc/self/clear_refs to measure each stage's peak RSS")
-    run = subprocess.run([sys.executable, "-c", STAGES, str(faded_scan), str(tmp_path)], cwd=ROOT,
-                         capture_output=True, text=True, timeout=600)
+    run = subprocess.run(
+        [sys.executable, "-c", STAGES, str(faded_scan), str(tmp_path)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert run.returncode == 0, run.stderr[-3000:]
     stages = json.loads(run.stdout.splitlines()[-1])
     pixels = WIDTH * HEIGHT
@@ -87,6 +92,12 @@ def test_a_large_scan_is_extracted_in_a_few_bytes_per_pixel(faded_scan, tmp_path
         assert stage["growth"] < MAX_BYTES_PER_PIXEL * pixels, (name, stage["growth"] / pixels)
     sift = stages["sift"]
     assert sift["prepared"] == ["scan.jpg"] and sift["num"] > 1000
-    for stage in (sift, stages.get("aliked", sift)):  # keypoints in the scan's full-size pixel frame
-        assert 0.95 * WIDTH < stage["max_xy"][0] < WIDTH and 0.95 * HEIGHT < stage["max_xy"][1] < HEIGHT
+    for stage in (
+        sift,
+        stages.get("aliked", sift),
+    ):  # keypoints in the scan's full-size pixel frame
+        assert (
+            0.95 * WIDTH < stage["max_xy"][0] < WIDTH
+            and 0.95 * HEIGHT < stage["max_xy"][1] < HEIGHT
+        )
     assert stages["coarse"]["size"] == [WIDTH]

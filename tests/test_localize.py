@@ -42,7 +42,8 @@ def database_content(path: Path) -> dict:
         summary = dbio.database_summary(db)
         images = dbio.images_by_name(db)
         keypoints = {
-            name: dbio.read_keypoints(db, image.image_id).tobytes() for name, image in images.items()
+            name: dbio.read_keypoints(db, image.image_id).tobytes()
+            for name, image in images.items()
         }
     return {"summary": summary, "keypoints": keypoints}
 
@@ -68,22 +69,39 @@ def workspace(synthetic_scene, tmp_path_factory):
     assert result["num_registered"] >= 5
     scans = root / "scans"
     scans.mkdir()
-    Image.open(synthetic_scene.image_dir / HELD_OUT[1]).save(scans / HELD_OUT[1], quality=95)  # no EXIF
+    Image.open(synthetic_scene.image_dir / HELD_OUT[1]).save(
+        scans / HELD_OUT[1], quality=95
+    )  # no EXIF
     other = render_scene(root / "other", num_images=2, seed=5)
     (ws / "notes.txt").write_text("the user's own notes\n")
-    photos = [synthetic_scene.image_dir / HELD_OUT[0], scans / HELD_OUT[1], other.image_dir / other.names[0]]
+    photos = [
+        synthetic_scene.image_dir / HELD_OUT[0],
+        scans / HELD_OUT[1],
+        other.image_dir / other.names[0],
+    ]
     before = {"sparse": digests(ws / "sparse"), "database": database_content(ws / "database.db")}
     before["photos"] = {str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in photos}
     broken = root / "broken.jpg"
     broken.write_bytes(b"not a photo")
     bad = {"missing": root / "lost.jpg", "broken": broken}
-    return {"ws": ws, "photos": photos, "before": before, "images": model_images, "root": root, **bad}
+    return {
+        "ws": ws,
+        "photos": photos,
+        "before": before,
+        "images": model_images,
+        "root": root,
+        **bad,
+    }
 
 
 @pytest.fixture(scope="module")
 def first(workspace):
-    out = loc.localize(workspace["ws"], [*workspace["photos"], workspace["missing"], workspace["broken"]])
-    return out, {Path(e["photo"]).name + ("@scan" if "scans" in e["photo"] else ""): e for e in out["photos"]}
+    out = loc.localize(
+        workspace["ws"], [*workspace["photos"], workspace["missing"], workspace["broken"]]
+    )
+    return out, {
+        Path(e["photo"]).name + ("@scan" if "scans" in e["photo"] else ""): e for e in out["photos"]
+    }
 
 
 def test_held_out_views_are_placed_on_their_true_pose(first, workspace, synthetic_scene):
@@ -118,7 +136,10 @@ def test_a_photo_of_another_place_and_a_missing_file_are_not_placed(first, works
     broken = by_name["broken.jpg"]
     assert broken["status"] == "skipped" and broken["confidence"].startswith("not placed: ")
     text = loc.summary_text(out)
-    assert f"{workspace['missing']}: not placed: no such file" in text and "Placed 2 of 5 photo(s)" in text
+    assert (
+        f"{workspace['missing']}: not placed: no such file" in text
+        and "Placed 2 of 5 photo(s)" in text
+    )
 
 
 def test_the_model_photos_and_user_files_are_only_read(first, workspace):
@@ -127,14 +148,16 @@ def test_the_model_photos_and_user_files_are_only_read(first, workspace):
     assert (
         database_content(ws / "database.db") == before["database"]
     )  # COLMAP's open rewrites its header only
-    assert {str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in workspace["photos"]} == before[
-        "photos"
-    ]
+    assert {
+        str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in workspace["photos"]
+    } == before["photos"]
     assert (ws / "notes.txt").read_text() == "the user's own notes\n"
     entries = set(read_marker(ws)["entries"])
     assert {"localized.json", "localize.db", "sparse_localized", "report.json", "sparse"} <= entries
     saved = json.loads((ws / "localized.json").read_text())
-    assert saved["model_sha256"] == loc.model_digest(ws / "sparse" / "0") and len(saved["photos"]) == 4
+    assert (
+        saved["model_sha256"] == loc.model_digest(ws / "sparse" / "0") and len(saved["photos"]) == 4
+    )
 
 
 def test_the_report_shows_the_localized_photos(first, workspace):
@@ -143,8 +166,12 @@ def test_the_report_shows_the_localized_photos(first, workspace):
     section = page[page.index("Photos localized in the model") :]
     assert "view_002.jpg" in section and "not placed: no image of the model matched" in section
     assert section.count("<img") >= 4  # each placed photo beside its best-matched model photo
-    data = json.loads(re.search(r"<script[^>]*id='model-data'[^>]*>(.*?)</script>", page, re.DOTALL).group(1))
-    shown = {c["name"] for c in data["cameras"] if c["era"] == "localized"}  # highlighted in the 3D view
+    data = json.loads(
+        re.search(r"<script[^>]*id='model-data'[^>]*>(.*?)</script>", page, re.DOTALL).group(1)
+    )
+    shown = {
+        c["name"] for c in data["cameras"] if c["era"] == "localized"
+    }  # highlighted in the 3D view
     assert {Path(name).name for name in shown} == set(HELD_OUT)
 
 
@@ -172,7 +199,9 @@ def test_a_rerun_redoes_nothing(first, second):
     out, messages = second
     assert any("3 of 3 photo(s) already localized" in m for m in messages), messages
     assert not any(m.startswith(("Extracting", "Matching")) for m in messages), messages
-    assert out["photos"] == first[0]["photos"][:3]  # the same entries, times included: not computed again
+    assert (
+        out["photos"] == first[0]["photos"][:3]
+    )  # the same entries, times included: not computed again
 
 
 def test_add_writes_a_new_model_version_and_keeps_the_old_one(second, workspace, synthetic_scene):
@@ -189,10 +218,15 @@ def test_add_writes_a_new_model_version_and_keeps_the_old_one(second, workspace,
     for image in new.images.values():
         if image.name in added:
             assert image.num_points3D >= 30
-    est = {Path(n).name + ("@scan" if "scans" in n else ""): pose for n, pose in model_poses(new).items()}
+    est = {
+        Path(n).name + ("@scan" if "scans" in n else ""): pose
+        for n, pose in model_poses(new).items()
+    }
     ref = {name: synthetic_scene.cam_from_world[name.split("@")[0]] for name in est}
     errors = compare_poses(est, ref)
-    assert all(e["rotation_error"] < 1.0 and e["center_error"] < 0.02 for e in errors.values()), errors
+    assert all(e["rotation_error"] < 1.0 and e["center_error"] < 0.02 for e in errors.values()), (
+        errors
+    )
 
 
 def _run(argv, capfd) -> tuple[int, list[str]]:
@@ -206,7 +240,10 @@ def test_a_missing_or_foreign_workspace_is_one_line(workspace, tmp_path, capfd):
     letters = tmp_path / "letters"
     letters.mkdir()
     (letters / "letter.txt").write_text("Dear archivist,\n")
-    for folder, words in ((tmp_path / "nowhere", "No workspace at"), (letters, "not a workspace written by")):
+    for folder, words in (
+        (tmp_path / "nowhere", "No workspace at"),
+        (letters, "not a workspace written by"),
+    ):
         code, errors = _run(["localize", folder, photo], capfd)
         assert code == 2 and len(errors) == 1 and words in errors[0], errors
     assert sorted(p.name for p in letters.iterdir()) == ["letter.txt"]
@@ -214,12 +251,16 @@ def test_a_missing_or_foreign_workspace_is_one_line(workspace, tmp_path, capfd):
     assert code == 2 and len(errors) == 1 and "None of the 1 photo path(s)" in errors[0], errors
 
 
-def test_reconstruct_overwrite_removes_what_localize_wrote_and_nothing_else(second, workspace, tmp_path):
+def test_reconstruct_overwrite_removes_what_localize_wrote_and_nothing_else(
+    second, workspace, tmp_path
+):
     from colmap_guided.workspace import Workspace
 
     copy = tmp_path / "ws"
     shutil.copytree(workspace["ws"], copy)
-    Workspace.claim(copy, "reconstruct", overwrite=True)  # what `reconstruct --overwrite` does first
+    Workspace.claim(
+        copy, "reconstruct", overwrite=True
+    )  # what `reconstruct --overwrite` does first
     assert sorted(p.name for p in copy.iterdir()) == [".colmap_guided.json", "notes.txt"]
 
 
@@ -232,12 +273,18 @@ def test_the_command_retrieves_the_top_k_model_images(second, workspace, tmp_pat
     code, errors = _run(["localize", copy, photo.parent, "--num_images", "2"], capfd)
     assert code == 0 and not errors
     (entry,) = [
-        e for e in json.loads((copy / "localized.json").read_text())["photos"] if e["photo"] == str(photo)
+        e
+        for e in json.loads((copy / "localized.json").read_text())["photos"]
+        if e["photo"] == str(photo)
     ]
     assert entry["status"] == "placed" and 1 <= len(entry["matched_images"]) <= 2  # the top 2 only
-    with np.load(copy / "localize_retrieval.npz") as saved:  # the model's descriptors, kept for the next run
+    with np.load(
+        copy / "localize_retrieval.npz"
+    ) as saved:  # the model's descriptors, kept for the next run
         model = pycolmap.Reconstruction(str(copy / "sparse" / "0"))
-        assert sorted(saved["names"].tolist()) == sorted(model.images[i].name for i in model.reg_image_ids())
+        assert sorted(saved["names"].tolist()) == sorted(
+            model.images[i].name for i in model.reg_image_ids()
+        )
 
 
 def test_a_run_killed_before_the_poses_continues_from_the_database(second, workspace, tmp_path):

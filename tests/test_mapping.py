@@ -28,19 +28,29 @@ def thin_chain(tmp_path_factory) -> str:
     with pycolmap.Database.open(str(path)) as db:
         gt = pycolmap.synthesize_dataset(options, db)
         ids = sorted(gt.reg_image_ids(), key=lambda i: gt.images[i].name)
-        window = {pid: k % NUM_FRAMES for k, pid in enumerate(sorted(gt.points3D))}  # first photo that sees it
+        window = {
+            pid: k % NUM_FRAMES for k, pid in enumerate(sorted(gt.points3D))
+        }  # first photo that sees it
         for i in range(NUM_FRAMES - 1):
             a, b = ids[i], ids[i + 1]
             in_b = {p.point3D_id: k for k, p in enumerate(gt.images[b].points2D) if p.has_point3D()}
-            keep = [(k, in_b[p.point3D_id]) for k, p in enumerate(gt.images[a].points2D)
-                    if p.has_point3D() and p.point3D_id in in_b and window[p.point3D_id] <= i <= window[p.point3D_id] + 1]
+            keep = [
+                (k, in_b[p.point3D_id])
+                for k, p in enumerate(gt.images[a].points2D)
+                if p.has_point3D()
+                and p.point3D_id in in_b
+                and window[p.point3D_id] <= i <= window[p.point3D_id] + 1
+            ]
             geometry = db.read_two_view_geometry(a, b)
             geometry.inlier_matches = np.array(keep, np.uint32)
             db.delete_matches(a, b)
             db.delete_two_view_geometry(a, b)
             db.write_matches(a, b, geometry.inlier_matches)
             db.write_two_view_geometry(a, b, geometry)
-        inliers = [len(db.read_two_view_geometry(ids[i], ids[i + 1]).inlier_matches) for i in range(1, NUM_FRAMES - 1)]
+        inliers = [
+            len(db.read_two_view_geometry(ids[i], ids[i + 1]).inlier_matches)
+            for i in range(1, NUM_FRAMES - 1)
+        ]
     assert set(inliers) == {50}
     return str(path)
 
@@ -55,7 +65,9 @@ def test_colmap_thresholds_break_the_thin_chain(thin_chain, tmp_path):
 
 @pytest.mark.parametrize("mapper", MAPPERS)
 def test_every_mapper_registers_the_thin_chain(thin_chain, tmp_path, mapper):
-    models = run_mapping(thin_chain, tmp_path, tmp_path / "sparse", {"mapper": mapper, "num_threads": 1})
+    models = run_mapping(
+        thin_chain, tmp_path, tmp_path / "sparse", {"mapper": mapper, "num_threads": 1}
+    )
     assert models[0].num_reg_images() == NUM_FRAMES
     assert sorted(p.name for p in (tmp_path).iterdir()) == ["sparse"]  # no .partial left
     assert pycolmap.Reconstruction(str(tmp_path / "sparse" / "0")).num_reg_images() == NUM_FRAMES
@@ -65,9 +77,19 @@ def test_every_mapper_registers_the_thin_chain(thin_chain, tmp_path, mapper):
 def test_seeded_single_thread_mapping_repeats_exactly(thin_chain, tmp_path, mapper):
     poses = []
     for run in range(2):
-        models = run_mapping(thin_chain, tmp_path, tmp_path / f"sparse{run}", {"mapper": mapper, "num_threads": 1, "random_seed": 7})
+        models = run_mapping(
+            thin_chain,
+            tmp_path,
+            tmp_path / f"sparse{run}",
+            {"mapper": mapper, "num_threads": 1, "random_seed": 7},
+        )
         rec = models[0]
-        poses.append({rec.images[i].name: rec.images[i].cam_from_world().matrix() for i in rec.reg_image_ids()})
+        poses.append(
+            {
+                rec.images[i].name: rec.images[i].cam_from_world().matrix()
+                for i in rec.reg_image_ids()
+            }
+        )
     assert poses[0].keys() == poses[1].keys()
     for name in poses[0]:
         np.testing.assert_array_equal(poses[0][name], poses[1][name])
@@ -87,19 +109,44 @@ def test_cli_global_mapping(synthetic_scene, tmp_path):
     view_005), where incremental mapping registers all 8."""
     out = tmp_path / "out"
     run = subprocess.run(
-        [sys.executable, "-m", "colmap_guided", "reconstruct", str(synthetic_scene.image_dir.parent), "--output", str(out),
-         "--matcher", "raw", "--mapper", "global", "--seed", "3", "--threads", "1", "--quiet"],
-        capture_output=True, text=True,
+        [
+            sys.executable,
+            "-m",
+            "colmap_guided",
+            "reconstruct",
+            str(synthetic_scene.image_dir.parent),
+            "--output",
+            str(out),
+            "--matcher",
+            "raw",
+            "--mapper",
+            "global",
+            "--seed",
+            "3",
+            "--threads",
+            "1",
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
     )
     assert run.returncode == 0, run.stderr
     result = json.loads((out / "report.json").read_text())
     assert result["num_registered"] >= len(synthetic_scene.names) - 1
     errors = pose_errors(pycolmap.Reconstruction(str(out / "sparse" / "0")), synthetic_scene)
     registered = [e for e in errors.values() if np.isfinite(e[0])]
-    assert len(registered) == result["num_registered"] and max(e[0] for e in registered) < 1.0, errors
-    assert {k: result["options"]["mapping"][k] for k in ("mapper", "random_seed", "num_threads")} == {"mapper": "global", "random_seed": 3, "num_threads": 1}
+    assert len(registered) == result["num_registered"] and max(e[0] for e in registered) < 1.0, (
+        errors
+    )
+    assert {
+        k: result["options"]["mapping"][k] for k in ("mapper", "random_seed", "num_threads")
+    } == {"mapper": "global", "random_seed": 3, "num_threads": 1}
     assert result["model_check"]["ok"], result["model_check"]
-    bad = subprocess.run([sys.executable, "-m", "colmap_guided", "reconstruct", str(tmp_path), "--mapper", "glomap"], capture_output=True, text=True)
+    bad = subprocess.run(
+        [sys.executable, "-m", "colmap_guided", "reconstruct", str(tmp_path), "--mapper", "glomap"],
+        capture_output=True,
+        text=True,
+    )
     assert bad.returncode == 2 and "invalid choice: 'glomap'" in bad.stderr
 
 
@@ -109,19 +156,34 @@ def lund_door(shared_data) -> pycolmap.Reconstruction:
 
 
 def test_model_check_passes_a_real_model_and_flags_a_corrupted_focal(lund_door):
-    assert check_models({0: lund_door}) == {"ok": True, "problems": [], "conf": check_models({})["conf"]}
-    camera = next(iter(lund_door.cameras.values()))  # the model's own camera object: edited in place
-    camera.params = [camera.params[0] * 1000, *camera.params[1:]]  # 2.4 million px: an orthographic camera
+    assert check_models({0: lund_door}) == {
+        "ok": True,
+        "problems": [],
+        "conf": check_models({})["conf"],
+    }
+    camera = next(
+        iter(lund_door.cameras.values())
+    )  # the model's own camera object: edited in place
+    camera.params = [
+        camera.params[0] * 1000,
+        *camera.params[1:],
+    ]  # 2.4 million px: an orthographic camera
     checked = check_models({0: lund_door})
     assert not checked["ok"]
     focal = [p for p in checked["problems"] if "focal length" in p]
-    assert len(focal) == 1 and focal[0].startswith("sparse/0: focal length 2435380 px") and "DSC_0001.JPG" in focal[0]
+    assert (
+        len(focal) == 1
+        and focal[0].startswith("sparse/0: focal length 2435380 px")
+        and "DSC_0001.JPG" in focal[0]
+    )
 
 
 def test_model_check_flags_a_pose_jump(lund_door):
     image = next(im for im in lund_door.images.values() if im.name == "DSC_0005.JPG")
     frame = lund_door.frames[image.frame_id]
-    turn = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([np.sin(np.pi / 4), 0, 0, np.cos(np.pi / 4)])), np.zeros(3))  # 90° about x
+    turn = pycolmap.Rigid3d(
+        pycolmap.Rotation3d(np.array([np.sin(np.pi / 4), 0, 0, np.cos(np.pi / 4)])), np.zeros(3)
+    )  # 90° about x
     frame.rig_from_world = turn * frame.rig_from_world
     problems = check_models({0: lund_door})["problems"]
     assert any("pose jump" in p and "DSC_0005.JPG" in p for p in problems), problems
@@ -138,39 +200,66 @@ def test_photos_on_too_few_3d_points_are_taken_out_until_none_is_left(lund_door)
     with 13 and goes too; every other photo stays, each on >= 15 points."""
     from colmap_guided.mapping import prune_weak_images
 
-    a, b = (next(im for im in lund_door.images.values() if im.name == n) for n in ("DSC_0005.JPG", "DSC_0006.JPG"))
-    shared = sorted({p.point3D_id for p in a.points2D if p.has_point3D()} & {p.point3D_id for p in b.points2D if p.has_point3D()})
+    a, b = (
+        next(im for im in lund_door.images.values() if im.name == n)
+        for n in ("DSC_0005.JPG", "DSC_0006.JPG")
+    )
+    shared = sorted(
+        {p.point3D_id for p in a.points2D if p.has_point3D()}
+        & {p.point3D_id for p in b.points2D if p.has_point3D()}
+    )
     only_b = sorted({p.point3D_id for p in b.points2D if p.has_point3D()} - set(shared))
     for pid in shared[:3]:  # three points seen by a and b only
-        for image_id, idx in [(el.image_id, el.point2D_idx) for el in lund_door.points3D[pid].track.elements]:  # copied: the track changes
+        for image_id, idx in [
+            (el.image_id, el.point2D_idx) for el in lund_door.points3D[pid].track.elements
+        ]:  # copied: the track changes
             if image_id not in (a.image_id, b.image_id):
                 lund_door.delete_observation(image_id, idx)
     _keep_observations(lund_door, a, set(shared[:10]))
     _keep_observations(lund_door, b, set(shared[:3]) | set(only_b[:13]))
     before = lund_door.num_reg_images()
-    assert (lund_door.images[a.image_id].num_points3D, lund_door.images[b.image_id].num_points3D) == (10, 16)
+    assert (
+        lund_door.images[a.image_id].num_points3D,
+        lund_door.images[b.image_id].num_points3D,
+    ) == (10, 16)
     assert prune_weak_images(lund_door, 15) == {"DSC_0005.JPG": 10, "DSC_0006.JPG": 13}
     assert lund_door.num_reg_images() == before - 2 and not lund_door.images[a.image_id].has_pose
     assert min(lund_door.images[i].num_points3D for i in lund_door.reg_image_ids()) >= 15
     assert prune_weak_images(lund_door, 15) == {}
 
 
-def test_pose_support_counts_the_inliers_a_model_explains_and_drops_for_a_wrong_pose(thin_chain, tmp_path):
+def test_pose_support_counts_the_inliers_a_model_explains_and_drops_for_a_wrong_pose(
+    thin_chain, tmp_path
+):
     """``auto``'s tie-break: a right model explains every verified inlier between its photos; turning one photo
     by 20° leaves its pairs' inliers unexplained (the other pairs keep theirs)."""
     from colmap_guided import database as dbio
     from colmap_guided.mapping import auto_key, pose_support
 
-    rec = run_mapping(thin_chain, tmp_path, tmp_path / "sparse", {"mapper": "incremental", "num_threads": 1})[0]
+    rec = run_mapping(
+        thin_chain, tmp_path, tmp_path / "sparse", {"mapper": "incremental", "num_threads": 1}
+    )[0]
     with dbio.open_database(thin_chain) as db:
         inliers = dbio.read_verified_inliers(db, set(rec.reg_image_ids()))
     total = sum(len(m) for m in inliers.values())
     assert pose_support(rec, thin_chain) >= 0.99 * total > 0
-    assert auto_key(rec, thin_chain)[1:] == (NUM_FRAMES, pose_support(rec, thin_chain)) and auto_key(None, thin_chain) == (False, 0, 0)
-    assert auto_key(rec, None)[1:] == (NUM_FRAMES,) and auto_key(None, None) == (False, 0)  # pose support left out
-    image = next(im for im in rec.images.values() if im.name == sorted(im.name for im in rec.images.values())[5])
+    assert auto_key(rec, thin_chain)[1:] == (
+        NUM_FRAMES,
+        pose_support(rec, thin_chain),
+    ) and auto_key(None, thin_chain) == (False, 0, 0)
+    assert auto_key(rec, None)[1:] == (NUM_FRAMES,) and auto_key(None, None) == (
+        False,
+        0,
+    )  # pose support left out
+    image = next(
+        im
+        for im in rec.images.values()
+        if im.name == sorted(im.name for im in rec.images.values())[5]
+    )
     own = sum(len(m) for pair, m in inliers.items() if image.image_id in pair)
     frame = rec.frames[image.frame_id]
-    turn = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0, np.sin(np.pi / 18), 0, np.cos(np.pi / 18)])), np.zeros(3))  # 20° about y
+    turn = pycolmap.Rigid3d(
+        pycolmap.Rotation3d(np.array([0, np.sin(np.pi / 18), 0, np.cos(np.pi / 18)])), np.zeros(3)
+    )  # 20° about y
     frame.rig_from_world = turn * frame.rig_from_world
     assert own >= 100 and pose_support(rec, thin_chain) <= total - 0.95 * own

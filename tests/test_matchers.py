@@ -57,11 +57,15 @@ def _pairwise(da, db):
 def test_raw_equals_bruteforce_numpy(ratio):
     rng = np.random.default_rng(1)
     da = _unit(rng.normal(size=(300, 32))).astype(np.float32)
-    db = np.concatenate([da[:120] + 0.05 * rng.normal(size=(120, 32)), rng.normal(size=(140, 32))]).astype(np.float32)
+    db = np.concatenate(
+        [da[:120] + 0.05 * rng.normal(size=(120, 32)), rng.normal(size=(140, 32))]
+    ).astype(np.float32)
     db = _unit(db)
     expected = _reference_mutual(_pairwise(da.astype(np.float64), db.astype(np.float64)), ratio)
     for chunk in (7, 1024):
-        got = mutual_nn_match(torch.from_numpy(da), torch.from_numpy(db), ratio, chunk_size=chunk).numpy()
+        got = mutual_nn_match(
+            torch.from_numpy(da), torch.from_numpy(db), ratio, chunk_size=chunk
+        ).numpy()
         np.testing.assert_array_equal(got, expected)
     assert 50 < len(expected) <= 300
 
@@ -69,7 +73,11 @@ def test_raw_equals_bruteforce_numpy(ratio):
 def test_raw_matcher_on_uint8_descriptors_normalises_them():
     rng = np.random.default_rng(2)
     desc_a = rng.integers(0, 120, size=(200, 128), dtype=np.uint8)
-    desc_b = np.clip(desc_a.astype(int) + rng.integers(-4, 5, size=desc_a.shape), 0, 255).astype(np.uint8)[::-1].copy()
+    desc_b = (
+        np.clip(desc_a.astype(int) + rng.integers(-4, 5, size=desc_a.shape), 0, 255)
+        .astype(np.uint8)[::-1]
+        .copy()
+    )
     kp = np.zeros((200, 4), np.float32)
     for array in (desc_a, desc_b):
         array.setflags(write=False)  # as pycolmap's database arrays can be
@@ -79,9 +87,13 @@ def test_raw_matcher_on_uint8_descriptors_normalises_them():
         warnings.simplefilter("error")
         got = get_matcher("raw", {"device": "cpu"}).match(a, b)
     assert got.dtype == np.uint32
-    expected = _reference_mutual(_pairwise(_unit(desc_a.astype(np.float64)), _unit(desc_b.astype(np.float64))), 0.8)
+    expected = _reference_mutual(
+        _pairwise(_unit(desc_a.astype(np.float64)), _unit(desc_b.astype(np.float64))), 0.8
+    )
     np.testing.assert_array_equal(got, expected)
-    np.testing.assert_array_equal(got[:, 1], 199 - got[:, 0])  # desc_b is desc_a reversed, perturbed
+    np.testing.assert_array_equal(
+        got[:, 1], 199 - got[:, 0]
+    )  # desc_b is desc_a reversed, perturbed
 
 
 def _random_guided_problem(seed, n=900, m=800, clustered=False):
@@ -93,10 +105,12 @@ def _random_guided_problem(seed, n=900, m=800, clustered=False):
     if clustered:
         centres = torch.tensor([[100.0, 100.0], [400.0, 300.0], [250.0, 420.0]])
         ka[::2] = centres[torch.arange(0, n, 2) % 3] + 15 * torch.rand(len(ka[::2]), 2, generator=g)
-        kb[::2] = ka[: m : 2] * 0.9 + 12 + torch.randn(len(kb[::2]), 2, generator=g)
+        kb[::2] = ka[:m:2] * 0.9 + 12 + torch.randn(len(kb[::2]), 2, generator=g)
     da = torch.nn.functional.normalize(torch.randn(n, 24, generator=g), dim=1)
     db = torch.nn.functional.normalize(torch.randn(m, 24, generator=g), dim=1)
-    db[:300] = torch.nn.functional.normalize(da[:300] + 0.3 * torch.randn(300, 24, generator=g), dim=1)
+    db[:300] = torch.nn.functional.normalize(
+        da[:300] + 0.3 * torch.randn(300, 24, generator=g), dim=1
+    )
     kb[:300] = ka[:300] * 0.9 + 12 + torch.randn(300, 2, generator=g)
     flow_ab = ka * 0.9 + 12 + 6 * torch.randn(n, 2, generator=g)
     flow_ba = (kb - 12) / 0.9 + 6 * torch.randn(m, 2, generator=g)
@@ -113,15 +127,21 @@ def test_guided_equals_bruteforce_eq1(ratio, clustered):
     cand_ab = np.linalg.norm(fab.numpy()[:, None] - kb.numpy()[None], axis=-1) < wb  # nan -> False
     cand_ba = np.linalg.norm(ka.numpy()[:, None] - fba.numpy()[None], axis=-1) < wa
     if clustered:
-        assert cand_ab.sum(1).max() > 100  # windows far larger than one unit of queries or one block
+        assert (
+            cand_ab.sum(1).max() > 100
+        )  # windows far larger than one unit of queries or one block
     expected = _reference_guided(dist, cand_ab, cand_ba, ratio)
     for max_pairs in (1, 5000, 1 << 20):
-        np.testing.assert_array_equal(guided_match(ka, da, kb, db, fab, fba, wa, wb, ratio, max_pairs=max_pairs).numpy(), expected)
+        np.testing.assert_array_equal(
+            guided_match(ka, da, kb, db, fab, fba, wa, wb, ratio, max_pairs=max_pairs).numpy(),
+            expected,
+        )
     assert len(expected) > 100
 
 
 def _reference_guided(dist, cand_ab, cand_ba, ratio):
     """Eq. 1 in both directions by brute force: per-direction candidate sets, mutual, ratio among candidates."""
+
     def one_way(d, cand):
         best, ok = np.zeros(len(d), np.int64), np.zeros(len(d), bool)
         for i in range(len(d)):
@@ -135,7 +155,14 @@ def _reference_guided(dist, cand_ab, cand_ba, ratio):
 
     best_ab, ok_ab = one_way(dist, cand_ab)
     best_ba, ok_ba = one_way(dist.T, cand_ba.T)
-    return np.array([(i, best_ab[i]) for i in range(len(dist)) if ok_ab[i] and ok_ba[best_ab[i]] and best_ba[best_ab[i]] == i], dtype=np.int64).reshape(-1, 2)
+    return np.array(
+        [
+            (i, best_ab[i])
+            for i in range(len(dist))
+            if ok_ab[i] and ok_ba[best_ab[i]] and best_ba[best_ab[i]] == i
+        ],
+        dtype=np.int64,
+    ).reshape(-1, 2)
 
 
 def test_guided_chunked_equals_unchunked_window_and_mutual():
@@ -143,10 +170,14 @@ def test_guided_chunked_equals_unchunked_window_and_mutual():
     wa, wb = 25.0, 22.0
     full = guided_match(ka, da, kb, db, fab, fba, wa, wb, 0.95, max_pairs=1 << 30)
     for max_pairs in (1, 97, 5000):
-        assert torch.equal(guided_match(ka, da, kb, db, fab, fba, wa, wb, 0.95, max_pairs=max_pairs), full)
+        assert torch.equal(
+            guided_match(ka, da, kb, db, fab, fba, wa, wb, 0.95, max_pairs=max_pairs), full
+        )
     i, j = full[:, 0], full[:, 1]
     assert len(full) > 100
-    assert torch.all(torch.linalg.norm(fab[i] - kb[j], dim=1) < wb)  # within W of its coarse match in B
+    assert torch.all(
+        torch.linalg.norm(fab[i] - kb[j], dim=1) < wb
+    )  # within W of its coarse match in B
     assert torch.all(torch.linalg.norm(fba[j] - ka[i], dim=1) < wa)  # and in A
     assert len(torch.unique(i)) == len(i) and len(torch.unique(j)) == len(j)
     reverse = guided_match(kb, db, ka, da, fba, fab, wb, wa, 0.95)  # the mutual test is symmetric
@@ -181,7 +212,9 @@ def _warp(img: np.ndarray, H: np.ndarray):
     """Warp by H given in COLMAP pixel coordinates; returns the warped image."""
     shift = np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1]])
     H_index = np.linalg.inv(shift) @ H @ shift  # OpenCV works on pixel indices (centre = integer)
-    return cv2.warpPerspective(img, H_index, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR, borderValue=128)
+    return cv2.warpPerspective(
+        img, H_index, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR, borderValue=128
+    )
 
 
 H_TRUE = np.array([[0.9, 0.08, 30.0], [-0.05, 0.95, 20.0], [1e-4, 5e-5, 1.0]])
@@ -196,8 +229,14 @@ def facade_pair():
 
 
 def _share_correct(matches, ka, kb, H):
-    pred = apply_homography(torch.tensor(H, dtype=torch.float32), torch.from_numpy(ka[matches[:, 0], :2]))
-    return float((np.linalg.norm(pred.numpy() - kb[matches[:, 1], :2], axis=1) < 3).mean()) if len(matches) else 0.0
+    pred = apply_homography(
+        torch.tensor(H, dtype=torch.float32), torch.from_numpy(ka[matches[:, 0], :2])
+    )
+    return (
+        float((np.linalg.norm(pred.numpy() - kb[matches[:, 1], :2], axis=1) < 3).mean())
+        if len(matches)
+        else 0.0
+    )
 
 
 def test_repeated_structure_confuses_raw_but_not_guided(facade_pair):
@@ -210,9 +249,13 @@ def test_repeated_structure_confuses_raw_but_not_guided(facade_pair):
     flow_ab, flow_ba = apply_homography(H, ta), apply_homography(torch.linalg.inv(H), tb)
     guided = guided_match(ta, na, tb, nb, flow_ab, flow_ba, 16.0, 16.0, 0.8).numpy()
     raw_correct = len(raw) * _share_correct(raw, ka, kb, H_TRUE)
-    assert raw_correct < 20 and _share_correct(raw_off, ka, kb, H_TRUE) < 0.3  # the period fools nearest neighbours
+    assert (
+        raw_correct < 20 and _share_correct(raw_off, ka, kb, H_TRUE) < 0.3
+    )  # the period fools nearest neighbours
     assert len(guided) > 500 and _share_correct(guided, ka, kb, H_TRUE) > 0.9
-    assert np.all(np.linalg.norm(flow_ab.numpy()[guided[:, 0]] - kb[guided[:, 1], :2], axis=1) < 16.0)
+    assert np.all(
+        np.linalg.norm(flow_ab.numpy()[guided[:, 0]] - kb[guided[:, 1], :2], axis=1) < 16.0
+    )
 
 
 @pytest.fixture(scope="module")
@@ -222,7 +265,9 @@ def photo_pair(tmp_path_factory):
     if not path.exists():
         pytest.skip(f"{path} not available")
     gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    gray = cv2.resize(gray, (640, round(640 * gray.shape[0] / gray.shape[1])), interpolation=cv2.INTER_AREA)
+    gray = cv2.resize(
+        gray, (640, round(640 * gray.shape[0] / gray.shape[1])), interpolation=cv2.INTER_AREA
+    )
     H = np.array([[0.95, 0.05, 15.0], [-0.04, 1.0, 10.0], [5e-5, -4e-5, 1.0]])
     warped = _warp(gray, H)
     folder = tmp_path_factory.mktemp("photo_pair")
@@ -230,7 +275,11 @@ def photo_pair(tmp_path_factory):
     cv2.imwrite(str(folder / "b.png"), warped)
     (ka, da), (kb, db) = _sift(gray), _sift(warped)
     h, w = gray.shape
-    return ImageData("a.png", 1, folder / "a.png", ka, da, w, h), ImageData("b.png", 2, folder / "b.png", kb, db, w, h), H
+    return (
+        ImageData("a.png", 1, folder / "a.png", ka, da, w, h),
+        ImageData("b.png", 2, folder / "b.png", kb, db, w, h),
+        H,
+    )
 
 
 @pytest.mark.parametrize("name", ["guided_homography", "guided_epipolar"])
@@ -238,24 +287,43 @@ def test_classical_guided_baselines_on_known_homography(photo_pair, name):
     a, b, H = photo_pair
     raw = get_matcher("raw", {"device": "cpu"}).match(a, b)
     matcher = get_matcher(name, {"device": "cpu"})
-    da, db = normalize_descriptors(a.descriptors, "cpu"), normalize_descriptors(b.descriptors, "cpu")
+    da, db = (
+        normalize_descriptors(a.descriptors, "cpu"),
+        normalize_descriptors(b.descriptors, "cpu"),
+    )
     model = matcher.seed_model(a, b, da, db)
     assert model is not None
     got = matcher.match(a, b).astype(np.int64)
     assert len(got) >= len(raw) and _share_correct(got, a.keypoints, b.keypoints, H) > 0.9
-    pa, pb = torch.from_numpy(a.keypoints[got[:, 0], :2]), torch.from_numpy(b.keypoints[got[:, 1], :2])
+    pa, pb = (
+        torch.from_numpy(a.keypoints[got[:, 0], :2]),
+        torch.from_numpy(b.keypoints[got[:, 1], :2]),
+    )
     model = torch.tensor(model, dtype=torch.float32)
     if name == "guided_homography":
-        assert torch.all(torch.linalg.norm(apply_homography(model, pa) - pb, dim=1) < matcher.conf["window_px"])
+        assert torch.all(
+            torch.linalg.norm(apply_homography(model, pa) - pb, dim=1) < matcher.conf["window_px"]
+        )
     else:
         d_b, d_a = epipolar_distances(model, pa, pb)
-        assert torch.all(d_b.diagonal() < matcher.conf["band_px"]) and torch.all(d_a.diagonal() < matcher.conf["band_px"])
+        assert torch.all(d_b.diagonal() < matcher.conf["band_px"]) and torch.all(
+            d_a.diagonal() < matcher.conf["band_px"]
+        )
 
 
 def test_colmap_guided_matching_on_known_homography(photo_pair):
     """COLMAP's own guided matching re-matches along the verified geometry: more matches, still right, one-to-one."""
+
     def as_stored(im):  # SIFT as COLMAP's database stores it (uint8)
-        return ImageData(im.name, im.image_id, im.path, im.keypoints, np.clip(np.round(im.descriptors * 512), 0, 255).astype(np.uint8), im.width, im.height)
+        return ImageData(
+            im.name,
+            im.image_id,
+            im.path,
+            im.keypoints,
+            np.clip(np.round(im.descriptors * 512), 0, 255).astype(np.uint8),
+            im.width,
+            im.height,
+        )
 
     (a, b), H = map(as_stored, photo_pair[:2]), photo_pair[2]
     raw = get_matcher("raw", {"device": "cpu"}).match(a, b)
@@ -263,7 +331,9 @@ def test_colmap_guided_matching_on_known_homography(photo_pair):
     assert len(got) > len(raw) and _share_correct(got, a.keypoints, b.keypoints, H) > 0.9
     assert len(np.unique(got[:, 0])) == len(got) and len(np.unique(got[:, 1])) == len(got)
     with pytest.raises(ValueError, match="SIFT"):
-        get_matcher("guided_colmap", {"device": "cpu"}).match(photo_pair[0], photo_pair[1])  # float descriptors
+        get_matcher("guided_colmap", {"device": "cpu"}).match(
+            photo_pair[0], photo_pair[1]
+        )  # float descriptors
 
 
 def test_epipolar_distance_convention_matches_pycolmap():
@@ -284,14 +354,25 @@ def test_keypoint_scales_from_affine_and_scale_columns():
     kp4 = np.array([[0, 0, 2.0, 0.3], [0, 0, 5.0, 1.0], [0, 0, 1.0, 0.0]], np.float32)
     theta = 0.7
     rot = np.array([np.cos(theta), -np.sin(theta), np.sin(theta), np.cos(theta)])
-    kp6 = np.concatenate([np.zeros((3, 2)), kp4[:, 2:3] * rot], 1)  # COLMAP affine: scale * rotation
+    kp6 = np.concatenate(
+        [np.zeros((3, 2)), kp4[:, 2:3] * rot], 1
+    )  # COLMAP affine: scale * rotation
     np.testing.assert_allclose(keypoint_scales(kp6), kp4[:, 2], rtol=1e-6)
     np.testing.assert_array_equal(top_scale_indices(kp4, 0.34), [1])
 
 
 def test_registry():
-    assert set(MATCHERS) == {"raw", "guided", "guided_epipolar", "guided_homography", "guided_colmap", "lightglue", "guided_lightglue",
-                             "lighterglue", "guided_lighterglue"}
+    assert set(MATCHERS) == {
+        "raw",
+        "guided",
+        "guided_epipolar",
+        "guided_homography",
+        "guided_colmap",
+        "lightglue",
+        "guided_lightglue",
+        "lighterglue",
+        "guided_lighterglue",
+    }
     with pytest.raises(ValueError, match="Unknown matcher"):
         get_matcher("nope")
     with pytest.raises(ValueError, match="Unknown raw matcher option"):
@@ -304,7 +385,9 @@ def test_guided_matcher_end_to_end_on_known_homography(photo_pair):
     flows = matcher.coarse_flows(a, b)
     got = matcher.match_flows(a, b, flows)
     np.testing.assert_array_equal(matcher.match(a, b), got)  # features reused from the cache
-    assert len(got) > 100 and _share_correct(got.astype(np.int64), a.keypoints, b.keypoints, H) > 0.9
+    assert (
+        len(got) > 100 and _share_correct(got.astype(np.int64), a.keypoints, b.keypoints, H) > 0.9
+    )
     i, j = got[:, 0].astype(np.int64), got[:, 1].astype(np.int64)
     w = matcher.conf["window_cells"]
     assert np.all(np.linalg.norm(flows.flow_ab[i] - b.keypoints[j, :2], axis=1) < w * flows.cell_b)
@@ -323,7 +406,9 @@ def test_guided_matcher_weights_fallback_is_loud(tmp_path):
         matcher = get_matcher("guided", {"device": "cpu"})
     finally:
         logger.removeHandler(handler)
-    warned = [r for r in records if r.levelno == logging.WARNING and "coarse filter" in r.getMessage()]
+    warned = [
+        r for r in records if r.levelno == logging.WARNING and "coarse filter" in r.getMessage()
+    ]
     if DEFAULT_WEIGHTS.exists():
         assert matcher.coarse.conf["mode"] == "filter" and not warned
     else:
@@ -340,14 +425,24 @@ def test_raw_merge_adds_raw_matches_of_unmatched_keypoints_only(photo_pair, rati
     guided = get_matcher("guided", {"device": "cpu", "raw_matches": None})
     flows = guided.coarse_flows(a, b)
     only = guided.match_flows(a, b, flows, ratio=ratio).astype(np.int64)
-    both = guided.match_flows(a, b, flows, ratio=ratio, raw_ratio=raw_ratio, raw_matches="merge").astype(np.int64)
+    both = guided.match_flows(
+        a, b, flows, ratio=ratio, raw_ratio=raw_ratio, raw_matches="merge"
+    ).astype(np.int64)
     raw = get_matcher("raw", {"device": "cpu", "ratio": raw_ratio}).match(a, b).astype(np.int64)
-    assert {tuple(m) for m in only} <= {tuple(m) for m in both} <= {tuple(m) for m in only} | {tuple(m) for m in raw}
+    assert (
+        {tuple(m) for m in only}
+        <= {tuple(m) for m in both}
+        <= {tuple(m) for m in only} | {tuple(m) for m in raw}
+    )
     assert len(np.unique(both[:, 0])) == len(both) and len(np.unique(both[:, 1])) == len(both)
     with pytest.raises(ValueError, match=r"takes no option \['min_inliers'\] after its guidance"):
-        guided.match_flows(a, b, flows, min_inliers=15)  # a verification option, not one applied after the flows
+        guided.match_flows(
+            a, b, flows, min_inliers=15
+        )  # a verification option, not one applied after the flows
     in_both, ga, gb = {tuple(m) for m in both}, set(only[:, 0]), set(only[:, 1])
-    assert all(tuple(m) in in_both or m[0] in ga or m[1] in gb for m in raw)  # a raw match is kept unless guidance overrules it
+    assert all(
+        tuple(m) in in_both or m[0] in ga or m[1] in gb for m in raw
+    )  # a raw match is kept unless guidance overrules it
 
 
 def test_matching_uses_one_torch_thread_and_leaves_the_process_as_it_was(synthetic_scene, tmp_path):
@@ -390,14 +485,18 @@ def test_default_camera_is_the_one_colmaps_feature_extractor_writes(synthetic_sc
     from colmap_guided import verify
 
     (tmp_path / "images").mkdir()
-    with Image.open(synthetic_scene.image_dir / synthetic_scene.names[0]) as im:  # its EXIF focal dropped
+    with Image.open(
+        synthetic_scene.image_dir / synthetic_scene.names[0]
+    ) as im:  # its EXIF focal dropped
         Image.fromarray(np.asarray(im)[:, :400]).save(tmp_path / "images" / "plain.png")
     db = tmp_path / "db.db"
     pycolmap.extract_features(db, tmp_path / "images")
     with pycolmap.Database.open(str(db)) as database:
         (camera,) = database.read_all_cameras()
     ours = verify.default_camera(camera.width, camera.height)
-    assert ours.model == camera.model and ours.width == camera.width and ours.height == camera.height
+    assert (
+        ours.model == camera.model and ours.width == camera.width and ours.height == camera.height
+    )
     np.testing.assert_allclose(ours.params, camera.params)
 
 
@@ -415,13 +514,23 @@ def test_raw_matches_verified_never_loses_what_raw_matching_verifies(photo_pair)
     options = verify.two_view_options(guided.verification_conf)
 
     def inliers(matches):
-        cam_a, cam_b = verify.default_camera(a.width, a.height), verify.default_camera(b.width, b.height)
-        return len(verify.verify_pair(cam_a, a.keypoints, cam_b, b.keypoints, matches, options).inlier_matches)
+        cam_a, cam_b = (
+            verify.default_camera(a.width, a.height),
+            verify.default_camera(b.width, b.height),
+        )
+        return len(
+            verify.verify_pair(
+                cam_a, a.keypoints, cam_b, b.keypoints, matches, options
+            ).inlier_matches
+        )
 
     raw = inliers(get_matcher("raw", {"device": "cpu"}).match(a, b))
     right = guided.coarse_flows(a, b)
     wrong = dataclasses.replace(right, flow_ab=right.flow_ab + 120.0, flow_ba=right.flow_ba - 120.0)
-    guided_only = {name: inliers(guided.match_flows(a, b, flows, raw_matches=None)) for name, flows in (("right", right), ("wrong", wrong))}
+    guided_only = {
+        name: inliers(guided.match_flows(a, b, flows, raw_matches=None))
+        for name, flows in (("right", right), ("wrong", wrong))
+    }
     assert guided_only["wrong"] < raw / 4 and raw > 100
     assert inliers(guided.match_flows(a, b, wrong)) >= raw
     assert inliers(guided.match_flows(a, b, right)) >= max(raw, guided_only["right"])
@@ -429,7 +538,9 @@ def test_raw_matches_verified_never_loses_what_raw_matching_verifies(photo_pair)
         get_matcher("guided", {"device": "cpu", "raw_matches": "union"})
 
 
-def test_a_new_matcher_plugs_into_the_pipeline_through_the_base_class_only(synthetic_scene, tmp_path):
+def test_a_new_matcher_plugs_into_the_pipeline_through_the_base_class_only(
+    synthetic_scene, tmp_path
+):
     """What match_database asks of a matcher is declared on Matcher: ``prepare`` runs once per image, before
     its first pair, and what it puts in ``image.extra`` reaches ``match``; ``verification_conf`` sets the
     pair's two-view verification (an impossible 10**6 inliers: no pair verifies); ``release`` comes once
@@ -470,14 +581,23 @@ def test_a_new_matcher_plugs_into_the_pipeline_through_the_base_class_only(synth
     stats = match_database(db, synthetic_scene.image_dir, pairs_path="exhaustive", matcher=matcher)
     names = sorted(synthetic_scene.names)
     assert sorted(matcher.prepared) == names and sorted(matcher.released) == names
-    assert stats["verification"]["min_num_inliers"] == 10**6 and stats["num_matches"] > 0 and stats["num_verified_pairs"] == 0
+    assert (
+        stats["verification"]["min_num_inliers"] == 10**6
+        and stats["num_matches"] > 0
+        and stats["num_verified_pairs"] == 0
+    )
     with dbio.open_database(db) as database:
         assert len(dbio.pair_match_counts(database)) == len(names) * (len(names) - 1) // 2
         assert not any(dbio.pair_inlier_counts(database).values())
-        a, b = (dbio.read_image_data(database, image, synthetic_scene.image_dir) for image in list(dbio.images_by_name(database).values())[:2])
+        a, b = (
+            dbio.read_image_data(database, image, synthetic_scene.image_dir)
+            for image in list(dbio.images_by_name(database).values())[:2]
+        )
     # A matcher without a guidance step runs variants through the same two-step calls as the guided one.
     matcher.prepare(a), matcher.prepare(b)
-    assert np.array_equal(matcher.match_flows(a, b, matcher.coarse_flows(a, b)), matcher.raw.match(a, b))
+    assert np.array_equal(
+        matcher.match_flows(a, b, matcher.coarse_flows(a, b)), matcher.raw.match(a, b)
+    )
     with pytest.raises(ValueError, match="no option"):
         matcher.match_flows(a, b, None, ratio=0.9)
 
@@ -493,7 +613,9 @@ def test_raw_matches_verified_keeps_a_raw_pair_at_colmaps_threshold_and_guided_a
     pts = rng.uniform(50, 590, (300, 2)).astype(np.float32)
     proj = np.c_[pts, np.ones(len(pts))] @ H.T
     kp_b = (proj[:, :2] / proj[:, 2:]).astype(np.float32)
-    keypoints = lambda xy: np.c_[xy, np.ones((len(xy), 1)), np.zeros((len(xy), 1))].astype(np.float32)
+    keypoints = lambda xy: np.c_[xy, np.ones((len(xy), 1)), np.zeros((len(xy), 1))].astype(
+        np.float32
+    )
     desc = np.zeros((len(pts), 128), np.uint8)
     a = ImageData("a.jpg", 1, Path("a.jpg"), keypoints(pts), desc, 640, 640)
     b = ImageData("b.jpg", 2, Path("b.jpg"), keypoints(kp_b), desc, 640, 640)
@@ -505,15 +627,27 @@ def test_raw_matches_verified_keeps_a_raw_pair_at_colmaps_threshold_and_guided_a
     cam = verify.default_camera(640, 640)
 
     def verified(matches):
-        return len(verify.verify_pair(cam, a.keypoints, cam, b.keypoints, np.asarray(matches, np.uint32), options).inlier_matches)
+        return len(
+            verify.verify_pair(
+                cam, a.keypoints, cam, b.keypoints, np.asarray(matches, np.uint32), options
+            ).inlier_matches
+        )
 
     t = lambda m: torch.from_numpy(np.asarray(m, np.int64))
     kept = guided.verified_best(a, b, t(chance), t(np.r_[right, chance[:30]]))
-    assert verified(kept) == 20  # the raw pair, as plain COLMAP keeps it (before: lost under the guided 25)
-    assert verified(guided.verified_best(a, b, t(right), t(chance))) == 0  # 20 guided inliers < 25: rejected
+    assert (
+        verified(kept) == 20
+    )  # the raw pair, as plain COLMAP keeps it (before: lost under the guided 25)
+    assert (
+        verified(guided.verified_best(a, b, t(right), t(chance))) == 0
+    )  # 20 guided inliers < 25: rejected
     more = np.stack([np.arange(30), np.arange(30)], 1)
-    assert verified(guided.verified_best(a, b, t(more), t(chance))) == 30  # >= 25 guided inliers pass
-    assert get_matcher("guided", {"device": "cpu", "raw_matches": None}).verification_conf == {"min_num_inliers": 25}
+    assert (
+        verified(guided.verified_best(a, b, t(more), t(chance))) == 30
+    )  # >= 25 guided inliers pass
+    assert get_matcher("guided", {"device": "cpu", "raw_matches": None}).verification_conf == {
+        "min_num_inliers": 25
+    }
 
 
 def test_raw_matches_verified_keeps_the_raw_pair_when_the_guided_geometry_contradicts_it():
@@ -534,8 +668,12 @@ def test_raw_matches_verified_keeps_the_raw_pair_when_the_guided_geometry_contra
 
     X = np.c_[rng.uniform(-2, 2, (200, 2)), rng.uniform(6, 10, 200)]  # a deep, non-planar scene
     kp_a = project(X, 0, np.zeros(3))
-    kp_b = np.r_[project(X, 12, np.array([-1.0, 0, 0])), project(X, -15, np.array([0.8, 0.3, 0]))]  # true view, then a wrong one
-    keypoints = lambda xy: np.c_[xy, np.ones((len(xy), 1)), np.zeros((len(xy), 1))].astype(np.float32)
+    kp_b = np.r_[
+        project(X, 12, np.array([-1.0, 0, 0])), project(X, -15, np.array([0.8, 0.3, 0]))
+    ]  # true view, then a wrong one
+    keypoints = lambda xy: np.c_[xy, np.ones((len(xy), 1)), np.zeros((len(xy), 1))].astype(
+        np.float32
+    )
     desc = np.zeros((len(kp_b), 128), np.uint8)
     a = ImageData("a.jpg", 1, Path("a.jpg"), keypoints(kp_a), desc[:200], 640, 640)
     b = ImageData("b.jpg", 2, Path("b.jpg"), keypoints(kp_b), desc, 640, 640)
@@ -543,18 +681,37 @@ def test_raw_matches_verified_keeps_the_raw_pair_when_the_guided_geometry_contra
     options = verify.two_view_options({"min_num_inliers": 15})
 
     def verified(matches):
-        return verify.verify_pair(cam, a.keypoints, cam, b.keypoints, np.asarray(matches, np.uint32), options).inlier_matches
+        return verify.verify_pair(
+            cam, a.keypoints, cam, b.keypoints, np.asarray(matches, np.uint32), options
+        ).inlier_matches
 
     right_raw = np.stack([np.arange(0, 40), np.arange(0, 40)], 1)
     right_guided = np.stack([np.arange(20, 100), np.arange(20, 100)], 1)
-    wrong_guided = np.stack([np.arange(100, 180), np.arange(300, 380)], 1)  # a consistent but wrong geometry
+    wrong_guided = np.stack(
+        [np.arange(100, 180), np.arange(300, 380)], 1
+    )  # a consistent but wrong geometry
     assert len(verified(right_raw)) == 40 and len(verified(wrong_guided)) == 80
     t = lambda m: torch.from_numpy(np.asarray(m, np.int64))
     guided = get_matcher("guided", {"device": "cpu"})
-    wrong_geometry = verify.verify_pair(cam, a.keypoints, cam, b.keypoints, wrong_guided.astype(np.uint32), options)
-    assert verify.agreement(wrong_geometry, a.keypoints, b.keypoints, right_raw, 4.0) < 0.2  # the raw inliers do not fit it
+    wrong_geometry = verify.verify_pair(
+        cam, a.keypoints, cam, b.keypoints, wrong_guided.astype(np.uint32), options
+    )
+    assert (
+        verify.agreement(wrong_geometry, a.keypoints, b.keypoints, right_raw, 4.0) < 0.2
+    )  # the raw inliers do not fit it
     kept = guided.verified_best(a, b, t(wrong_guided), t(right_raw))
     assert np.array_equal(kept.numpy(), right_raw)  # 40 raw inliers, not the 80 wrong guided ones
     union = np.asarray(verified(guided.verified_best(a, b, t(right_guided), t(right_raw))))
-    assert len(union) == 100 and set(union[:, 0]) == set(range(100))  # agreeing sides: the union of both
-    assert len(verified(guided.verified_best(a, b, t(wrong_guided), t(right_raw), {**guided.conf, "min_agreement": 0.0}))) == 80  # the old choice
+    assert len(union) == 100 and set(union[:, 0]) == set(
+        range(100)
+    )  # agreeing sides: the union of both
+    assert (
+        len(
+            verified(
+                guided.verified_best(
+                    a, b, t(wrong_guided), t(right_raw), {**guided.conf, "min_agreement": 0.0}
+                )
+            )
+        )
+        == 80
+    )  # the old choice

@@ -18,14 +18,27 @@ def _image_data(path, image_id):
         pytest.skip(f"{path} not available")
     gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     keypoints, descriptors = pycolmap.Sift().extract(np.ascontiguousarray(gray))
-    descriptors = np.clip(np.round(descriptors * 512), 0, 255).astype(np.uint8)  # as stored in the database
-    name = path.relative_to(shared_data_dir()).as_posix()  # unique: the guided matcher caches features by name
+    descriptors = np.clip(np.round(descriptors * 512), 0, 255).astype(
+        np.uint8
+    )  # as stored in the database
+    name = path.relative_to(
+        shared_data_dir()
+    ).as_posix()  # unique: the guided matcher caches features by name
     return ImageData(name, image_id, path, keypoints, descriptors, gray.shape[1], gray.shape[0])
 
 
 def _verified_inliers(a, b, matches, matcher):
-    options = verify.two_view_options(matcher.verification_conf)  # as the pipeline verifies this matcher's pairs
-    geometry = verify.verify_pair(verify.default_camera(a.width, a.height), a.keypoints, verify.default_camera(b.width, b.height), b.keypoints, matches, options)
+    options = verify.two_view_options(
+        matcher.verification_conf
+    )  # as the pipeline verifies this matcher's pairs
+    geometry = verify.verify_pair(
+        verify.default_camera(a.width, a.height),
+        a.keypoints,
+        verify.default_camera(b.width, b.height),
+        b.keypoints,
+        matches,
+        options,
+    )
     return len(geometry.inlier_matches)
 
 
@@ -58,11 +71,18 @@ def test_unrelated_pairs_verify_no_more_often_with_guided(matchers):
     for i in range(len(images)):
         for j in range(i + 1, len(images)):
             for name, matcher in (("raw", raw), ("guided", guided)):
-                verified[name] += _verified_inliers(images[i], images[j], matcher.match(images[i], images[j]), matcher) > 0
+                verified[name] += (
+                    _verified_inliers(
+                        images[i], images[j], matcher.match(images[i], images[j]), matcher
+                    )
+                    > 0
+                )
     assert verified["guided"] <= verified["raw"], verified
 
 
-@pytest.mark.parametrize("pair", ["WGABS/kremlin", "WGALBS/flood", "WGALBS/kyiv_dolltheater", "WGABS/petrzin"])
+@pytest.mark.parametrize(
+    "pair", ["WGABS/kremlin", "WGALBS/flood", "WGALBS/kyiv_dolltheater", "WGABS/petrzin"]
+)
 def test_guided_never_verifies_a_wrong_geometry_on_day_night_pairs(matchers, pair):
     """WxBS pairs where guided matching (ratio 0.8, W = 1) once verified a wrong geometry with 15-20 inliers
     (kremlin, flood, kyiv_dolltheater) and one where it found the right one (petrzin, 38 inliers; raw: none).
@@ -72,9 +92,18 @@ def test_guided_never_verifies_a_wrong_geometry_on_day_night_pairs(matchers, pai
 
     _, guided = matchers
     folder = shared_data_dir() / "wxbs_v1.1" / pair
-    a, b = (_image_data(next(folder.glob(f"{stem}.*[!t]")), i) for i, stem in ((1, "01"), (2, "02")))
+    a, b = (
+        _image_data(next(folder.glob(f"{stem}.*[!t]")), i) for i, stem in ((1, "01"), (2, "02"))
+    )
     options = verify.two_view_options(guided.verification_conf)
-    geometry = verify.verify_pair(verify.default_camera(a.width, a.height), a.keypoints, verify.default_camera(b.width, b.height), b.keypoints, guided.match(a, b), options)
+    geometry = verify.verify_pair(
+        verify.default_camera(a.width, a.height),
+        a.keypoints,
+        verify.default_camera(b.width, b.height),
+        b.keypoints,
+        guided.match(a, b),
+        options,
+    )
     if len(geometry.inlier_matches) == 0:
         assert pair != "WGABS/petrzin", "the right geometry of petrzin should verify"
         return

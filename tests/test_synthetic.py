@@ -60,7 +60,19 @@ def test_same_seed_same_images_other_seed_differs(scene, tmp_path):
     again = render_scene(tmp_path / "again", num_images=2)
     for name in again.names:
         assert (again.image_dir / name).read_bytes() == (scene.image_dir / name).read_bytes()
-    synthetic.main([str(tmp_path / "other"), "--num_images", "2", "--seed", "1", "--width", "320", "--height", "240"])
+    synthetic.main(
+        [
+            str(tmp_path / "other"),
+            "--num_images",
+            "2",
+            "--seed",
+            "1",
+            "--width",
+            "320",
+            "--height",
+            "240",
+        ]
+    )
     other = cv2.imread(str(tmp_path / "other" / "images" / "view_000.jpg")).astype(float)
     first = cv2.imread(str(scene.image_dir / "view_000.jpg"))
     assert np.abs(other - cv2.resize(first, (320, 240), interpolation=cv2.INTER_AREA)).mean() > 20
@@ -78,7 +90,11 @@ def test_texture_lands_where_the_camera_projects_it():
         texture = np.zeros((600, 600, 3), np.float32)
         texture[290:310, 290:310] = 1  # 20 cm square centred at (3 m, 3 m) of the board
         verts = np.array([(0, 0), (6, 0), (6, 6), (0, 6)], float)
-        origin, u, v = np.array([ox - 3, oy - 3, 10.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0])
+        origin, u, v = (
+            np.array([ox - 3, oy - 3, 10.0]),
+            np.array([1.0, 0, 0]),
+            np.array([0, 1.0, 0]),
+        )
         board = Polygon(origin, u, v, verts, make_texture(texture, 100.0))
         image, depth = render_image([board], K, np.eye(3), np.zeros(3), 128, 96, conf, rng)
         weight = image[:, :, 0] / 255.0
@@ -92,7 +108,10 @@ def test_texture_lands_where_the_camera_projects_it():
 def test_ground_truth_transfer_aligns_image_content(scene):
     """Pixels of view 0 moved into view 1 by depth and poses land on the same texture: the best
     sub-pixel shift of view 1 is zero, and the matched intensities agree closely."""
-    gray = [cv2.imread(str(scene.image_dir / n), cv2.IMREAD_GRAYSCALE).astype(np.float32) for n in scene.names]
+    gray = [
+        cv2.imread(str(scene.image_dir / n), cv2.IMREAD_GRAYSCALE).astype(np.float32)
+        for n in scene.names
+    ]
     rows, cols = np.mgrid[0:480:3, 0:640:3]
     points = np.stack([cols.ravel() + 0.5, rows.ravel() + 0.5], 1)
     moved, valid = transfer_points(scene, scene.names[0], scene.names[1], points)
@@ -147,12 +166,16 @@ def test_pose_errors_measure_a_perturbed_model(scene):
     gt = pycolmap.Reconstruction(scene.gt_dir)
     estimate = pycolmap.Reconstruction(gt)
     # A similarity of the whole model changes nothing; then turn one camera by 5 degrees.
-    similarity = pycolmap.Sim3d(2.5, pycolmap.Rotation3d(np.array([0.1, -0.3, 0.2])), np.array([1.0, 2, 3]))
+    similarity = pycolmap.Sim3d(
+        2.5, pycolmap.Rotation3d(np.array([0.1, -0.3, 0.2])), np.array([1.0, 2, 3])
+    )
     estimate.transform(similarity)
     image = estimate.find_image_with_name(scene.names[2])
     pose = image.cam_from_world()
     turn = cv2.Rodrigues(np.array([0, math.radians(5), 0]))[0]  # about the camera centre
-    turned = pycolmap.Rigid3d(pycolmap.Rotation3d(turn @ pose.rotation.matrix()), turn @ pose.translation)
+    turned = pycolmap.Rigid3d(
+        pycolmap.Rotation3d(turn @ pose.rotation.matrix()), turn @ pose.translation
+    )
     estimate.frame(image.frame_id).set_cam_from_world(image.camera_id, turned)
     errors = pose_errors(estimate, scene.gt_dir)
     assert errors[scene.names[2]][0] == pytest.approx(5.0, abs=1e-6)

@@ -28,7 +28,11 @@ def small_data(tmp_path_factory, shared_data):
 
 
 def _dist(F, xa, xb):
-    return epipolar_distance(torch.tensor(F)[None], torch.tensor(xa, dtype=torch.float64)[None], torch.tensor(xb, dtype=torch.float64)[None])[0].numpy()
+    return epipolar_distance(
+        torch.tensor(F)[None],
+        torch.tensor(xa, dtype=torch.float64)[None],
+        torch.tensor(xb, dtype=torch.float64)[None],
+    )[0].numpy()
 
 
 def test_sfm_pairs_and_fundamental_matrices(shared_data):
@@ -39,12 +43,17 @@ def test_sfm_pairs_and_fundamental_matrices(shared_data):
         A, B = scene.images[p.a], scene.images[p.b]
         xa, xb = G.ideal_pixels(A.camera, p.xy_a), G.ideal_pixels(B.camera, p.xy_b)
         d = _dist(p.F, xa, xb)
-        assert np.median(d) < 0.5 and np.percentile(d, 90) < 2.0  # pseudo-GT reprojection error level
+        assert (
+            np.median(d) < 0.5 and np.percentile(d, 90) < 2.0
+        )  # pseudo-GT reprojection error level
         # wrong pairing of the same points is far from the lines: the check has teeth
         assert np.median(_dist(p.F, xa, np.roll(xb, 7, axis=0))) > 20
         # F in scaled frames
         sa, sb = np.array([0.4, 0.41]), np.array([0.25, 0.26])
-        assert np.median(_dist(G.scale_fundamental(p.F, sa, sb), xa * sa, xb * sb)) < 0.5 * sb.max() + 1e-6
+        assert (
+            np.median(_dist(G.scale_fundamental(p.F, sa, sb), xa * sa, xb * sb))
+            < 0.5 * sb.max() + 1e-6
+        )
 
 
 def test_pair_mining_counts_shared_tracks(shared_data):
@@ -66,11 +75,18 @@ def test_synthetic_homography_pair_is_exact(small_data):
     view = small_data.views[key]
     im = small_data.scenes[view.scene].images[view.name]
     photo = read_image(im.path).astype(np.float32)
-    warped = augment.warp_image(photo.astype(np.uint8), view.H, view.geometry.width, view.geometry.height).astype(np.float32)
+    warped = augment.warp_image(
+        photo.astype(np.uint8), view.H, view.geometry.width, view.geometry.height
+    ).astype(np.float32)
     rng = np.random.default_rng(0)
     pts = np.stack([rng.uniform(0, im.width, 4000), rng.uniform(0, im.height, 4000)], 1)
     mapped = apply_h(view.H, pts)
-    ok = views.inside(mapped, view.geometry) & (mapped.min(1) > 2) & (mapped[:, 0] < view.geometry.width - 2) & (mapped[:, 1] < view.geometry.height - 2)
+    ok = (
+        views.inside(mapped, view.geometry)
+        & (mapped.min(1) > 2)
+        & (mapped[:, 0] < view.geometry.width - 2)
+        & (mapped[:, 1] < view.geometry.height - 2)
+    )
     assert ok.sum() > 200
     # pixel value in the photo at p (pixel centre convention) vs in the warp at H p
     a = photo[np.floor(pts[ok, 1]).astype(int), np.floor(pts[ok, 0]).astype(int)]
@@ -88,7 +104,11 @@ def test_synthetic_homography_pair_is_exact(small_data):
 
 
 def test_archival_variants_differ_and_are_deterministic(small_data):
-    key0 = next(k for k in small_data.views if k.startswith("img/") and k.endswith("/v0") and "bundler_et" in k)
+    key0 = next(
+        k
+        for k in small_data.views
+        if k.startswith("img/") and k.endswith("/v0") and "bundler_et" in k
+    )
     key1 = key0[:-1] + "1"
     clean, degraded = small_data.render(key0), small_data.render(key1)
     assert clean.shape == degraded.shape
@@ -109,7 +129,9 @@ def test_sampler_is_seeded_and_balanced(small_data):
     assert kinds == {"sfm", "synthetic"}
     assert any("/v1" in s.a.key or "/v1" in s.b.key for s in many)  # archival versions are drawn
     assert any("/v2" in s.a.key or "/v2" in s.b.key for s in many)  # and small soft scans
-    assert any(s.a.key.endswith("/v0") and "/v0" not in s.b.key for s in many)  # either image may be old
+    assert any(
+        s.a.key.endswith("/v0") and "/v0" not in s.b.key for s in many
+    )  # either image may be old
     assert any("/v0" not in s.a.key and s.b.key.endswith("/v0") for s in many)
     assert set(small_data.val_scenes).isdisjoint(s.a.scene for s in many)
 
@@ -138,14 +160,20 @@ def test_collate_cell_indices_and_padding(small_data, max_cells):
                 idx = int(np.argmin(np.linalg.norm(g.cell_centers() - p, axis=1)))
                 row, col = divmod(idx, g.grid_width)
                 r0, c0, h, ww = view.grid
-                flat.append((row - r0) * w + (col - c0) if 0 <= row - r0 < h and 0 <= col - c0 < ww else None)
+                flat.append(
+                    (row - r0) * w + (col - c0)
+                    if 0 <= row - r0 < h and 0 <= col - c0 < ww
+                    else None
+                )
             if None not in flat:
                 want.add(tuple(flat))
         assert got == want
         n_kept += int(valid.sum())
         for view, key in ((s.a, "xy_a"), (s.b, "xy_b")):
             _, _, h, ww = view.grid
-            assert np.allclose(batch[key][i, :h, :ww].numpy(), view.crop_xy())  # the window's centres
+            assert np.allclose(
+                batch[key][i, :h, :ww].numpy(), view.crop_xy()
+            )  # the window's centres
     if not max_cells:
         assert n_kept == sum(len(s.pts_a) for s in samples)  # nothing dropped without windows
     assert n_kept > 0
@@ -164,7 +192,9 @@ def test_cached_features_match_backbone(small_data):
     got = small_data.features(keys[0])
     assert got.shape == ref.shape
     assert torch.allclose(got, ref, atol=2e-3)  # float16 storage
-    assert torch.allclose(got.norm(dim=0), torch.ones_like(got[0]), atol=5e-3)  # L2-normalised per cell
+    assert torch.allclose(
+        got.norm(dim=0), torch.ones_like(got[0]), atol=5e-3
+    )  # L2-normalised per cell
 
 
 def test_soft_scan_is_a_soft_copy_in_place(shared_data):
@@ -178,7 +208,9 @@ def test_soft_scan_is_a_soft_copy_in_place(shared_data):
     assert out.shape == img.shape and out.dtype == np.uint8
 
     def detail(x):
-        return cv2.Laplacian(cv2.cvtColor(x, cv2.COLOR_RGB2GRAY).astype(np.float32), cv2.CV_32F).var()
+        return cv2.Laplacian(
+            cv2.cvtColor(x, cv2.COLOR_RGB2GRAY).astype(np.float32), cv2.CV_32F
+        ).var()
 
     assert detail(out) < 0.3 * detail(img)
 

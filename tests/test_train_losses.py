@@ -168,7 +168,17 @@ def test_epipolar_loss_matches_loop_reference(seed):
     s_ab, s_ba, positive, F, xy_a, xy_b, mask_a, mask_b = _random_case(seed)
     for lam in (4.0, 16.0, 40.0):
         loss, _ = epipolar_loss(s_ab, s_ba, positive, F, xy_a, xy_b, mask_a, mask_b, lam=lam)
-        ref = _epipolar_reference(s_ab.numpy(), s_ba.numpy(), positive.numpy(), F.numpy(), xy_a.numpy(), xy_b.numpy(), mask_a.numpy(), mask_b.numpy(), lam)
+        ref = _epipolar_reference(
+            s_ab.numpy(),
+            s_ba.numpy(),
+            positive.numpy(),
+            F.numpy(),
+            xy_a.numpy(),
+            xy_b.numpy(),
+            mask_a.numpy(),
+            mask_b.numpy(),
+            lam,
+        )
         assert loss.item() == pytest.approx(ref, abs=1e-12)
 
 
@@ -227,9 +237,23 @@ def test_sparse_training_path_equals_dense_with_full_support():
     net = CoarseNet({"pretrained": False}).double()
     fa = torch.nn.functional.normalize(torch.randn(1, 8, 3, 4, dtype=torch.float64), dim=1)
     fb = torch.nn.functional.normalize(torch.randn(1, 8, 4, 3, dtype=torch.float64), dim=1)
-    xa = torch.stack(torch.meshgrid(torch.arange(4.0), torch.arange(3.0), indexing="xy"), -1).double() * 16 + 8  # (3, 4, 2)
-    xb = torch.stack(torch.meshgrid(torch.arange(3.0), torch.arange(4.0), indexing="xy"), -1).double() * 16 + 8  # (4, 3, 2)
-    F = torch.tensor([[[0, 0, 1], [0, 0, 0], [-1, 0, 0]]], dtype=torch.float64)  # line of (u, v): x = u
+    xa = (
+        torch.stack(
+            torch.meshgrid(torch.arange(4.0), torch.arange(3.0), indexing="xy"), -1
+        ).double()
+        * 16
+        + 8
+    )  # (3, 4, 2)
+    xb = (
+        torch.stack(
+            torch.meshgrid(torch.arange(3.0), torch.arange(4.0), indexing="xy"), -1
+        ).double()
+        * 16
+        + 8
+    )  # (4, 3, 2)
+    F = torch.tensor(
+        [[[0, 0, 1], [0, 0, 0], [-1, 0, 0]]], dtype=torch.float64
+    )  # line of (u, v): x = u
     pos = torch.tensor([True])
 
     out = net(fa, fb)
@@ -241,8 +265,19 @@ def test_sparse_training_path_equals_dense_with_full_support():
         idx_ab, best_ab = sparse_best(a, b, v, 12, 12)
         idx_ba, best_ba = sparse_best(b, a, v, 12, 12)
         ones = torch.ones(1, 12, dtype=torch.bool)
-        return epipolar_loss_from_best(best_ab[None], idx_ab[None], best_ba[None], idx_ba[None], pos, F,
-                                       xa.reshape(1, -1, 2), xb.reshape(1, -1, 2), ones, ones, lam=16.0)[0]
+        return epipolar_loss_from_best(
+            best_ab[None],
+            idx_ab[None],
+            best_ba[None],
+            idx_ba[None],
+            pos,
+            F,
+            xa.reshape(1, -1, 2),
+            xb.reshape(1, -1, 2),
+            ones,
+            ones,
+            lam=16.0,
+        )[0]
 
     full = sparse(12)
     assert full.item() == pytest.approx(dense.item(), abs=1e-10)

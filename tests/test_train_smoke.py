@@ -21,8 +21,15 @@ DATA = dict(
 
 
 def _conf(cache, **kw):
-    conf = dict(supervision="epipolar", iterations=6, batch_size=4, log_every=2, val_every=100, checkpoint_every=2,
-                data={**DATA, "cache_dir": str(cache)})
+    conf = dict(
+        supervision="epipolar",
+        iterations=6,
+        batch_size=4,
+        log_every=2,
+        val_every=100,
+        checkpoint_every=2,
+        data={**DATA, "cache_dir": str(cache)},
+    )
     return {**conf, **kw}
 
 
@@ -68,7 +75,9 @@ def test_resume_continues_exactly(straight, tmp_path):
     assert resumed.iteration == 4
     resumed.train()
     assert resumed.iteration == 8
-    for (k, p), q in zip(ref.model.filter.state_dict().items(), resumed.model.filter.state_dict().values()):
+    for (k, p), q in zip(
+        ref.model.filter.state_dict().items(), resumed.model.filter.state_dict().values()
+    ):
         assert torch.equal(p, q), k
     assert [h["loss"] for h in ref.history] == [h["loss"] for h in resumed.history]
     with pytest.raises(ValueError, match="supervision"):
@@ -88,7 +97,12 @@ def test_pck_errors_zero_on_an_exact_translation():
             s[r, c, min(r + 1, h - 1), min(c + 2, w - 1)] = 1
     view = View("x", "scene", "x", g, np.zeros((h, w, 2)))
     shift = np.array([2, 1]) * 16 / g.scale  # in original pixels
-    pts_a = g.cell_centers()[[43, 64, 110, 172]] + [[3.0, 4.0], [0.0, 0.0], [10.0, -7.0], [5.0, 5.0]]  # interior
+    pts_a = g.cell_centers()[[43, 64, 110, 172]] + [
+        [3.0, 4.0],
+        [0.0, 0.0],
+        [10.0, -7.0],
+        [5.0, 5.0],
+    ]  # interior
     sample = PairSample(view, view, True, "sfm", np.eye(3), pts_a, pts_a + shift)
     ab, ba = s.reshape(h * w, h * w).argmax(1).numpy(), s.reshape(h * w, h * w).argmax(0).numpy()
     err = T.pck_errors(ab, ba, sample)
@@ -99,8 +113,15 @@ def test_pck_errors_zero_on_an_exact_translation():
 
 def test_finetune_stage_updates_the_backbone(straight, tmp_path):
     ref, root, _, _ = straight
-    conf = _conf(root / "features", iterations=1, batch_size=2, finetune_backbone=True, backbone_lr=1e-3,
-                 init=str(root / "run" / "coarse_filter.safetensors"), val_every=1000)
+    conf = _conf(
+        root / "features",
+        iterations=1,
+        batch_size=2,
+        finetune_backbone=True,
+        backbone_lr=1e-3,
+        init=str(root / "run" / "coarse_filter.safetensors"),
+        val_every=1000,
+    )
     tr = T.Trainer(tmp_path / "ft", conf)
     for p, q in zip(ref.model.filter.parameters(), tr.model.filter.parameters()):
         assert torch.equal(p, q)  # initialised from the frozen stage's export
@@ -123,8 +144,12 @@ def test_dense_windowed_path_trains_and_resume_checks_the_path(straight, tmp_pat
     before = _fixed_loss(tr)
     assert tr.train() is True
     assert _fixed_loss(tr) < before - 1e-3
-    assert tr.optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)  # the last iteration ran after the 10x drop
-    with pytest.raises(ValueError, match="impl"):  # a checkpoint continues on the path it was trained on
+    assert tr.optimizer.param_groups[0]["lr"] == pytest.approx(
+        1e-3
+    )  # the last iteration ran after the 10x drop
+    with pytest.raises(
+        ValueError, match="impl"
+    ):  # a checkpoint continues on the path it was trained on
         T.Trainer(tmp_path / "dense", {**conf, "impl": "sparse"})
     with pytest.raises(ValueError, match="point supervision"):
         T.Trainer(tmp_path / "points", {**conf, "impl": "sparse", "supervision": "points"})

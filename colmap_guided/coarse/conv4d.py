@@ -20,15 +20,23 @@ import torch
 import torch.nn.functional as F
 
 
-def conv4d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None, groups: int = 1) -> torch.Tensor:
+def conv4d(
+    x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None, groups: int = 1
+) -> torch.Tensor:
     """Dense 4D convolution of x (N, C_in, I, J, K, L), zero padding, output the same size."""
     n, c_in, ni, nj, nk, nl = x.shape
     c_out, c_in_g, ki, kj, kk, kl = weight.shape
     if c_in_g * groups != c_in or any(k % 2 == 0 for k in (ki, kj, kk, kl)):
-        raise ValueError(f"conv4d: weight {tuple(weight.shape)} does not fit input {tuple(x.shape)} with groups={groups} (odd kernels only)")
+        raise ValueError(
+            f"conv4d: weight {tuple(weight.shape)} does not fit input {tuple(x.shape)} with groups={groups} (odd kernels only)"
+        )
     cg = c_out // groups
     # (G, cg, c_in_g, ki, kj, kk, kl) → (G, ki, cg, ...): output channels stay grouped for conv3d.
-    w3 = weight.view(groups, cg, c_in_g, ki, kj, kk, kl).permute(0, 3, 1, 2, 4, 5, 6).reshape(groups * ki * cg, c_in_g, kj, kk, kl)
+    w3 = (
+        weight.view(groups, cg, c_in_g, ki, kj, kk, kl)
+        .permute(0, 3, 1, 2, 4, 5, 6)
+        .reshape(groups * ki * cg, c_in_g, kj, kk, kl)
+    )
     slices = x.transpose(1, 2).reshape(n * ni, c_in, nj, nk, nl)
     y = F.conv3d(slices, w3, padding=(kj // 2, kk // 2, kl // 2), groups=groups)
     y = y.view(n, ni, groups, ki, cg, nj, nk, nl)
@@ -48,25 +56,36 @@ def conv4d(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = No
     return out
 
 
-def kernel_offsets(kernel_size: tuple[int, int, int, int], device: torch.device | None = None) -> torch.Tensor:
+def kernel_offsets(
+    kernel_size: tuple[int, int, int, int], device: torch.device | None = None
+) -> torch.Tensor:
     """(prod(kernel_size), 4) offsets of the kernel taps, row-major like the weight's last four dims."""
     ranges = [range(-(k // 2), k // 2 + 1) for k in kernel_size]
     return torch.tensor(list(itertools.product(*ranges)), dtype=torch.long, device=device)
 
 
-def neighbour_table(coords: torch.Tensor, shape: tuple[int, int, int, int], kernel_size: tuple[int, int, int, int]) -> torch.Tensor:
+def neighbour_table(
+    coords: torch.Tensor, shape: tuple[int, int, int, int], kernel_size: tuple[int, int, int, int]
+) -> torch.Tensor:
     """For N active positions coords (N, 4) in a volume of ``shape``, the (N, taps) index of each tap's
     neighbour among the active positions, or N where the neighbour is inactive or outside. Uses a
     lookup volume padded by the kernel radius, so that no bounds checks are needed."""
     n = coords.shape[0]
     pad = torch.tensor([k // 2 for k in kernel_size], device=coords.device)
     padded = [s + 2 * (k // 2) for s, k in zip(shape, kernel_size)]
-    strides = torch.tensor([padded[1] * padded[2] * padded[3], padded[2] * padded[3], padded[3], 1], device=coords.device)
-    lut = torch.full((padded[0] * padded[1] * padded[2] * padded[3],), n, dtype=torch.long, device=coords.device)
+    strides = torch.tensor(
+        [padded[1] * padded[2] * padded[3], padded[2] * padded[3], padded[3], 1],
+        device=coords.device,
+    )
+    lut = torch.full(
+        (padded[0] * padded[1] * padded[2] * padded[3],), n, dtype=torch.long, device=coords.device
+    )
     lin = ((coords + pad) * strides).sum(dim=1)
     lut[lin] = torch.arange(n, device=coords.device)
     taps = (kernel_offsets(kernel_size, coords.device) * strides).sum(dim=1)
-    return lut.index_select(0, (lin[:, None] + taps[None]).view(-1)).view(n, len(taps))  # lut[...]: 3x faster on CPU
+    return lut.index_select(0, (lin[:, None] + taps[None]).view(-1)).view(
+        n, len(taps)
+    )  # lut[...]: 3x faster on CPU
 
 
 class SparseNeighbourhood:
@@ -75,7 +94,12 @@ class SparseNeighbourhood:
     with active pairs, (t, output indices, input indices) of the active positions whose tap-t
     neighbour is active."""
 
-    def __init__(self, coords: torch.Tensor, shape: tuple[int, int, int, int], kernel_size: tuple[int, int, int, int]):
+    def __init__(
+        self,
+        coords: torch.Tensor,
+        shape: tuple[int, int, int, int],
+        kernel_size: tuple[int, int, int, int],
+    ):
         self.table = neighbour_table(coords, shape, kernel_size)
         self.n, self.taps = self.table.shape
         self._rulebook: list[tuple[int, torch.Tensor, torch.Tensor]] | None = None
@@ -83,17 +107,28 @@ class SparseNeighbourhood:
     @property
     def rulebook(self) -> list[tuple[int, torch.Tensor, torch.Tensor]]:
         if self._rulebook is None:
-            by_tap = self.table.t().contiguous().view(-1)  # (taps * N): active pairs come out sorted by tap
+            by_tap = (
+                self.table.t().contiguous().view(-1)
+            )  # (taps * N): active pairs come out sorted by tap
             flat = torch.nonzero(by_tap < self.n).squeeze(1)
             tap = flat // self.n
             out, inp = flat - tap * self.n, by_tap.index_select(0, flat)
             counts = torch.bincount(tap, minlength=self.taps).tolist()
-            self._rulebook = [(t, o, i) for t, (o, i) in enumerate(zip(out.split(counts), inp.split(counts))) if len(o)]
+            self._rulebook = [
+                (t, o, i)
+                for t, (o, i) in enumerate(zip(out.split(counts), inp.split(counts)))
+                if len(o)
+            ]
         return self._rulebook
 
 
-def sparse_conv4d(x: torch.Tensor, nbhd: SparseNeighbourhood, weight: torch.Tensor, bias: torch.Tensor | None = None,
-                  groups: int = 1) -> torch.Tensor:
+def sparse_conv4d(
+    x: torch.Tensor,
+    nbhd: SparseNeighbourhood,
+    weight: torch.Tensor,
+    bias: torch.Tensor | None = None,
+    groups: int = 1,
+) -> torch.Tensor:
     """Submanifold 4D convolution of features x (N, C_in) at N active positions: returns (N, C_out),
     out[p] = b + sum_t W_t x[p + offset_t] over the active neighbours only (inactive ones read as 0).
 
@@ -117,8 +152,13 @@ def sparse_conv4d(x: torch.Tensor, nbhd: SparseNeighbourhood, weight: torch.Tens
         index = (nbhd.table * taps + torch.arange(taps, device=x.device)).view(-1)
         outs = []
         for g in range(groups):
-            z = x[:, g * c_in_g:(g + 1) * c_in_g] @ w[g, 0]  # (N, taps)
-            outs.append(torch.cat([z.reshape(-1), z.new_zeros(taps)]).index_select(0, index).view(n, taps).sum(dim=1))
+            z = x[:, g * c_in_g : (g + 1) * c_in_g] @ w[g, 0]  # (N, taps)
+            outs.append(
+                torch.cat([z.reshape(-1), z.new_zeros(taps)])
+                .index_select(0, index)
+                .view(n, taps)
+                .sum(dim=1)
+            )
         out = torch.stack(outs, dim=1)
     else:  # rulebook
         w_taps = w.permute(3, 0, 2, 1)  # (taps, G, c_in_g, cg)
@@ -128,6 +168,9 @@ def sparse_conv4d(x: torch.Tensor, nbhd: SparseNeighbourhood, weight: torch.Tens
             if groups == 1:
                 y = xs @ w_taps[t, 0]
             else:  # one small matmul per group: half the work of a block-diagonal matrix for 2 groups
-                y = torch.cat([xs[:, g * c_in_g:(g + 1) * c_in_g] @ w_taps[t, g] for g in range(groups)], dim=1)
+                y = torch.cat(
+                    [xs[:, g * c_in_g : (g + 1) * c_in_g] @ w_taps[t, g] for g in range(groups)],
+                    dim=1,
+                )
             out.index_add_(0, o, y)
     return out if bias is None else out + bias

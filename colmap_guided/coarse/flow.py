@@ -11,13 +11,17 @@ from colmap_guided.coarse.geometry import ImageGeometry
 from colmap_guided.coarse.model import GridMatches
 
 
-def interpolate_grid(geometry: ImageGeometry, values: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def interpolate_grid(
+    geometry: ImageGeometry, values: np.ndarray, xy: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Bilinear interpolation of per-cell ``values`` (h * w, D), row-major, at original pixels ``xy``
     (N, 2) from the four nearest cell centres. Points outside the hull of the cell centres are clamped
     onto it (no extrapolation). Returns the (N, D) values and the clamped points (N, 2)."""
     xy = np.asarray(xy, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] < 2 or not np.isfinite(xy[:, :2]).all():
-        raise ValueError(f"Expected (N, 2) finite pixel coordinates, got an array of shape {xy.shape}")
+        raise ValueError(
+            f"Expected (N, 2) finite pixel coordinates, got an array of shape {xy.shape}"
+        )
     h, w = geometry.grid_height, geometry.grid_width
     uv = geometry.pixel_to_cell(xy[:, :2])
     u = np.clip(uv[:, 0], 0, w - 1)
@@ -27,8 +31,12 @@ def interpolate_grid(geometry: ImageGeometry, values: np.ndarray, xy: np.ndarray
     u1, v1 = np.minimum(u0 + 1, w - 1), np.minimum(v0 + 1, h - 1)
     fu, fv = (u - u0)[:, None], (v - v0)[:, None]
     values = np.asarray(values).reshape(h * w, -1)
-    out = ((1 - fu) * (1 - fv) * values[v0 * w + u0] + fu * (1 - fv) * values[v0 * w + u1]
-           + (1 - fu) * fv * values[v1 * w + u0] + fu * fv * values[v1 * w + u1])
+    out = (
+        (1 - fu) * (1 - fv) * values[v0 * w + u0]
+        + fu * (1 - fv) * values[v0 * w + u1]
+        + (1 - fu) * fv * values[v1 * w + u0]
+        + fu * fv * values[v1 * w + u1]
+    )
     return out, geometry.cell_to_pixel(np.stack([u, v], axis=1))
 
 
@@ -73,10 +81,21 @@ class CoarseResult:
     def _flow(xy, geo_src, geo_dst, table_fwd, table_bwd):
         fwd, xy_clamped = interpolate_grid(geo_src, table_fwd, xy)
         back, _ = interpolate_grid(geo_dst, table_bwd, fwd[:, :2])
-        fb_err = np.linalg.norm(back[:, :2] - xy_clamped, axis=1) * (geo_dst.cell_size / geo_src.cell_size)
-        return fwd[:, :2].astype(np.float32), fwd[:, 2].astype(np.float32), fb_err.astype(np.float32)
+        fb_err = np.linalg.norm(back[:, :2] - xy_clamped, axis=1) * (
+            geo_dst.cell_size / geo_src.cell_size
+        )
+        return (
+            fwd[:, :2].astype(np.float32),
+            fwd[:, 2].astype(np.float32),
+            fb_err.astype(np.float32),
+        )
 
     def grid_matches_ab(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Cell-level matches A→B: A cell centres (NA, 2), matched B cell centres (NA, 2), score (NA,),
         mutual (NA,) bool; original pixels."""
-        return self.geometry_a.cell_centers(), self._table_ab[:, :2], self.matches.score_ab, self.matches.mutual_ab
+        return (
+            self.geometry_a.cell_centers(),
+            self._table_ab[:, :2],
+            self.matches.score_ab,
+            self.matches.mutual_ab,
+        )

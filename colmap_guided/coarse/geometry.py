@@ -65,16 +65,23 @@ class ImageGeometry:
         return self.cell_to_pixel(np.stack([cols.ravel(), rows.ravel()], axis=1))
 
     def to_dict(self) -> dict:
-        return {k: getattr(self, k) for k in ("width", "height", "resized_width", "resized_height", "stride", "cell_offset")}
+        return {
+            k: getattr(self, k)
+            for k in ("width", "height", "resized_width", "resized_height", "stride", "cell_offset")
+        }
 
 
-def resize_geometry(width: int, height: int, resize_max: int, stride: int, cell_offset: float) -> ImageGeometry:
+def resize_geometry(
+    width: int, height: int, resize_max: int, stride: int, cell_offset: float
+) -> ImageGeometry:
     """Geometry of an image resized so its long side is ``resize_max`` (rounded down to a multiple of
     ``stride``) and its short side the nearest multiple of ``stride`` to the aspect-preserving size."""
     if width < 1 or height < 1:
         raise ValueError(f"Image size must be positive, got {width}x{height}")
     if resize_max < stride:
-        raise ValueError(f"resize_max ({resize_max}) must be at least the feature stride ({stride})")
+        raise ValueError(
+            f"resize_max ({resize_max}) must be at least the feature stride ({stride})"
+        )
     cells_max = resize_max // stride
     scale = resize_max / max(width, height)
     gw = min(cells_max, max(1, round(width * scale / stride)))
@@ -86,7 +93,9 @@ def as_rgb(image: np.ndarray) -> np.ndarray:
     """uint8 HxW (grayscale), HxWx1 or HxWx3 (RGB) → HxWx3 uint8 RGB."""
     image = np.asarray(image)
     if image.dtype != np.uint8:
-        raise TypeError(f"Expected a uint8 image, got {image.dtype}: convert with np.clip(img, 0, 255).astype(np.uint8)")
+        raise TypeError(
+            f"Expected a uint8 image, got {image.dtype}: convert with np.clip(img, 0, 255).astype(np.uint8)"
+        )
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
     if image.ndim == 2:

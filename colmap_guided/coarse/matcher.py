@@ -22,7 +22,14 @@ from colmap_guided.coarse.backbone import BACKBONES, DEFAULT_BACKBONE
 from colmap_guided.coarse.flow import CoarseResult
 from colmap_guided.coarse.geometry import ImageGeometry, as_rgb, resize_geometry, resize_image
 from colmap_guided.coarse.model import CoarseNet
-from colmap_guided.coarse.weights import DEFAULT_WEIGHTS, fingerprint, has_backbone, load_filter_weights, net_conf_from_config, read_filter_weights
+from colmap_guided.coarse.weights import (
+    DEFAULT_WEIGHTS,
+    fingerprint,
+    has_backbone,
+    load_filter_weights,
+    net_conf_from_config,
+    read_filter_weights,
+)
 from colmap_guided.conf import merge_conf
 from colmap_guided.images import image_size, read_image
 
@@ -61,31 +68,52 @@ class CoarseMatcher:
         self.conf = conf = merge_conf(self.default_conf, conf, "CoarseMatcher")
         if conf["mode"] not in ("filter", "raw"):
             raise ValueError(f"mode must be 'filter' or 'raw', got {conf['mode']!r}")
-        self.device = torch.device("cuda" if conf["device"] == "auto" and torch.cuda.is_available() else
-                                   "cpu" if conf["device"] == "auto" else conf["device"])
-        impl = conf["impl"] if conf["impl"] != "auto" else ("dense" if self.device.type == "cuda" else "sparse")
+        self.device = torch.device(
+            "cuda"
+            if conf["device"] == "auto" and torch.cuda.is_available()
+            else "cpu"
+            if conf["device"] == "auto"
+            else conf["device"]
+        )
+        impl = (
+            conf["impl"]
+            if conf["impl"] != "auto"
+            else ("dense" if self.device.type == "cuda" else "sparse")
+        )
         if impl not in ("dense", "sparse"):
             raise ValueError(f"impl must be 'dense', 'sparse' or 'auto', got {conf['impl']!r}")
         self.impl = impl
         if conf["precision"] not in PRECISIONS:
-            raise ValueError(f"precision must be one of {sorted(PRECISIONS)}, got {conf['precision']!r}")
+            raise ValueError(
+                f"precision must be one of {sorted(PRECISIONS)}, got {conf['precision']!r}"
+            )
         self.dtype = PRECISIONS[conf["precision"]]
         # The sparse filter is hundreds of small ops; on shared cores every OpenMP barrier waits for a
         # descheduled thread. On the 2-core dev machine (load ~5-10) one thread was 3-8x faster than two
         # for the sparse filter and 2.4x faster for the backbone (README.md). Set around matching only.
         self.torch_threads = conf["num_threads"] if self.device.type == "cpu" else None
-        net_conf = {"backbone": conf["backbone"], "backbone_weights": conf["backbone_weights"],
-                    "raw_temperature": conf["raw_temperature"], "filter": conf["mode"] == "filter"}
+        net_conf = {
+            "backbone": conf["backbone"],
+            "backbone_weights": conf["backbone_weights"],
+            "raw_temperature": conf["raw_temperature"],
+            "filter": conf["mode"] == "filter",
+        }
         self.weights_config = None
         if conf["mode"] == "filter":
-            tensors, self.weights_config = read_filter_weights(conf["weights"])  # FileNotFoundError → caller falls back
+            tensors, self.weights_config = read_filter_weights(
+                conf["weights"]
+            )  # FileNotFoundError → caller falls back
             if has_backbone(tensors) and conf["backbone_weights"]:
-                raise ValueError(f"Filter weights {conf['weights'] or DEFAULT_WEIGHTS} carry the backbone they were trained with: "
-                                 f"drop backbone_weights={conf['backbone_weights']!r} or use weights without a backbone")
+                raise ValueError(
+                    f"Filter weights {conf['weights'] or DEFAULT_WEIGHTS} carry the backbone they were trained with: "
+                    f"drop backbone_weights={conf['backbone_weights']!r} or use weights without a backbone"
+                )
             wanted = net_conf_from_config(self.weights_config)
             if wanted["backbone"] != conf["backbone"]:
-                raise ValueError(f"Filter weights {conf['weights'] or DEFAULT_WEIGHTS} were trained on {wanted['backbone']}, "
-                                 f"not {conf['backbone']}: set backbone={wanted['backbone']!r} or use other weights")
+                raise ValueError(
+                    f"Filter weights {conf['weights'] or DEFAULT_WEIGHTS} were trained on {wanted['backbone']}, "
+                    f"not {conf['backbone']}: set backbone={wanted['backbone']!r} or use other weights"
+                )
             net_conf.update(wanted)
         self.net = CoarseNet(net_conf)
         if conf["mode"] == "filter":
@@ -99,11 +127,14 @@ class CoarseMatcher:
     # -- features -------------------------------------------------------------------------------
 
     def geometry(self, width: int, height: int) -> ImageGeometry:
-        return resize_geometry(width, height, self.conf["resize_max"], self.spec.stride, self.spec.cell_offset)
+        return resize_geometry(
+            width, height, self.conf["resize_max"], self.spec.stride, self.spec.cell_offset
+        )
 
     @torch.no_grad()
-    def extract(self, image: np.ndarray, name: str | None = None,
-                size: tuple[int, int] | None = None) -> CoarseFeatures:
+    def extract(
+        self, image: np.ndarray, name: str | None = None, size: tuple[int, int] | None = None
+    ) -> CoarseFeatures:
         """Features of a uint8 HxW (gray) or HxWx3 (RGB) image. With ``name``, cached in memory (and in
         ``cache_path`` if set): later calls with the same name return the cache without the image.
         ``size``: the (width, height) of the photo that ``image`` is a reduced decode of."""
@@ -115,7 +146,9 @@ class CoarseMatcher:
                 self.cache[name] = cached
                 return cached
         if image is None:
-            raise ValueError(f"No cached coarse features for {name!r}: pass the image (or extract_path)")
+            raise ValueError(
+                f"No cached coarse features for {name!r}: pass the image (or extract_path)"
+            )
         rgb = as_rgb(image)
         geo = self.geometry(*(size or (rgb.shape[1], rgb.shape[0])))
         x = torch.from_numpy(resize_image(rgb, geo)).to(self.device).permute(2, 0, 1)[None].float()
@@ -146,7 +179,12 @@ class CoarseMatcher:
             group = f.get(f"{self.features_key}/{name}")
             if group is None:
                 return None
-            geo = ImageGeometry(**{k: (float if k == "cell_offset" else int)(group.attrs[k]) for k in ImageGeometry.__dataclass_fields__})
+            geo = ImageGeometry(
+                **{
+                    k: (float if k == "cell_offset" else int)(group.attrs[k])
+                    for k in ImageGeometry.__dataclass_fields__
+                }
+            )
             feats = torch.from_numpy(group["features"][()]).to(self.device, torch.float32)
         return CoarseFeatures(feats, geo, name)
 
@@ -166,7 +204,14 @@ class CoarseMatcher:
 
     def match(self, fa: CoarseFeatures, fb: CoarseFeatures) -> CoarseResult:
         """Coarse matches and flow of one pair (A = fa, B = fb)."""
-        grid = self.net.match(fa.features, fb.features, self.impl, self.conf["sparse_k"], self.conf["sparse_radius"], self.dtype)
+        grid = self.net.match(
+            fa.features,
+            fb.features,
+            self.impl,
+            self.conf["sparse_k"],
+            self.conf["sparse_radius"],
+            self.dtype,
+        )
         return CoarseResult(fa.geometry, fb.geometry, grid)
 
     def match_pairs(self, pairs: list[tuple[CoarseFeatures, CoarseFeatures]]) -> list[CoarseResult]:
@@ -178,11 +223,19 @@ class CoarseMatcher:
         for i, (fa, fb) in enumerate(pairs):
             groups.setdefault((tuple(fa.features.shape), tuple(fb.features.shape)), []).append(i)
         for idx in groups.values():
-            grids = self.net.match_batch(torch.stack([pairs[i][0].features for i in idx]),
-                                         torch.stack([pairs[i][1].features for i in idx]), self.dtype)
+            grids = self.net.match_batch(
+                torch.stack([pairs[i][0].features for i in idx]),
+                torch.stack([pairs[i][1].features for i in idx]),
+                self.dtype,
+            )
             for i, grid in zip(idx, grids):
                 results[i] = CoarseResult(pairs[i][0].geometry, pairs[i][1].geometry, grid)
         return results
 
     def describe(self) -> dict:
-        return {"conf": self.conf, "impl": self.impl, "device": str(self.device), "weights_config": self.weights_config}
+        return {
+            "conf": self.conf,
+            "impl": self.impl,
+            "device": str(self.device),
+            "weights_config": self.weights_config,
+        }

@@ -60,10 +60,14 @@ class NeighConsensus(nn.Module):
     """Symmetric 4D filter: conv4d layers (1 → channels[0] → ... → channels[-1] = 1), ReLU after each,
     run in both image orders and averaged (paper §4.3: three layers, 16 channels, kernel 3)."""
 
-    def __init__(self, channels: tuple[int, ...] = (16, 16, 1), kernel_sizes: tuple[int, ...] = (3, 3, 3)):
+    def __init__(
+        self, channels: tuple[int, ...] = (16, 16, 1), kernel_sizes: tuple[int, ...] = (3, 3, 3)
+    ):
         super().__init__()
         if len(channels) != len(kernel_sizes) or channels[-1] != 1:
-            raise ValueError(f"channels {channels} and kernel_sizes {kernel_sizes}: one kernel size per layer, last layer 1 channel")
+            raise ValueError(
+                f"channels {channels} and kernel_sizes {kernel_sizes}: one kernel size per layer, last layer 1 channel"
+            )
         self.channels, self.kernel_sizes = tuple(channels), tuple(kernel_sizes)
         self.weights = nn.ParameterList()
         self.biases = nn.ParameterList()
@@ -96,7 +100,9 @@ class NeighConsensus(nn.Module):
                 x = x * m
         return x.mean(dim=1)
 
-    def forward_sparse(self, values: torch.Tensor, coords: torch.Tensor, shape: tuple[int, int, int, int]) -> torch.Tensor:
+    def forward_sparse(
+        self, values: torch.Tensor, coords: torch.Tensor, shape: tuple[int, int, int, int]
+    ) -> torch.Tensor:
         """Submanifold filter of N active entries (values (N,) at coords (N, 4) (i, j, k, l) of a volume
         of ``shape``): outputs at the active entries only, inactive ones read as 0 → (N,)."""
         nbhds = {k: SparseNeighbourhood(coords, shape, (k,) * 4) for k in set(self.kernel_sizes)}
@@ -127,6 +133,7 @@ class GridMatches:
 
 def _dense_matches(volume2d: torch.Tensor) -> GridMatches:
     """Argmax and softmax score per row and per column of a (NA, NB) volume."""
+
     def best(v: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         vmax, idx = v.max(dim=1)
         score = 1.0 / torch.exp(v - vmax[:, None]).sum(dim=1)
@@ -137,8 +144,9 @@ def _dense_matches(volume2d: torch.Tensor) -> GridMatches:
     return GridMatches(ab, sab, ba, sba)
 
 
-def sparse_best(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, n_rows: int, n_cols: int
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+def sparse_best(
+    rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, n_rows: int, n_cols: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Per row, the column of the largest active value and its softmax probability over the whole
     row, inactive entries counting as 0 (values are non-negative): (n_rows,) long, (n_rows,) float.
     Differentiable in ``values`` (the sparse training path takes max s from it, paper eq. 3, 5)."""
@@ -149,12 +157,16 @@ def sparse_best(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, n_
     if (counts == 0).any():
         raise ValueError("sparse support must hold at least one entry per row and column")
     vmax = values[order[first]]
-    denom = torch.zeros(n_rows, dtype=values.dtype, device=values.device).index_add(0, rows, torch.exp(values - vmax[rows]))
+    denom = torch.zeros(n_rows, dtype=values.dtype, device=values.device).index_add(
+        0, rows, torch.exp(values - vmax[rows])
+    )
     denom = denom + (n_cols - counts) * torch.exp(-vmax)
     return cols[order[first]], 1.0 / denom
 
 
-def sparse_support(c2: torch.Tensor, shape: tuple[int, int, int, int], k: int, radius: int) -> torch.Tensor:
+def sparse_support(
+    c2: torch.Tensor, shape: tuple[int, int, int, int], k: int, radius: int
+) -> torch.Tensor:
     """Sorted linear indices (a * NB + b) of the entries of a (NA, NB) correlation the sparse filter
     runs on: the ``k`` best B cells of every A cell and the ``k`` best A cells of every B cell
     (Sparse-NCNet), plus the (2 radius + 1)^2 cells around each cell's best match in the other image
@@ -169,7 +181,9 @@ def sparse_support(c2: torch.Tensor, shape: tuple[int, int, int, int], k: int, r
     if radius > 0:
         d = torch.arange(-radius, radius + 1, device=dev)
 
-        def around(best: torch.Tensor, h: int, w: int) -> torch.Tensor:  # (n, (2r+1)^2) cells around best
+        def around(
+            best: torch.Tensor, h: int, w: int
+        ) -> torch.Tensor:  # (n, (2r+1)^2) cells around best
             rows = (best // w)[:, None, None] + d[None, :, None]
             cols = (best % w)[:, None, None] + d[None, None, :]
             return (rows.clamp(0, h - 1) * w + cols.clamp(0, w - 1)).reshape(len(best), -1)
@@ -204,9 +218,15 @@ class CoarseNet(nn.Module):
     def __init__(self, conf: dict | None = None):
         super().__init__()
         self.conf = conf = merge_conf(self.default_conf, conf, "CoarseNet")
-        self.backbone = build_backbone(conf["backbone"], conf["backbone_weights"], conf["pretrained"])
+        self.backbone = build_backbone(
+            conf["backbone"], conf["backbone_weights"], conf["pretrained"]
+        )
         self.spec = BACKBONES[conf["backbone"]]  # stride, channels, cell_offset of the features
-        self.filter = NeighConsensus(tuple(conf["channels"]), tuple(conf["kernel_sizes"])) if conf["filter"] else None
+        self.filter = (
+            NeighConsensus(tuple(conf["channels"]), tuple(conf["kernel_sizes"]))
+            if conf["filter"]
+            else None
+        )
 
     def normalize(self, images: torch.Tensor) -> torch.Tensor:
         """(B, 3, H, W) RGB in [0, 255] → the backbone's input normalisation."""
@@ -226,8 +246,13 @@ class CoarseNet(nn.Module):
             v = soft_mutual_nn(v)
         return v
 
-    def forward(self, feat_a: torch.Tensor, feat_b: torch.Tensor, mask_a: torch.Tensor | None = None,
-                mask_b: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    def forward(
+        self,
+        feat_a: torch.Tensor,
+        feat_b: torch.Tensor,
+        mask_a: torch.Tensor | None = None,
+        mask_b: torch.Tensor | None = None,
+    ) -> dict[str, torch.Tensor]:
         """Dense pass on batched features (B, C, hA, wA), (B, C, hB, wB) (L2-normalised, zero-padded,
         with optional bool masks (B, hA, wA), (B, hB, wB) of the valid cells). Returns
         - ``corr``: correlation (B, hA, wA, hB, wB);
@@ -242,7 +267,11 @@ class CoarseNet(nn.Module):
             ma = mask_a if mask_a is not None else corr.new_ones(n, ha, wa, dtype=torch.bool)
             mb = mask_b if mask_b is not None else corr.new_ones(n, hb, wb, dtype=torch.bool)
             mask = ma[:, :, :, None, None] & mb[:, None, None, :, :]
-        volume = corr / self.conf["raw_temperature"] if self.filter is None else self.filter_volume(corr, mask)
+        volume = (
+            corr / self.conf["raw_temperature"]
+            if self.filter is None
+            else self.filter_volume(corr, mask)
+        )
         logits = volume if mask is None else volume.masked_fill(~mask, float("-inf"))
         flat = logits.reshape(n, ha * wa, hb * wb)
         s_ab = torch.softmax(flat, dim=2).nan_to_num(0.0).view(n, ha, wa, hb, wb)
@@ -250,8 +279,15 @@ class CoarseNet(nn.Module):
         return {"corr": corr, "volume": volume, "s_ab": s_ab, "s_ba": s_ba}
 
     @torch.no_grad()
-    def match(self, feat_a: torch.Tensor, feat_b: torch.Tensor, impl: str = "dense", k: int = 3, radius: int = 1,
-              dtype: torch.dtype = torch.float32) -> GridMatches:
+    def match(
+        self,
+        feat_a: torch.Tensor,
+        feat_b: torch.Tensor,
+        impl: str = "dense",
+        k: int = 3,
+        radius: int = 1,
+        dtype: torch.dtype = torch.float32,
+    ) -> GridMatches:
         """Coarse matches of one pair of features (C, hA, wA), (C, hB, wB). ``impl``: 'dense' (whole
         volume; GPU) or 'sparse' (filter on ``sparse_support(k, radius)``; CPU). Raw mode ignores it."""
         if impl not in ("dense", "sparse"):
@@ -261,16 +297,24 @@ class CoarseNet(nn.Module):
         return self.match_batch(feat_a[None], feat_b[None], dtype)[0]
 
     @torch.no_grad()
-    def match_batch(self, feat_a: torch.Tensor, feat_b: torch.Tensor, dtype: torch.dtype = torch.float32) -> list[GridMatches]:
+    def match_batch(
+        self, feat_a: torch.Tensor, feat_b: torch.Tensor, dtype: torch.dtype = torch.float32
+    ) -> list[GridMatches]:
         """Dense coarse matches of a batch of same-size pairs (B, C, hA, wA), (B, C, hB, wB). ``dtype``
         float16/bfloat16 runs correlation and filter under autocast (GPU); argmax and scores in float32."""
         with torch.autocast(feat_a.device.type, dtype=dtype, enabled=dtype != torch.float32):
             corr = correlation(feat_a, feat_b)
-            volume = corr / self.conf["raw_temperature"] if self.filter is None else self.filter_volume(corr)
+            volume = (
+                corr / self.conf["raw_temperature"]
+                if self.filter is None
+                else self.filter_volume(corr)
+            )
         _, ha, wa, hb, wb = corr.shape
         return [_dense_matches(v.float().reshape(ha * wa, hb * wb)) for v in volume]
 
-    def sparse_volume(self, corr: torch.Tensor, k: int, radius: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def sparse_volume(
+        self, corr: torch.Tensor, k: int, radius: int = 0
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The filtered volume of one pair's correlation (hA, wA, hB, wB) on ``sparse_support(k, radius)``
         (Sparse-NCNet's idea): flat A cells ``a``, flat B cells ``b`` and values ``v`` (N,) of the active
         entries; the rest of the volume reads as 0. Differentiable in the filter (and ``corr``): the CPU
@@ -296,10 +340,14 @@ class CoarseNet(nn.Module):
         a, b, v = self.sparse_volume(corr, k, radius)
         ab, sab = sparse_best(a, b, v, ha * wa, hb * wb)
         ba, sba = sparse_best(b, a, v, hb * wb, ha * wa)
-        return GridMatches(ab.cpu().numpy(), sab.float().cpu().numpy(), ba.cpu().numpy(), sba.float().cpu().numpy())
+        return GridMatches(
+            ab.cpu().numpy(), sab.float().cpu().numpy(), ba.cpu().numpy(), sba.float().cpu().numpy()
+        )
 
     @staticmethod
-    def _sparse_mutual(v: torch.Tensor, a: torch.Tensor, b: torch.Tensor, na: int, nb: int, eps: float = 1e-5) -> torch.Tensor:
+    def _sparse_mutual(
+        v: torch.Tensor, a: torch.Tensor, b: torch.Tensor, na: int, nb: int, eps: float = 1e-5
+    ) -> torch.Tensor:
         """``soft_mutual_nn`` on sparse non-negative entries (inactive = 0 never changes a maximum)."""
         max_b = v.new_zeros(na).scatter_reduce(0, a, v, "amax")
         max_a = v.new_zeros(nb).scatter_reduce(0, b, v, "amax")

@@ -18,8 +18,13 @@ from colmap_guided.coarse.geometry import as_rgb
 from colmap_guided.log import logger, set_verbosity
 
 
-def draw_coarse_matches(image_a: np.ndarray, image_b: np.ndarray, result: CoarseResult, height: int = 600,
-                        lines: bool = True) -> np.ndarray:
+def draw_coarse_matches(
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    result: CoarseResult,
+    height: int = 600,
+    lines: bool = True,
+) -> np.ndarray:
     """RGB uint8 canvas with both images at ``height`` px and the A→B coarse matches colour-coded."""
     a, b = as_rgb(image_a), as_rgb(image_b)
     sa, sb = height / a.shape[0], height / b.shape[0]
@@ -30,7 +35,9 @@ def draw_coarse_matches(image_a: np.ndarray, image_b: np.ndarray, result: Coarse
     ga = result.geometry_a
     hue = (src[:, 0] / ga.width * 150).astype(np.uint8)
     val = (130 + src[:, 1] / ga.height * 125).astype(np.uint8)
-    colours = cv2.cvtColor(np.stack([hue, np.full_like(hue, 255), val], 1)[None], cv2.COLOR_HSV2RGB)[0]
+    colours = cv2.cvtColor(
+        np.stack([hue, np.full_like(hue, 255), val], 1)[None], cv2.COLOR_HSV2RGB
+    )[0]
     pa, pb = src * sa, dst * sb + [a.shape[1], 0]
     for m in np.argsort(mutual, kind="stable"):  # mutual matches drawn last, on top
         c = tuple(int(v) for v in colours[m])
@@ -50,15 +57,25 @@ def main(argv: list[str] | None = None) -> int:
     from colmap_guided.images import read_image
     from colmap_guided.workspace import check_output_file
 
-    parser = argparse.ArgumentParser(prog="python -m colmap_guided.coarse", description="Coarse matches of two images, drawn to a PNG.")
+    parser = argparse.ArgumentParser(
+        prog="python -m colmap_guided.coarse",
+        description="Coarse matches of two images, drawn to a PNG.",
+    )
     parser.add_argument("image_a", type=Path)
     parser.add_argument("image_b", type=Path)
     parser.add_argument("--out", type=Path, default=Path("coarse_matches.png"))
-    parser.add_argument("--mode", choices=["filter", "raw", "auto"], default="auto", help="auto: filter if weights exist, else raw")
+    parser.add_argument(
+        "--mode",
+        choices=["filter", "raw", "auto"],
+        default="auto",
+        help="auto: filter if weights exist, else raw",
+    )
     parser.add_argument("--weights", type=Path, default=None, help="filter weights (.safetensors)")
     parser.add_argument("--backbone", default=CoarseMatcher.default_conf["backbone"])
     parser.add_argument("--resize-max", type=int, default=CoarseMatcher.default_conf["resize_max"])
-    parser.add_argument("--impl", choices=["auto", "dense", "sparse"], default=CoarseMatcher.default_conf["impl"])
+    parser.add_argument(
+        "--impl", choices=["auto", "dense", "sparse"], default=CoarseMatcher.default_conf["impl"]
+    )
     parser.add_argument("--no-lines", action="store_true")
     parser.add_argument("-v", "--verbose", action="store_true")
     args = parser.parse_args(argv)
@@ -68,7 +85,12 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as err:
         logger.error("%s", err)
         return 2
-    conf = {"backbone": args.backbone, "resize_max": args.resize_max, "weights": args.weights, "impl": args.impl}
+    conf = {
+        "backbone": args.backbone,
+        "resize_max": args.resize_max,
+        "weights": args.weights,
+        "impl": args.impl,
+    }
     if args.mode == "auto":
         try:
             cm = CoarseMatcher({**conf, "mode": "filter"})
@@ -86,12 +108,24 @@ def main(argv: list[str] | None = None) -> int:
     res = cm.match(fa, fb)
     t2 = time.perf_counter()
     mutual = res.matches.mutual_ab
-    logger.info("%s mode (%s): grids %dx%d / %dx%d, %d/%d mutual; features %.0f ms, matching %.0f ms",
-                cm.conf["mode"], cm.impl, fa.geometry.grid_width, fa.geometry.grid_height, fb.geometry.grid_width,
-                fb.geometry.grid_height, mutual.sum(), mutual.size, 1000 * (t1 - t0), 1000 * (t2 - t1))
+    logger.info(
+        "%s mode (%s): grids %dx%d / %dx%d, %d/%d mutual; features %.0f ms, matching %.0f ms",
+        cm.conf["mode"],
+        cm.impl,
+        fa.geometry.grid_width,
+        fa.geometry.grid_height,
+        fb.geometry.grid_width,
+        fb.geometry.grid_height,
+        mutual.sum(),
+        mutual.size,
+        1000 * (t1 - t0),
+        1000 * (t2 - t1),
+    )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     canvas = draw_coarse_matches(img_a, img_b, res, lines=not args.no_lines)
     if not cv2.imwrite(str(args.out), cv2.cvtColor(canvas, cv2.COLOR_RGB2BGR)):
-        raise OSError(f"Could not write {args.out}: check the folder and the extension (.png, .jpg)")
+        raise OSError(
+            f"Could not write {args.out}: check the folder and the extension (.png, .jpg)"
+        )
     logger.info("Wrote %s", args.out)
     return 0

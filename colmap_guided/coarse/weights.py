@@ -25,7 +25,15 @@ DEFAULT_WEIGHTS = Path(__file__).resolve().parent.parent / "weights" / "coarse_f
 FORMAT = "colmap_guided.coarse_filter/1"
 BACKBONE_PREFIX = "backbone."  # tensors of a fine-tuned backbone's feature layers
 # Config keys that must agree between the weights and the network that loads them.
-_ARCH_KEYS = ("backbone", "layer", "feature_channels", "channels", "kernel_sizes", "mutual_before", "mutual_after")
+_ARCH_KEYS = (
+    "backbone",
+    "layer",
+    "feature_channels",
+    "channels",
+    "kernel_sizes",
+    "mutual_before",
+    "mutual_after",
+)
 
 
 def filter_config(net: CoarseNet, resize_max: int, training: dict | None = None) -> dict:
@@ -46,18 +54,30 @@ def filter_config(net: CoarseNet, resize_max: int, training: dict | None = None)
     }
 
 
-def save_filter_weights(net: CoarseNet, path: str | Path, resize_max: int, training: dict | None = None, backbone: bool = False) -> Path:
+def save_filter_weights(
+    net: CoarseNet,
+    path: str | Path,
+    resize_max: int,
+    training: dict | None = None,
+    backbone: bool = False,
+) -> Path:
     """Write ``net``'s filter to ``path`` (.safetensors) with its config; with ``backbone`` (a fine-tuned one)
     also the backbone's feature layers."""
     if net.filter is None:
-        raise ValueError("This CoarseNet is in raw mode (filter=False): there are no filter weights to save")
+        raise ValueError(
+            "This CoarseNet is in raw mode (filter=False): there are no filter weights to save"
+        )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tensors = dict(net.filter.state_dict())
     if backbone:
         tensors |= {BACKBONE_PREFIX + k: v for k, v in net.backbone.feature_state_dict().items()}
     tensors = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
-    save_file(tensors, str(path), metadata={"config": json.dumps(filter_config(net, resize_max, training))})
+    save_file(
+        tensors,
+        str(path),
+        metadata={"config": json.dumps(filter_config(net, resize_max, training))},
+    )
     return path
 
 
@@ -89,35 +109,57 @@ def read_filter_weights(path: str | Path | None = None) -> tuple[dict[str, torch
             meta = f.metadata() or {}
             tensors = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 (safe_open is not a dict)
     except (SafetensorError, OSError) as e:
-        raise ValueError(f"{path} is not a readable safetensors file ({type(e).__name__}): download or train the filter weights again") from None
+        raise ValueError(
+            f"{path} is not a readable safetensors file ({type(e).__name__}): download or train the filter weights again"
+        ) from None
     if "config" not in meta:
-        raise ValueError(f"{path} has no coarse-filter config in its metadata: re-save it with save_filter_weights")
+        raise ValueError(
+            f"{path} has no coarse-filter config in its metadata: re-save it with save_filter_weights"
+        )
     config = json.loads(meta["config"])
     if config.get("format") != FORMAT:
-        raise ValueError(f"{path} has format {config.get('format')!r}, expected {FORMAT!r}: re-export it with this version")
+        raise ValueError(
+            f"{path} has format {config.get('format')!r}, expected {FORMAT!r}: re-export it with this version"
+        )
     return tensors, config
 
 
 def check_config(config: dict, net: CoarseNet, path: str | Path) -> None:
     """Raise a one-line ValueError if ``net`` is not built the way the weights were trained."""
     expected = filter_config(net, config.get("resize_max", 0))
-    diff = [f"{k}: weights {config.get(k)!r} vs network {expected[k]!r}" for k in _ARCH_KEYS if config.get(k) != expected[k]]
+    diff = [
+        f"{k}: weights {config.get(k)!r} vs network {expected[k]!r}"
+        for k in _ARCH_KEYS
+        if config.get(k) != expected[k]
+    ]
     if diff:
-        raise ValueError(f"Coarse filter weights {path} do not fit this network ({'; '.join(diff)}): build it with the weights' settings or use other weights")
+        raise ValueError(
+            f"Coarse filter weights {path} do not fit this network ({'; '.join(diff)}): build it with the weights' settings or use other weights"
+        )
 
 
 def load_filter_weights(net: CoarseNet, path: str | Path | None = None) -> dict:
     """Load filter weights (and the fine-tuned backbone they carry, if any) into ``net`` after checking the
     config; returns the config."""
     if net.filter is None:
-        raise ValueError("This CoarseNet is in raw mode (filter=False): build it with filter=True to load weights")
+        raise ValueError(
+            "This CoarseNet is in raw mode (filter=False): build it with filter=True to load weights"
+        )
     tensors, config = read_filter_weights(path)
     check_config(config, net, path or DEFAULT_WEIGHTS)
-    backbone = {k.removeprefix(BACKBONE_PREFIX): v for k, v in tensors.items() if k.startswith(BACKBONE_PREFIX)}
-    net.filter.load_state_dict({k: v for k, v in tensors.items() if not k.startswith(BACKBONE_PREFIX)})
+    backbone = {
+        k.removeprefix(BACKBONE_PREFIX): v
+        for k, v in tensors.items()
+        if k.startswith(BACKBONE_PREFIX)
+    }
+    net.filter.load_state_dict(
+        {k: v for k, v in tensors.items() if not k.startswith(BACKBONE_PREFIX)}
+    )
     if backbone:
         if set(backbone) != set(net.backbone.feature_state_dict()):
-            raise ValueError(f"Coarse filter weights {path or DEFAULT_WEIGHTS}: their backbone tensors are not {config['backbone']}'s feature layers; export them again")
+            raise ValueError(
+                f"Coarse filter weights {path or DEFAULT_WEIGHTS}: their backbone tensors are not {config['backbone']}'s feature layers; export them again"
+            )
         net.backbone.load_state_dict(backbone, strict=False)
     return config
 

@@ -40,7 +40,9 @@ def pose_errors(
         if image.name not in gt_by_name or not image.has_pose:
             continue
         ref = gt_by_name[image.name]
-        angle = rotation_angle(image.cam_from_world().rotation.matrix() @ ref.cam_from_world().rotation.matrix().T)
+        angle = rotation_angle(
+            image.cam_from_world().rotation.matrix() @ ref.cam_from_world().rotation.matrix().T
+        )
         center_err = float(np.linalg.norm(image.projection_center() - ref.projection_center()))
         errors[image.name] = (angle, center_err / extent)
     return errors

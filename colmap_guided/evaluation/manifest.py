@@ -36,8 +36,22 @@ from colmap_guided.workspace import Workspace
 
 ERAS = ("historical", "modern", "distractor")
 # A subset of a scene: the eras it keeps. Distractors stay in every subset: they must never register.
-SUBSETS = {"historical": ("historical", "distractor"), "modern": ("modern", "distractor"), "all": None}
-HISTORICAL_ALIASES = ("historical", "historic", "history", "hist", "old", "past", "archive", "archival", "then")
+SUBSETS = {
+    "historical": ("historical", "distractor"),
+    "modern": ("modern", "distractor"),
+    "all": None,
+}
+HISTORICAL_ALIASES = (
+    "historical",
+    "historic",
+    "history",
+    "hist",
+    "old",
+    "past",
+    "archive",
+    "archival",
+    "then",
+)
 MODERN_ALIASES = ("modern", "new", "recent", "present", "today", "current", "now", "contemporary")
 
 
@@ -73,7 +87,9 @@ def save_manifest(path: Path, data: dict) -> None:
 def scene_image_dir(manifest: dict, scene: dict) -> Path:
     root = manifest.get("_root")
     if root is None:
-        raise ValueError(f"Manifest {manifest.get('name')} has no root: pass --root (the folder of your local copy).")
+        raise ValueError(
+            f"Manifest {manifest.get('name')} has no root: pass --root (the folder of your local copy)."
+        )
     base = Path(root) / scene.get("path", scene["name"])
     return base / scene["image_dir"] if scene.get("image_dir") else base
 
@@ -91,7 +107,9 @@ def _images_below(folder: Path) -> list[str]:
     return sorted(
         p.relative_to(folder).as_posix()
         for p in folder.rglob("*")
-        if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS and not any(part.startswith(".") for part in p.relative_to(folder).parts)
+        if p.is_file()
+        and p.suffix.lower() in IMAGE_EXTENSIONS
+        and not any(part.startswith(".") for part in p.relative_to(folder).parts)
     )
 
 
@@ -115,9 +133,16 @@ def scan_root(root: Path) -> list[dict]:
     scenes: dict[str, dict] = {}
     if top and all(era_top.values()):  # ROOT/ERA/SCENE/...
         for era_dir in top:
-            for scene_dir in sorted(d for d in era_dir.iterdir() if d.is_dir() and not d.name.startswith(".")):
-                scene = scenes.setdefault(scene_dir.name, {"name": scene_dir.name, "path": ".", "images": []})
-                scene["images"] += [{"name": f"{era_dir.name}/{scene_dir.name}/{n}", "era": era_top[era_dir.name]} for n in _images_below(scene_dir)]
+            for scene_dir in sorted(
+                d for d in era_dir.iterdir() if d.is_dir() and not d.name.startswith(".")
+            ):
+                scene = scenes.setdefault(
+                    scene_dir.name, {"name": scene_dir.name, "path": ".", "images": []}
+                )
+                scene["images"] += [
+                    {"name": f"{era_dir.name}/{scene_dir.name}/{n}", "era": era_top[era_dir.name]}
+                    for n in _images_below(scene_dir)
+                ]
     else:  # ROOT/SCENE/ERA/...
         for scene_dir in top:
             images = []
@@ -127,12 +152,24 @@ def scan_root(root: Path) -> list[dict]:
                 images.append({"name": name, "era": era or "unknown"})
             unknown = sum(im["era"] == "unknown" for im in images)
             if unknown:
-                logger.warning("%s: %d/%d images are in no historical/modern (old/new) folder: era 'unknown'.", scene_dir.name, unknown, len(images))
+                logger.warning(
+                    "%s: %d/%d images are in no historical/modern (old/new) folder: era 'unknown'.",
+                    scene_dir.name,
+                    unknown,
+                    len(images),
+                )
             if images:
-                scenes[scene_dir.name] = {"name": scene_dir.name, "path": scene_dir.name, "images": images}
+                scenes[scene_dir.name] = {
+                    "name": scene_dir.name,
+                    "path": scene_dir.name,
+                    "images": images,
+                }
     out = [s for s in scenes.values() if s["images"]]
     for s in out:
-        counts = {e: sum(im["era"] == e for im in s["images"]) for e in sorted({im["era"] for im in s["images"]})}
+        counts = {
+            e: sum(im["era"] == e for im in s["images"])
+            for e in sorted({im["era"] for im in s["images"]})
+        }
         logger.info("Scanned %s: %s", s["name"], ", ".join(f"{v} {k}" for k, v in counts.items()))
     return out
 
@@ -144,7 +181,9 @@ def subset_images(scene: dict, subset: str) -> list[dict]:
     return [im for im in scene["images"] if eras is None or im["era"] in eras]
 
 
-def layout_scene(manifest: dict, scene: dict, subset: str, out_dir: Path, copy: bool = False) -> Path | None:
+def layout_scene(
+    manifest: dict, scene: dict, subset: str, out_dir: Path, copy: bool = False
+) -> Path | None:
     """OUT_DIR/<scene>__<subset>/images (links or copies) + manifest.json; None when the subset has
     fewer than 2 images that are not distractors. Only files this function made are ever replaced."""
     images = subset_images(scene, subset)
@@ -183,6 +222,8 @@ def select_scenes(manifest: dict, names=None, max_scenes: int | None = None) -> 
     if names:
         unknown = set(names) - {s["name"] for s in scenes}
         if unknown:
-            raise ValueError(f"Unknown scene(s) {sorted(unknown)}; the manifest has {[s['name'] for s in scenes]}")
+            raise ValueError(
+                f"Unknown scene(s) {sorted(unknown)}; the manifest has {[s['name'] for s in scenes]}"
+            )
         scenes = [s for s in scenes if s["name"] in names]
     return scenes[:max_scenes] if max_scenes else scenes

@@ -75,12 +75,16 @@ def parse_specs(texts, extra_conf: dict | None = None) -> list[MatcherSpec]:
     for text in texts:
         spec = parse_spec(text)
         if spec.name not in PRESETS:
-            raise ValueError(f"Matcher {spec.name!r} of {text!r} is not in the registry ({', '.join(sorted(PRESETS))})")
+            raise ValueError(
+                f"Matcher {spec.name!r} of {text!r} is not in the registry ({', '.join(sorted(PRESETS))})"
+            )
         cls, options = preset(spec.name)
         known = cls.default_conf
         unknown = sorted(set(spec.conf) - set(known))
         if unknown:
-            raise ValueError(f"The {cls.name} matcher has no option {', '.join(unknown)} ({text!r}); known: {', '.join(sorted(known))}")
+            raise ValueError(
+                f"The {cls.name} matcher has no option {', '.join(unknown)} ({text!r}); known: {', '.join(sorted(known))}"
+            )
         spec = MatcherSpec(cls.name, {**options, **spec.conf}, text)
         for key, value in (extra_conf or {}).items():
             if key in known and key not in spec.conf and value is not None:

@@ -42,7 +42,9 @@ def rotation_error(R_est: np.ndarray, R_gt: np.ndarray) -> float:
     return rotation_angle(np.asarray(R_est, float).T @ np.asarray(R_gt, float))
 
 
-def translation_error(t_est: np.ndarray, t_gt: np.ndarray, sign_ambiguous: bool = True, min_norm: float = 1e-8) -> float:
+def translation_error(
+    t_est: np.ndarray, t_gt: np.ndarray, sign_ambiguous: bool = True, min_norm: float = 1e-8
+) -> float:
     """Angle (degrees) between translation directions; folded to [0, 90] when the sign is ambiguous.
 
     A reference translation of (near) zero length has no direction: the error is 0 (SuperGlue's rule).
@@ -86,7 +88,9 @@ def pose_auc(errors, thresholds=AUC_THRESHOLDS) -> list[float]:
     recall = np.concatenate([[0.0], np.arange(1, n + 1) / n])
     aucs = []
     for thr in thresholds:
-        k = int(np.searchsorted(errors, thr, side="left"))  # errors[:k] < thr (errors[0] = 0 always)
+        k = int(
+            np.searchsorted(errors, thr, side="left")
+        )  # errors[:k] < thr (errors[0] = 0 always)
         k = max(k, 1)
         e = np.concatenate([errors[:k], [thr]])
         r = np.concatenate([recall[:k], [recall[k - 1]]])
@@ -146,18 +150,27 @@ def estimate_relative_pose(
             return None
         pose = out["cam2_from_cam1"]
         inliers = np.asarray(out["inlier_mask"], bool).ravel()
-        return {"R": pose.rotation.matrix(), "t": np.asarray(pose.translation, float), "inliers": inliers, "num_inliers": int(inliers.sum())}
+        return {
+            "R": pose.rotation.matrix(),
+            "t": np.asarray(pose.translation, float),
+            "inliers": inliers,
+            "num_inliers": int(inliers.sum()),
+        }
     if estimator != "cv2":
         raise ValueError(f"unknown estimator {estimator!r}: cv2 or pycolmap")
     k1, k2 = normalize_points(camera1, pts1), normalize_points(camera2, pts2)
     thr = threshold_px / mean_focal(camera1, camera2)
     cv2.setRNGSeed(seed)
-    E, mask = cv2.findEssentialMat(k1, k2, np.eye(3), threshold=thr, prob=confidence, method=cv2.RANSAC)
+    E, mask = cv2.findEssentialMat(
+        k1, k2, np.eye(3), threshold=thr, prob=confidence, method=cv2.RANSAC
+    )
     if E is None or mask is None:
         return None
     best = None
     for i in range(len(E) // 3):
-        n, R, t, pose_mask = cv2.recoverPose(E[3 * i : 3 * i + 3], k1, k2, np.eye(3), 1e9, mask=mask.copy())
+        n, R, t, pose_mask = cv2.recoverPose(
+            E[3 * i : 3 * i + 3], k1, k2, np.eye(3), 1e9, mask=mask.copy()
+        )
         if best is None or n > best[0]:
             best = (n, R, t.ravel(), pose_mask.ravel() > 0)
     if best is None:
@@ -197,7 +210,15 @@ def homography_transfer_error(x1: np.ndarray, x2: np.ndarray, H: np.ndarray) -> 
     return np.where(np.isfinite(err), err, np.inf)
 
 
-def estimate_geometry(pts1: np.ndarray, pts2: np.ndarray, geometry: str = "F", threshold_px: float = 1.0, confidence: float = 0.999, max_iters: int = 10000, seed: int = 0) -> dict | None:
+def estimate_geometry(
+    pts1: np.ndarray,
+    pts2: np.ndarray,
+    geometry: str = "F",
+    threshold_px: float = 1.0,
+    confidence: float = 0.999,
+    max_iters: int = 10000,
+    seed: int = 0,
+) -> dict | None:
     """Fundamental matrix ('F', >= 8 matches) or homography ('H', >= 4) with OpenCV's MAGSAC++ (USAC)."""
     pts1 = np.ascontiguousarray(np.asarray(pts1, np.float64).reshape(-1, 2))
     pts2 = np.ascontiguousarray(np.asarray(pts2, np.float64).reshape(-1, 2))
@@ -208,9 +229,13 @@ def estimate_geometry(pts1: np.ndarray, pts2: np.ndarray, geometry: str = "F", t
         return None
     try:
         if geometry == "F":
-            M, mask = cv2.findFundamentalMat(pts1, pts2, cv2.USAC_MAGSAC, threshold_px, confidence, max_iters)
+            M, mask = cv2.findFundamentalMat(
+                pts1, pts2, cv2.USAC_MAGSAC, threshold_px, confidence, max_iters
+            )
         else:
-            M, mask = cv2.findHomography(pts1, pts2, cv2.USAC_MAGSAC, threshold_px, maxIters=max_iters, confidence=confidence)
+            M, mask = cv2.findHomography(
+                pts1, pts2, cv2.USAC_MAGSAC, threshold_px, maxIters=max_iters, confidence=confidence
+            )
     except cv2.error:  # OpenCV 5 asserts on degenerate samples instead of returning no model
         return None
     if M is None or mask is None or M.shape != (3, 3):

@@ -38,11 +38,23 @@ from colmap_guided.workspace import Workspace
 
 from .reference import reference_model_dir
 
-DEFAULT_SOURCES = ("sacre_coeur_hloc", "lund_door_gtsfm", "opensfm_lund", "train/dfsfm_sacre_coeur", "train/vggsfm_british_museum")
+DEFAULT_SOURCES = (
+    "sacre_coeur_hloc",
+    "lund_door_gtsfm",
+    "opensfm_lund",
+    "train/dfsfm_sacre_coeur",
+    "train/vggsfm_british_museum",
+)
 # Unrelated to every default source (no Sacre Coeur, Lund or British Museum views among them).
 DISTRACTOR_POOL = (
-    "train/bundler_kermit", "train/llff_fern", "train/vggsfm_statue", "train/cut3r_kitchen",
-    "train/posediffusion_apple", "train/aliked_kitti", "train/pmvs_hall", "train/dim_cyprus",
+    "train/bundler_kermit",
+    "train/llff_fern",
+    "train/vggsfm_statue",
+    "train/cut3r_kitchen",
+    "train/posediffusion_apple",
+    "train/aliked_kitti",
+    "train/pmvs_hall",
+    "train/dim_cyprus",
 )
 # Sets that show the same landmark: never distractors for one another.
 SAME_LANDMARK = (
@@ -74,13 +86,24 @@ def _resize(rgb: np.ndarray, max_size: int | None) -> tuple[np.ndarray, float]:
 
 def _write_jpg(path: Path, rgb: np.ndarray, quality: int = 95) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality]):
+    if not cv2.imwrite(
+        str(path), np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality]
+    ):
         raise OSError(f"cannot write {path}")
 
 
-def _degrade(rgb: np.ndarray, preset: str, seed: int, crop: float) -> tuple[np.ndarray, tuple[int, int]]:
+def _degrade(
+    rgb: np.ndarray, preset: str, seed: int, crop: float
+) -> tuple[np.ndarray, tuple[int, int]]:
     p = archival.PRESETS[preset]
-    return archival.degrade(rgb, np.random.default_rng(seed), strength=p.get("strength", 1.0), effects=p["effects"], crop=crop, return_offset=True)
+    return archival.degrade(
+        rgb,
+        np.random.default_rng(seed),
+        strength=p.get("strength", 1.0),
+        effects=p["effects"],
+        crop=crop,
+        return_offset=True,
+    )
 
 
 def _claim(out_dir: Path, data_dir: Path | None = None) -> Workspace:
@@ -113,7 +136,9 @@ def pseudo_reference(key: str, data_dir: Path, workspace: Workspace) -> Path | N
         return model
     workspace.record(name)
     logger.info("Proxy %s: a reference from its original photos (pycolmap's default pipeline)", key)
-    largest = largest_model(run_pycolmap_default(data_dir / key / "images", workspace.path / name / "run", seed=0)[0])
+    largest = largest_model(
+        run_pycolmap_default(data_dir / key / "images", workspace.path / name / "run", seed=0)[0]
+    )
     if largest is None:
         return None
     model.mkdir(parents=True, exist_ok=True)
@@ -134,7 +159,18 @@ def distractor_sources(key: str, pool=DISTRACTOR_POOL, n: int = 3, seed: int = 0
     return [allowed[i] for i in order[:n]]
 
 
-def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int = 0, n_distractors: int = 3, max_size: int | None = 1024, crop: float = 0.1, max_images: int | None = None, pool=DISTRACTOR_POOL, look: str = "damaged") -> Path:
+def build_scene(
+    key: str,
+    out_dir: Path,
+    data_dir: Path | None = None,
+    seed: int = 0,
+    n_distractors: int = 3,
+    max_size: int | None = 1024,
+    crop: float = 0.1,
+    max_images: int | None = None,
+    pool=DISTRACTOR_POOL,
+    look: str = "damaged",
+) -> Path:
     """One proxy scene from the set ``key`` of ../shared/data in one of ``LOOKS``; returns OUT/<scene>."""
     if look not in LOOKS:
         raise ValueError(f"unknown proxy look {look!r}; known: {sorted(LOOKS)}")
@@ -156,7 +192,12 @@ def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int
     for name in names:
         rgb, scale = _resize(read_image(src / name), max_size)
         out_name = str(Path(name).with_suffix(".jpg").as_posix())
-        entry = {"name": out_name, "source": f"{key}/images/{name}", "ref_name": name, "scale": scale}
+        entry = {
+            "name": out_name,
+            "source": f"{key}/images/{name}",
+            "ref_name": name,
+            "scale": scale,
+        }
         if name in hist:
             preset = presets[k % len(presets)]
             k += 1
@@ -168,10 +209,17 @@ def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int
         entries.append(entry)
     for i, dkey in enumerate(distractor_sources(key, pool, n_distractors, seed)):
         dnames = list_images(data_dir / dkey / "images")
-        dname = dnames[int(np.random.default_rng(_seed("pick", key, dkey, seed)).integers(len(dnames)))]
+        dname = dnames[
+            int(np.random.default_rng(_seed("pick", key, dkey, seed)).integers(len(dnames)))
+        ]
         rgb, scale = _resize(read_image(data_dir / dkey / "images" / dname), max_size)
         out_name = f"distractor_{dkey.split('/')[-1]}_{Path(dname).stem}.jpg"
-        entry = {"name": out_name, "era": "distractor", "source": f"{dkey}/images/{dname}", "scale": scale}
+        entry = {
+            "name": out_name,
+            "era": "distractor",
+            "source": f"{dkey}/images/{dname}",
+            "scale": scale,
+        }
         if i % 2 == 0:  # half of the distractors look archival too
             preset = presets[(k + i) % len(presets)]
             rgb, offset = _degrade(rgb, preset, _seed(key, dkey, dname, seed), crop)
@@ -180,14 +228,37 @@ def build_scene(key: str, out_dir: Path, data_dir: Path | None = None, seed: int
         entries.append(entry)
     ref = reference_model_dir(key, data_dir) or pseudo_reference(key, data_dir, workspace)
     one = {
-        "scene": scene, "subset": "all", "source": key,
-        "reference": {"type": "colmap", "path": str(ref), "kind": "reference" if ref.name == "colmap_ground_truth" else "pseudo_gt"} if ref else None,
-        "build": {"seed": seed, "max_size": max_size, "crop": crop, "n_distractors": n_distractors, "look": look},
+        "scene": scene,
+        "subset": "all",
+        "source": key,
+        "reference": {
+            "type": "colmap",
+            "path": str(ref),
+            "kind": "reference" if ref.name == "colmap_ground_truth" else "pseudo_gt",
+        }
+        if ref
+        else None,
+        "build": {
+            "seed": seed,
+            "max_size": max_size,
+            "crop": crop,
+            "n_distractors": n_distractors,
+            "look": look,
+        },
         "images": entries,
     }
     (scene_dir / "manifest.json").write_text(json.dumps(one, indent=1) + "\n", encoding="utf-8")
-    counts = {e: sum(x["era"] == e for x in entries) for e in ("historical", "modern", "distractor")}
-    logger.info("Proxy %s: %d historical, %d modern, %d distractors -> %s", scene, counts["historical"], counts["modern"], counts["distractor"], scene_dir)
+    counts = {
+        e: sum(x["era"] == e for x in entries) for e in ("historical", "modern", "distractor")
+    }
+    logger.info(
+        "Proxy %s: %d historical, %d modern, %d distractors -> %s",
+        scene,
+        counts["historical"],
+        counts["modern"],
+        counts["distractor"],
+        scene_dir,
+    )
     return scene_dir
 
 
@@ -199,11 +270,22 @@ def build_proxy(out_dir: Path, sources=DEFAULT_SOURCES, looks=tuple(LOOKS), **kw
     for key, look in ((key, look) for look in looks for key in sources):
         scene_dir = build_scene(key, workspace.path, look=look, **kwargs)
         one = json.loads((scene_dir / "manifest.json").read_text())
-        scenes.append({
-            "name": one["scene"], "path": one["scene"], "image_dir": "images", "source": key, "look": one["build"]["look"],
-            "reference": {"type": "colmap", "path": one["reference"]["path"]} if one.get("reference") else None,
-            "images": [{k: v for k, v in im.items() if k in ("name", "era", "ref_name")} for im in one["images"]],
-        })
+        scenes.append(
+            {
+                "name": one["scene"],
+                "path": one["scene"],
+                "image_dir": "images",
+                "source": key,
+                "look": one["build"]["look"],
+                "reference": {"type": "colmap", "path": one["reference"]["path"]}
+                if one.get("reference")
+                else None,
+                "images": [
+                    {k: v for k, v in im.items() if k in ("name", "era", "ref_name")}
+                    for im in one["images"]
+                ],
+            }
+        )
     manifest = {
         "name": "historical_proxy",
         "description": "Offline historical proxy built by recon_scripts/make_historical_proxy.py: half of each set degraded (era historical), the rest modern, plus distractors of unrelated scenes that must not register.",

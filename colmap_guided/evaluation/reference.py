@@ -27,7 +27,12 @@ from colmap_guided.images import image_size
 from colmap_guided.paths import shared_data_dir
 
 # Scenes with real reference cameras; they are held out of training for the reported model.
-TWO_VIEW_SCENES = ("lund_door_gtsfm", "train/strecha_castle", "train/strecha_entry_P10", "train/instantngp_fox")
+TWO_VIEW_SCENES = (
+    "lund_door_gtsfm",
+    "train/strecha_castle",
+    "train/strecha_entry_P10",
+    "train/instantngp_fox",
+)
 HELD_OUT_SCENES = TWO_VIEW_SCENES
 
 
@@ -80,7 +85,12 @@ def _views_from_model(rec: pycolmap.Reconstruction) -> dict[str, RefView]:
         if not image.has_pose:
             continue
         pose = image.cam_from_world()
-        views[image.name] = RefView(image.name, rec.cameras[image.camera_id], pose.rotation.matrix(), np.asarray(pose.translation, float))
+        views[image.name] = RefView(
+            image.name,
+            rec.cameras[image.camera_id],
+            pose.rotation.matrix(),
+            np.asarray(pose.translation, float),
+        )
     return views
 
 
@@ -107,15 +117,24 @@ def _strecha_views(scene_dir: Path) -> dict[str, RefView]:
             w, h = image_size(file)
             K = np.asarray(cal["K"], float)
             sx, sy = w / 3072.0, h / 2048.0  # calibration frame: the original 3072x2048 photos
-            camera = pycolmap.Camera(model="PINHOLE", width=w, height=h, params=[K[0, 0] * sx, K[1, 1] * sy, K[0, 2] * sx, K[1, 2] * sy])
+            camera = pycolmap.Camera(
+                model="PINHOLE",
+                width=w,
+                height=h,
+                params=[K[0, 0] * sx, K[1, 1] * sy, K[0, 2] * sx, K[1, 2] * sy],
+            )
             # Each calibration file has its own world frame (castle P19 and P30 differ by a similarity).
-            views[name] = RefView(name, camera, _orthonormal(cal["R"]), np.asarray(cal["T"], float), group=path.stem)
+            views[name] = RefView(
+                name, camera, _orthonormal(cal["R"]), np.asarray(cal["T"], float), group=path.stem
+            )
     return views
 
 
 def _instantngp_views(scene_dir: Path) -> dict[str, RefView]:
     data = json.loads((scene_dir / "transforms.json").read_text())
-    flip = np.diag([1.0, -1.0, -1.0])  # OpenGL camera axes (x right, y up, z back) -> OpenCV (y down, z forward)
+    flip = np.diag(
+        [1.0, -1.0, -1.0]
+    )  # OpenGL camera axes (x right, y up, z back) -> OpenCV (y down, z forward)
     views = {}
     for frame in data["frames"]:
         name = Path(frame["file_path"]).name
@@ -127,8 +146,19 @@ def _instantngp_views(scene_dir: Path) -> dict[str, RefView]:
         sx, sy = w / fw, h / fh
         g = lambda k: float(frame.get(k, data.get(k, 0.0)))  # noqa: E731 - per-frame value or the global one
         camera = pycolmap.Camera(
-            model="OPENCV", width=w, height=h,
-            params=[g("fl_x") * sx, g("fl_y") * sy, g("cx") * sx, g("cy") * sy, g("k1"), g("k2"), g("p1"), g("p2")],
+            model="OPENCV",
+            width=w,
+            height=h,
+            params=[
+                g("fl_x") * sx,
+                g("fl_y") * sy,
+                g("cx") * sx,
+                g("cy") * sy,
+                g("k1"),
+                g("k2"),
+                g("p1"),
+                g("p2"),
+            ],
         )
         c2w = np.asarray(frame["transform_matrix"], float)
         R_c2w = _orthonormal(c2w[:3, :3] @ flip)
@@ -153,16 +183,24 @@ def load_reference(key: str, source: str = "auto", data_dir: Path | None = None)
     observations = _observations(model)
     if source in ("auto", "reference"):
         if gt_model.is_dir():
-            return RefScene(key, scene_dir / "images", _views_from_model(model), "reference", observations)
+            return RefScene(
+                key, scene_dir / "images", _views_from_model(model), "reference", observations
+            )
         if list(scene_dir.glob("calibration_gt*.json")):
-            return RefScene(key, scene_dir / "images", _strecha_views(scene_dir), "reference", observations)
+            return RefScene(
+                key, scene_dir / "images", _strecha_views(scene_dir), "reference", observations
+            )
         if (scene_dir / "transforms.json").is_file():
-            return RefScene(key, scene_dir / "images", _instantngp_views(scene_dir), "reference", observations)
+            return RefScene(
+                key, scene_dir / "images", _instantngp_views(scene_dir), "reference", observations
+            )
         if source == "reference":
             raise FileNotFoundError(f"{key} has no reference cameras; use source='pseudo_gt'")
     if not pseudo_model.is_dir():
         if gt_model.is_dir():  # the set's reference is itself a COLMAP model
-            return RefScene(key, scene_dir / "images", _views_from_model(model), "reference", observations)
+            return RefScene(
+                key, scene_dir / "images", _views_from_model(model), "reference", observations
+            )
         raise FileNotFoundError(f"{key} has no pseudo-GT model ({pseudo_model})")
     return RefScene(key, scene_dir / "images", _views_from_model(model), "pseudo_gt", observations)
 

@@ -35,7 +35,13 @@ from colmap_guided.workspace import Workspace
 from . import matcher_specs
 
 # What an evaluation writes beside its scenes (``write_report``) and its WxBS table.
-REPORT_FILES = ("results.json", "results.md", "registered.png", "wxbs_appearance.json", "manifest_scanned.json")
+REPORT_FILES = (
+    "results.json",
+    "results.md",
+    "registered.png",
+    "wxbs_appearance.json",
+    "manifest_scanned.json",
+)
 from .metrics import rotation_angle
 
 MAX_ROTATION_DEG = 5.0
@@ -63,7 +69,9 @@ def compare_poses(
     if len(names) < 2:
         return {n: {"rotation_error": None, "center_error": None, "ok": None} for n in names}
     Qs = {n: ref[n][0].T @ est[n][0] for n in names}  # x_ref = Q x_est (rotation part)
-    support = {n: [m for m in names if rotation_angle(Qs[n].T @ Qs[m]) < max_rotation_deg] for n in names}
+    support = {
+        n: [m for m in names if rotation_angle(Qs[n].T @ Qs[m]) < max_rotation_deg] for n in names
+    }
     best = max(names, key=lambda n: (len(support[n]), -names.index(n)))
     Q = _chordal_mean([Qs[m] for m in support[best]])
     rot_err = {n: rotation_angle((ref[n][0] @ Q).T @ est[n][0]) for n in names}
@@ -74,7 +82,11 @@ def compare_poses(
     inl = [n for n in names if rot_err[n] < max_rotation_deg]
     if len(inl) >= 3:
         ref_pts = np.array([c_ref[n] for n in names])
-        spread = scale if scale else float(np.median(np.linalg.norm(ref_pts - np.median(ref_pts, 0), axis=1))) or 1.0
+        spread = (
+            scale
+            if scale
+            else float(np.median(np.linalg.norm(ref_pts - np.median(ref_pts, 0), axis=1))) or 1.0
+        )
         tol = max_center_frac * spread
         best_fit, best_count = None, -1
         for i, j in combinations(inl, 2):  # similarity (Q fixed) from two centres, scored on all
@@ -98,15 +110,21 @@ def compare_poses(
                 Ac, Bc = A - A.mean(0), B - B.mean(0)
                 s = float(np.sum(Ac * Bc) / max(np.sum(Ac * Ac), 1e-12))
                 t = B.mean(0) - s * A.mean(0)
-            center_err = {n: float(np.linalg.norm(s * Q @ c_est[n] + t - c_ref[n]) / spread) for n in names}
+            center_err = {
+                n: float(np.linalg.norm(s * Q @ c_est[n] + t - c_ref[n]) / spread) for n in names
+            }
     out = {}
     for n in names:
-        ok = rot_err[n] < max_rotation_deg and (center_err[n] is None or center_err[n] < max_center_frac)
+        ok = rot_err[n] < max_rotation_deg and (
+            center_err[n] is None or center_err[n] < max_center_frac
+        )
         out[n] = {"rotation_error": rot_err[n], "center_error": center_err[n], "ok": bool(ok)}
     return out
 
 
-def model_poses(rec: pycolmap.Reconstruction, names: set | None = None) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def model_poses(
+    rec: pycolmap.Reconstruction, names: set | None = None
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     out = {}
     for image in rec.images.values():
         if image.has_pose and (names is None or image.name in names):
@@ -137,7 +155,12 @@ def largest_model(models: dict) -> pycolmap.Reconstruction | None:
     return max(models.values(), key=lambda rec: rec.num_reg_images(), default=None)
 
 
-def score_registration(largest: pycolmap.Reconstruction | None, images: list[dict], reference: pycolmap.Reconstruction | None, **tol) -> dict:
+def score_registration(
+    largest: pycolmap.Reconstruction | None,
+    images: list[dict],
+    reference: pycolmap.Reconstruction | None,
+    **tol,
+) -> dict:
     """Counts for one run: images = the scene's manifest entries (name, era, optional ref_name)."""
     registered = set(model_poses(largest)) if largest is not None else set()
     targets = [im for im in images if im["era"] != "distractor"]
@@ -146,20 +169,33 @@ def score_registration(largest: pycolmap.Reconstruction | None, images: list[dic
         "num_images": len(targets),
         "num_registered": sum(im["name"] in registered for im in targets),
         "num_distractors": len(distractors),
-        "distractors_registered": sorted(im["name"] for im in distractors if im["name"] in registered),
+        "distractors_registered": sorted(
+            im["name"] for im in distractors if im["name"] in registered
+        ),
     }
     for era in sorted({im["era"] for im in targets}):
         sub = [im for im in targets if im["era"] == era]
         out[f"{era}_registered"] = f"{sum(im['name'] in registered for im in sub)}/{len(sub)}"
-    out["registered_ratio"] = out["num_registered"] / out["num_images"] if out["num_images"] else 0.0
+    out["registered_ratio"] = (
+        out["num_registered"] / out["num_images"] if out["num_images"] else 0.0
+    )
     out["correct"] = out["wrong"] = out["unverified"] = None
     if reference is not None and largest is not None:
         ref_poses_by_name = model_poses(reference)
         est = model_poses(largest)
         to_ref = {im["name"]: im.get("ref_name", im["name"]) for im in targets}
-        pairs = {n: (est[n], ref_poses_by_name[r]) for n, r in to_ref.items() if n in est and r in ref_poses_by_name}
+        pairs = {
+            n: (est[n], ref_poses_by_name[r])
+            for n, r in to_ref.items()
+            if n in est and r in ref_poses_by_name
+        }
         depth = scene_depth(reference, [to_ref[n] for n in pairs])
-        checks = compare_poses({n: p[0] for n, p in pairs.items()}, {n: p[1] for n, p in pairs.items()}, scale=depth, **tol)
+        checks = compare_poses(
+            {n: p[0] for n, p in pairs.items()},
+            {n: p[1] for n, p in pairs.items()},
+            scale=depth,
+            **tol,
+        )
         reg_targets = [im["name"] for im in targets if im["name"] in registered]
         out["correct"] = sum(1 for n in reg_targets if checks.get(n, {}).get("ok"))
         out["wrong"] = sorted(n for n in reg_targets if checks.get(n, {}).get("ok") is False)
@@ -194,7 +230,15 @@ def _fresh_workspace(workspace: Path, database: Path | None) -> Path:
 PYCOLMAP_METHODS = ("pycolmap", "pycolmap_mapping")
 
 
-def run_pycolmap_default(image_dir: Path, workspace: Path, camera_mode: str = "auto", seed: int | None = None, database: Path | None = None, threads: int | None = None, own_mapping: bool = False) -> tuple[dict, dict]:
+def run_pycolmap_default(
+    image_dir: Path,
+    workspace: Path,
+    camera_mode: str = "auto",
+    seed: int | None = None,
+    database: Path | None = None,
+    threads: int | None = None,
+    own_mapping: bool = False,
+) -> tuple[dict, dict]:
     """pycolmap's default pipeline with default options (``seed``: only the mapper's random seed, and
     ``threads``: the mapper's threads, 1 = runs repeat exactly; ``database``: a finished database of this
     pipeline to map again, extraction and matching skipped; ``own_mapping``: the database mapped by
@@ -213,7 +257,10 @@ def run_pycolmap_default(image_dir: Path, workspace: Path, camera_mode: str = "a
     if own_mapping:
         from colmap_guided.mapping import run_mapping
 
-        conf = {**({"random_seed": seed} if seed is not None else {}), **({"num_threads": threads} if threads is not None else {})}
+        conf = {
+            **({"random_seed": seed} if seed is not None else {}),
+            **({"num_threads": threads} if threads is not None else {}),
+        }
         models = run_mapping(db, image_dir, Path(workspace) / "sparse", conf)
     else:
         options = pycolmap.IncrementalPipelineOptions()
@@ -238,7 +285,11 @@ def split_stage_options(method: str) -> tuple[str, dict, dict]:
     spec = matcher_specs.parse_spec(method)
     feature = {k: v for k, v in spec.conf.items() if k in feature_defaults}
     mapping = {k: v for k, v in spec.conf.items() if k in mapping_defaults}
-    rest = ",".join(item for item in method.partition(":")[2].split(",") if item and item.partition("=")[0].strip() not in {**feature, **mapping})
+    rest = ",".join(
+        item
+        for item in method.partition(":")[2].split(",")
+        if item and item.partition("=")[0].strip() not in {**feature, **mapping}
+    )
     return spec.name + (f":{rest}" if rest else ""), feature, mapping
 
 
@@ -250,12 +301,25 @@ def database_key(method: str) -> tuple[str, str]:
         return "pycolmap", "pycolmap|pycolmap"
     matcher, feature, _ = split_stage_options(method)
     # the features it extracts: 'guided' and 'guided:type=sift' share them
-    feature = {**feature, "type": resolve_auto(matcher_specs.parse_spec(matcher).name, feature.get("type", AUTO))[1]}
+    feature = {
+        **feature,
+        "type": resolve_auto(matcher_specs.parse_spec(matcher).name, feature.get("type", AUTO))[1],
+    }
     features = json.dumps(feature, sort_keys=True)
     return features, f"{matcher}|{features}"
 
 
-def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict | None = None, seed: int | None = None, feature_conf: dict | None = None, database: Path | None = None, features_only: bool = False, threads: int | None = None) -> tuple[pycolmap.Reconstruction | None, dict]:
+def run_method(
+    scene_dir: Path,
+    method: str,
+    workspace: Path,
+    extra_conf: dict | None = None,
+    seed: int | None = None,
+    feature_conf: dict | None = None,
+    database: Path | None = None,
+    features_only: bool = False,
+    threads: int | None = None,
+) -> tuple[pycolmap.Reconstruction | None, dict]:
     """One reconstruction of a laid-out scene (``seed``: the mapper's random seed, None = each method's
     default; ``threads``: the mapper's threads, None = each method's default, 1 = a rerun gives the same model; ``database``: a finished database of this method, or of another mapper, so only mapping runs
     (the database does not depend on the mapper); with ``features_only`` its matches are cleared first, so
@@ -264,8 +328,14 @@ def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict |
     image_dir = scene_dir / "images"
     start = time.time()
     if method in PYCOLMAP_METHODS:
-        models, timings = run_pycolmap_default(image_dir, workspace, seed=seed, database=database, threads=threads,
-                                               own_mapping=method == "pycolmap_mapping")
+        models, timings = run_pycolmap_default(
+            image_dir,
+            workspace,
+            seed=seed,
+            database=database,
+            threads=threads,
+            own_mapping=method == "pycolmap_mapping",
+        )
         largest = largest_model(models)
         info = {"timings": timings, "num_models": len(models)}
     else:
@@ -276,21 +346,38 @@ def run_method(scene_dir: Path, method: str, workspace: Path, extra_conf: dict |
         method, own_features, own_mapping = split_stage_options(method)
         feature_conf = {**(feature_conf or {}), **own_features} or None
         (spec,) = matcher_specs.parse_specs([method], extra_conf)
-        mapping_conf = {**({"random_seed": seed} if seed is not None else {}), **({"num_threads": threads} if threads is not None else {}), **own_mapping} or None
+        mapping_conf = {
+            **({"random_seed": seed} if seed is not None else {}),
+            **({"num_threads": threads} if threads is not None else {}),
+            **own_mapping,
+        } or None
         db = _fresh_workspace(workspace, database)  # reconstruct resumes from the copied database
         if database is not None and features_only:
             with open_database(db) as opened:
                 clear_matches(opened)
-        result = reconstruct(scene_dir, output=workspace, matcher=spec.name, matcher_conf=spec.conf, feature_conf=feature_conf, mapping_conf=mapping_conf)
+        result = reconstruct(
+            scene_dir,
+            output=workspace,
+            matcher=spec.name,
+            matcher_conf=spec.conf,
+            feature_conf=feature_conf,
+            mapping_conf=mapping_conf,
+        )
         models = load_models(Path(result["sparse_path"]))
         largest = largest_model(models)
-        info = {"timings": result["timings"], "num_models": result["model"]["num_models"], "matcher": result["matcher"]}
+        info = {
+            "timings": result["timings"],
+            "num_models": result["model"]["num_models"],
+            "matcher": result["matcher"],
+        }
     info["num_points3D"] = largest.num_points3D() if largest is not None else 0
     info["wall_time"] = time.time() - start
     return largest, info
 
 
-def _reusable(runs_dirs: list[Path], methods: list[str], method: str) -> tuple[Path | None, bool, dict]:
+def _reusable(
+    runs_dirs: list[Path], methods: list[str], method: str
+) -> tuple[Path | None, bool, dict]:
     """A finished database to start ``method`` from: (path, features only, the source's timings). First
     one of the same features and matcher (map only), then one of the same features (match and map), in
     ``runs_dirs`` in order; (None, False, {}) when there is none."""
@@ -316,7 +403,19 @@ def seed_runs_dir(scene_dir: Path, seed: int | None) -> Path:
     return Path(scene_dir) / "runs" / (f"seed{seed}" if seed is not None else "")
 
 
-def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = None, extra_conf: dict | None = None, resume: bool = False, seed: int | None = None, feature_conf: dict | None = None, databases_from: Path | None = None, remap: bool = False, threads: int | None = None, **tol) -> dict:
+def evaluate_scene(
+    scene_dir: Path,
+    methods: list[str],
+    runs_dir: Path | None = None,
+    extra_conf: dict | None = None,
+    resume: bool = False,
+    seed: int | None = None,
+    feature_conf: dict | None = None,
+    databases_from: Path | None = None,
+    remap: bool = False,
+    threads: int | None = None,
+    **tol,
+) -> dict:
     """Run every method on one laid-out scene (SCENE/images + SCENE/manifest.json) and score it
     (``seed``: the mappers' random seed; runs go to SCENE/runs/seed<seed>/ then; ``threads``: the mappers'
     threads, 1 = every run repeats exactly; ``databases_from``: the runs folder of another seed whose
@@ -328,7 +427,15 @@ def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = 
     ref_path = (one.get("reference") or {}).get("path")
     reference = pycolmap.Reconstruction(ref_path) if ref_path and Path(ref_path).is_dir() else None
     runs_dir = Path(runs_dir) if runs_dir else seed_runs_dir(scene_dir, seed)
-    out = {"scene": one.get("scene", scene_dir.name), "subset": one.get("subset", "all"), "scene_dir": str(scene_dir), "reference": ref_path, "seed": seed, "eras": era_counts(images), "methods": {}}
+    out = {
+        "scene": one.get("scene", scene_dir.name),
+        "subset": one.get("subset", "all"),
+        "scene_dir": str(scene_dir),
+        "reference": ref_path,
+        "seed": seed,
+        "eras": era_counts(images),
+        "methods": {},
+    }
     for method in methods:
         workspace = runs_dir / method_slug(method)
         done = workspace / "eval.json"
@@ -347,15 +454,36 @@ def evaluate_scene(scene_dir: Path, methods: list[str], runs_dir: Path | None = 
                 reuse, features_only = previous / "database.db", False
                 source_timings = json.loads((previous / "eval.json").read_text()).get("timings", {})
             else:
-                reuse, features_only, source_timings = _reusable([runs_dir, *sources], methods, method)
-            largest, info = run_method(scene_dir, method, workspace, extra_conf, seed, feature_conf, reuse, features_only, threads)
+                reuse, features_only, source_timings = _reusable(
+                    [runs_dir, *sources], methods, method
+                )
+            largest, info = run_method(
+                scene_dir,
+                method,
+                workspace,
+                extra_conf,
+                seed,
+                feature_conf,
+                reuse,
+                features_only,
+                threads,
+            )
         except Exception as err:  # one failing method must not lose the others' results
             logger.error("%s [%s] %s failed: %r", out["scene"], out["subset"], method, err)
             out["methods"][method] = {"error": repr(err)}
             continue
-        if reuse is not None:  # the stages reused count in this method's time, as if it had run them
-            reused = {k: v for k, v in source_timings.items() if k != "map" and (k == "extract" or not features_only)}
-            info["timings"] = {**info["timings"], **{k: v + info["timings"].get(k, 0.0) for k, v in reused.items()}}
+        if (
+            reuse is not None
+        ):  # the stages reused count in this method's time, as if it had run them
+            reused = {
+                k: v
+                for k, v in source_timings.items()
+                if k != "map" and (k == "extract" or not features_only)
+            }
+            info["timings"] = {
+                **info["timings"],
+                **{k: v + info["timings"].get(k, 0.0) for k, v in reused.items()},
+            }
             info["wall_time"] += sum(reused.values())
             info["reused"] = {"database": str(reuse), "stages": sorted(reused)}
         if own:
@@ -375,7 +503,6 @@ def era_counts(images: list[dict]) -> dict:
     return out
 
 
-
 # ------------------------------------------------------------------------------------- reporting
 def _cell(rec: dict | None) -> str:
     if not rec:
@@ -388,7 +515,11 @@ def _cell(rec: dict | None) -> str:
 def _check_cell(rec: dict | None) -> str:
     if not rec or "error" in rec:
         return "–"
-    d = f"{len(rec['distractors_registered'])}/{rec['num_distractors']}" if rec.get("num_distractors") else "–"
+    d = (
+        f"{len(rec['distractors_registered'])}/{rec['num_distractors']}"
+        if rec.get("num_distractors")
+        else "–"
+    )
     if rec.get("correct") is None:
         return f"no ref · distr. {d}"
     return f"{rec['correct']} ok · {len(rec['wrong'])} wrong · distr. {d}"
@@ -403,17 +534,30 @@ def markdown_tables(results: list[dict], methods: list[str]) -> str:
         counts = r.get("eras", {})
         n = f"{counts.get('historical', 0)}/{counts.get('modern', 0)}/{counts.get('distractor', 0)}"
         rows.append([r["scene"], r["subset"], n] + [_cell(r["methods"].get(m)) for m in methods])
-        rows2.append([r["scene"], r["subset"]] + [_check_cell(r["methods"].get(m)) for m in methods])
-    text = "Registered images (largest model; distractors not counted):\n\n" + markdown_table(head + methods, rows)
+        rows2.append(
+            [r["scene"], r["subset"]] + [_check_cell(r["methods"].get(m)) for m in methods]
+        )
+    text = "Registered images (largest model; distractors not counted):\n\n" + markdown_table(
+        head + methods, rows
+    )
     means = []
     for subset in sorted({r["subset"] for r in results}):
         vals = []
         for m in methods:
-            ratios = [r["methods"][m]["registered_ratio"] for r in results if r["subset"] == subset and "registered_ratio" in r["methods"].get(m, {})]
+            ratios = [
+                r["methods"][m]["registered_ratio"]
+                for r in results
+                if r["subset"] == subset and "registered_ratio" in r["methods"].get(m, {})
+            ]
             vals.append(f"{100 * np.mean(ratios):.0f} %" if ratios else "–")
         means.append([subset] + vals)
-    text += "\n\nMean registered ratio per subset (paper Fig. 5a):\n\n" + markdown_table(["subset"] + methods, means)
-    text += "\n\nAgreement with the reference model (rotation < 5°, centre < 10 % of the scene depth) and distractors registered (must be 0):\n\n" + markdown_table(["scene", "subset"] + methods, rows2)
+    text += "\n\nMean registered ratio per subset (paper Fig. 5a):\n\n" + markdown_table(
+        ["subset"] + methods, means
+    )
+    text += (
+        "\n\nAgreement with the reference model (rotation < 5°, centre < 10 % of the scene depth) and distractors registered (must be 0):\n\n"
+        + markdown_table(["scene", "subset"] + methods, rows2)
+    )
     return text
 
 
@@ -424,20 +568,45 @@ def plot_registration(results: list[dict], methods: list[str], path: Path) -> No
     fig, axes = tables.figure(max(1, len(subsets)), 6.5, 4.2)
     for ax, subset in zip(axes, subsets):
         rs = [r for r in results if r["subset"] == subset]
-        series = {m: [100 * r["methods"].get(m, {}).get("registered_ratio", float("nan")) for r in rs] for m in methods}
-        tables.grouped_bars(None, [r["scene"] for r in rs], series, "registered images (%)", f"Registered ratio — {subset} images", (0, 105), ax=ax)
+        series = {
+            m: [100 * r["methods"].get(m, {}).get("registered_ratio", float("nan")) for r in rs]
+            for m in methods
+        }
+        tables.grouped_bars(
+            None,
+            [r["scene"] for r in rs],
+            series,
+            "registered images (%)",
+            f"Registered ratio — {subset} images",
+            (0, 105),
+            ax=ax,
+        )
     tables.save_figure(fig, path)
 
 
-def write_report(output: Path, title: str, manifest: Path, methods: list[str], results: list[dict], extra_text: str = "") -> str:
+def write_report(
+    output: Path,
+    title: str,
+    manifest: Path,
+    methods: list[str],
+    results: list[dict],
+    extra_text: str = "",
+) -> str:
     """The registration tables under a title with the machine and date, then ``extra_text``, written to
     OUTPUT/results.md, with OUTPUT/results.json and the OUTPUT/registered.png plot; returns the Markdown."""
     from . import tables
 
     note = tables.machine_note()
-    text = f"### {title}: registration ({note['date']}, {note['torch_device']}, {note['cpu_count']} CPUs)\n\n" + markdown_tables(results, methods) + extra_text
+    text = (
+        f"### {title}: registration ({note['date']}, {note['torch_device']}, {note['cpu_count']} CPUs)\n\n"
+        + markdown_tables(results, methods)
+        + extra_text
+    )
     Workspace.claim(output, "evaluation").record(*REPORT_FILES)
-    tables.write_json(output / "results.json", {"manifest": str(manifest), "methods": methods, "machine": note, "scenes": results})
+    tables.write_json(
+        output / "results.json",
+        {"manifest": str(manifest), "methods": methods, "machine": note, "scenes": results},
+    )
     (output / "results.md").write_text(text + "\n", encoding="utf-8")
     plot_registration(results, methods, output / "registered.png")
     return text

@@ -32,7 +32,13 @@ def machine_note() -> dict:
     import torch
 
     device = "cuda:" + torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"
-    return {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": platform.machine(), "system": platform.system(), "cpu_count": os.cpu_count(), "torch_device": device}
+    return {
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+        "machine": platform.machine(),
+        "system": platform.system(),
+        "cpu_count": os.cpu_count(),
+        "torch_device": device,
+    }
 
 
 def write_json(path: Path, data) -> None:
@@ -66,12 +72,22 @@ def _plt():
     return plt
 
 
-def grouped_bars(path: Path, groups: list[str], series: dict[str, list[float]], ylabel: str, title: str, ylim: tuple | None = None, ax=None) -> None:
+def grouped_bars(
+    path: Path,
+    groups: list[str],
+    series: dict[str, list[float]],
+    ylabel: str,
+    title: str,
+    ylim: tuple | None = None,
+    ax=None,
+) -> None:
     """Bars of several series (legend) for each group (x axis); writes ``path`` unless an ``ax`` is given."""
     plt = _plt()
     own = ax is None
     if own:
-        fig, ax = plt.subplots(figsize=(max(6.0, 0.9 * len(groups) * max(1, len(series)) * 0.45 + 2), 4.0))
+        fig, ax = plt.subplots(
+            figsize=(max(6.0, 0.9 * len(groups) * max(1, len(series)) * 0.45 + 2), 4.0)
+        )
     n = max(1, len(series))
     width = 0.8 / n
     for i, (label, values) in enumerate(series.items()):
@@ -85,7 +101,9 @@ def grouped_bars(path: Path, groups: list[str], series: dict[str, list[float]], 
     if ylim:
         ax.set_ylim(*ylim)
     ax.grid(axis="y", alpha=0.3)
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=min(4, n), frameon=False)
+    ax.legend(
+        fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=min(4, n), frameon=False
+    )
     if own:
         fig.tight_layout()
         Path(path).parent.mkdir(parents=True, exist_ok=True)

@@ -36,7 +36,9 @@ DEFAULT_CACHE = paths.cache_dir("evaluation")
 
 
 # ------------------------------------------------------------------------------------------ pairs
-def sample_pairs(ref: RefScene, max_pairs: int | None, seed: int = 0, min_covisible: int = 50, bins=ROTATION_BINS) -> list[dict]:
+def sample_pairs(
+    ref: RefScene, max_pairs: int | None, seed: int = 0, min_covisible: int = 50, bins=ROTATION_BINS
+) -> list[dict]:
     """Deterministic sample of covisible pairs with reference poses, round-robin over rotation bins."""
     names = sorted(ref.views)
     candidates = []
@@ -47,10 +49,21 @@ def sample_pairs(ref: RefScene, max_pairs: int | None, seed: int = 0, min_covisi
         if shared < min_covisible:
             continue
         R, _ = ref.relative_pose(a, b)
-        candidates.append({"scene": ref.key, "a": a, "b": b, "covisible": shared, "rotation": metrics.rotation_angle(R)})
+        candidates.append(
+            {
+                "scene": ref.key,
+                "a": a,
+                "b": b,
+                "covisible": shared,
+                "rotation": metrics.rotation_angle(R),
+            }
+        )
     rng = np.random.default_rng(seed + zlib.crc32(ref.key.encode()))
     order = rng.permutation(len(candidates))
-    buckets = [[candidates[i] for i in order if lo <= candidates[i]["rotation"] < hi] for lo, hi in zip(bins[:-1], bins[1:])]
+    buckets = [
+        [candidates[i] for i in order if lo <= candidates[i]["rotation"] < hi]
+        for lo, hi in zip(bins[:-1], bins[1:])
+    ]
     chosen = []
     limit = len(candidates) if max_pairs is None else min(max_pairs, len(candidates))
     depth = 0
@@ -63,7 +76,13 @@ def sample_pairs(ref: RefScene, max_pairs: int | None, seed: int = 0, min_covisi
 
 
 # --------------------------------------------------------------------------------------- features
-def sift_features(image_dir: Path, names: list[str], cache_dir: Path, max_num_features: int = 2000, max_image_size: int = 3200) -> dict[str, ImageData]:
+def sift_features(
+    image_dir: Path,
+    names: list[str],
+    cache_dir: Path,
+    max_num_features: int = 2000,
+    max_image_size: int = 3200,
+) -> dict[str, ImageData]:
     """SIFT of ``names`` (paths relative to ``image_dir``) with pycolmap, as the pipeline extracts them.
 
     Cached in ``cache_dir/database.db`` (one camera per image; the cameras are not used: the protocol
@@ -72,7 +91,11 @@ def sift_features(image_dir: Path, names: list[str], cache_dir: Path, max_num_fe
     cache_dir = Path(cache_dir)
     cache_dir.mkdir(parents=True, exist_ok=True)
     database_path = cache_dir / "database.db"
-    conf = {"camera_mode": "per_image", "max_num_features": max_num_features, "max_image_size": max_image_size}
+    conf = {
+        "camera_mode": "per_image",
+        "max_num_features": max_num_features,
+        "max_image_size": max_image_size,
+    }
     features.extract_features(database_path, image_dir, sorted(set(names)), conf)
     out = {}
     with dbio.open_database(database_path) as db:
@@ -87,7 +110,11 @@ def _as_specs(specs, extra_conf: dict | None = None) -> list:
     """Spec strings (checked against the registry) or MatcherSpec objects, as a list."""
     specs = list(specs or [])
     texts = [s for s in specs if isinstance(s, str)]
-    return [s for s in specs if not isinstance(s, str)] + matcher_specs.parse_specs(texts, extra_conf) if texts else specs
+    return (
+        [s for s in specs if not isinstance(s, str)] + matcher_specs.parse_specs(texts, extra_conf)
+        if texts
+        else specs
+    )
 
 
 def _fresh(image: ImageData) -> ImageData:
@@ -104,10 +131,14 @@ def _flow_options(spec) -> tuple[str, ...]:
 def _group_key(spec) -> str:
     import json
 
-    return spec.name + json.dumps({k: v for k, v in sorted(spec.conf.items()) if k not in _flow_options(spec)}, default=str)
+    return spec.name + json.dumps(
+        {k: v for k, v in sorted(spec.conf.items()) if k not in _flow_options(spec)}, default=str
+    )
 
 
-def run_specs(specs, pairs: list[tuple[str, str]], images: dict[str, ImageData]) -> dict[str, tuple[list[np.ndarray], list[float]]]:
+def run_specs(
+    specs, pairs: list[tuple[str, str]], images: dict[str, ImageData]
+) -> dict[str, tuple[list[np.ndarray], list[float]]]:
     """Matches and per-pair times of several variants. A variant's time is what it would cost alone
     (coarse match + eq. 1 for grouped guided variants). A variant that cannot run raises: a benchmark
     table never loses a row silently."""
@@ -119,7 +150,9 @@ def run_specs(specs, pairs: list[tuple[str, str]], images: dict[str, ImageData])
         first = group[0]
         flow_options = _flow_options(first)
         shared = len(group) > 1  # variants of one matcher differing only in its flow_options
-        base = dataclasses.replace(first, conf={k: v for k, v in first.conf.items() if k not in flow_options})
+        base = dataclasses.replace(
+            first, conf={k: v for k, v in first.conf.items() if k not in flow_options}
+        )
         matcher = matcher_specs.build(base if shared else first)
         local: dict[str, ImageData] = {}
         res = {spec.label: ([], []) for spec in group}
@@ -134,7 +167,12 @@ def run_specs(specs, pairs: list[tuple[str, str]], images: dict[str, ImageData])
                     t_flow = time.time() - start
                     for spec in group:
                         start = time.time()
-                        m = matcher.match_flows(local[a], local[b], flows, **{k: spec.conf[k] for k in flow_options if k in spec.conf})
+                        m = matcher.match_flows(
+                            local[a],
+                            local[b],
+                            flows,
+                            **{k: spec.conf[k] for k in flow_options if k in spec.conf},
+                        )
                         res[spec.label][0].append(np.asarray(m, np.int64).reshape(-1, 2))
                         res[spec.label][1].append(t_flow + time.time() - start)
                 else:
@@ -149,17 +187,31 @@ def run_specs(specs, pairs: list[tuple[str, str]], images: dict[str, ImageData])
 
 
 # ------------------------------------------------------------------------------------- pose AUC
-def evaluate_pose_pair(ref: RefScene, a: ImageData, b: ImageData, matches: np.ndarray, threshold_px: float = 1.0, estimator: str = "cv2", precision_px: float = 3.0) -> dict:
+def evaluate_pose_pair(
+    ref: RefScene,
+    a: ImageData,
+    b: ImageData,
+    matches: np.ndarray,
+    threshold_px: float = 1.0,
+    estimator: str = "cv2",
+    precision_px: float = 3.0,
+) -> dict:
     va, vb = ref.views[a.name], ref.views[b.name]
     p1 = a.keypoints[matches[:, 0], :2] if len(matches) else np.zeros((0, 2))
     p2 = b.keypoints[matches[:, 1], :2] if len(matches) else np.zeros((0, 2))
     R_gt, t_gt = ref.relative_pose(a.name, b.name)
-    est = metrics.estimate_relative_pose(p1, p2, va.camera, vb.camera, threshold_px=threshold_px, estimator=estimator)
-    err = metrics.relative_pose_error(est["R"] if est else None, est["t"] if est else None, R_gt, t_gt)
+    est = metrics.estimate_relative_pose(
+        p1, p2, va.camera, vb.camera, threshold_px=threshold_px, estimator=estimator
+    )
+    err = metrics.relative_pose_error(
+        est["R"] if est else None, est["t"] if est else None, R_gt, t_gt
+    )
     precision = float("nan")
     if len(matches):
         k1, k2 = metrics.normalize_points(va.camera, p1), metrics.normalize_points(vb.camera, p2)
-        e_px = metrics.symmetric_epipolar_distance(k1, k2, essential_from_pose(R_gt, t_gt)) * metrics.mean_focal(va.camera, vb.camera)
+        e_px = metrics.symmetric_epipolar_distance(
+            k1, k2, essential_from_pose(R_gt, t_gt)
+        ) * metrics.mean_focal(va.camera, vb.camera)
         precision = float(np.mean(e_px < precision_px))
     return {
         "num_matches": int(len(matches)),
@@ -186,7 +238,12 @@ def summarize_pose(records: list[dict], thresholds=metrics.AUC_THRESHOLDS) -> di
 
 
 def run_pose_benchmark(
-    scenes=("lund_door_gtsfm", "train/strecha_castle", "train/strecha_entry_P10", "train/instantngp_fox"),
+    scenes=(
+        "lund_door_gtsfm",
+        "train/strecha_castle",
+        "train/strecha_entry_P10",
+        "train/instantngp_fox",
+    ),
     specs=matcher_specs.DEFAULT_TWO_VIEW_SPECS,
     max_pairs: int | None = 10,
     seed: int = 0,
@@ -208,10 +265,20 @@ def run_pose_benchmark(
         pairs = sample_pairs(ref, max_pairs, seed, min_covisible)
         logger.info("%s: %d pairs sampled (%s cameras)", key, len(pairs), ref.source)
         names = sorted({p["a"] for p in pairs} | {p["b"] for p in pairs})
-        feats = sift_features(ref.image_dir, names, Path(cache_dir) / f"sift{max_num_features}" / key.replace("/", "__"), max_num_features)
+        feats = sift_features(
+            ref.image_dir,
+            names,
+            Path(cache_dir) / f"sift{max_num_features}" / key.replace("/", "__"),
+            max_num_features,
+        )
         images[key] = feats
         all_pairs += [p for p in pairs if p["a"] in feats and p["b"] in feats]
-    per_key = {key: run_specs(specs, [(p["a"], p["b"]) for p in all_pairs if p["scene"] == key], images[key]) for key in scenes}
+    per_key = {
+        key: run_specs(
+            specs, [(p["a"], p["b"]) for p in all_pairs if p["scene"] == key], images[key]
+        )
+        for key in scenes
+    }
     results = {}
     for spec in specs:
         records = []
@@ -219,16 +286,36 @@ def run_pose_benchmark(
             pairs = [p for p in all_pairs if p["scene"] == key]
             matches, times = per_key[key][spec.label]
             for p, m, t in zip(pairs, matches, times):
-                r = evaluate_pose_pair(refs[key], images[key][p["a"]], images[key][p["b"]], m, threshold_px, estimator)
+                r = evaluate_pose_pair(
+                    refs[key], images[key][p["a"]], images[key][p["b"]], m, threshold_px, estimator
+                )
                 records.append({"scene": key, "a": p["a"], "b": p["b"], "time": t, **r})
-        per_scene = {key: summarize_pose([r for r in records if r["scene"] == key]) for key in scenes}
-        results[spec.label] = {"matcher": spec.name, "conf": spec.conf, "summary": summarize_pose(records), "per_scene": per_scene, "pairs": records}
+        per_scene = {
+            key: summarize_pose([r for r in records if r["scene"] == key]) for key in scenes
+        }
+        results[spec.label] = {
+            "matcher": spec.name,
+            "conf": spec.conf,
+            "summary": summarize_pose(records),
+            "per_scene": per_scene,
+            "pairs": records,
+        }
         s = results[spec.label]["summary"]
-        logger.info("%-28s AUC@5/10/20 %.1f / %.1f / %.1f  (%d pairs)", spec.label, *s["auc"], s["num_pairs"])
+        logger.info(
+            "%-28s AUC@5/10/20 %.1f / %.1f / %.1f  (%d pairs)",
+            spec.label,
+            *s["auc"],
+            s["num_pairs"],
+        )
     config = {
-        "scenes": list(scenes), "max_pairs": max_pairs, "seed": seed, "min_covisible": min_covisible,
-        "max_num_features": max_num_features, "ransac": f"{estimator} essential matrix, {threshold_px} px / mean focal",
-        "reference_source": {k: r.source for k, r in refs.items()}, "thresholds_deg": list(metrics.AUC_THRESHOLDS),
+        "scenes": list(scenes),
+        "max_pairs": max_pairs,
+        "seed": seed,
+        "min_covisible": min_covisible,
+        "max_num_features": max_num_features,
+        "ransac": f"{estimator} essential matrix, {threshold_px} px / mean focal",
+        "reference_source": {k: r.source for k, r in refs.items()},
+        "thresholds_deg": list(metrics.AUC_THRESHOLDS),
     }
     return {"config": config, "pairs": all_pairs, "results": results}
 
@@ -242,7 +329,11 @@ def list_wxbs_pairs(root: Path | None = None, categories=None) -> list[dict]:
         folder = corrs.parent
         ims = []
         for stem in ("01", "02"):
-            found = [p for p in sorted(folder.glob(stem + ".*")) if p.suffix.lower() in features.IMAGE_EXTENSIONS]
+            found = [
+                p
+                for p in sorted(folder.glob(stem + ".*"))
+                if p.suffix.lower() in features.IMAGE_EXTENSIONS
+            ]
             if found:
                 ims.append(found[0].relative_to(root).as_posix())
         if len(ims) != 2:
@@ -250,7 +341,15 @@ def list_wxbs_pairs(root: Path | None = None, categories=None) -> list[dict]:
         category = folder.parent.name
         if categories and category not in categories:
             continue
-        pairs.append({"category": category, "pair": f"{category}/{folder.name}", "a": ims[0], "b": ims[1], "corrs": corrs})
+        pairs.append(
+            {
+                "category": category,
+                "pair": f"{category}/{folder.name}",
+                "a": ims[0],
+                "b": ims[1],
+                "corrs": corrs,
+            }
+        )
     return pairs
 
 
@@ -281,7 +380,9 @@ def run_wxbs_benchmark(
             depth += 1
         pairs = chosen
     names = sorted({p["a"] for p in pairs} | {p["b"] for p in pairs})
-    images = sift_features(root, names, Path(cache_dir) / f"sift{max_num_features}" / "wxbs", max_num_features)
+    images = sift_features(
+        root, names, Path(cache_dir) / f"sift{max_num_features}" / "wxbs", max_num_features
+    )
     pairs = [p for p in pairs if p["a"] in images and p["b"] in images]
     matched = run_specs(specs, [(p["a"], p["b"]) for p in pairs], images)
     results = {}
@@ -295,15 +396,42 @@ def run_wxbs_benchmark(
             est = metrics.estimate_geometry(p1, p2, geometry, threshold_px)
             corrs = wxbs_corrs_colmap(p["corrs"])
             errs = metrics.geometry_errors(corrs, est["M"] if est else None, geometry)
-            records.append({
-                "pair": p["pair"], "category": p["category"], "num_matches": int(len(m)), "num_inliers": est["num_inliers"] if est else 0,
-                "share": [100.0 * v for v in metrics.share_within(errs)], "median_error": float(np.median(errs)) if len(errs) else float("inf"), "time": t,
-            })
-        results[spec.label] = {"matcher": spec.name, "conf": spec.conf, "summary": summarize_wxbs(records), "per_category": {c: summarize_wxbs([r for r in records if r["category"] == c]) for c in sorted({r["category"] for r in records})}, "pairs": records}
+            records.append(
+                {
+                    "pair": p["pair"],
+                    "category": p["category"],
+                    "num_matches": int(len(m)),
+                    "num_inliers": est["num_inliers"] if est else 0,
+                    "share": [100.0 * v for v in metrics.share_within(errs)],
+                    "median_error": float(np.median(errs)) if len(errs) else float("inf"),
+                    "time": t,
+                }
+            )
+        results[spec.label] = {
+            "matcher": spec.name,
+            "conf": spec.conf,
+            "summary": summarize_wxbs(records),
+            "per_category": {
+                c: summarize_wxbs([r for r in records if r["category"] == c])
+                for c in sorted({r["category"] for r in records})
+            },
+            "pairs": records,
+        }
         s = results[spec.label]["summary"]
         logger.info("%-28s WxBS share @3/5/10 px %.1f / %.1f / %.1f", spec.label, *s["share"])
-    config = {"root": str(root), "geometry": geometry, "ransac": f"OpenCV USAC_MAGSAC {threshold_px} px", "thresholds_px": list(metrics.WXBS_THRESHOLDS), "max_num_features": max_num_features, "num_pairs": len(pairs)}
-    return {"config": config, "pairs": [{k: v for k, v in p.items() if k != "corrs"} for p in pairs], "results": results}
+    config = {
+        "root": str(root),
+        "geometry": geometry,
+        "ransac": f"OpenCV USAC_MAGSAC {threshold_px} px",
+        "thresholds_px": list(metrics.WXBS_THRESHOLDS),
+        "max_num_features": max_num_features,
+        "num_pairs": len(pairs),
+    }
+    return {
+        "config": config,
+        "pairs": [{k: v for k, v in p.items() if k != "corrs"} for p in pairs],
+        "results": results,
+    }
 
 
 def wxbs_corrs_colmap(path: Path) -> np.ndarray:
@@ -318,10 +446,19 @@ def wxbs_corrs_colmap(path: Path) -> np.ndarray:
 
 def summarize_wxbs(records: list[dict]) -> dict:
     if not records:
-        return {"num_pairs": 0, "share": [0.0 for _ in metrics.WXBS_THRESHOLDS], "mean_matches": 0.0, "mean_inliers": 0.0, "time_per_pair": 0.0}
+        return {
+            "num_pairs": 0,
+            "share": [0.0 for _ in metrics.WXBS_THRESHOLDS],
+            "mean_matches": 0.0,
+            "mean_inliers": 0.0,
+            "time_per_pair": 0.0,
+        }
     return {
         "num_pairs": len(records),
-        "share": [float(np.mean([r["share"][i] for r in records])) for i in range(len(metrics.WXBS_THRESHOLDS))],
+        "share": [
+            float(np.mean([r["share"][i] for r in records]))
+            for i in range(len(metrics.WXBS_THRESHOLDS))
+        ],
         "solved_5px": 100.0 * float(np.mean([r["share"][1] >= 50.0 for r in records])),
         "mean_matches": float(np.mean([r["num_matches"] for r in records])),
         "mean_inliers": float(np.mean([r["num_inliers"] for r in records])),

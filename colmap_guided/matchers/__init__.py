@@ -20,8 +20,17 @@ from colmap_guided.matchers.lightglue import (
 
 MATCHERS: dict[str, type[Matcher]] = {
     cls.name: cls
-    for cls in (RawMatcher, GuidedMatcher, EpipolarGuidedMatcher, HomographyGuidedMatcher, ColmapGuidedMatcher, LightGlueMatcher, GuidedLightGlueMatcher,
-                LighterGlueMatcher, GuidedLighterGlueMatcher)
+    for cls in (
+        RawMatcher,
+        GuidedMatcher,
+        EpipolarGuidedMatcher,
+        HomographyGuidedMatcher,
+        ColmapGuidedMatcher,
+        LightGlueMatcher,
+        GuidedLightGlueMatcher,
+        LighterGlueMatcher,
+        GuidedLighterGlueMatcher,
+    )
 }
 AUTO = "auto"  # the default matcher and features of reconstruct and match: see resolve_auto
 DEFAULT_MATCHER = AUTO
@@ -29,9 +38,17 @@ DEFAULT_MATCHER = AUTO
 # Named matcher confs (hloc style), one set for the command line (--matcher NAME), the Python API
 # (get_matcher, reconstruct, match_database) and the evaluation scripts: {"matcher": a MATCHERS name, "conf": its options}.
 PRESETS: dict[str, dict] = {
-    **{name: {"matcher": name, "conf": {}} for name in MATCHERS},  # every matcher with its default_conf
-    "raw_mutual": {"matcher": "raw", "conf": {"ratio": None}},  # bidirectional check only (paper Table 2)
-    "guided_mutual": {"matcher": "guided", "conf": {"ratio": None}},  # eq. 1, mutual check, no ratio test
+    **{
+        name: {"matcher": name, "conf": {}} for name in MATCHERS
+    },  # every matcher with its default_conf
+    "raw_mutual": {
+        "matcher": "raw",
+        "conf": {"ratio": None},
+    },  # bidirectional check only (paper Table 2)
+    "guided_mutual": {
+        "matcher": "guided",
+        "conf": {"ratio": None},
+    },  # eq. 1, mutual check, no ratio test
     "guided_ratio0.9": {"matcher": "guided", "conf": {"ratio": 0.9}},
     "guided_ratio0.95": {"matcher": "guided", "conf": {"ratio": 0.95}},
     # LightGlue 3-4.5x faster, fewer archival photos on the reference pose (docs/RESULTS.md)
@@ -56,10 +73,14 @@ def installed_learned() -> tuple[str, ...]:
     from colmap_guided import xfeat
     from colmap_guided.matchers import lightglue
 
-    return tuple(kind for kind, ok in (("aliked", lightglue.installed()), ("xfeat", xfeat.installed())) if ok)
+    return tuple(
+        kind for kind, ok in (("aliked", lightglue.installed()), ("xfeat", xfeat.installed())) if ok
+    )
 
 
-def resolve_auto(matcher: str, feature_type: str, installed: tuple[str, ...] | None = None) -> tuple[str, str]:
+def resolve_auto(
+    matcher: str, feature_type: str, installed: tuple[str, ...] | None = None
+) -> tuple[str, str]:
     """(matcher preset, feature type) that ``auto`` stands for: the guided matcher (``GUIDED``) of the first of
     ``LEARNED`` whose package is installed (``installed``, default ``installed_learned()``), else guided SIFT.
     ``auto`` features follow an explicit matcher (LightGlue's: ALIKED; the others: SIFT), an ``auto`` matcher
@@ -70,7 +91,11 @@ def resolve_auto(matcher: str, feature_type: str, installed: tuple[str, ...] | N
         learned = next((kind for kind in LEARNED if kind in installed), "sift")
         feature_type = needs[0] if needs else (learned if matcher == AUTO else "sift")
     if matcher == AUTO:
-        matcher = GUIDED[feature_type] if feature_type == "sift" or feature_type in installed else "guided"
+        matcher = (
+            GUIDED[feature_type]
+            if feature_type == "sift" or feature_type in installed
+            else "guided"
+        )
     return matcher, feature_type
 
 
@@ -80,4 +105,16 @@ def get_matcher(name: str, conf: dict | None = None) -> Matcher:
     return cls({**options, **(conf or {})})
 
 
-__all__ = ["AUTO", "DEFAULT_MATCHER", "GUIDED", "LEARNED", "MATCHERS", "PRESETS", "ImageData", "Matcher", "get_matcher", "preset", "resolve_auto"]
+__all__ = [
+    "AUTO",
+    "DEFAULT_MATCHER",
+    "GUIDED",
+    "LEARNED",
+    "MATCHERS",
+    "PRESETS",
+    "ImageData",
+    "Matcher",
+    "get_matcher",
+    "preset",
+    "resolve_auto",
+]

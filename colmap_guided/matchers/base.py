@@ -27,10 +27,18 @@ class Matcher:
     name = "base"
     default_conf: dict = {}
     device = "auto"  # torch device it runs on (subclasses resolve it); retrieval's backbone runs there too
-    pair_workers: int = 1  # pairs that match_database may match at once in threads (``match`` must be thread-safe)
-    torch_threads: int | None = None  # torch CPU threads while match_database runs (set, then restored); None: as is
-    flow_options: tuple[str, ...] = ()  # options ``match_flows`` takes as overrides (applied after ``coarse_flows``)
-    feature_types: tuple[str, ...] | None = None  # the features (``features.FEATURE_TYPES`` keys) it can match; None: any
+    pair_workers: int = (
+        1  # pairs that match_database may match at once in threads (``match`` must be thread-safe)
+    )
+    torch_threads: int | None = (
+        None  # torch CPU threads while match_database runs (set, then restored); None: as is
+    )
+    flow_options: tuple[
+        str, ...
+    ] = ()  # options ``match_flows`` takes as overrides (applied after ``coarse_flows``)
+    feature_types: tuple[str, ...] | None = (
+        None  # the features (``features.FEATURE_TYPES`` keys) it can match; None: any
+    )
 
     def __init__(self, conf: dict | None = None):
         self.conf = merge_conf(self.default_conf, conf, f"{self.name} matcher")
@@ -60,7 +68,9 @@ class Matcher:
         for variants that differ only in ``flow_options``; None for a matcher without that step."""
         return None
 
-    def match_flows(self, a: ImageData, b: ImageData, flows: object | None, **overrides) -> np.ndarray:
+    def match_flows(
+        self, a: ImageData, b: ImageData, flows: object | None, **overrides
+    ) -> np.ndarray:
         """``match`` given ``coarse_flows``' result, with ``overrides`` of the options in ``flow_options``."""
         self.flow_conf(overrides)
         return self.match(a, b)
@@ -69,7 +79,9 @@ class Matcher:
         """``conf`` with ``overrides`` of ``match_flows``; an option outside ``flow_options`` is a ValueError."""
         unknown = sorted(set(overrides) - set(self.flow_options))
         if unknown:
-            raise ValueError(f"The {self.name} matcher takes no option {unknown} after its guidance; known: {list(self.flow_options)}")
+            raise ValueError(
+                f"The {self.name} matcher takes no option {unknown} after its guidance; known: {list(self.flow_options)}"
+            )
         return {**self.conf, **overrides}
 
     def retrieval_backbone(self):

@@ -19,15 +19,22 @@ from colmap_guided.matchers.base import ImageData, Matcher
 from colmap_guided.matchers.raw import RawMatcher
 
 
-def _colmap_features(image: ImageData) -> tuple[pycolmap.FeatureKeypoints, pycolmap.FeatureDescriptors]:
+def _colmap_features(
+    image: ImageData,
+) -> tuple[pycolmap.FeatureKeypoints, pycolmap.FeatureDescriptors]:
     """The image's keypoints and SIFT descriptors as COLMAP's types, converted once per image."""
     if "colmap_features" not in image.extra:
         kp = np.asarray(image.keypoints, np.float64)
         if kp.shape[1] >= 6:
-            keypoints = [pycolmap.FeatureKeypoint(x=r[0], y=r[1], a11=r[2], a12=r[3], a21=r[4], a22=r[5]) for r in kp]
+            keypoints = [
+                pycolmap.FeatureKeypoint(x=r[0], y=r[1], a11=r[2], a12=r[3], a21=r[4], a22=r[5])
+                for r in kp
+            ]
         else:
             keypoints = [pycolmap.FeatureKeypoint(x=r[0], y=r[1]) for r in kp]
-        descriptors = pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, np.ascontiguousarray(image.descriptors))
+        descriptors = pycolmap.FeatureDescriptors(
+            pycolmap.FeatureExtractorType.SIFT, np.ascontiguousarray(image.descriptors)
+        )
         image.extra["colmap_features"] = (pycolmap.FeatureKeypoints(keypoints), descriptors)
     return image.extra["colmap_features"]
 
@@ -59,14 +66,20 @@ class ColmapGuidedMatcher(Matcher):
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
         for image in (a, b):  # before any work: COLMAP's matcher reads only its own SIFT encoding
             if image.descriptors.dtype != np.uint8:
-                raise ValueError(f"{image.name}: COLMAP's guided matching needs SIFT (uint8) descriptors; use --matcher guided_epipolar for other features.")
+                raise ValueError(
+                    f"{image.name}: COLMAP's guided matching needs SIFT (uint8) descriptors; use --matcher guided_epipolar for other features."
+                )
         raw = self.raw.match(a, b)
         cam_a, cam_b = (im.camera or verify.default_camera(im.width, im.height) for im in (a, b))
         with colmap_quiet():
-            geometry = verify.verify_pair(cam_a, a.keypoints, cam_b, b.keypoints, raw, self.two_view_options)
+            geometry = verify.verify_pair(
+                cam_a, a.keypoints, cam_b, b.keypoints, raw, self.two_view_options
+            )
             if len(geometry.inlier_matches) == 0:
                 return raw
             kp_a, desc_a = _colmap_features(a)
             kp_b, desc_b = _colmap_features(b)
-            self.colmap.match_guided(self.conf["max_error"], kp_a, desc_a, cam_a, kp_b, desc_b, cam_b, geometry)
+            self.colmap.match_guided(
+                self.conf["max_error"], kp_a, desc_a, cam_a, kp_b, desc_b, cam_b, geometry
+            )
         return np.asarray(geometry.inlier_matches, np.uint32).reshape(-1, 2)

@@ -46,7 +46,9 @@ def _homogeneous(xy: torch.Tensor) -> torch.Tensor:
     return torch.cat([xy, torch.ones_like(xy[:, :1])], 1)
 
 
-def epipolar_distances(F: torch.Tensor, pts_a: torch.Tensor, pts_b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def epipolar_distances(
+    F: torch.Tensor, pts_a: torch.Tensor, pts_b: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Point-to-epipolar-line distances for all pairs, with COLMAP's convention x_b^T F x_a = 0.
 
     Returns (N, M) distances of p^B to the line F p^A (B pixels) and of p^A to F^T p^B (A pixels).
@@ -84,11 +86,17 @@ class _ShahGuidedMatcher(Matcher):
             return pycolmap.estimate_fundamental_matrix(pa, pb, options)
         return pycolmap.estimate_homography_matrix(pa, pb, options)
 
-    def seed_model(self, a: ImageData, b: ImageData, da: torch.Tensor, db: torch.Tensor) -> np.ndarray | None:
+    def seed_model(
+        self, a: ImageData, b: ImageData, da: torch.Tensor, db: torch.Tensor
+    ) -> np.ndarray | None:
         """The geometric model (3x3, A -> B) from the top-scale seed matches, or None."""
         sa = top_scale_indices(a.keypoints, self.conf["top_fraction"])
         sb = top_scale_indices(b.keypoints, self.conf["top_fraction"])
-        seeds = mutual_nn_match(da[sa], db[sb], self.conf["seed_ratio"], self.conf["chunk_size"]).cpu().numpy()
+        seeds = (
+            mutual_nn_match(da[sa], db[sb], self.conf["seed_ratio"], self.conf["chunk_size"])
+            .cpu()
+            .numpy()
+        )
         if len(seeds) < self.conf["min_seed_inliers"]:
             return None
         pa = a.keypoints[sa[seeds[:, 0]], :2].astype(np.float64)
@@ -98,7 +106,9 @@ class _ShahGuidedMatcher(Matcher):
             return None
         return np.asarray(result[self.model])
 
-    def guided(self, a: ImageData, b: ImageData, da: torch.Tensor, db: torch.Tensor, model: torch.Tensor) -> torch.Tensor:
+    def guided(
+        self, a: ImageData, b: ImageData, da: torch.Tensor, db: torch.Tensor, model: torch.Tensor
+    ) -> torch.Tensor:
         """Mutual matches of all keypoints with candidates restricted by ``model`` (3x3, A -> B)."""
         raise NotImplementedError
 
@@ -107,10 +117,14 @@ class _ShahGuidedMatcher(Matcher):
         db = normalize_descriptors(b.descriptors, self.device)
         model = self.seed_model(a, b, da, db)
         if model is None:
-            logger.debug("%s: no %s model for %s / %s; raw matching", self.name, self.model, a.name, b.name)
+            logger.debug(
+                "%s: no %s model for %s / %s; raw matching", self.name, self.model, a.name, b.name
+            )
             m = mutual_nn_match(da, db, self.conf["ratio"], self.conf["chunk_size"])
         else:
-            m = self.guided(a, b, da, db, torch.as_tensor(model, dtype=torch.float32, device=self.device))
+            m = self.guided(
+                a, b, da, db, torch.as_tensor(model, dtype=torch.float32, device=self.device)
+            )
         return m.cpu().numpy().astype(np.uint32)
 
 
@@ -132,7 +146,9 @@ class EpipolarGuidedMatcher(_ShahGuidedMatcher):
     model = "F"
     default_conf = {**_COMMON_CONF, "band_px": 4.0}
 
-    def guided(self, a: ImageData, b: ImageData, da: torch.Tensor, db: torch.Tensor, model: torch.Tensor) -> torch.Tensor:
+    def guided(
+        self, a: ImageData, b: ImageData, da: torch.Tensor, db: torch.Tensor, model: torch.Tensor
+    ) -> torch.Tensor:
         pa = torch.tensor(a.keypoints[:, :2], dtype=torch.float32, device=self.device)
         pb = torch.tensor(b.keypoints[:, :2], dtype=torch.float32, device=self.device)
         band = self.conf["band_px"]
@@ -151,10 +167,23 @@ class HomographyGuidedMatcher(_ShahGuidedMatcher):
     model = "H"
     default_conf = {**_COMMON_CONF, "window_px": 20.0, "max_pairs": 1 << 20}
 
-    def guided(self, a: ImageData, b: ImageData, da: torch.Tensor, db: torch.Tensor, model: torch.Tensor) -> torch.Tensor:
+    def guided(
+        self, a: ImageData, b: ImageData, da: torch.Tensor, db: torch.Tensor, model: torch.Tensor
+    ) -> torch.Tensor:
         pa = torch.tensor(a.keypoints[:, :2], dtype=torch.float32, device=self.device)
         pb = torch.tensor(b.keypoints[:, :2], dtype=torch.float32, device=self.device)
         flow_ab = apply_homography(model, pa)
         flow_ba = apply_homography(torch.linalg.inv(model), pb)
         w = self.conf["window_px"]
-        return guided_match(pa, da, pb, db, flow_ab, flow_ba, w, w, self.conf["ratio"], max_pairs=self.conf["max_pairs"])
+        return guided_match(
+            pa,
+            da,
+            pb,
+            db,
+            flow_ab,
+            flow_ba,
+            w,
+            w,
+            self.conf["ratio"],
+            max_pairs=self.conf["max_pairs"],
+        )

@@ -25,7 +25,12 @@ from colmap_guided import verify
 from colmap_guided.coarse import CoarseMatcher
 from colmap_guided.log import colmap_quiet, logger
 from colmap_guided.matchers.base import ImageData, Matcher
-from colmap_guided.matchers.raw import mutual_nn_match, normalize_descriptors, ratio_pass, resolve_device
+from colmap_guided.matchers.raw import (
+    mutual_nn_match,
+    normalize_descriptors,
+    ratio_pass,
+    resolve_device,
+)
 
 
 def _nearest_in_window(
@@ -66,9 +71,15 @@ def _nearest_in_window(
     sorted_cell, order = torch.sort(tcell[:, 1] * gw + tcell[:, 0], stable=True)
 
     # Query cells; a coarse match more than one cell outside the grid has no candidate.
-    qcell = torch.floor((torch.nan_to_num(pred, nan=-1e9) - origin) / window).clamp(-2, max(gw, gh) + 1).long()
+    qcell = (
+        torch.floor((torch.nan_to_num(pred, nan=-1e9) - origin) / window)
+        .clamp(-2, max(gw, gh) + 1)
+        .long()
+    )
     cx, cy = qcell[:, 0], qcell[:, 1]
-    valid_q = valid_q & torch.isfinite(pred).all(1) & (cx >= -1) & (cx <= gw) & (cy >= -1) & (cy <= gh)
+    valid_q = (
+        valid_q & torch.isfinite(pred).all(1) & (cx >= -1) & (cx <= gw) & (cy >= -1) & (cy <= gh)
+    )
     queries = torch.nonzero(valid_q).flatten()
     key = (cy[queries] + 1) * (gw + 2) + (cx[queries] + 1)
     key, perm = torch.sort(key, stable=True)
@@ -91,11 +102,17 @@ def _nearest_in_window(
     unit_group = torch.repeat_interleave(torch.arange(len(group_size), device=dev), n_units)
     unit_first = torch.repeat_interleave(torch.cumsum(n_units, 0) - n_units, n_units)
     group_first = torch.cumsum(group_size, 0) - group_size
-    unit_start = group_first[unit_group] + (torch.arange(len(unit_group), device=dev) - unit_first) * rows
+    unit_start = (
+        group_first[unit_group] + (torch.arange(len(unit_group), device=dev) - unit_first) * rows
+    )
     unit_end = (group_first + group_size)[unit_group]
     by_count = torch.argsort(n_cand[unit_group])
     by_count = by_count[n_cand[unit_group[by_count]] > 0]
-    unit_group, unit_start, unit_end = unit_group[by_count], unit_start[by_count], unit_end[by_count]
+    unit_group, unit_start, unit_end = (
+        unit_group[by_count],
+        unit_start[by_count],
+        unit_end[by_count],
+    )
     starts, lengths, n_cand = starts[unit_group], lengths[unit_group], n_cand[unit_group]
     counts = n_cand.tolist()
 
@@ -115,8 +132,12 @@ def _nearest_in_window(
 
     w2 = float(window) ** 2
     per_cand = rows + desc_q.shape[1] + 4  # values gathered or computed per candidate of a unit
-    found = torch.empty(2, len(counts), rows, device=dev)  # best and second-best similarity per unit row
-    found_at = torch.empty(len(counts), rows, dtype=torch.long, device=dev)  # best's sorted target position
+    found = torch.empty(
+        2, len(counts), rows, device=dev
+    )  # best and second-best similarity per unit row
+    found_at = torch.empty(
+        len(counts), rows, dtype=torch.long, device=dev
+    )  # best's sorted target position
     i = 0
     while i < len(counts):  # blocks of units; the block's largest candidate count is its last
         j = i + 1
@@ -125,12 +146,22 @@ def _nearest_in_window(
         s, ln = starts[i:j], lengths[i:j]
         col = torch.arange(counts[j - 1], device=dev)[None]
         l0, l01 = ln[:, :1], ln[:, :1] + ln[:, 1:2]
-        pos = torch.where(col < l0, s[:, :1] + col, torch.where(col < l01, s[:, 1:2] + col - l0, s[:, 2:] + col - l01))
-        pos = torch.where(col < n_cand[i:j, None], pos, m)  # (U, C) candidates in sorted target order; m: sentinel
-        qpos = (unit_start[i:j, None] + torch.arange(rows, device=dev)).clamp_(max=len(queries))  # (U, rows)
+        pos = torch.where(
+            col < l0,
+            s[:, :1] + col,
+            torch.where(col < l01, s[:, 1:2] + col - l0, s[:, 2:] + col - l01),
+        )
+        pos = torch.where(
+            col < n_cand[i:j, None], pos, m
+        )  # (U, C) candidates in sorted target order; m: sentinel
+        qpos = (unit_start[i:j, None] + torch.arange(rows, device=dev)).clamp_(
+            max=len(queries)
+        )  # (U, rows)
         sim = torch.bmm(rows_of(desc_q, qpos), rows_of(desc_t, pos).transpose(1, 2))
         pq, pc = rows_of(pred, qpos), rows_of(pts_t, pos)
-        d2 = (pq[..., 0, None] - pc[:, None, :, 0]).square_() + (pq[..., 1, None] - pc[:, None, :, 1]).square_()
+        d2 = (pq[..., 0, None] - pc[:, None, :, 0]).square_() + (
+            pq[..., 1, None] - pc[:, None, :, 1]
+        ).square_()
         sim.masked_fill_(d2 >= w2, -torch.inf)  # outside the window (or padding)
         top, at = sim.max(2)
         found[0, i:j], found_at[i:j] = top, pos.gather(1, at)
@@ -141,7 +172,9 @@ def _nearest_in_window(
     real = row < unit_end[:, None]
     q = queries[row[real]]
     best[q], second[q] = found[0][real], found[1][real]
-    best_idx[q] = order[found_at[real].clamp_(max=m - 1)]  # (a query without candidate: any index, best = -inf)
+    best_idx[q] = order[
+        found_at[real].clamp_(max=m - 1)
+    ]  # (a query without candidate: any index, best = -inf)
     return best, best_idx, second
 
 
@@ -175,12 +208,16 @@ def guided_match(
     n, m = kpts_a.shape[0], kpts_b.shape[0]
     va = torch.ones(n, dtype=torch.bool, device=dev) if valid_ab is None else valid_ab.to(dev)
     vb = torch.ones(m, dtype=torch.bool, device=dev) if valid_ba is None else valid_ba.to(dev)
-    best_ab, idx_ab, second_ab = _nearest_in_window(flow_ab, desc_a, kpts_b, desc_b, window_b, va, max_pairs)
+    best_ab, idx_ab, second_ab = _nearest_in_window(
+        flow_ab, desc_a, kpts_b, desc_b, window_b, va, max_pairs
+    )
     ok_a = torch.isfinite(best_ab) & ratio_pass(best_ab, second_ab, ratio)
     # Only B keypoints chosen by some A keypoint can be in a mutual match: B -> A for those alone.
     chosen = torch.zeros(m, dtype=torch.bool, device=dev)
     chosen[idx_ab[ok_a]] = True
-    best_ba, idx_ba, second_ba = _nearest_in_window(flow_ba, desc_b, kpts_a, desc_a, window_a, vb & chosen, max_pairs)
+    best_ba, idx_ba, second_ba = _nearest_in_window(
+        flow_ba, desc_b, kpts_a, desc_a, window_a, vb & chosen, max_pairs
+    )
     ok_b = torch.isfinite(best_ba) & ratio_pass(best_ba, second_ba, ratio)
     ia = torch.arange(n, device=dev)
     mutual = ok_a & ok_b[idx_ab] & (idx_ba[idx_ab] == ia)
@@ -199,7 +236,9 @@ class CoarseFlows:
     fb_ba: np.ndarray  # A pixels
     cell_a: float  # one coarse feature cell in A's / B's original pixels
     cell_b: float
-    pair_score: float  # eq. 3's image-level score: mean over cells of the best s, the smaller direction
+    pair_score: (
+        float  # eq. 3's image-level score: mean over cells of the best s, the smaller direction
+    )
 
 
 def merge_matches(primary: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
@@ -219,7 +258,16 @@ class GuidedMatcher(Matcher):
     """
 
     name = "guided"
-    flow_options = ("window_cells", "ratio", "raw_ratio", "min_score", "max_fb_cells", "raw_matches", "raw_min_inliers", "min_agreement")  # applied after the coarse match
+    flow_options = (
+        "window_cells",
+        "ratio",
+        "raw_ratio",
+        "min_score",
+        "max_fb_cells",
+        "raw_matches",
+        "raw_min_inliers",
+        "min_agreement",
+    )  # applied after the coarse match
     default_conf = {
         "weights": None,  # coarse filter weights; None = the shipped ones (raw-correlation fallback, with a WARNING)
         "mode": "auto",  # 'auto' | 'filter' (weights required) | 'raw' (correlation only, untrained)
@@ -262,10 +310,16 @@ class GuidedMatcher(Matcher):
     def __init__(self, conf: dict | None = None):
         super().__init__(conf)
         self.device = resolve_device(self.conf["device"])
-        coarse_conf = {**self.conf["coarse"], "device": str(self.device), "weights": self.conf["weights"]}
+        coarse_conf = {
+            **self.conf["coarse"],
+            "device": str(self.device),
+            "weights": self.conf["weights"],
+        }
         mode = self.conf["mode"]
         if self.conf["raw_matches"] not in (None, "merge", "verified"):
-            raise ValueError(f"raw_matches must be None, 'merge' or 'verified', got {self.conf['raw_matches']!r}")
+            raise ValueError(
+                f"raw_matches must be None, 'merge' or 'verified', got {self.conf['raw_matches']!r}"
+            )
         if mode not in ("auto", "filter", "raw"):
             raise ValueError(f"mode must be 'auto', 'filter' or 'raw', got {mode!r}")
         if mode == "auto":
@@ -276,22 +330,38 @@ class GuidedMatcher(Matcher):
                     raise
                 logger.warning(
                     "No trained coarse filter (%s): guided matching falls back to the raw correlation of backbone "
-                    "features (untrained, weaker guidance). Install or train weights, or pass weights=PATH.", error
+                    "features (untrained, weaker guidance). Install or train weights, or pass weights=PATH.",
+                    error,
                 )
                 self.coarse = CoarseMatcher({**coarse_conf, "mode": "raw"})
         else:
             self.coarse = CoarseMatcher({**coarse_conf, "mode": mode})
         self.torch_threads = self.coarse.torch_threads
         workers = self.conf["workers"]
-        if workers == "auto":  # a pair is hundreds of small ops on one torch thread: pairs in parallel use the cores
-            cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-            workers = min(8, cores) if self.device.type == "cpu" and (self.torch_threads or torch.get_num_threads()) == 1 else 1
+        if (
+            workers == "auto"
+        ):  # a pair is hundreds of small ops on one torch thread: pairs in parallel use the cores
+            cores = (
+                len(os.sched_getaffinity(0))
+                if hasattr(os, "sched_getaffinity")
+                else os.cpu_count() or 1
+            )
+            workers = (
+                min(8, cores)
+                if self.device.type == "cpu"
+                and (self.torch_threads or torch.get_num_threads()) == 1
+                else 1
+            )
         if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
             raise ValueError(f"workers must be 'auto' or a positive integer, got {workers!r}")
         self.pair_workers = workers
 
     def describe(self) -> dict:
-        return {**super().describe(), "pair_workers": self.pair_workers, "coarse": self.coarse.describe()}
+        return {
+            **super().describe(),
+            "pair_workers": self.pair_workers,
+            "coarse": self.coarse.describe(),
+        }
 
     @property
     def verification_conf(self) -> dict:
@@ -328,9 +398,21 @@ class GuidedMatcher(Matcher):
         flow_ab, score_ab, fb_ab = result.flow_ab(a.keypoints[:, :2])
         flow_ba, score_ba, fb_ba = result.flow_ba(b.keypoints[:, :2])
         pair_score = float(min(result.matches.score_ab.mean(), result.matches.score_ba.mean()))
-        return CoarseFlows(flow_ab, score_ab, fb_ab, flow_ba, score_ba, fb_ba, result.cell_size_a, result.cell_size_b, pair_score)
+        return CoarseFlows(
+            flow_ab,
+            score_ab,
+            fb_ab,
+            flow_ba,
+            score_ba,
+            fb_ba,
+            result.cell_size_a,
+            result.cell_size_b,
+            pair_score,
+        )
 
-    def match_flows(self, a: ImageData, b: ImageData, flows: CoarseFlows, **overrides) -> np.ndarray:
+    def match_flows(
+        self, a: ImageData, b: ImageData, flows: CoarseFlows, **overrides
+    ) -> np.ndarray:
         """Eq. 1 given the coarse flows; ``overrides`` replace options of ``flow_options`` (the benchmark's sweep)."""
         conf = self.flow_conf(overrides)
         dev = self.device
@@ -343,7 +425,10 @@ class GuidedMatcher(Matcher):
                 ok &= fb <= conf["max_fb_cells"] * cell
             return torch.from_numpy(ok)
 
-        da, db = normalize_descriptors(a.descriptors, dev), normalize_descriptors(b.descriptors, dev)
+        da, db = (
+            normalize_descriptors(a.descriptors, dev),
+            normalize_descriptors(b.descriptors, dev),
+        )
         m = guided_match(
             torch.tensor(a.keypoints[:, :2], dtype=torch.float32),
             da,
@@ -364,7 +449,14 @@ class GuidedMatcher(Matcher):
             m = self.verified_best(a, b, m, mutual_nn_match(da, db, conf["raw_ratio"]).cpu(), conf)
         return m.numpy().astype(np.uint32)
 
-    def verified_best(self, a: ImageData, b: ImageData, guided: torch.Tensor, raw: torch.Tensor, conf: dict | None = None) -> torch.Tensor:
+    def verified_best(
+        self,
+        a: ImageData,
+        b: ImageData,
+        guided: torch.Tensor,
+        raw: torch.Tensor,
+        conf: dict | None = None,
+    ) -> torch.Tensor:
         """Never lose what raw matching finds, never keep what it contradicts: verify the guided and the raw
         matches (the pipeline's verification); guided passes with ``min_inliers`` (a wrong coarse flow gathers
         chance inliers), raw with ``raw_min_inliers`` (COLMAP's 15, as plain COLMAP). When only one passes it
@@ -375,12 +467,18 @@ class GuidedMatcher(Matcher):
         pair. When none passes, the raw matches, which the pipeline's verification rejects. Verification is
         deterministic, so the pipeline finds the same inliers in the returned matches."""
         conf = conf or self.conf
-        options = verify.two_view_options({"min_num_inliers": min(conf["raw_min_inliers"], conf["min_inliers"])})
+        options = verify.two_view_options(
+            {"min_num_inliers": min(conf["raw_min_inliers"], conf["min_inliers"])}
+        )
         cam_a, cam_b = (im.camera or verify.default_camera(im.width, im.height) for im in (a, b))
 
         def check(m: torch.Tensor) -> tuple[torch.Tensor, pycolmap.TwoViewGeometry]:
-            geometry = verify.verify_pair(cam_a, a.keypoints, cam_b, b.keypoints, m.numpy().astype(np.uint32), options)
-            return torch.from_numpy(np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2)), geometry
+            geometry = verify.verify_pair(
+                cam_a, a.keypoints, cam_b, b.keypoints, m.numpy().astype(np.uint32), options
+            )
+            return torch.from_numpy(
+                np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2)
+            ), geometry
 
         with colmap_quiet():
             (g_inl, g_geo), (r_inl, r_geo) = check(guided), check(raw)
@@ -390,7 +488,13 @@ class GuidedMatcher(Matcher):
         if not r_ok:
             return guided
         threshold = options.ransac.max_error
-        if min(verify.agreement(g_geo, a.keypoints, b.keypoints, r_inl, threshold), verify.agreement(r_geo, a.keypoints, b.keypoints, g_inl, threshold)) < conf["min_agreement"]:
+        if (
+            min(
+                verify.agreement(g_geo, a.keypoints, b.keypoints, r_inl, threshold),
+                verify.agreement(r_geo, a.keypoints, b.keypoints, g_inl, threshold),
+            )
+            < conf["min_agreement"]
+        ):
             return raw
         candidates = [(len(g_inl), guided), (len(r_inl), raw)]
         union = merge_matches(g_inl, r_inl)

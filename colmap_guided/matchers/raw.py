@@ -25,10 +25,16 @@ def resolve_device(device: str | None) -> torch.device:
     return torch.device(device)
 
 
-def normalize_descriptors(desc: np.ndarray | torch.Tensor, device: torch.device | str) -> torch.Tensor:
+def normalize_descriptors(
+    desc: np.ndarray | torch.Tensor, device: torch.device | str
+) -> torch.Tensor:
     """uint8 (COLMAP database SIFT, RootSIFT x ~512) or float descriptors -> float32, unit L2 norm (a copy:
     database arrays may be read-only)."""
-    d = desc.to(device, torch.float32) if isinstance(desc, torch.Tensor) else torch.tensor(desc, dtype=torch.float32, device=device)
+    d = (
+        desc.to(device, torch.float32)
+        if isinstance(desc, torch.Tensor)
+        else torch.tensor(desc, dtype=torch.float32, device=device)
+    )
     return torch.nn.functional.normalize(d, dim=-1)
 
 
@@ -44,7 +50,9 @@ def ratio_pass(best: torch.Tensor, second: torch.Tensor, ratio: float | None) ->
     return sim_to_dist(best) < ratio * sim_to_dist(second)
 
 
-def _top2_merge(v1: torch.Tensor, i1: torch.Tensor, v2: torch.Tensor, c: torch.Tensor, ci: torch.Tensor):
+def _top2_merge(
+    v1: torch.Tensor, i1: torch.Tensor, v2: torch.Tensor, c: torch.Tensor, ci: torch.Tensor
+):
     """Merge a running (best value, best index, second value) per column with a chunk's top-2 (2, M)."""
     vals = torch.cat([v1[None], v2[None], c], 0)
     idx = torch.cat([i1[None], i1[None], ci], 0)
@@ -93,7 +101,9 @@ def mutual_nn_match(
         if ctop.shape[0] == 1:
             ctop = torch.cat([ctop, torch.full_like(ctop, -torch.inf)], 0)
             cpos = torch.cat([cpos, cpos], 0)
-        col_best, col_idx, col_second = _top2_merge(col_best, col_idx, col_second, ctop, cpos + start)
+        col_best, col_idx, col_second = _top2_merge(
+            col_best, col_idx, col_second, ctop, cpos + start
+        )
     ok_a = ratio_pass(row_best, row_second, ratio) & torch.isfinite(row_best)
     ok_b = ratio_pass(col_best, col_second, ratio) & torch.isfinite(col_best)
     ia = torch.arange(n, device=dev)

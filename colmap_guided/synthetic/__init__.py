@@ -16,8 +16,18 @@ Output of :func:`render_scene`::
     OUT/ground_truth/             COLMAP text model: one PINHOLE camera, every image with cam_from_world
     OUT/depth/view_000.npy ...    float32 depth along the optical axis, 0 = sky or an occlusion edge
 """
+
 from .render import Polygon, Texture, make_texture, render_image, render_view
-from .scene import SceneInfo, build_scene, default_conf, load_ground_truth, load_scene, main, render_scene, transfer_points
+from .scene import (
+    SceneInfo,
+    build_scene,
+    default_conf,
+    load_ground_truth,
+    load_scene,
+    main,
+    render_scene,
+    transfer_points,
+)
 
 __all__ = [
     "Polygon",

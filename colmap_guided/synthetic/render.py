@@ -21,7 +21,6 @@ _SKY_HORIZON = np.array([0.80, 0.85, 0.90], np.float32)
 _HAZE_START, _HAZE_SCALE = 20.0, 70.0  # metres: haze 1 - exp(-(depth - start) / scale) beyond start
 
 
-
 @dataclass
 class Texture:
     """A mip pyramid of an RGB or RGBA float32 image, ``texels_per_m`` at level 0; ``wrap`` tiles it."""
@@ -96,7 +95,9 @@ def _inside(pix: np.ndarray, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
     return mask
 
 
-def _sample(tex: Texture, plane_h: np.ndarray, level_scale: float, size: tuple[int, int]) -> np.ndarray:
+def _sample(
+    tex: Texture, plane_h: np.ndarray, level_scale: float, size: tuple[int, int]
+) -> np.ndarray:
     """Warp a texture level into a pixel box; plane_h maps box pixel indices to homogeneous (a, b)."""
     level = min(int(max(0.0, round(math.log2(max(level_scale, 1e-9))))), len(tex.levels) - 1)
     img = tex.levels[level]
@@ -105,7 +106,11 @@ def _sample(tex: Texture, plane_h: np.ndarray, level_scale: float, size: tuple[i
     to_texel = np.array([[sx, 0, -0.5], [0, sy, -0.5], [0, 0, 1]])
     border = cv2.BORDER_WRAP if tex.wrap else cv2.BORDER_REPLICATE
     return cv2.warpPerspective(
-        img, to_texel @ plane_h, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=border
+        img,
+        to_texel @ plane_h,
+        size,
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=border,
     )
 
 
@@ -141,9 +146,16 @@ def render_view(
         n_cam, o_cam = R @ n, R @ poly.origin + t
         g = K_inv.T @ n_cam / (n_cam @ o_cam)  # inverse depth = g . (x, y, 1)
         offset = center - poly.origin
-        plane_h = np.stack(
-            [K_inv.T @ (R @ poly.u) + (poly.u @ offset) * g, K_inv.T @ (R @ poly.v) + (poly.v @ offset) * g, g]
-        ) @ box_to_pix
+        plane_h = (
+            np.stack(
+                [
+                    K_inv.T @ (R @ poly.u) + (poly.u @ offset) * g,
+                    K_inv.T @ (R @ poly.v) + (poly.v @ offset) * g,
+                    g,
+                ]
+            )
+            @ box_to_pix
+        )
         mask = _inside(pix, x0, y0, x1, y1)
         # Texels per pixel over the visible part picks the mip level.
         texel_area = abs(_signed_area(ab)) * poly.texture.texels_per_m**2
@@ -166,8 +178,14 @@ def render_view(
 
 
 def render_image(
-    polygons: list[Polygon], K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int,
-    conf: dict, rng: np.random.Generator,
+    polygons: list[Polygon],
+    K: np.ndarray,
+    R: np.ndarray,
+    t: np.ndarray,
+    width: int,
+    height: int,
+    conf: dict,
+    rng: np.random.Generator,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A photo (uint8 RGB) and its depth map (float32, 0 = unknown) for the camera K (width x height).
 

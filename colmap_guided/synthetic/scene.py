@@ -55,7 +55,6 @@ class SceneInfo:
         return np.load(self.depth_dir / f"{Path(name).stem}.npy")
 
 
-
 _UP = np.array([0.0, 0.0, 1.0])
 
 
@@ -89,13 +88,19 @@ def _roof_face(eave0, eave1, high, tex: Texture, shade_of, triangle: bool) -> Po
     return poly
 
 
-def _flat_top(x0: float, y0: float, x1: float, y1: float, z: float, tex: Texture, shade: float) -> Polygon:
+def _flat_top(
+    x0: float, y0: float, x1: float, y1: float, z: float, tex: Texture, shade: float
+) -> Polygon:
     """A horizontal rectangle facing up."""
     verts = np.array([(0, 0), (x1 - x0, 0), (x1 - x0, y1 - y0), (0, y1 - y0)], float)
-    return Polygon(np.array([x0, y1, z]), np.array([1.0, 0, 0]), np.array([0, -1.0, 0]), verts, tex, shade)
+    return Polygon(
+        np.array([x0, y1, z]), np.array([1.0, 0, 0]), np.array([0, -1.0, 0]), verts, tex, shade
+    )
 
 
-def _box_walls(x0: float, y0: float, x1: float, y1: float, height: float, make_tex, shade_of) -> list[Polygon]:
+def _box_walls(
+    x0: float, y0: float, x1: float, y1: float, height: float, make_tex, shade_of
+) -> list[Polygon]:
     """The four walls of an axis-aligned box standing on the ground."""
     corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
     walls = []
@@ -106,7 +111,9 @@ def _box_walls(x0: float, y0: float, x1: float, y1: float, height: float, make_t
     return walls
 
 
-def build_scene(seed: int = 0, repeated: bool = False, texels_per_m: float = 100.0) -> list[Polygon]:
+def build_scene(
+    seed: int = 0, repeated: bool = False, texels_per_m: float = 100.0
+) -> list[Polygon]:
     """The polygons of the scene: hall, tower, annex, stone blocks, ground and tree line."""
     rng = np.random.default_rng(seed)
     ppm = texels_per_m
@@ -116,7 +123,9 @@ def build_scene(seed: int = 0, repeated: bool = False, texels_per_m: float = 100
     def shade_of(normal: np.ndarray) -> float:
         return float(0.55 + 0.5 * max(0.0, normal @ sun) + 0.1 * normal[2])
 
-    motif = textures.window_motif(np.random.default_rng(rng.integers(2**32)), ppm) if repeated else None
+    motif = (
+        textures.window_motif(np.random.default_rng(rng.integers(2**32)), ppm) if repeated else None
+    )
 
     def facade(width: float, height: float, eave: float) -> Texture:
         return make_texture(textures.facade(rng, width, height, eave, ppm, motif), ppm)
@@ -127,7 +136,9 @@ def build_scene(seed: int = 0, repeated: bool = False, texels_per_m: float = 100
     stone = (0.7, 0.66, 0.6)
 
     def stone_block(width: float, height: float, _eave: float) -> Texture:
-        return make_texture(textures.masonry(rng, int(height * ppm), int(width * ppm), ppm, (0.5, 0.3), stone), ppm)
+        return make_texture(
+            textures.masonry(rng, int(height * ppm), int(width * ppm), ppm, (0.5, 0.3), stone), ppm
+        )
 
     up_shade = shade_of(_UP)
     # Hall: 12 x 8 m, eaves at 6.5 m, ridge along x at 9.5 m, gables east and west.
@@ -138,9 +149,15 @@ def build_scene(seed: int = 0, repeated: bool = False, texels_per_m: float = 100
         p0, p1 = corners[i], corners[(i + 1) % 4]
         length = math.dist(p0, p1)
         normal = np.array([p1[1] - p0[1], p0[0] - p1[0], 0.0]) / length
-        polys.append(_wall(p0, p1, eave, facade(length, gable or eave, eave), shade_of(normal), gable))
-    polys.append(_roof_face((-hx, -hy, eave), (hx, -hy, eave), (hx, 0, ridge), roof(12, 5), shade_of, False))
-    polys.append(_roof_face((hx, hy, eave), (-hx, hy, eave), (-hx, 0, ridge), roof(12, 5), shade_of, False))
+        polys.append(
+            _wall(p0, p1, eave, facade(length, gable or eave, eave), shade_of(normal), gable)
+        )
+    polys.append(
+        _roof_face((-hx, -hy, eave), (hx, -hy, eave), (hx, 0, ridge), roof(12, 5), shade_of, False)
+    )
+    polys.append(
+        _roof_face((hx, hy, eave), (-hx, hy, eave), (-hx, 0, ridge), roof(12, 5), shade_of, False)
+    )
     # Tower through the west gable: 4 x 4 m, 11 m, pyramid roof up to 14 m.
     tx0, ty0, tx1, ty1, th = -9.0, -2.0, -5.0, 2.0, 11.0
     polys += _box_walls(tx0, ty0, tx1, ty1, th, facade, shade_of)
@@ -154,14 +171,24 @@ def build_scene(seed: int = 0, repeated: bool = False, texels_per_m: float = 100
     polys.append(_flat_top(1.5, -7.5, 6.5, -4.0, 3.5, gravel, up_shade))
     for _ in range(3):
         ang, dist = rng.uniform(0, 2 * np.pi), rng.uniform(10.5, 12.5)
-        cx, cy, s, bh = dist * np.cos(ang), dist * np.sin(ang), rng.uniform(0.5, 0.8), rng.uniform(0.8, 1.8)
+        cx, cy, s, bh = (
+            dist * np.cos(ang),
+            dist * np.sin(ang),
+            rng.uniform(0.5, 0.8),
+            rng.uniform(0.8, 1.8),
+        )
         polys += _box_walls(cx - s, cy - s, cx + s, cy + s, bh, stone_block, shade_of)
-        top = make_texture(textures.plaster(rng, int(2 * s * ppm), int(2 * s * ppm), ppm, stone, stains=0.4), ppm)
+        top = make_texture(
+            textures.plaster(rng, int(2 * s * ppm), int(2 * s * ppm), ppm, stone, stains=0.4), ppm
+        )
         polys.append(_flat_top(cx - s, cy - s, cx + s, cy + s, bh, top, up_shade))
     # Ground: 120 m square in 10 m tiles (each picks its own mip level), a tree line at its edge.
     size, tile = 120.0, 10.0
     macro, detail = textures.ground(rng, size, plaza_radius=14.0)
-    macro_tex, detail_tex = make_texture(macro, 1024 / size), make_texture(detail, 2048 / 24.0, wrap=True)
+    macro_tex, detail_tex = (
+        make_texture(macro, 1024 / size),
+        make_texture(detail, 2048 / 24.0, wrap=True),
+    )
     for x in np.arange(-size / 2, size / 2, tile):
         for y in np.arange(-size / 2, size / 2, tile):
             ground = _flat_top(-size / 2, -size / 2, size / 2, size / 2, 0.0, macro_tex, up_shade)
@@ -172,11 +199,17 @@ def build_scene(seed: int = 0, repeated: bool = False, texels_per_m: float = 100
     half = size / 2 - 2
     edge = [(-half, -half), (-half, half), (half, half), (half, -half)]  # clockwise: facing inwards
     for p0, p1 in zip(edge, edge[1:] + edge[:1]):
-        polys.append(_wall(p0, p1, 12.0, make_texture(textures.treeline(rng, 2 * half, 12.0, 10.0), 10.0), 0.8))
+        polys.append(
+            _wall(
+                p0, p1, 12.0, make_texture(textures.treeline(rng, 2 * half, 12.0, 10.0), 10.0), 0.8
+            )
+        )
     return polys
 
 
-def _cameras(rng: np.random.Generator, num_images: int, conf: dict) -> list[tuple[np.ndarray, np.ndarray]]:
+def _cameras(
+    rng: np.random.Generator, num_images: int, conf: dict
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Poses on an arc around the hall, looking at it with jitter in distance, height, aim and roll."""
     start = rng.uniform(0, 2 * np.pi)
     poses = []
@@ -217,7 +250,10 @@ def render_scene(
     for d in (image_dir, gt_dir, depth_dir):
         d.mkdir(parents=True, exist_ok=True)
     names = [f"view_{i:03d}.jpg" for i in range(num_images)]
-    for stale in [*image_dir.glob("view_*.jpg"), *depth_dir.glob("view_*.npy")]:  # from an earlier, larger render
+    for stale in [
+        *image_dir.glob("view_*.jpg"),
+        *depth_dir.glob("view_*.npy"),
+    ]:  # from an earlier, larger render
         if stale.stem not in {Path(n).stem for n in names}:
             stale.unlink()
     tic = time.perf_counter()
@@ -228,12 +264,21 @@ def render_scene(
     poses = _cameras(np.random.default_rng([seed, 1]), num_images, conf)
     tic = time.perf_counter()
     for i, (name, (R, t)) in enumerate(zip(names, poses)):
-        noise_rng = np.random.default_rng([seed, 2, i])  # per image: a shorter render gives the same views
+        noise_rng = np.random.default_rng(
+            [seed, 2, i]
+        )  # per image: a shorter render gives the same views
         image, depth = render_image(polygons, K, R, t, width, height, conf, noise_rng)
         _write_jpeg(image_dir / name, image, conf["jpeg_quality"], f if conf["exif"] else None)
         np.save(depth_dir / f"{Path(name).stem}.npy", depth)
     seconds = time.perf_counter() - tic
-    logger.info("Rendered %d images of %dx%d in %.1f s into %s.", num_images, width, height, seconds, out_dir)
+    logger.info(
+        "Rendered %d images of %dx%d in %.1f s into %s.",
+        num_images,
+        width,
+        height,
+        seconds,
+        out_dir,
+    )
     _write_model(gt_dir, K, width, height, names, poses)
     return SceneInfo(image_dir, gt_dir, depth_dir, names, K, width, height, dict(zip(names, poses)))
 
@@ -249,11 +294,15 @@ def _write_jpeg(path: Path, image: np.ndarray, quality: int, focal: float | None
     Image.fromarray(image).save(path, quality=quality, exif=exif)
 
 
-def _write_model(path: Path, K: np.ndarray, width: int, height: int, names: list[str], poses) -> None:
+def _write_model(
+    path: Path, K: np.ndarray, width: int, height: int, names: list[str], poses
+) -> None:
     """Write the ground truth as a COLMAP text model (cameras, rigs, frames, images; no points)."""
     rec = pycolmap.Reconstruction()
     params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
-    camera = pycolmap.Camera(model="PINHOLE", width=width, height=height, params=params, camera_id=1)
+    camera = pycolmap.Camera(
+        model="PINHOLE", width=width, height=height, params=params, camera_id=1
+    )
     rec.add_camera_with_trivial_rig(camera)
     for image_id, (name, (R, t)) in enumerate(zip(names, poses), start=1):
         image = pycolmap.Image(name=name, camera_id=1, image_id=image_id)
@@ -261,7 +310,9 @@ def _write_model(path: Path, K: np.ndarray, width: int, height: int, names: list
     rec.write_text(str(path))
 
 
-def transfer_points(info: SceneInfo, src: str, dst: str, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def transfer_points(
+    info: SceneInfo, src: str, dst: str, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Ground-truth correspondences: map pixels (N x 2, COLMAP convention) of ``src`` into ``dst``.
 
     Uses the depth of ``src`` (nearest pixel) and the poses; ``valid`` is False where the depth is
@@ -297,34 +348,53 @@ def load_scene(out_dir: str | Path) -> SceneInfo:
     rec = load_ground_truth(out_dir / "ground_truth")
     images = sorted(rec.images.values(), key=lambda im: im.name)
     camera = rec.cameras[images[0].camera_id]
-    poses = {im.name: (im.cam_from_world().rotation.matrix(), im.cam_from_world().translation) for im in images}
+    poses = {
+        im.name: (im.cam_from_world().rotation.matrix(), im.cam_from_world().translation)
+        for im in images
+    }
     return SceneInfo(
-        out_dir / "images", out_dir / "ground_truth", out_dir / "depth", [im.name for im in images],
-        camera.calibration_matrix(), camera.width, camera.height, poses,
+        out_dir / "images",
+        out_dir / "ground_truth",
+        out_dir / "depth",
+        [im.name for im in images],
+        camera.calibration_matrix(),
+        camera.width,
+        camera.height,
+        poses,
     )
 
 
-def load_ground_truth(gt: SceneInfo | pycolmap.Reconstruction | str | Path) -> pycolmap.Reconstruction:
+def load_ground_truth(
+    gt: SceneInfo | pycolmap.Reconstruction | str | Path,
+) -> pycolmap.Reconstruction:
     """The ground-truth model of a rendered scene (its SceneInfo or ground_truth folder), or ``gt`` itself."""
     if isinstance(gt, pycolmap.Reconstruction):
         return gt
     path = Path(gt.gt_dir if isinstance(gt, SceneInfo) else gt)
     if not path.is_dir():
-        raise FileNotFoundError(f"No ground-truth model at {path}; render one with render_scene() first.")
+        raise FileNotFoundError(
+            f"No ground-truth model at {path}; render one with render_scene() first."
+        )
     return pycolmap.Reconstruction(str(path))
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description="Render the synthetic landmark scene with its ground truth.")
+    parser = argparse.ArgumentParser(
+        description="Render the synthetic landmark scene with its ground truth."
+    )
     parser.add_argument("out_dir", type=Path)
     parser.add_argument("--num_images", type=int, default=8)
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--repeated", action="store_true", help="periodic window grid on every facade")
+    parser.add_argument(
+        "--repeated", action="store_true", help="periodic window grid on every facade"
+    )
     args = parser.parse_args(argv)
     try:
-        info = render_scene(args.out_dir, args.num_images, args.width, args.height, args.seed, args.repeated)
+        info = render_scene(
+            args.out_dir, args.num_images, args.width, args.height, args.seed, args.repeated
+        )
     except ValueError as err:
         logger.error("%s", err)
         raise SystemExit(2) from None

@@ -7,13 +7,17 @@ import cv2
 import numpy as np
 
 
-def _noise(rng: np.random.Generator, h: int, w: int, cell: int, periodic: bool = False) -> np.ndarray:
+def _noise(
+    rng: np.random.Generator, h: int, w: int, cell: int, periodic: bool = False
+) -> np.ndarray:
     """Smooth value noise with features of about ``cell`` texels, roughly unit variance."""
     gh, gw = -(-h // cell) + 1, -(-w // cell) + 1
     if periodic:  # h and w are multiples of cell: the grid wraps around
         grid = rng.standard_normal((h // cell, w // cell)).astype(np.float32)
         grid = np.pad(grid, 2, mode="wrap")
-        big = cv2.resize(grid, (grid.shape[1] * cell, grid.shape[0] * cell), interpolation=cv2.INTER_CUBIC)
+        big = cv2.resize(
+            grid, (grid.shape[1] * cell, grid.shape[0] * cell), interpolation=cv2.INTER_CUBIC
+        )
         return big[2 * cell : 2 * cell + h, 2 * cell : 2 * cell + w]
     grid = rng.standard_normal((gh, gw)).astype(np.float32)
     return cv2.resize(grid, (gw * cell, gh * cell), interpolation=cv2.INTER_CUBIC)[:h, :w]
@@ -34,7 +38,9 @@ def _jitter(rng: np.random.Generator, color, amount: float) -> tuple[float, floa
     return tuple(min(max(c * gain + d / 3, 0.0), 1.0) for c, d in zip(color, r[1:]))
 
 
-def plaster(rng: np.random.Generator, h: int, w: int, ppm: float, color, stains: float) -> np.ndarray:
+def plaster(
+    rng: np.random.Generator, h: int, w: int, ppm: float, color, stains: float
+) -> np.ndarray:
     """Render with faint multi-scale noise, and dirt patches and spots in proportion to ``stains``."""
     img = np.empty((h, w, 3), np.float32)
     img[:] = color
@@ -95,7 +101,9 @@ def _draw_window(
         cv2.rectangle(img, (x + w // 2 - m, y), (x + w // 2 + m, y + h), p["frame"], -1)
     if p["mullions"] == 2:
         cv2.rectangle(img, (x, y + h // 3 - m), (x + w, y + h // 3 + m), p["frame"], -1)
-    cv2.rectangle(img, (x - 2 * f, y + h + f), (x + w + 2 * f, y + h + 2 * f), (0.8, 0.78, 0.72), -1)
+    cv2.rectangle(
+        img, (x - 2 * f, y + h + f), (x + w + 2 * f, y + h + 2 * f), (0.8, 0.78, 0.72), -1
+    )
     cv2.rectangle(img, (x - 2 * f, y - 3 * f), (x + w + 2 * f, y - f), (0.7, 0.66, 0.6), -1)
     if p["shutter"] is not None:
         for x_s in (x - f - w // 2, x + w + f):
@@ -109,7 +117,13 @@ def _poster(img: np.ndarray, rng: np.random.Generator, x: int, y: int, w: int, h
     """A sign or poster: a coloured panel with a disc and rows of text-like marks."""
     cv2.rectangle(img, (x, y), (x + w, y + h), _jitter(rng, (0.5, 0.5, 0.5), 0.45), -1)
     ink = _jitter(rng, (0.1, 0.1, 0.1), 0.1) if rng.random() < 0.7 else (0.95, 0.95, 0.9)
-    cv2.circle(img, (x + w // 4, y + h // 4), max(2, min(w, h) // 6), _jitter(rng, (0.5, 0.5, 0.5), 0.5), -1)
+    cv2.circle(
+        img,
+        (x + w // 4, y + h // 4),
+        max(2, min(w, h) // 6),
+        _jitter(rng, (0.5, 0.5, 0.5), 0.5),
+        -1,
+    )
     line_h = max(3, h // 10)
     for ly in range(y + h // 2, y + h - line_h, 2 * line_h):
         lx = x + w // 10
@@ -120,7 +134,12 @@ def _poster(img: np.ndarray, rng: np.random.Generator, x: int, y: int, w: int, h
 
 
 def facade(
-    rng: np.random.Generator, width: float, height: float, eave: float, ppm: float, motif: np.ndarray | None
+    rng: np.random.Generator,
+    width: float,
+    height: float,
+    eave: float,
+    ppm: float,
+    motif: np.ndarray | None,
 ) -> np.ndarray:
     """A wall texture (width x height metres; rows below ``eave`` get windows).
 
@@ -136,7 +155,9 @@ def facade(
             for x in range((w % period_x) // 2 + (period_x - mw) // 2, w - mw, period_x):
                 img[y : y + mh, x : x + mw] = motif
         return img
-    base = _jitter(rng, [(0.75, 0.68, 0.55), (0.62, 0.36, 0.28), (0.85, 0.8, 0.68)][rng.integers(3)], 0.06)
+    base = _jitter(
+        rng, [(0.75, 0.68, 0.55), (0.62, 0.36, 0.28), (0.85, 0.8, 0.68)][rng.integers(3)], 0.06
+    )
     style = rng.integers(3)
     if style == 0:
         img = masonry(rng, h, w, ppm, (0.6, 0.3), base)
@@ -145,8 +166,12 @@ def facade(
     else:
         img = plaster(rng, h, w, ppm, base, stains=0.25)
     eave_px = int(eave * ppm)
-    cv2.rectangle(img, (0, h - int(0.5 * ppm)), (w, h), _jitter(rng, (0.45, 0.43, 0.4), 0.05), -1)  # plinth
-    cv2.rectangle(img, (0, h - eave_px), (w, h - eave_px + int(0.25 * ppm)), (0.88, 0.86, 0.8), -1)  # cornice
+    cv2.rectangle(
+        img, (0, h - int(0.5 * ppm)), (w, h), _jitter(rng, (0.45, 0.43, 0.4), 0.05), -1
+    )  # plinth
+    cv2.rectangle(
+        img, (0, h - eave_px), (w, h - eave_px + int(0.25 * ppm)), (0.88, 0.86, 0.8), -1
+    )  # cornice
     floors = max(1, int(eave // 3.1))
     columns = max(1, int(width // 2.6))
     spacing = width / columns
@@ -169,8 +194,12 @@ def facade(
         x, y = rng.uniform(0, width - pw), rng.uniform(0.6, 2.2)
         _poster(img, rng, int(x * ppm), h - int((y + ph) * ppm), int(pw * ppm), int(ph * ppm))
     if rng.random() < 0.6:  # graffiti
-        pts = np.stack([rng.uniform(0, w, 8), h - rng.uniform(0.2, 1.6, 8) * ppm], 1).astype(np.int32)
-        cv2.polylines(img, [pts], False, _jitter(rng, (0.5, 0.5, 0.5), 0.5), max(2, int(0.05 * ppm)))
+        pts = np.stack([rng.uniform(0, w, 8), h - rng.uniform(0.2, 1.6, 8) * ppm], 1).astype(
+            np.int32
+        )
+        cv2.polylines(
+            img, [pts], False, _jitter(rng, (0.5, 0.5, 0.5), 0.5), max(2, int(0.05 * ppm))
+        )
     # Soft darkening towards the ground (ambient occlusion).
     img *= (1 - 0.25 * np.exp(-np.linspace(height, 0, h, dtype=np.float32) / 0.8))[:, None, None]
     return img
@@ -199,14 +228,20 @@ def roof(rng: np.random.Generator, width: float, height: float, ppm: float) -> n
         y0, y1 = int(y), int(y + course)
         while x < w:
             tw = tile * rng.uniform(0.85, 1.15)
-            cv2.rectangle(img, (int(x) + 1, y0), (int(x + tw) - 1, y1 - 1), _jitter(rng, color, 0.06), -1)
+            cv2.rectangle(
+                img, (int(x) + 1, y0), (int(x + tw) - 1, y1 - 1), _jitter(rng, color, 0.06), -1
+            )
             x += tw
-        img[y0:y1] *= np.linspace(1.1, 0.75, len(img[y0:y1]), dtype=np.float32)[:, None, None]  # overlap shadow
+        img[y0:y1] *= np.linspace(1.1, 0.75, len(img[y0:y1]), dtype=np.float32)[
+            :, None, None
+        ]  # overlap shadow
     moss = np.clip(_noise(rng, h, w, int(ppm)), 0.5, 1.5) - 0.5
     return img * (1 - moss[:, :, None]) + moss[:, :, None] * np.array([0.35, 0.4, 0.2], np.float32)
 
 
-def ground(rng: np.random.Generator, size_m: float, plaza_radius: float) -> tuple[np.ndarray, np.ndarray]:
+def ground(
+    rng: np.random.Generator, size_m: float, plaza_radius: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Ground colour (grass, a paved plaza and path) and a tiling grey detail (pebbles, patches)."""
     n = 1024
     ppm = n / size_m
@@ -225,7 +260,11 @@ def ground(rng: np.random.Generator, size_m: float, plaza_radius: float) -> tupl
     for _ in range(2500):  # pebbles, drawn again across the borders so that the tiling is seamless
         x, y = rng.uniform(0, d, 2)
         r = rng.uniform(0.02, 0.12) * dppm
-        axes, angle, tone = (int(r), int(r * rng.uniform(0.5, 1))), rng.uniform(0, 180), rng.uniform(0.5, 1.5)
+        axes, angle, tone = (
+            (int(r), int(r * rng.uniform(0.5, 1))),
+            rng.uniform(0, 180),
+            rng.uniform(0.5, 1.5),
+        )
         for dx in (-d, 0, d):
             for dy in (-d, 0, d):
                 if -r < x + dx < d + r and -r < y + dy < d + r:

@@ -21,7 +21,9 @@ from colmap_guided.geometry import apply_h
 from colmap_guided.train.geometry import colmap_to_cv
 
 
-def random_homography(width: int, height: int, out_w: int, out_h: int, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
+def random_homography(
+    width: int, height: int, out_w: int, out_h: int, rng: np.random.Generator, strength: float = 1.0
+) -> np.ndarray:
     """Random H (COLMAP frames) from a (width, height) photo to an (out_w, out_h) view of it.
 
     A random crop (35–100 % of the area) of the photo is rotated (±30°·strength), its corners moved by
@@ -31,13 +33,22 @@ def random_homography(width: int, height: int, out_w: int, out_h: int, rng: np.r
     cw, ch = width * frac, height * frac
     cx = rng.uniform(cw / 2, width - cw / 2)
     cy = rng.uniform(ch / 2, height - ch / 2)
-    src = np.array([[cx - cw / 2, cy - ch / 2], [cx + cw / 2, cy - ch / 2], [cx + cw / 2, cy + ch / 2], [cx - cw / 2, cy + ch / 2]])
+    src = np.array(
+        [
+            [cx - cw / 2, cy - ch / 2],
+            [cx + cw / 2, cy - ch / 2],
+            [cx + cw / 2, cy + ch / 2],
+            [cx - cw / 2, cy + ch / 2],
+        ]
+    )
     angle = np.deg2rad(rng.uniform(-30, 30) * strength)
     rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
     src = (src - [cx, cy]) @ rot.T + [cx, cy]
     src = src + rng.uniform(-0.12, 0.12, size=(4, 2)) * [cw, ch] * strength
     dst = np.array([[0, 0], [out_w, 0], [out_w, out_h], [0, out_h]], dtype=np.float64)
-    H = cv2.getPerspectiveTransform(src.astype(np.float32), dst.astype(np.float32)).astype(np.float64)
+    H = cv2.getPerspectiveTransform(src.astype(np.float32), dst.astype(np.float32)).astype(
+        np.float64
+    )
     return H  # photo pixels -> output pixels (corners of the crop -> corners of the output)
 
 
@@ -51,10 +62,20 @@ def warp_image(image: np.ndarray, H: np.ndarray, out_w: int, out_h: int) -> np.n
     m = apply_h(H, centre)
     scale = np.sqrt(abs(np.cross(m[1] - m[0], m[2] - m[0])))  # local linear scale of H
     if scale < 0.8:
-        small = cv2.resize(image, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
+        small = cv2.resize(
+            image,
+            (max(1, round(w * scale)), max(1, round(h * scale))),
+            interpolation=cv2.INTER_AREA,
+        )
         S = np.diag([small.shape[1] / w, small.shape[0] / h, 1.0])
         image, H = small, H @ np.linalg.inv(S)
-    return cv2.warpPerspective(image, colmap_to_cv(H), (out_w, out_h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    return cv2.warpPerspective(
+        image,
+        colmap_to_cv(H),
+        (out_w, out_h),
+        flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+    )
 
 
 def random_epipole(width: int, height: int, rng: np.random.Generator) -> np.ndarray:
@@ -67,7 +88,9 @@ def random_epipole(width: int, height: int, rng: np.random.Generator) -> np.ndar
     return np.array([width / 2 + r * np.cos(angle), height / 2 + r * np.sin(angle), 1.0])
 
 
-def soft_scan(image: np.ndarray, rng: np.random.Generator, long_side: tuple[int, int] = (128, 288)) -> np.ndarray:
+def soft_scan(
+    image: np.ndarray, rng: np.random.Generator, long_side: tuple[int, int] = (128, 288)
+) -> np.ndarray:
     """A small, soft scan (realistic scale gaps): the network input downscaled to a long side
     of ``long_side`` px (a small print or a low-resolution scan), blurred there (sigma 0.4-1.2 px: soft
     focus, print grain), and brought back to the input size as the pipeline upsamples small photos.
@@ -76,7 +99,9 @@ def soft_scan(image: np.ndarray, rng: np.random.Generator, long_side: tuple[int,
     s = rng.uniform(*long_side) / max(h, w)
     if s >= 1:
         return image
-    small = cv2.resize(image, (max(8, round(w * s)), max(8, round(h * s))), interpolation=cv2.INTER_AREA)
+    small = cv2.resize(
+        image, (max(8, round(w * s)), max(8, round(h * s))), interpolation=cv2.INTER_AREA
+    )
     small = cv2.GaussianBlur(small, (0, 0), rng.uniform(0.4, 1.2))
     return cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
 

@@ -28,7 +28,11 @@ class FeatureCache:
             self._keys = set()
             if self.path.exists():
                 with h5py.File(self.path, "r") as f:
-                    f.visit(lambda name: self._keys.add(name) if isinstance(f[name], h5py.Dataset) else None)
+                    f.visit(
+                        lambda name: (
+                            self._keys.add(name) if isinstance(f[name], h5py.Dataset) else None
+                        )
+                    )
         return self._keys
 
     def __contains__(self, key: str) -> bool:

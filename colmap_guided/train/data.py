@@ -23,11 +23,32 @@ from colmap_guided.conf import merge_conf
 from colmap_guided.geometry import apply_h
 from colmap_guided.images import read_image
 from colmap_guided.log import logger
-from colmap_guided.train.augment import random_epipole, random_homography, soft_scan, variant_seed, warp_image
+from colmap_guided.train.augment import (
+    random_epipole,
+    random_homography,
+    soft_scan,
+    variant_seed,
+    warp_image,
+)
 from colmap_guided.train.cache import FeatureCache
 from colmap_guided.train.geometry import ideal_pixels, induced_fundamental, scale_fundamental
-from colmap_guided.train.scenes import VAL_SCENES, SfmImage, SfmPair, SfmScene, all_scenes, load_scene, subset_scene
-from colmap_guided.train.views import PairSample, View, cells_in_window, crop_sample, inside, plain_centres
+from colmap_guided.train.scenes import (
+    VAL_SCENES,
+    SfmImage,
+    SfmPair,
+    SfmScene,
+    all_scenes,
+    load_scene,
+    subset_scene,
+)
+from colmap_guided.train.views import (
+    PairSample,
+    View,
+    cells_in_window,
+    crop_sample,
+    inside,
+    plain_centres,
+)
 
 
 class CoarseTrainData:
@@ -56,7 +77,11 @@ class CoarseTrainData:
         self.conf = c = merge_conf(self.default_conf, conf, "data")
         self.spec = BACKBONES[c["backbone"]]
         val = list(c["val_scenes"])
-        train = c["train_scenes"] if c["train_scenes"] is not None else [s for s in all_scenes() if s not in val]
+        train = (
+            c["train_scenes"]
+            if c["train_scenes"] is not None
+            else [s for s in all_scenes() if s not in val]
+        )
         overlap = set(train) & set(val)
         if overlap:
             raise ValueError(f"Scenes both in training and validation: {sorted(overlap)}")
@@ -77,19 +102,27 @@ class CoarseTrainData:
                     self._image_view(im, k)
                 for k in range(c["n_synthetic"]):
                     self._synthetic_view(im, k)
-        self.val_samples = self._make_val_samples()  # adds the (clean) views of the validation pairs only
+        self.val_samples = (
+            self._make_val_samples()
+        )  # adds the (clean) views of the validation pairs only
         cache_dir = Path(c["cache_dir"]) if c["cache_dir"] else paths.cache_dir("train_features")
         tag = f"{c['backbone']}_l2_r{c['resolution']}_a{c['archival_strength']:g}_h{c['homography_strength']:g}"
         self.cache = FeatureCache(cache_dir / f"{tag}.h5")
         n_pairs = sum(len(self.scenes[s].pairs) for s in self.train_scenes)
         logger.info(
             "Training data: %d scenes, %d positive pairs, %d views; validation: %d scenes, %d pairs.",
-            len(self.train_scenes), n_pairs, len(self.views), len(self.val_scenes), len(self.val_samples),
+            len(self.train_scenes),
+            n_pairs,
+            len(self.views),
+            len(self.val_scenes),
+            len(self.val_samples),
         )
 
     # -------------------------------------------------------------------------------- views
     def geometry_of(self, width: int, height: int) -> ImageGeometry:
-        return resize_geometry(width, height, self.conf["resolution"], self.spec.stride, self.spec.cell_offset)
+        return resize_geometry(
+            width, height, self.conf["resolution"], self.spec.stride, self.spec.cell_offset
+        )
 
     def _image_view(self, im: SfmImage, k: int) -> View:
         key = f"img/{im.scene}/{im.name}/v{k}"
@@ -97,7 +130,9 @@ class CoarseTrainData:
             geom = self.geometry_of(im.width, im.height)
             centres = geom.cell_centers()  # original pixels
             ideal = ideal_pixels(im.camera, centres) * geom.scale
-            self.views[key] = View(key, im.scene, im.name, geom, ideal.reshape(geom.grid_height, geom.grid_width, 2))
+            self.views[key] = View(
+                key, im.scene, im.name, geom, ideal.reshape(geom.grid_height, geom.grid_width, 2)
+            )
         return self.views[key]
 
     def _synthetic_view(self, im: SfmImage, k: int) -> View:
@@ -106,8 +141,12 @@ class CoarseTrainData:
             src = self.geometry_of(im.width, im.height)
             out_w, out_h = src.resized_width, src.resized_height
             rng = np.random.default_rng(variant_seed(key))
-            H = random_homography(im.width, im.height, out_w, out_h, rng, self.conf["homography_strength"])
-            geom = ImageGeometry(out_w, out_h, out_w, out_h, self.spec.stride, self.spec.cell_offset)
+            H = random_homography(
+                im.width, im.height, out_w, out_h, rng, self.conf["homography_strength"]
+            )
+            geom = ImageGeometry(
+                out_w, out_h, out_w, out_h, self.spec.stride, self.spec.cell_offset
+            )
             self.views[key] = View(key, im.scene, im.name, geom, plain_centres(geom), H)
         return self.views[key]
 
@@ -117,7 +156,9 @@ class CoarseTrainData:
         im = self.scenes[view.scene].images[view.name]
         rgb = read_image(im.path)
         if (rgb.shape[1], rgb.shape[0]) != (im.width, im.height):
-            raise ValueError(f"{im.path} is {rgb.shape[1]}x{rgb.shape[0]}, its model says {im.width}x{im.height}")
+            raise ValueError(
+                f"{im.path} is {rgb.shape[1]}x{rgb.shape[0]}, its model says {im.width}x{im.height}"
+            )
         kind, k = key.split("/")[0], int(key.rsplit("/", 1)[1][1:])
         if kind == "img":
             out = resize_image(rgb, view.geometry)
@@ -133,7 +174,9 @@ class CoarseTrainData:
             out = archival.degrade(out, rng, self.conf["archival_strength"])
         return out
 
-    def build_cache(self, backbone: torch.nn.Module | None = None, keys: list[str] | None = None) -> int:
+    def build_cache(
+        self, backbone: torch.nn.Module | None = None, keys: list[str] | None = None
+    ) -> int:
         """Compute and store the frozen-backbone features of every view missing from the cache."""
         keys = [k for k in (keys or sorted(self.views)) if k not in self.cache]
         if not keys:
@@ -142,7 +185,9 @@ class CoarseTrainData:
         backbone.eval()
         logger.info("Caching backbone features of %d views in %s ...", len(keys), self.cache.path)
         chunk: dict[str, np.ndarray] = {}
-        for i, key in enumerate(tqdm(keys, desc="features", mininterval=10, disable=len(keys) < 20)):
+        for i, key in enumerate(
+            tqdm(keys, desc="features", mininterval=10, disable=len(keys) < 20)
+        ):
             rgb = self.render(key)
             x = torch.from_numpy(rgb).permute(2, 0, 1).float()[None]
             with torch.inference_mode():
@@ -156,7 +201,9 @@ class CoarseTrainData:
         return torch.from_numpy(self.cache.get(key).astype(np.float32))
 
     # -------------------------------------------------------------------------------- pairs
-    def sfm_sample(self, pair: SfmPair, va: int = 0, vb: int = 0, rng: np.random.Generator | None = None) -> PairSample:
+    def sfm_sample(
+        self, pair: SfmPair, va: int = 0, vb: int = 0, rng: np.random.Generator | None = None
+    ) -> PairSample:
         scene = self.scenes[pair.scene]
         a = self._image_view(scene.images[pair.a], va)
         b = self._image_view(scene.images[pair.b], vb)
@@ -164,14 +211,20 @@ class CoarseTrainData:
         pts_a, pts_b = pair.xy_a, pair.xy_b
         m = self.conf["max_matches"]
         if len(pts_a) > m:
-            idx = (rng if rng is not None else np.random.default_rng(0)).choice(len(pts_a), m, replace=False)
+            idx = (rng if rng is not None else np.random.default_rng(0)).choice(
+                len(pts_a), m, replace=False
+            )
             pts_a, pts_b = pts_a[idx], pts_b[idx]
         return PairSample(a, b, True, "sfm", F, pts_a, pts_b)
 
-    def synthetic_sample(self, image: SfmImage, k: int, va: int, rng: np.random.Generator) -> PairSample:
+    def synthetic_sample(
+        self, image: SfmImage, k: int, va: int, rng: np.random.Generator
+    ) -> PairSample:
         a = self._image_view(image, va)
         b = self._synthetic_view(image, k)
-        Ha = b.H @ np.diag([1 / a.geometry.scale[0], 1 / a.geometry.scale[1], 1.0])  # A resized -> B
+        Ha = b.H @ np.diag(
+            [1 / a.geometry.scale[0], 1 / a.geometry.scale[1], 1.0]
+        )  # A resized -> B
         F = induced_fundamental(Ha, random_epipole(b.geometry.width, b.geometry.height, rng))
         # Exact matches: A's cell centres seen in B, and B's cell centres seen in A (inside both images).
         ca = a.geometry.cell_centers()
@@ -205,7 +258,9 @@ class CoarseTrainData:
         n = self.conf["n_variants"]
         return int(rng.integers(1, n)) if n > 1 and rng.random() < self.conf["archival_prob"] else 0
 
-    def sample_batch(self, rng: np.random.Generator, batch_size: int, n_negative: int) -> list[PairSample]:
+    def sample_batch(
+        self, rng: np.random.Generator, batch_size: int, n_negative: int
+    ) -> list[PairSample]:
         """``batch_size`` pairs: ``n_negative`` negatives, the rest positives (a share synthetic)."""
         c = self.conf
         samples = []
@@ -217,7 +272,9 @@ class CoarseTrainData:
             if c["n_synthetic"] > 0 and rng.random() < c["synthetic_ratio"]:
                 names = sorted(scene.images)
                 im = scene.images[names[rng.integers(len(names))]]
-                s = self.synthetic_sample(im, int(rng.integers(c["n_synthetic"])), self._variant(rng), rng)
+                s = self.synthetic_sample(
+                    im, int(rng.integers(c["n_synthetic"])), self._variant(rng), rng
+                )
             else:
                 pair = scene.pairs[rng.integers(len(scene.pairs))]
                 s = self.sfm_sample(pair, self._variant(rng), self._variant(rng), rng)
@@ -238,7 +295,9 @@ class CoarseTrainData:
         return out
 
 
-def collate(samples: list[PairSample], data: CoarseTrainData | None = None, with_features: bool = True) -> dict:
+def collate(
+    samples: list[PairSample], data: CoarseTrainData | None = None, with_features: bool = True
+) -> dict:
     """Tensors for a batch: padded features and masks, F, cell centres, GT cell matches, labels.
 
     Views with a window are cropped to it. Flat cell indices of ``matches`` (row * width + col) use the
@@ -246,8 +305,12 @@ def collate(samples: list[PairSample], data: CoarseTrainData | None = None, with
     """
     out: dict = {"samples": samples, "positive": torch.tensor([s.positive for s in samples])}
     if with_features:
-        out["feat_a"], out["mask_a"] = stack_padded([s.a.crop(data.features(s.a.key)) for s in samples])
-        out["feat_b"], out["mask_b"] = stack_padded([s.b.crop(data.features(s.b.key)) for s in samples])
+        out["feat_a"], out["mask_a"] = stack_padded(
+            [s.a.crop(data.features(s.a.key)) for s in samples]
+        )
+        out["feat_b"], out["mask_b"] = stack_padded(
+            [s.b.crop(data.features(s.b.key)) for s in samples]
+        )
     ha = max(s.a.grid[2] for s in samples)
     wa = max(s.a.grid[3] for s in samples)
     hb = max(s.b.grid[2] for s in samples)
@@ -268,5 +331,7 @@ def collate(samples: list[PairSample], data: CoarseTrainData | None = None, with
             m = int(keep.sum())
             matches[i, :m, 0] = torch.from_numpy(ra[keep] * wa + ca[keep])
             matches[i, :m, 1] = torch.from_numpy(rb[keep] * wb + cb[keep])
-    out.update(F=torch.from_numpy(np.stack([s.F for s in samples])), xy_a=xy_a, xy_b=xy_b, matches=matches)
+    out.update(
+        F=torch.from_numpy(np.stack([s.F for s in samples])), xy_a=xy_a, xy_b=xy_b, matches=matches
+    )
     return out

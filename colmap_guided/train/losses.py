@@ -25,7 +25,9 @@ import torch
 NEG_INF = float("-inf")
 
 
-def directional_softmax(scores: torch.Tensor, mask_a: torch.Tensor | None = None, mask_b: torch.Tensor | None = None):
+def directional_softmax(
+    scores: torch.Tensor, mask_a: torch.Tensor | None = None, mask_b: torch.Tensor | None = None
+):
     """s^{A→B} (softmax over B's cells) and s^{B→A} (over A's cells), ignoring zero-padded cells.
 
     scores: (B, hA, wA, hB, wB) filtered correlation. Padded cells get probability 0 in the direction
@@ -52,8 +54,16 @@ def _flat(s_ab, s_ba, mask_a, mask_b):
     b, ha, wa, hb, wb = s_ab.shape
     ab = s_ab.reshape(b, ha * wa, hb * wb)
     ba = s_ba.reshape(b, ha * wa, hb * wb).transpose(1, 2)  # source B, target A
-    ma = torch.ones(b, ha * wa, dtype=torch.bool, device=s_ab.device) if mask_a is None else mask_a.reshape(b, -1)
-    mb = torch.ones(b, hb * wb, dtype=torch.bool, device=s_ab.device) if mask_b is None else mask_b.reshape(b, -1)
+    ma = (
+        torch.ones(b, ha * wa, dtype=torch.bool, device=s_ab.device)
+        if mask_a is None
+        else mask_a.reshape(b, -1)
+    )
+    mb = (
+        torch.ones(b, hb * wb, dtype=torch.bool, device=s_ab.device)
+        if mask_b is None
+        else mask_b.reshape(b, -1)
+    )
     return ab, ba, ma, mb
 
 
@@ -76,8 +86,12 @@ def image_loss_from_best(best_ab, best_ba, positive, ma, mb):
     mean_ba = _masked_mean(best_ba, mb)
     per_pair = -y * (mean_ab + mean_ba)
     stats = {
-        "max_pos": ((mean_ab + mean_ba) / 2)[positive].mean().item() if positive.any() else float("nan"),
-        "max_neg": ((mean_ab + mean_ba) / 2)[~positive].mean().item() if (~positive).any() else float("nan"),
+        "max_pos": ((mean_ab + mean_ba) / 2)[positive].mean().item()
+        if positive.any()
+        else float("nan"),
+        "max_neg": ((mean_ab + mean_ba) / 2)[~positive].mean().item()
+        if (~positive).any()
+        else float("nan"),
     }
     return per_pair.mean(), stats
 
@@ -118,17 +132,32 @@ def epipolar_loss(s_ab, s_ba, positive, F, xy_a, xy_b, mask_a=None, mask_b=None,
     b = ab.shape[0]
     best_ab, idx_ab = ab.max(dim=2)
     best_ba, idx_ba = ba.max(dim=2)
-    return epipolar_loss_from_best(best_ab, idx_ab, best_ba, idx_ba, positive, F, xy_a.reshape(b, -1, 2),
-                                   xy_b.reshape(b, -1, 2), ma, mb, lam)
+    return epipolar_loss_from_best(
+        best_ab,
+        idx_ab,
+        best_ba,
+        idx_ba,
+        positive,
+        F,
+        xy_a.reshape(b, -1, 2),
+        xy_b.reshape(b, -1, 2),
+        ma,
+        mb,
+        lam,
+    )
 
 
-def epipolar_loss_from_best(best_ab, idx_ab, best_ba, idx_ba, positive, F, xa, xb, ma, mb, lam: float = 16.0):
+def epipolar_loss_from_best(
+    best_ab, idx_ab, best_ba, idx_ba, positive, F, xa, xb, ma, mb, lam: float = 16.0
+):
     """Eq. 4–5 from max s^{A→B} (B, nA) with its argmax among B's cells (B, nA) and the same for B → A;
     xa (B, nA, 2), xb (B, nB, 2) cell centres in F's frames; ma (B, nA), mb (B, nB) valid cells.
     Shared by the dense path (``epipolar_loss``) and the sparse one (``trainer``: one pair at a time)."""
     xa, xb, F = xa.to(best_ab.dtype), xb.to(best_ab.dtype), F.to(best_ab.dtype)
     l_ab, P_ab, _ = _epipolar_direction(best_ab, idx_ab, F, xa, xb, ma, positive, lam)
-    l_ba, P_ba, _ = _epipolar_direction(best_ba, idx_ba, F.transpose(1, 2), xb, xa, mb, positive, lam)
+    l_ba, P_ba, _ = _epipolar_direction(
+        best_ba, idx_ba, F.transpose(1, 2), xb, xa, mb, positive, lam
+    )
     with torch.no_grad():
         pos = positive
         n_valid = ma.sum(1) + mb.sum(1)
@@ -180,7 +209,16 @@ def coarse_loss(supervision: str, s_ab, s_ba, batch: dict, lam: float = 16.0):
     if supervision == "image":
         return image_loss(s_ab, s_ba, batch["positive"], **common)
     if supervision == "epipolar":
-        return epipolar_loss(s_ab, s_ba, batch["positive"], batch["F"], batch["xy_a"], batch["xy_b"], lam=lam, **common)
+        return epipolar_loss(
+            s_ab,
+            s_ba,
+            batch["positive"],
+            batch["F"],
+            batch["xy_a"],
+            batch["xy_b"],
+            lam=lam,
+            **common,
+        )
     if supervision == "points":
         return point_loss(s_ab, s_ba, batch["positive"], batch["matches"], **common)
     raise ValueError(f"unknown supervision {supervision!r}; choose image, epipolar or points")

@@ -34,7 +34,9 @@ def scene_model_dir(scene: str) -> Path:
 
 def scene_image_dir(scene: str) -> Path:
     root = shared_data_dir()
-    return root / scene / "images" if scene == "lund_door_gtsfm" else root / "train" / scene / "images"
+    return (
+        root / scene / "images" if scene == "lund_door_gtsfm" else root / "train" / scene / "images"
+    )
 
 
 def all_scenes() -> list[str]:
@@ -90,8 +92,15 @@ def load_scene(scene: str, min_shared: int = 30) -> SfmScene:
         cam = rec.cameras[im.camera_id]
         pose = im.cam_from_world()
         images[im.name] = SfmImage(
-            scene, im.name, image_dir / im.name, cam.width, cam.height, cam.calibration_matrix(),
-            pose.rotation.matrix(), np.asarray(pose.translation), cam,
+            scene,
+            im.name,
+            image_dir / im.name,
+            cam.width,
+            cam.height,
+            cam.calibration_matrix(),
+            pose.rotation.matrix(),
+            np.asarray(pose.translation),
+            cam,
         )
         id_to_name[image_id] = im.name
         obs[image_id] = {p.point3D_id: np.asarray(p.xy) for p in im.points2D if p.has_point3D()}
@@ -106,8 +115,23 @@ def load_scene(scene: str, min_shared: int = 30) -> SfmScene:
                 continue
             A, B = images[id_to_name[ia]], images[id_to_name[ib]]
             F = fundamental_from_poses(A.K, A.R, A.t, B.K, B.R, B.t)
-            pairs.append(SfmPair(scene, A.name, B.name, F, np.stack([pa[k] for k in shared]), np.stack([pb[k] for k in shared])))
-    logger.debug("Scene %s: %d images, %d positive pairs (>= %d shared points).", scene, len(images), len(pairs), min_shared)
+            pairs.append(
+                SfmPair(
+                    scene,
+                    A.name,
+                    B.name,
+                    F,
+                    np.stack([pa[k] for k in shared]),
+                    np.stack([pb[k] for k in shared]),
+                )
+            )
+    logger.debug(
+        "Scene %s: %d images, %d positive pairs (>= %d shared points).",
+        scene,
+        len(images),
+        len(pairs),
+        min_shared,
+    )
     return SfmScene(scene, images, pairs)
 
 

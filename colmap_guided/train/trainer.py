@@ -44,8 +44,14 @@ from colmap_guided.workspace import Workspace
 
 PCK_THRESHOLDS = (8, 16, 32)
 # What training writes in --out; a run started again there resumes from them.
-WRITES = ("checkpoint.pt", "checkpoint.tmp", "coarse_filter.safetensors", "coarse_filter.tmp.safetensors",
-          "history.json", "curves.png")
+WRITES = (
+    "checkpoint.pt",
+    "checkpoint.tmp",
+    "coarse_filter.safetensors",
+    "coarse_filter.tmp.safetensors",
+    "history.json",
+    "curves.png",
+)
 
 default_conf = {
     "supervision": "epipolar",  # 'image' | 'epipolar' | 'points'
@@ -87,8 +93,15 @@ def pck_errors(ab: np.ndarray, ba: np.ndarray, sample: PairSample) -> np.ndarray
 
 
 @torch.no_grad()
-def evaluate_pck(model: CoarseNet, samples: list[PairSample], features, impl: str = "dense", k: int = 3,
-                 radius: int = 1, batch_size: int = 4) -> dict:
+def evaluate_pck(
+    model: CoarseNet,
+    samples: list[PairSample],
+    features,
+    impl: str = "dense",
+    k: int = 3,
+    radius: int = 1,
+    batch_size: int = 4,
+) -> dict:
     """PCK@8/16/32 px (original resolution) of the coarse flow on ``samples`` (whole grids) with the
     dense filter or the sparse one (``k``, ``radius``). ``features(views)`` returns padded features and
     masks (cached or computed)."""
@@ -101,18 +114,32 @@ def evaluate_pck(model: CoarseNet, samples: list[PairSample], features, impl: st
         out = model(feat_a, feat_b, mask_a, mask_b) if impl == "dense" else None
         for n, s in enumerate(chunk):
             ga, gb = s.a.geometry, s.b.geometry
-            crop = (n, slice(0, ga.grid_height), slice(0, ga.grid_width), slice(0, gb.grid_height), slice(0, gb.grid_width))
+            crop = (
+                n,
+                slice(0, ga.grid_height),
+                slice(0, ga.grid_width),
+                slice(0, gb.grid_height),
+                slice(0, gb.grid_width),
+            )
             if impl == "dense":
                 na, nb = ga.grid_height * ga.grid_width, gb.grid_height * gb.grid_width
                 ab = out["s_ab"][crop].reshape(na, nb).argmax(1).numpy()
                 ba = out["s_ba"][crop].reshape(na, nb).argmax(0).numpy()
             else:
                 fa = feat_a[n, :, : ga.grid_height, : ga.grid_width]
-                m = model.match(fa, feat_b[n, :, : gb.grid_height, : gb.grid_width], impl="sparse", k=k, radius=radius)
+                m = model.match(
+                    fa,
+                    feat_b[n, :, : gb.grid_height, : gb.grid_width],
+                    impl="sparse",
+                    k=k,
+                    radius=radius,
+                )
                 ab, ba = m.ab, m.ba
             errors.append(pck_errors(ab, ba, s))
     e = np.concatenate(errors) if errors else np.zeros(0)
-    return {f"pck{t}": float((e < t).mean()) if len(e) else float("nan") for t in PCK_THRESHOLDS} | {"n_points": int(len(e))}
+    return {
+        f"pck{t}": float((e < t).mean()) if len(e) else float("nan") for t in PCK_THRESHOLDS
+    } | {"n_points": int(len(e))}
 
 
 # ----------------------------------------------------------------------------------------- trainer
@@ -120,24 +147,32 @@ class Trainer:
     def __init__(self, out_dir: Path, conf: dict | None = None):
         self.conf = c = merge_conf(default_conf, conf, "training")
         if c["supervision"] not in ("image", "epipolar", "points"):
-            raise ValueError(f"supervision must be image, epipolar or points, got {c['supervision']!r}")
+            raise ValueError(
+                f"supervision must be image, epipolar or points, got {c['supervision']!r}"
+            )
         if c["impl"] not in ("dense", "sparse"):
             raise ValueError(f"impl must be 'dense' or 'sparse', got {c['impl']!r}")
         if c["impl"] == "sparse" and c["supervision"] == "points":
-            raise ValueError("point supervision trains the dense filter only: use impl 'dense' (--impl dense)")
+            raise ValueError(
+                "point supervision trains the dense filter only: use impl 'dense' (--impl dense)"
+            )
         workspace = Workspace.claim(out_dir, "train", flag="--out")
         workspace.record(*WRITES)
         self.out = workspace.path
         torch.manual_seed(c["seed"])
         model_conf = {**c["model"], "filter": True}
-        model_conf.setdefault("backbone", c["data"].get("backbone", CoarseTrainData.default_conf["backbone"]))
+        model_conf.setdefault(
+            "backbone", c["data"].get("backbone", CoarseTrainData.default_conf["backbone"])
+        )
         self.model = CoarseNet(model_conf)
         self.data = CoarseTrainData({**c["data"], "backbone": self.model.conf["backbone"]})
         for p in self.model.backbone.parameters():
             p.requires_grad_(c["finetune_backbone"])
         groups = [{"params": list(self.model.filter.parameters()), "lr": c["lr"]}]
         if c["finetune_backbone"]:
-            groups.append({"params": list(self.model.backbone.parameters()), "lr": c["backbone_lr"]})
+            groups.append(
+                {"params": list(self.model.backbone.parameters()), "lr": c["backbone_lr"]}
+            )
         self.optimizer = torch.optim.Adam(groups)
         self.rng = np.random.default_rng(c["seed"])
         self.iteration = 0
@@ -156,7 +191,11 @@ class Trainer:
         return self.out / "checkpoint.pt"
 
     def state_dict(self) -> dict:
-        model_state = self.model.filter.state_dict() if not self.conf["finetune_backbone"] else self.model.state_dict()
+        model_state = (
+            self.model.filter.state_dict()
+            if not self.conf["finetune_backbone"]
+            else self.model.state_dict()
+        )
         return {
             "model": model_state,
             "optimizer": self.optimizer.state_dict(),
@@ -175,8 +214,16 @@ class Trainer:
         torch.save(self.state_dict(), tmp)
         os.replace(tmp, self.checkpoint_path)
         self.export(self.out / "coarse_filter.safetensors")
-        (self.out / "history.json").write_text(json.dumps({"train": self.history, "val": self.val_history,
-                                                           "train_seconds": self.train_seconds}, indent=1))
+        (self.out / "history.json").write_text(
+            json.dumps(
+                {
+                    "train": self.history,
+                    "val": self.val_history,
+                    "train_seconds": self.train_seconds,
+                },
+                indent=1,
+            )
+        )
 
     def resume(self) -> bool:
         if not self.checkpoint_path.exists():
@@ -184,8 +231,10 @@ class Trainer:
         state = torch.load(self.checkpoint_path, map_location="cpu", weights_only=True)
         for key in ("supervision", "batch_size", "seed", "finetune_backbone", "impl"):
             if state["conf"].get(key) != self.conf[key]:
-                raise ValueError(f"{self.checkpoint_path} was written with {key}={state['conf'].get(key)!r}, "
-                                 f"not {self.conf[key]!r}: use another --out or the same options")
+                raise ValueError(
+                    f"{self.checkpoint_path} was written with {key}={state['conf'].get(key)!r}, "
+                    f"not {self.conf[key]!r}: use another --out or the same options"
+                )
         if self.conf["finetune_backbone"]:
             self.model.load_state_dict(state["model"])
         else:
@@ -233,7 +282,9 @@ class Trainer:
         self.model.backbone.eval()  # BatchNorm statistics frozen (also when fine-tuning)
         samples = self.data.sample_batch(self.rng, c["batch_size"], self.n_negative())
         loss, stats = self.loss(samples)
-        decay = 0.1 ** sum(self.iteration >= s for s in c["lr_steps"])  # from the iteration: resume-safe
+        decay = 0.1 ** sum(
+            self.iteration >= s for s in c["lr_steps"]
+        )  # from the iteration: resume-safe
         for group, base in zip(self.optimizer.param_groups, (c["lr"], c["backbone_lr"])):
             group["lr"] = base * decay
         self.optimizer.zero_grad(set_to_none=True)
@@ -251,7 +302,9 @@ class Trainer:
         feat_b, mask_b = self._features([s.b for s in samples])
         batch.update(mask_a=mask_a, mask_b=mask_b)
         out = self.model(feat_a, feat_b, mask_a, mask_b)
-        return coarse_loss(c["supervision"], out["s_ab"], out["s_ba"], batch, lam=float(self.model.spec.stride))
+        return coarse_loss(
+            c["supervision"], out["s_ab"], out["s_ba"], batch, lam=float(self.model.spec.stride)
+        )
 
     def _sparse_loss(self, samples: list[PairSample]) -> tuple[torch.Tensor, dict]:
         """Image or epipolar loss (eq. 3, 5) on the sparse filter the CPU path runs (``sparse_volume``
@@ -262,31 +315,64 @@ class Trainer:
         for s in samples:
             fa, fb = self._features([s.a])[0][0], self._features([s.b])[0][0]
             ha, wa, hb, wb = *fa.shape[1:], *fb.shape[1:]
-            a, b, v = self.model.sparse_volume(correlation(fa[None], fb[None])[0], c["sparse_k"], c["sparse_radius"])
+            a, b, v = self.model.sparse_volume(
+                correlation(fa[None], fb[None])[0], c["sparse_k"], c["sparse_radius"]
+            )
             for key, val in zip(("idx_ab", "best_ab"), sparse_best(a, b, v, ha * wa, hb * wb)):
                 rows[key].append(val)
             for key, val in zip(("idx_ba", "best_ba"), sparse_best(b, a, v, hb * wb, ha * wa)):
                 rows[key].append(val)
             rows["xa"].append(torch.from_numpy(np.ascontiguousarray(s.a.crop_xy()).reshape(-1, 2)))
             rows["xb"].append(torch.from_numpy(np.ascontiguousarray(s.b.crop_xy()).reshape(-1, 2)))
-        pad = {key: torch.nn.utils.rnn.pad_sequence(val, batch_first=True) for key, val in rows.items()}
-        ma = torch.nn.utils.rnn.pad_sequence([torch.ones(len(x), dtype=torch.bool) for x in rows["xa"]], batch_first=True)
-        mb = torch.nn.utils.rnn.pad_sequence([torch.ones(len(x), dtype=torch.bool) for x in rows["xb"]], batch_first=True)
+        pad = {
+            key: torch.nn.utils.rnn.pad_sequence(val, batch_first=True) for key, val in rows.items()
+        }
+        ma = torch.nn.utils.rnn.pad_sequence(
+            [torch.ones(len(x), dtype=torch.bool) for x in rows["xa"]], batch_first=True
+        )
+        mb = torch.nn.utils.rnn.pad_sequence(
+            [torch.ones(len(x), dtype=torch.bool) for x in rows["xb"]], batch_first=True
+        )
         positive = torch.tensor([s.positive for s in samples])
         if c["supervision"] == "image":
             return image_loss_from_best(pad["best_ab"], pad["best_ba"], positive, ma, mb)
         F = torch.from_numpy(np.stack([s.F for s in samples]))
-        return epipolar_loss_from_best(pad["best_ab"], pad["idx_ab"], pad["best_ba"], pad["idx_ba"], positive, F,
-                                       pad["xa"], pad["xb"], ma, mb, lam=float(self.model.spec.stride))
+        return epipolar_loss_from_best(
+            pad["best_ab"],
+            pad["idx_ab"],
+            pad["best_ba"],
+            pad["idx_ba"],
+            positive,
+            F,
+            pad["xa"],
+            pad["xb"],
+            ma,
+            mb,
+            lam=float(self.model.spec.stride),
+        )
 
     def validate(self) -> dict:
         t = time.time()
         c = self.conf
-        res = evaluate_pck(self.model, self.data.val_samples, self._features, c["impl"], c["sparse_k"], c["sparse_radius"])
+        res = evaluate_pck(
+            self.model,
+            self.data.val_samples,
+            self._features,
+            c["impl"],
+            c["sparse_k"],
+            c["sparse_radius"],
+        )
         res = {"iteration": self.iteration, **res, "seconds": round(time.time() - t, 1)}
         self.val_history.append(res)
-        logger.info("Validation at %d: PCK@8/16/32 = %.1f / %.1f / %.1f %% (%d points, %.0f s)", self.iteration,
-                    100 * res["pck8"], 100 * res["pck16"], 100 * res["pck32"], res["n_points"], res["seconds"])
+        logger.info(
+            "Validation at %d: PCK@8/16/32 = %.1f / %.1f / %.1f %% (%d points, %.0f s)",
+            self.iteration,
+            100 * res["pck8"],
+            100 * res["pck16"],
+            100 * res["pck32"],
+            res["n_points"],
+            res["seconds"],
+        )
         return res
 
     def train(self) -> bool:
@@ -302,12 +388,26 @@ class Trainer:
             self.iteration += 1
             dt = time.time() - t
             self.train_seconds += dt
-            self.history.append({"iteration": self.iteration, "seconds": round(dt, 3), **{k: _round(v) for k, v in stats.items()}})
+            self.history.append(
+                {
+                    "iteration": self.iteration,
+                    "seconds": round(dt, 3),
+                    **{k: _round(v) for k, v in stats.items()},
+                }
+            )
             if self.iteration % c["log_every"] == 0 or self.iteration == c["iterations"]:
-                recent = self.history[-c["log_every"]:]
-                logger.info("it %d  loss %.4f  %s  %.2f s/it", self.iteration, np.mean([h["loss"] for h in recent]),
-                            "  ".join(f"{k} {np.nanmean([h[k] for h in recent]):.3f}" for k in stats if k != "loss"),
-                            (time.time() - last_log) / len(recent))
+                recent = self.history[-c["log_every"] :]
+                logger.info(
+                    "it %d  loss %.4f  %s  %.2f s/it",
+                    self.iteration,
+                    np.mean([h["loss"] for h in recent]),
+                    "  ".join(
+                        f"{k} {np.nanmean([h[k] for h in recent]):.3f}"
+                        for k in stats
+                        if k != "loss"
+                    ),
+                    (time.time() - last_log) / len(recent),
+                )
                 last_log = time.time()
             if self.iteration % c["val_every"] == 0 or self.iteration == c["iterations"]:
                 self.validate()
@@ -320,8 +420,12 @@ class Trainer:
         self.plot()
         done = self.iteration >= c["iterations"]
         if not done:
-            logger.info("Stopped at iteration %d/%d after %.1f min: run the same command to resume.",
-                        self.iteration, c["iterations"], (time.time() - start) / 60)
+            logger.info(
+                "Stopped at iteration %d/%d after %.1f min: run the same command to resume.",
+                self.iteration,
+                c["iterations"],
+                (time.time() - start) / 60,
+            )
         return done
 
     # ------------------------------------------------------------------ outputs
@@ -342,7 +446,13 @@ class Trainer:
             "val": self.val_history[-1] if self.val_history else None,
         }
         tmp = Path(path).with_name(Path(path).stem + ".tmp.safetensors")
-        save_trained(self.model, tmp, meta, resize_max=self.data.conf["resolution"], backbone=self.conf["finetune_backbone"])
+        save_trained(
+            self.model,
+            tmp,
+            meta,
+            resize_max=self.data.conf["resolution"],
+            backbone=self.conf["finetune_backbone"],
+        )
         os.replace(tmp, path)
         return Path(path)
 
@@ -360,16 +470,25 @@ class Trainer:
         w = max(1, min(50, len(loss) // 10))
         axes[0].plot(it, loss, alpha=0.3, lw=0.8, label="loss")
         if len(loss) >= w:
-            axes[0].plot(it[w - 1 :], np.convolve(loss, np.ones(w) / w, "valid"), lw=1.5, label=f"mean of {w}")
+            axes[0].plot(
+                it[w - 1 :],
+                np.convolve(loss, np.ones(w) / w, "valid"),
+                lw=1.5,
+                label=f"mean of {w}",
+            )
         for key in ("epi_inlier_frac", "max_pos", "max_neg", "gt_prob"):
             if key in self.history[-1]:
-                axes[0].plot(it, [h.get(key, np.nan) for h in self.history], lw=0.6, alpha=0.6, label=key)
+                axes[0].plot(
+                    it, [h.get(key, np.nan) for h in self.history], lw=0.6, alpha=0.6, label=key
+                )
         axes[0].set_xlabel("iteration")
         axes[0].set_title(f"{self.conf['supervision']} supervision")
         axes[0].legend(fontsize=7)
         vi = [v["iteration"] for v in self.val_history]
         for t in PCK_THRESHOLDS:
-            axes[1].plot(vi, [100 * v[f"pck{t}"] for v in self.val_history], "o-", label=f"PCK@{t}px")
+            axes[1].plot(
+                vi, [100 * v[f"pck{t}"] for v in self.val_history], "o-", label=f"PCK@{t}px"
+            )
         axes[1].set_xlabel("iteration")
         axes[1].set_ylabel("% of GT points (held-out scenes)")
         axes[1].legend(fontsize=7)
@@ -394,9 +513,13 @@ class _NormalizedBackbone(torch.nn.Module):
         return self.model.extract_features(self.model.normalize(x))
 
 
-def save_trained(model: CoarseNet, path: Path, meta: dict, resize_max: int, backbone: bool = False) -> Path:
+def save_trained(
+    model: CoarseNet, path: Path, meta: dict, resize_max: int, backbone: bool = False
+) -> Path:
     """Export the filter (and a fine-tuned backbone) with the coarse package's format (safetensors + checked config)."""
-    save_filter_weights(model, path, resize_max=resize_max, training=_jsonable(meta), backbone=backbone)
+    save_filter_weights(
+        model, path, resize_max=resize_max, training=_jsonable(meta), backbone=backbone
+    )
     logger.debug("Exported %s.", path)
     return Path(path)
 
@@ -406,4 +529,6 @@ def _round(v):
 
 
 def _jsonable(obj):
-    return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+    return json.loads(
+        json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+    )

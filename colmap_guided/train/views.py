@@ -20,8 +20,12 @@ class View:
     name: str
     geometry: ImageGeometry
     xy_ideal: np.ndarray  # (gh, gw, 2) cell centres in the resized frame, undistorted (frame of F)
-    H: np.ndarray | None = None  # synthetic views: source photo's original pixels -> this view's pixels
-    window: tuple[int, int, int, int] | None = None  # training crop of the grid: (row0, col0, rows, cols)
+    H: np.ndarray | None = (
+        None  # synthetic views: source photo's original pixels -> this view's pixels
+    )
+    window: tuple[int, int, int, int] | None = (
+        None  # training crop of the grid: (row0, col0, rows, cols)
+    )
 
     @property
     def grid(self) -> tuple[int, int, int, int]:
@@ -52,12 +56,16 @@ class PairSample:
     pts_b: np.ndarray
 
     def swapped(self) -> "PairSample":
-        return PairSample(self.b, self.a, self.positive, self.source, self.F.T.copy(), self.pts_b, self.pts_a)
+        return PairSample(
+            self.b, self.a, self.positive, self.source, self.F.T.copy(), self.pts_b, self.pts_a
+        )
 
 
 def plain_centres(geometry: ImageGeometry) -> np.ndarray:
     """Cell centres in the resized frame, (gh, gw, 2)."""
-    return (geometry.cell_centers() * geometry.scale).reshape(geometry.grid_height, geometry.grid_width, 2)
+    return (geometry.cell_centers() * geometry.scale).reshape(
+        geometry.grid_height, geometry.grid_width, 2
+    )
 
 
 def crop_sample(sample: PairSample, max_cells: int, rng: np.random.Generator) -> PairSample:
@@ -69,6 +77,7 @@ def crop_sample(sample: PairSample, max_cells: int, rng: np.random.Generator) ->
     cells of one random ground-truth match, so they overlap in the scene; negatives get random windows.
     F, the cell centres and the GT matches stay in the full resized frames (collate crops them).
     """
+
     def window(view: View, centre) -> tuple[int, int, int, int]:
         g = view.geometry
         h, w = min(max_cells, g.grid_height), min(max_cells, g.grid_width)
@@ -92,7 +101,12 @@ def crop_sample(sample: PairSample, max_cells: int, rng: np.random.Generator) ->
 
 
 def inside(xy: np.ndarray, geometry: ImageGeometry) -> np.ndarray:
-    return (xy[:, 0] >= 0) & (xy[:, 1] >= 0) & (xy[:, 0] < geometry.width) & (xy[:, 1] < geometry.height)
+    return (
+        (xy[:, 0] >= 0)
+        & (xy[:, 1] >= 0)
+        & (xy[:, 0] < geometry.width)
+        & (xy[:, 1] < geometry.height)
+    )
 
 
 def cells_in_window(view: View, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
