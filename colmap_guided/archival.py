@@ -2,9 +2,10 @@
 
 The paper trains on MegaDepth (modern internet photos) and evaluates on LTLL (historical photos of
 landmarks, §5). No historical multi-view collection is available offline, so training images are
-degraded with effects typical of old prints and scans: grayscale, sepia toning, faded contrast, blur,
-film grain, JPEG artefacts, vignetting, scratches and dust, and an optional crop. The named looks
-range from realistic prints (``realistic_*``) to harshly damaged ones (``damaged_scan``, ``old_postcard``).
+degraded with effects typical of old prints and scans: grayscale, sepia toning, faded contrast,
+blur, film grain, JPEG artefacts, vignetting, scratches and dust, and an optional crop. The named
+looks range from realistic prints (``realistic_*``) to harshly damaged ones (``damaged_scan``,
+``old_postcard``).
 
 Every effect takes and returns an RGB float32 image in [0, 1] and draws its randomness only from the
 ``numpy.random.Generator`` it is given, so a result is fully determined by (image, seed, strength).
@@ -16,8 +17,8 @@ API
     EFFECTS                             name -> function(img, rng, strength) for single effects.
 
 Input: uint8 (H, W, 3) RGB or (H, W) gray. Output: uint8 (H', W', 3) RGB (H' = H unless cropped).
-A crop keeps COLMAP's pixel convention: a point (x, y) of the input is (x - x0, y - y0) in the output,
-with (x0, y0) the integer offset returned when ``return_offset=True``.
+A crop keeps COLMAP's pixel convention: a point (x, y) of the input is (x - x0, y - y0) in the
+output, with (x0, y0) the integer offset returned when ``return_offset=True``.
 """
 
 from __future__ import annotations
@@ -72,9 +73,8 @@ def sepia(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> n
     amount = float(np.clip(rng.uniform(0.6, 1.0) * strength, 0, 1))
     gray = np.repeat(_luma(img)[..., None], 3, axis=2)
     toned = gray @ _SEPIA.T
-    toned /= max(
-        float(_SEPIA.sum(1).max()), 1.0
-    )  # keep white below saturation: a brown-ish paper tone
+    # keep white below saturation: a brown-ish paper tone
+    toned /= max(float(_SEPIA.sum(1).max()), 1.0)
     return (1 - amount) * img + amount * toned
 
 
@@ -201,8 +201,8 @@ EFFECTS: dict[str, Callable[[np.ndarray, np.random.Generator, float], np.ndarray
 }
 # Physical order of a degradation chain: toning of the print, ageing, optics, then the scan.
 _ORDER = ["grayscale", "sepia", "fade", "vignette", "blur", "grain", "scratches", "dust", "jpeg"]
-# Probability of each effect when ``degrade`` picks a random subset (colour: gray xor sepia xor none);
-# dust has none: it is part of scratches there, so the training augmentation draws as before.
+# Probability of each effect when ``degrade`` picks a random subset (colour: gray xor sepia xor
+# none); dust has none: it is part of scratches there, so the training augmentation draws as before.
 _PROB = {"fade": 0.6, "vignette": 0.5, "blur": 0.5, "grain": 0.6, "scratches": 0.3, "jpeg": 0.5}
 
 PRESETS: dict[str, dict] = {
@@ -228,7 +228,8 @@ PRESETS: dict[str, dict] = {
 def random_crop(
     image: np.ndarray, rng: np.random.Generator, min_fraction: float
 ) -> tuple[np.ndarray, tuple[int, int]]:
-    """Crop keeping at least ``min_fraction`` of each side; returns the crop and its offset (x0, y0)."""
+    """Crop keeping at least ``min_fraction`` of each side; returns the crop and its offset
+    (x0, y0)."""
     h, w = image.shape[:2]
     cw = int(round(w * rng.uniform(min_fraction, 1.0)))
     ch = int(round(h * rng.uniform(min_fraction, 1.0)))

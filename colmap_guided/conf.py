@@ -4,7 +4,8 @@ from __future__ import annotations
 
 
 def merge_conf(defaults: dict, conf: dict | None, what: str) -> dict:
-    """``conf`` over ``defaults``; a key ``defaults`` does not have raises ValueError naming ``what``."""
+    """``conf`` over ``defaults``; a key ``defaults`` does not have raises ValueError naming
+    ``what``."""
     unknown = set(conf or {}) - set(defaults)
     if unknown:
         raise ValueError(f"Unknown {what} option(s) {sorted(unknown)}; known: {sorted(defaults)}")

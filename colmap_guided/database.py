@@ -1,8 +1,9 @@
-"""Database io: the COLMAP SQLite database read and written through pycolmap only; the only module that
-calls ``pycolmap.Database`` (images, cameras, rigs, frames, keypoints, descriptors, matches, two-view geometries).
+"""Database io: the COLMAP SQLite database read and written through pycolmap only; the only module
+that calls ``pycolmap.Database`` (images, cameras, rigs, frames, keypoints, descriptors, matches,
+two-view geometries).
 
-Every write of a pair (matches, then its two-view geometry) is its own transaction, so a run killed at
-any moment leaves a database that a rerun continues from (pairs already written are skipped).
+Every write of a pair (matches, then its two-view geometry) is its own transaction, so a run killed
+at any moment leaves a database that a rerun continues from (pairs already written are skipped).
 """
 
 from __future__ import annotations
@@ -67,7 +68,8 @@ def open_database(path: Path, must_exist: bool = True) -> Iterator[pycolmap.Data
     path = Path(path)
     if must_exist and not path.is_file():
         raise DatabaseError(
-            f"No COLMAP database at {path}: run `colmap feature_extractor` (or `python -m colmap_guided reconstruct`) first."
+            f"No COLMAP database at {path}: run `colmap feature_extractor` "
+            "(or `python -m colmap_guided reconstruct`) first."
         )
     existed = path.exists()
     if existed:
@@ -108,7 +110,8 @@ def image_names(db: pycolmap.Database) -> dict[int, str]:
 def images_with_keypoints(
     db: pycolmap.Database, descriptors: bool = False
 ) -> dict[str, pycolmap.Image]:
-    """name -> image of the images whose keypoints (and, with ``descriptors``, descriptors) are written."""
+    """name -> image of the images whose keypoints (and, with ``descriptors``, descriptors) are
+    written."""
     return {
         image.name: image
         for image in db.read_all_images()
@@ -131,7 +134,8 @@ def write_camera(db: pycolmap.Database, camera: pycolmap.Camera) -> int:
 
 
 def add_image(db: pycolmap.Database, name: str, camera: pycolmap.Camera) -> int:
-    """A camera's image with its rig (one per camera, shared) and frame, as COLMAP's feature extractor writes them."""
+    """A camera's image with its rig (one per camera, shared) and frame, as COLMAP's feature
+    extractor writes them."""
     rig = db.read_rig_with_sensor(camera.sensor_id)
     if rig is not None:
         rig_id = rig.rig_id
@@ -148,7 +152,8 @@ def add_image(db: pycolmap.Database, name: str, camera: pycolmap.Camera) -> int:
 
 
 def read_keypoints(db: pycolmap.Database, image_id: int) -> np.ndarray:
-    """(N, k) float32 keypoints of an image: x, y (COLMAP's pixel convention), then its shape columns."""
+    """(N, k) float32 keypoints of an image: x, y (COLMAP's pixel convention), then its shape
+    columns."""
     keypoints = np.asarray(db.read_keypoints(image_id), np.float32)
     return keypoints.reshape(-1, keypoints.shape[1] if keypoints.ndim == 2 else 2)
 
@@ -178,8 +183,8 @@ def kind_name(descriptors: pycolmap.FeatureDescriptors) -> str:
 
 
 def descriptor_type(db: pycolmap.Database) -> str | None:
-    """The extractor type of the database's descriptors (``kind_name``; the first image with descriptors
-    tells), None when there are none."""
+    """The extractor type of the database's descriptors (``kind_name``; the first image with
+    descriptors tells), None when there are none."""
     for image in db.read_all_images():
         if db.exists_descriptors(image.image_id):
             return kind_name(db.read_descriptors(image.image_id))
@@ -187,7 +192,8 @@ def descriptor_type(db: pycolmap.Database) -> str | None:
 
 
 def read_descriptors(db: pycolmap.Database, image_id: int) -> tuple[np.ndarray, str]:
-    """(N, D) descriptors (see ``descriptor_array``) and the name of their extractor type (``kind_name``)."""
+    """(N, D) descriptors (see ``descriptor_array``) and the name of their extractor type
+    (``kind_name``)."""
     descriptors = db.read_descriptors(image_id)
     return descriptor_array(descriptors), kind_name(descriptors)
 
@@ -199,8 +205,9 @@ def write_features(
     descriptors: np.ndarray | None,
     kind: str = "SIFT",
 ) -> None:
-    """Keypoints (and descriptors of extractor type ``kind``) of an image; call inside ``transaction``
-    when other writes belong with them. Learned descriptors (float32) are stored as COLMAP stores its own."""
+    """Keypoints (and descriptors of extractor type ``kind``) of an image; call inside
+    ``transaction`` when other writes belong with them. Learned descriptors (float32) are stored as
+    COLMAP stores its own."""
     db.write_keypoints(image_id, np.ascontiguousarray(keypoints, np.float32))
     if descriptors is None:
         return
@@ -237,10 +244,12 @@ def check_image_folder(db: pycolmap.Database, image_path: Path) -> None:
     missing = [name for name in names if not (Path(image_path) / name).is_file()]
     if missing:
         raise DatabaseError(
-            f"{len(missing)}/{len(names)} images of the database are not in {image_path} (e.g. {missing[0]!r}): "
-            "pass the --image_path the database was made from, or --overwrite to start a new database."
+            f"{len(missing)}/{len(names)} images of the database are not in "
+            f"{image_path} (e.g. {missing[0]!r}): pass the --image_path the "
+            "database was made from, or --overwrite to start a new database."
         )
-    # Same names, other photos (IMG_0001.jpg of another folder): the sizes give it away (header reads only).
+    # Same names, other photos (IMG_0001.jpg of another folder): the sizes give it away
+    # (header reads only).
     from .images import image_size
 
     for image in database_images:
@@ -251,14 +260,16 @@ def check_image_folder(db: pycolmap.Database, image_path: Path) -> None:
             continue
         if size != (camera.width, camera.height):
             raise DatabaseError(
-                f"{image.name} in {image_path} is {size[0]}x{size[1]} pixels but {camera.width}x{camera.height} in the database: "
-                "the database was made from other photos; pass the --image_path it was made from, or --overwrite to start a new database."
+                f"{image.name} in {image_path} is {size[0]}x{size[1]} pixels "
+                f"but {camera.width}x{camera.height} in the database: the "
+                "database was made from other photos; pass the --image_path "
+                "it was made from, or --overwrite to start a new database."
             )
 
 
 def descriptor_array(descriptors: pycolmap.FeatureDescriptors) -> np.ndarray:
-    """(N, D) descriptors as their extractor made them: uint8 for SIFT (and untyped databases), float32
-    for learned features (COLMAP stores those as the bytes of float32 rows)."""
+    """(N, D) descriptors as their extractor made them: uint8 for SIFT (and untyped databases),
+    float32 for learned features (COLMAP stores those as the bytes of float32 rows)."""
     if kind_name(descriptors) == XFEAT:
         data = np.ascontiguousarray(descriptors.data)
         return data.view(np.float32).reshape(len(data), -1)
@@ -271,15 +282,16 @@ def descriptor_array(descriptors: pycolmap.FeatureDescriptors) -> np.ndarray:
 
 
 def check_feature_type(path: Path, expected: str) -> None:
-    """Refuse to add features of another kind (``kind_name``) to a database (SIFT and ALIKED cannot be
-    matched together)."""
+    """Refuse to add features of another kind (``kind_name``) to a database (SIFT and ALIKED cannot
+    be matched together)."""
     with open_database(path) as db:
         for image in db.read_all_images():
             if db.exists_descriptors(image.image_id):
                 kind = kind_name(db.read_descriptors(image.image_id))
                 if kind != expected and {kind, expected} != {"SIFT", "UNDEFINED"}:
                     raise DatabaseError(
-                        f"{path} holds {kind} features ({image.name}), not {expected}: pass another --output, or --overwrite to start a new database."
+                        f"{path} holds {kind} features ({image.name}), not {expected}: "
+                        "pass another --output, or --overwrite to start a new database."
                     )
                 return
 
@@ -290,7 +302,8 @@ def read_image_data(db: pycolmap.Database, image: pycolmap.Image, image_path: Pa
     descriptors, _ = read_descriptors(db, image.image_id)
     if len(keypoints) != len(descriptors):
         raise DatabaseError(
-            f"Image {image.name}: {len(keypoints)} keypoints but {len(descriptors)} descriptors; rerun feature extraction (--overwrite)."
+            f"Image {image.name}: {len(keypoints)} keypoints but {len(descriptors)} "
+            "descriptors; rerun feature extraction (--overwrite)."
         )
     return ImageData(
         name=image.name,
@@ -315,7 +328,8 @@ def pair_is_verified(db: pycolmap.Database, id_a: int, id_b: int) -> bool:
 def read_two_view_geometry(
     db: pycolmap.Database, id_a: int, id_b: int
 ) -> pycolmap.TwoViewGeometry | None:
-    """The pair's two-view geometry (inlier_matches index a's and b's keypoints); None when not verified."""
+    """The pair's two-view geometry (inlier_matches index a's and b's keypoints); None when not
+    verified."""
     return (
         db.read_two_view_geometry(id_a, id_b) if db.exists_two_view_geometry(id_a, id_b) else None
     )
@@ -328,7 +342,8 @@ def pair_match_counts(db: pycolmap.Database) -> dict[tuple[int, int], int]:
 
 
 def pair_inlier_counts(db: pycolmap.Database) -> dict[tuple[int, int], int]:
-    """(image_id_a, image_id_b) -> verified inliers of every pair with a two-view geometry (0: did not verify)."""
+    """(image_id_a, image_id_b) -> verified inliers of every pair with a two-view geometry
+    (0: did not verify)."""
     pair_ids, counts = db.read_two_view_geometry_num_inliers()
     return {_image_pair(p): int(n) for p, n in zip(pair_ids, counts)}
 
@@ -372,15 +387,16 @@ def clear_matches(db: pycolmap.Database) -> None:
 
 
 def read_pair_matches(db: pycolmap.Database, id_a: int, id_b: int) -> np.ndarray:
-    """Matches of (id_a, id_b) as indices into a's and b's keypoints, whatever order COLMAP stored them in."""
+    """Matches of (id_a, id_b) as indices into a's and b's keypoints, whatever order COLMAP stored
+    them in."""
     return np.asarray(db.read_matches(id_a, id_b), np.uint32).reshape(-1, 2)
 
 
 def read_verified_inliers(
     db: pycolmap.Database, image_ids: set[int] | None = None
 ) -> dict[tuple[int, int], np.ndarray]:
-    """(image_id_a, image_id_b) -> (N, 2) inlier matches (indices into a's and b's keypoints) of every verified
-    pair, or of the pairs between ``image_ids``."""
+    """(image_id_a, image_id_b) -> (N, 2) inlier matches (indices into a's and b's keypoints) of
+    every verified pair, or of the pairs between ``image_ids``."""
     out = {}
     for pair_id, geometry in zip(*db.read_two_view_geometries()):
         key = _image_pair(pair_id)
@@ -397,12 +413,14 @@ def num_verified_pairs(db: pycolmap.Database) -> int:
 
 
 def remove_orphans(path: Path) -> tuple[int, int]:
-    """Remove the cameras and rigs that a killed feature extraction left without images; returns (cameras, rigs).
+    """Remove the cameras and rigs that a killed feature extraction left without images; returns
+    (cameras, rigs).
 
-    COLMAP's image reader writes an image's camera and rig before its extractor threads write the image,
-    so a kill leaves up to a queue's worth of cameras without images. Removing them (and rewinding the id
-    counters to the largest id in use) makes the resumed extraction give the ids an uninterrupted run
-    gives. Cameras in a rig that has frames are kept. Call it while no pycolmap connection is open.
+    COLMAP's image reader writes an image's camera and rig before its extractor threads write the
+    image, so a kill leaves up to a queue's worth of cameras without images. Removing them (and
+    rewinding the id counters to the largest id in use) makes the resumed extraction give the ids an
+    uninterrupted run gives. Cameras in a rig that has frames are kept. Call it while no pycolmap
+    connection is open.
     """
     path = Path(path)
     if not path.is_file():
@@ -426,16 +444,18 @@ def remove_orphans(path: Path) -> tuple[int, int]:
             cameras = [
                 c
                 for (c,) in conn.execute(
-                    "SELECT camera_id FROM cameras WHERE camera_id NOT IN (SELECT camera_id FROM images)"
-                    " AND camera_id NOT IN (SELECT ref_sensor_id FROM rigs WHERE ref_sensor_type = 0)"
-                    " AND camera_id NOT IN (SELECT sensor_id FROM rig_sensors WHERE sensor_type = 0)"
+                    "SELECT camera_id FROM cameras WHERE camera_id NOT IN (SELECT "
+                    "camera_id FROM images) AND camera_id NOT IN (SELECT "
+                    "ref_sensor_id FROM rigs WHERE ref_sensor_type = 0) AND camera_id "
+                    "NOT IN (SELECT sensor_id FROM rig_sensors WHERE sensor_type = 0)"
                 )
             ]
             conn.executemany("DELETE FROM cameras WHERE camera_id = ?", [(c,) for c in cameras])
             if rigs or cameras:
                 for table, key in (("rigs", "rig_id"), ("cameras", "camera_id")):
                     conn.execute(
-                        f"UPDATE sqlite_sequence SET seq = (SELECT COALESCE(MAX({key}), 0) FROM {table}) WHERE name = ?",
+                        "UPDATE sqlite_sequence SET seq = (SELECT "
+                        f"COALESCE(MAX({key}), 0) FROM {table}) WHERE name = ?",
                         (table,),
                     )
     return len(cameras), len(rigs)

@@ -1,4 +1,5 @@
-"""What report.html embeds: pictures as data URIs, and the page's script and style sheet (``assets/``)."""
+"""What report.html embeds: pictures as data URIs, and the page's script and style sheet
+(``assets/``)."""
 
 from __future__ import annotations
 

@@ -1,16 +1,18 @@
-"""Where pairs are matched: threads of this process (``local``, the default) or a Ray cluster (``ray``).
+"""Where pairs are matched: threads of this process (``local``, the default) or a Ray cluster
+(``ray``).
 
 ``match.match_database`` drives both the same way (ordering, resume, database writes, releasing an
 image once its last pair is matched): it ``put``s each image once, ``submit``s pairs, keeps at most
 ``capacity`` of them in flight and collects finished ones with ``wait`` (in completion order).
 
 Ray (``pip install colmap_guided[ray]``): the driver puts each image's keypoints, descriptors and
-backbone features in the object store once; one actor per cluster CPU holds a copy of the matcher (the
-coarse network loads once per worker, from the driver's object, so workers need neither the photos nor
-the weights file) and runs on the matcher's torch threads (one if it leaves them as they are; Ray reuses
-its worker processes). Without an address (``--ray_address`` or ``RAY_ADDRESS``) a private local
-instance is started and stopped — never a running cluster joined by accident. Clusters started by ``ray start`` use token authentication by default: the driver needs the
-cluster's token (``RAY_AUTH_TOKEN`` or ``~/.ray/auth_token``).
+backbone features in the object store once; one actor per cluster CPU holds a copy of the matcher
+(the coarse network loads once per worker, from the driver's object, so workers need neither the
+photos nor the weights file) and runs on the matcher's torch threads (one if it leaves them as they
+are; Ray reuses its worker processes). Without an address (``--ray_address`` or ``RAY_ADDRESS``) a
+private local instance is started and stopped — never a running cluster joined by accident. Clusters
+started by ``ray start`` use token authentication by default: the driver needs the cluster's token
+(``RAY_AUTH_TOKEN`` or ``~/.ray/auth_token``).
 """
 
 from __future__ import annotations
@@ -27,7 +29,8 @@ EXECUTORS = ("local", "ray")
 
 
 class LocalExecutor:
-    """``matcher.pair_workers`` threads of this process (torch releases the GIL); two pairs per thread queued."""
+    """``matcher.pair_workers`` threads of this process (torch releases the GIL); two pairs per
+    thread queued."""
 
     def __init__(self, matcher: Matcher):
         self.matcher = matcher
@@ -47,7 +50,8 @@ class LocalExecutor:
         return len(self.futures)
 
     def wait(self) -> list[tuple[object, np.ndarray | BaseException]]:
-        """Blocks until a pair is finished; returns every finished pair's key and matches (or its error)."""
+        """Blocks until a pair is finished; returns every finished pair's key and matches
+        (or its error)."""
         done, _ = wait(list(self.futures), return_when=FIRST_COMPLETED)
         return [(self.futures.pop(f), f.exception() or f.result()) for f in done]
 
@@ -81,7 +85,8 @@ def _pair_worker_class():
 
 
 class RayExecutor:
-    """Pairs matched by actors on a Ray cluster; the driver (this process) stays the only database writer."""
+    """Pairs matched by actors on a Ray cluster; the driver (this process) stays the only database
+    writer."""
 
     def __init__(
         self,
@@ -106,8 +111,9 @@ class RayExecutor:
                     if hasattr(os, "sched_getaffinity")
                     else os.cpu_count() or 1
                 )
-                # Ray runs workers at nice +15 by default: beside any other work they starve while the driver
-                # waits (4x fewer pairs/s than the local threads here). The pairs are the user's work: same priority.
+                # Ray runs workers at nice +15 by default: beside any other work they starve while
+                # the driver waits (4x fewer pairs/s than the local threads here). The pairs are the
+                # user's work: same priority.
                 saved = os.environ.get("RAY_worker_niceness")
                 os.environ.setdefault("RAY_worker_niceness", "0")
                 try:
@@ -124,10 +130,12 @@ class RayExecutor:
             else:
                 try:
                     ray.init(address=address, log_to_driver=False, configure_logging=False)
-                except Exception as err:  # noqa: BLE001 - Ray raises ConnectionError, RuntimeError, AuthenticationError
+                except Exception as err:  # noqa: BLE001
+                    # Ray raises ConnectionError, RuntimeError, AuthenticationError
                     raise RuntimeError(
-                        f"Could not connect to the Ray cluster at {address} ({err}); start it with `ray start --head` "
-                        "and pass its address, or omit --ray_address for a private local instance."
+                        f"Could not connect to the Ray cluster at {address} ({err}); "
+                        "start it with `ray start --head` and pass its address, or "
+                        "omit --ray_address for a private local instance."
                     ) from err
         self.workers: list = []
         self.refs: dict = {}  # object ref -> (key, worker index)
@@ -182,7 +190,8 @@ class RayExecutor:
             self.load[worker] -= 1
             try:
                 out.append((key, self.ray.get(ref)))
-            except Exception as err:  # noqa: BLE001 - the matcher's error (RayTaskError subclasses it), or a lost worker
+            except Exception as err:  # noqa: BLE001
+                # the matcher's error (RayTaskError subclasses it), or a lost worker
                 out.append((key, err))
         return out
 

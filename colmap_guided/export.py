@@ -1,25 +1,29 @@
-"""hloc-compatible h5 files from a COLMAP database, and back: guided matches for hloc or other front-ends.
-Also the model for other tools (``export_model``: PLY points and COLMAP's text format, beside the model).
+"""hloc-compatible h5 files from a COLMAP database, and back: guided matches for hloc or other
+front-ends. Also the model for other tools (``export_model``: PLY points and COLMAP's text format,
+beside the model).
 
-    python -m colmap_guided export --database_path DB --output DIR    # DIR/features.h5, matches.h5, pairs.txt
-    python -m colmap_guided import --database_path NEW.db --features DIR/features.h5 --matches DIR/matches.h5
+    python -m colmap_guided export --database_path DB
+        --output DIR    # DIR/features.h5, matches.h5, pairs.txt
+    python -m colmap_guided import --database_path NEW.db
+        --features DIR/features.h5 --matches DIR/matches.h5
 
 The layout is hloc's (Hierarchical-Localization, ``hloc/utils/io.py`` and ``parsers.py``):
 
-- features.h5: one group per image name (a name with '/' gives nested groups, as h5py does for hloc),
-  with ``keypoints`` (N, 2) float32 in hloc's convention — pixel CENTRE at integer coordinates, i.e.
-  COLMAP's x, y minus 0.5 (hloc adds 0.5 back when it imports into COLMAP) —, ``descriptors`` (D, N)
-  (SIFT: uint8 as COLMAP stores them), ``scores`` (N,) (COLMAP stores none: ones) and ``image_size``
-  (width, height).
+- features.h5: one group per image name (a name with '/' gives nested groups, as h5py does for
+  hloc), with ``keypoints`` (N, 2) float32 in hloc's convention — pixel CENTRE at integer
+  coordinates, i.e. COLMAP's x, y minus 0.5 (hloc adds 0.5 back when it imports into COLMAP) —,
+  ``descriptors`` (D, N) (SIFT: uint8 as COLMAP stores them), ``scores`` (N,)
+  (COLMAP stores none: ones) and ``image_size`` (width, height).
 - matches.h5: one group per pair, named ``names_to_pair(name0, name1)`` =
-  ``name0.replace('/', '-') + '/' + name1.replace('/', '-')``, with ``matches0`` (N0,) int32 (index in
-  image 1, -1 = unmatched) and ``matching_scores0`` (N0,) float16 (1 matched, 0 not: COLMAP keeps no score).
+  ``name0.replace('/', '-') + '/' + name1.replace('/', '-')``, with ``matches0`` (N0,) int32 (index
+  in image 1, -1 = unmatched) and ``matching_scores0`` (N0,) float16 (1 matched, 0 not: COLMAP keeps
+  no score).
 - pairs.txt: the exported pairs, hloc's pairs-file format (hloc's import_matches needs it).
 
 Datasets and attributes prefixed ``colmap_`` are ours (hloc ignores them): the exact COLMAP keypoint
-rows (x, y, affine shape), the camera, and the verified two-view geometry, so that exporting and importing
-gives back the same database. Files written by hloc (without them) import too; their pairs are then
-verified with COLMAP's two-view estimator, as ``match`` does.
+rows (x, y, affine shape), the camera, and the verified two-view geometry, so that exporting and
+importing gives back the same database. Files written by hloc (without them) import too; their pairs
+are then verified with COLMAP's two-view estimator, as ``match`` does.
 """
 
 from __future__ import annotations
@@ -42,10 +46,12 @@ WRITES = ("features.h5", "matches.h5", "features.h5.partial", "matches.h5.partia
 
 
 def export_model(rec: pycolmap.Reconstruction, model_path: Path) -> dict:
-    """MODEL/points3D.ply (pycolmap's export_PLY: MeshLab, CloudCompare) and MODEL/text/ (COLMAP text format).
+    """MODEL/points3D.ply (pycolmap's export_PLY: MeshLab, CloudCompare) and MODEL/text/
+    (COLMAP text format).
 
-    Written inside the model's folder (sparse/0 stays a model folder: COLMAP reads its .bin files), each
-    through a temporary name, so a killed run never leaves a half-written file. Returns their paths.
+    Written inside the model's folder (sparse/0 stays a model folder: COLMAP reads its .bin files),
+    each through a temporary name, so a killed run never leaves a half-written file. Returns their
+    paths.
     """
     import shutil
 
@@ -76,7 +82,8 @@ def export_h5(
 ) -> dict:
     """Write OUTPUT/features.h5, matches.h5 and pairs.txt from ``database_path``; returns counts.
 
-    ``inliers_only``: matches.h5 holds the verified (inlier) matches instead of all putative matches.
+    ``inliers_only``: matches.h5 holds the verified (inlier) matches instead of all putative
+    matches.
     """
     workspace = Workspace.claim(output, "export", keep=(database_path,))
     output = workspace.path
@@ -97,7 +104,8 @@ def export_h5(
             key = im.name.replace("/", "-")
             if key in names_seen:
                 raise ValueError(
-                    f"Images {names_seen[key]!r} and {im.name!r} have the same hloc pair key {key!r}; rename one of them."
+                    f"Images {names_seen[key]!r} and {im.name!r} have "
+                    f"the same hloc pair key {key!r}; rename one of them."
                 )
             names_seen[key] = im.name
         with (
@@ -154,9 +162,8 @@ def export_h5(
                 representable = len(np.unique(matches[:, 0])) == len(matches) and np.all(
                     np.diff(matches[:, 0].astype(np.int64)) > 0
                 )
-                if (
-                    not representable
-                ):  # a keypoint matched twice, or not in order: matches0 cannot hold it exactly
+                # a keypoint matched twice, or not in order: matches0 cannot hold it exactly
+                if not representable:
                     grp.create_dataset("colmap_matches", data=matches)
                 if geometry is not None and not inliers_only:
                     _write_geometry(grp, geometry)
@@ -236,7 +243,8 @@ def _new_camera(grp: h5py.Group, name: str, image_path: Path | None) -> pycolmap
         width, height = image_size(Path(image_path) / name)
     else:
         raise ValueError(
-            f"features.h5 has no image_size for {name!r}: pass --image_path so the camera size can be read from the photo."
+            f"features.h5 has no image_size for {name!r}: pass "
+            "--image_path so the camera size can be read from the photo."
         )
     return verify.default_camera(width, height)
 
@@ -248,17 +256,19 @@ def import_h5(
     image_path: Path | None = None,
     verification_conf: dict | None = None,
 ) -> dict:
-    """Keypoints, descriptors (and matches) of hloc h5 files into a COLMAP database (created if needed).
+    """Keypoints, descriptors (and matches) of hloc h5 files into a COLMAP database
+    (created if needed).
 
     Images already in the database must have the same keypoints (else: an error, nothing written for
-    them); new images get a camera (ours: the exported one; hloc's: COLMAP's default from image_size).
-    Pairs already matched in the database are left as they are. Pairs without an exported two-view
-    geometry are verified with COLMAP's estimator.
+    them); new images get a camera (ours: the exported one; hloc's: COLMAP's default from
+    image_size). Pairs already matched in the database are left as they are. Pairs without an
+    exported two-view geometry are verified with COLMAP's estimator.
     """
     database_path, features_path = Path(database_path), Path(features_path)
     if not features_path.is_file():
         raise FileNotFoundError(
-            f"No features file at {features_path}: pass the features.h5 written by `export` or hloc."
+            f"No features file at {features_path}: pass "
+            "the features.h5 written by `export` or hloc."
         )
     if matches_path is not None and not Path(matches_path).is_file():
         raise FileNotFoundError(
@@ -297,14 +307,17 @@ def import_h5(
                         have[:, :2], kpts[:, :2]
                     ):
                         raise ValueError(
-                            f"{name}: the database has other keypoints than {features_path}; import into a new database (another --database_path)."
+                            f"{name}: the database has other keypoints than {features_path}; "
+                            "import into a new database (another --database_path)."
                         )
                     bar.update(1)
                     continue
                 kind = str(grp.attrs.get("colmap_descriptor_type", "SIFT"))
                 if desc is not None and desc.dtype != np.uint8:
                     raise ValueError(
-                        f"{name}: descriptors are {desc.dtype}; COLMAP's database holds uint8 (SIFT) descriptors — import keypoints and matches only by deleting 'descriptors' or convert them."
+                        f"{name}: descriptors are {desc.dtype}; COLMAP's database "
+                        "holds uint8 (SIFT) descriptors — import keypoints and "
+                        "matches only by deleting 'descriptors' or convert them."
                     )
                 with dbio.transaction(db):
                     if name in existing:
@@ -353,7 +366,8 @@ def import_h5(
                         matches[:, 0].max() >= num_a or matches[:, 1].max() >= num_b
                     ):
                         raise ValueError(
-                            f"Pair {a} / {b}: matches index keypoints that {features_path} does not have; the two files do not belong together."
+                            f"Pair {a} / {b}: matches index keypoints that {features_path} "
+                            "does not have; the two files do not belong together."
                         )
                     dbio.write_pair_matches(db, ia, ib, matches)
                     geometry = _read_geometry(grp)
@@ -376,13 +390,15 @@ def import_h5(
 
 
 def _match_groups(fm: h5py.File, by_key: dict[str, list[str]]):
-    """(name_a, name_b, group) for every pair group of an hloc matches file (current or old naming)."""
+    """(name_a, name_b, group) for every pair group of an hloc matches file
+    (current or old naming)."""
 
     def resolve(key: str) -> str | None:
         names = by_key.get(key, [])
         if len(names) > 1:
             raise ValueError(
-                f"Images {names} have the same hloc pair key {key!r}: hloc's matches cannot tell them apart."
+                f"Images {names} have the same hloc pair key {key!r}: "
+                "hloc's matches cannot tell them apart."
             )
         return names[0] if names else None
 
@@ -401,7 +417,8 @@ def _match_groups(fm: h5py.File, by_key: dict[str, list[str]]):
                     break
             else:
                 raise ValueError(
-                    f"Pair {k0!r} of the matches file names images that are not in the database; import the features first."
+                    f"Pair {k0!r} of the matches file names images that "
+                    "are not in the database; import the features first."
                 )
             continue
         for k1, grp in g0.items():
@@ -413,6 +430,7 @@ def _match_groups(fm: h5py.File, by_key: dict[str, list[str]]):
                 a, b = resolve(k0), resolve(k1)
             if a is None or b is None:
                 raise ValueError(
-                    f"Pair {k0}/{k1} of the matches file names images that are not in the database; import the features first."
+                    f"Pair {k0}/{k1} of the matches file names images that "
+                    "are not in the database; import the features first."
                 )
             yield a, b, grp

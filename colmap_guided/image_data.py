@@ -23,33 +23,33 @@ class ImageData:
     name: str  # COLMAP image name (path relative to the image folder, '/'-separated)
     image_id: int
     path: Path  # absolute path of the image file (read-only; never written)
-    keypoints: (
-        np.ndarray
-    )  # (N, >=2) float32, x, y first (COLMAP convention), then scale/orientation/affine
+    # (N, >=2) float32, x, y first (COLMAP convention), then scale/orientation/affine
+    keypoints: np.ndarray
     descriptors: np.ndarray  # (N, D) uint8 (SIFT) or float32
     width: int
     height: int
-    camera: object = None  # pycolmap.Camera of the database, when there is one (COLMAP's guided matching needs it)
-    extra: dict = field(
-        default_factory=dict
-    )  # per-matcher caches (e.g. backbone features, see Matcher.prepare)
+    # pycolmap.Camera of the database, when there is one (COLMAP's guided matching needs it)
+    camera: object = None
+    # per-matcher caches (e.g. backbone features, see Matcher.prepare)
+    extra: dict = field(default_factory=dict)
 
 
 # A pair to match: (image_id_a, image_id_b, name_a, name_b).
 PairKey = tuple[int, int, str, str]
 
 
-# Images whose keypoints, descriptors and backbone features the match stage holds at once (about 2 MB each
-# with 8k SIFT and the guided backbone): past it, the image needed latest is dropped and read again at its
-# next pair, so memory stays flat in N (recon_scripts/benchmark_scale.py measures how often that happens).
+# Images whose keypoints, descriptors and backbone features the match stage holds at once (about
+# 2 MB each with 8k SIFT and the guided backbone): past it, the image needed latest is dropped and
+# read again at its next pair, so memory stays flat in N (recon_scripts/benchmark_scale.py measures
+# how often that happens).
 MAX_IMAGES_HELD = 128
 
 
 class HeldImages:
     """What ``load(name)`` gives for the images of ``pairs`` (.., .., name_a, name_b), taken in that
     order with ``pair``: an image is loaded at its first pair and dropped after its last; at most
-    ``max_held`` are held: past that, the one whose next pair comes last is dropped (``on_drop(name)``)
-    and loaded again then (Belady's rule)."""
+    ``max_held`` are held: past that, the one whose next pair comes last is dropped
+    (``on_drop(name)``) and loaded again then (Belady's rule)."""
 
     def __init__(
         self,
@@ -63,9 +63,8 @@ class HeldImages:
                 f"max_images_held must be at least 2 (the two images of a pair), got {max_held}."
             )
         self.load, self.max_held, self.on_drop = load, max_held, on_drop
-        self.uses: dict[str, deque] = defaultdict(
-            deque
-        )  # positions of each image's pairs not yet taken
+        # positions of each image's pairs not yet taken
+        self.uses: dict[str, deque] = defaultdict(deque)
         for i, key in enumerate(pairs):
             for name in key[2:]:
                 self.uses[name].append(i)

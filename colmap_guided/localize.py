@@ -2,21 +2,23 @@
 
     python -m colmap_guided localize WORKSPACE PHOTOS... [--add] [--num_images 10]
 
-"Where was this old photo taken?" For each new photo: retrieval of the model's most similar images (GeM
-descriptors of the matcher's backbone, as ``--pairs retrieval``), the workspace's matcher between the photo
-and those images (guided, as ``reconstruct`` picks it for the database's features), COLMAP's two-view
-verification, 2D-3D correspondences through the model's tracks, then absolute pose estimation with an
-unknown focal length (LO-RANSAC + refinement, pycolmap) and a pose check (inliers, reprojection error,
-the model check's focal length rule).
+"Where was this old photo taken?" For each new photo: retrieval of the model's most similar images
+(GeM descriptors of the matcher's backbone, as ``--pairs retrieval``), the workspace's matcher
+between the photo and those images (guided, as ``reconstruct`` picks it for the database's
+features), COLMAP's two-view verification, 2D-3D correspondences through the model's tracks, then
+absolute pose estimation with an unknown focal length (LO-RANSAC + refinement, pycolmap) and a pose
+check (inliers, reprojection error, the model check's focal length rule).
 
-The model (WORKSPACE/sparse/0), database.db and the photos are only read. What localize writes in the
-workspace, recorded in its marker (so ``reconstruct --overwrite`` removes it):
+The model (WORKSPACE/sparse/0), database.db and the photos are only read. What localize writes in
+the workspace, recorded in its marker (so ``reconstruct --overwrite`` removes it):
 
-- ``localize.db``: a COLMAP database with the new photos' keypoints and matches and a copy of the keypoints
-  of the model's images they were matched with; image names are absolute paths without the leading '/'.
-  A killed run continues from it; photos already in ``localized.json`` are not redone.
-- ``localized.json``: one entry per photo: pose, focal length, inliers, matched model images, a verdict.
-- ``localize_pairs.txt``, ``localize_retrieval.npz``: the pairs matched, the model's retrieval descriptors.
+- ``localize.db``: a COLMAP database with the new photos' keypoints and matches and a copy of the
+  keypoints of the model's images they were matched with; image names are absolute paths without the
+  leading '/'. A killed run continues from it; photos already in ``localized.json`` are not redone.
+- ``localized.json``: one entry per photo: pose, focal length, inliers, matched model images, a
+  verdict.
+- ``localize_pairs.txt``, ``localize_retrieval.npz``: the pairs matched, the model's retrieval
+  descriptors.
 - ``sparse_localized/0`` with ``--add``: a new model version, the model with the placed photos
   registered, their points triangulated and bundle adjustment run; sparse/0 is left as it was.
 - ``report.html`` is written again with a section on the localized photos.
@@ -64,12 +66,12 @@ PLACED, UNCERTAIN, NOT_PLACED = "placed", "uncertain", "not placed"
 
 default_conf = {
     "num_images": 10,  # model images matched with each photo (the retrieval's top k)
-    "min_inliers": 15,  # fewer pose inliers: not placed (the project's mapper registers a photo from 15)
+    # fewer pose inliers: not placed (the project's mapper registers a photo from 15)
+    "min_inliers": 15,
     "placed_inliers": 30,  # fewer: uncertain (COLMAP's mapper registers a photo from 30)
     "max_error": 12.0,  # RANSAC threshold in pixels (COLMAP mapper's abs_pose_max_error)
-    "max_reprojection_error": model_check.default_conf[
-        "max_reprojection_error"
-    ],  # mean over inliers, px
+    # mean over inliers, px
+    "max_reprojection_error": model_check.default_conf["max_reprojection_error"],
     "random_seed": 0,  # a rerun gives the same poses
     # Triangulation of new points with --add (COLMAP's triangulator: 1.5° and 4 px).
     "min_tri_angle_deg": 1.5,
@@ -78,7 +80,8 @@ default_conf = {
 
 
 def db_name(path: Path) -> str:
-    """A photo's name in localize.db: its absolute path without the anchor (the database's image folder)."""
+    """A photo's name in localize.db: its absolute path without the anchor (the database's image
+    folder)."""
     path = Path(path).resolve()
     return path.relative_to(path.anchor).as_posix()
 
@@ -89,7 +92,8 @@ def _root() -> Path:
 
 
 def model_digest(model_dir: Path) -> str:
-    """sha256 over the model's files: results of another model (a reconstruct rerun) are not reused."""
+    """sha256 over the model's files: results of another model (a reconstruct rerun) are not
+    reused."""
     digest = hashlib.sha256()
     for path in sorted(p for p in Path(model_dir).iterdir() if p.is_file()):
         digest.update(path.name.encode() + hashlib.sha256(path.read_bytes()).digest())
@@ -97,7 +101,8 @@ def model_digest(model_dir: Path) -> str:
 
 
 def open_workspace(workspace: Path) -> tuple[Path, dict, Path]:
-    """(workspace, report.json, sparse/0) of a finished ``reconstruct`` run; one-line errors otherwise."""
+    """(workspace, report.json, sparse/0) of a finished ``reconstruct`` run; one-line errors
+    otherwise."""
     path = Path(workspace).expanduser().resolve()
     if not path.is_dir():
         raise FileNotFoundError(
@@ -106,7 +111,8 @@ def open_workspace(workspace: Path) -> tuple[Path, dict, Path]:
     marker = read_marker(path)
     if marker is None or marker["kind"] != "reconstruct":
         raise ValueError(
-            f"{path} is not a workspace written by `reconstruct`: pass the --output folder of a run."
+            f"{path} is not a workspace written by "
+            "`reconstruct`: pass the --output folder of a run."
         )
     if not (path / "report.json").is_file():
         raise FileNotFoundError(
@@ -164,8 +170,9 @@ def write_results(path: Path, results: dict, header: dict) -> None:
 
 
 def _copy_model_images(src: Path, dst: Path, names: dict[str, str]) -> None:
-    """Model images' cameras, keypoints and descriptors from database.db into localize.db ({model name: db name});
-    same keypoint order, so a keypoint's index is its point2D index in the model."""
+    """Model images' cameras, keypoints and descriptors from database.db into localize.db
+    ({model name: db name}); same keypoint order, so a keypoint's index is its point2D index in the
+    model."""
     with dbio.open_database(dst, must_exist=False) as out:
         todo = {m: n for m, n in names.items() if dbio.read_image(out, n) is None}
         if not todo:
@@ -175,7 +182,8 @@ def _copy_model_images(src: Path, dst: Path, names: dict[str, str]) -> None:
                 image = dbio.read_image(db, model_name)
                 if image is None:
                     raise ValueError(
-                        f"{model_name} of the model is not in database.db: run reconstruct again (--overwrite)."
+                        f"{model_name} of the model is not in database.db: "
+                        "run reconstruct again (--overwrite)."
                     )
                 camera = dbio.read_camera(db, image.camera_id)
                 keypoints = dbio.read_keypoints(db, image.image_id)
@@ -189,7 +197,8 @@ def _copy_model_images(src: Path, dst: Path, names: dict[str, str]) -> None:
 def _retrieve(
     matcher, workspace: Workspace, model_files: dict[str, Path], photos: dict[str, Path], k: int
 ) -> dict[str, list[str]]:
-    """{photo: its ``k`` most similar model images}; the model's descriptors are kept in localize_retrieval.npz."""
+    """{photo: its ``k`` most similar model images}; the model's descriptors are kept in
+    localize_retrieval.npz."""
     model_names = sorted(model_files)
     if len(model_names) <= k:
         return {name: model_names for name in photos}
@@ -226,9 +235,9 @@ def _reprojection_error(
 def verified_pairs(
     db, photos: set[str], model_ids: dict[str, int]
 ) -> dict[str, list[tuple[int, np.ndarray]]]:
-    """{photo: [(model image_id, (N, 2) verified matches: photo keypoint, model keypoint)]} of ``photos``
-    (names in localize.db) with the model's images ({name in localize.db: image_id in the model}), all
-    read in one pass over the database's two-view geometries."""
+    """{photo: [(model image_id, (N, 2) verified matches: photo keypoint, model keypoint)]} of
+    ``photos`` (names in localize.db) with the model's images ({name in localize.db: image_id in the
+    model}), all read in one pass over the database's two-view geometries."""
     rows = dbio.images_by_name(db)
     photo_ids = {rows[n].image_id: n for n in photos if n in rows}
     model = {rows[n].image_id: model_id for n, model_id in model_ids.items() if n in rows}
@@ -244,8 +253,9 @@ def verified_pairs(
 def correspondences(
     rec: pycolmap.Reconstruction, pairs: list[tuple[int, np.ndarray]]
 ) -> tuple[list, list]:
-    """(2D-3D correspondences (keypoint, point3D_id), matched model images [{image, matches, points3D}]) of one
-    photo's ``verified_pairs``: a matched keypoint of a model image leads to its 3D point."""
+    """(2D-3D correspondences (keypoint, point3D_id), matched model images [{image, matches,
+    points3D}]) of one photo's ``verified_pairs``: a matched keypoint of a model image leads to its
+    3D point."""
     matched, corrs = [], {}
     for other, inliers in pairs:
         points2D = rec.images[other].points2D
@@ -268,8 +278,8 @@ def estimate_pose(
     rec: pycolmap.Reconstruction,
     conf: dict,
 ) -> dict | None:
-    """Absolute pose (and focal length, unless the photo's EXIF gives it) from 2D-3D correspondences;
-    None when no pose fits. ``camera`` is refined in place."""
+    """Absolute pose (and focal length, unless the photo's EXIF gives it) from 2D-3D
+    correspondences; None when no pose fits. ``camera`` is refined in place."""
     xy = np.array([keypoints[i, :2] for i, _ in corrs], np.float64).reshape(-1, 2)
     xyz = np.array([rec.points3D[p].xyz for _, p in corrs], np.float64).reshape(-1, 3)
     estimation = pycolmap.AbsolutePoseEstimationOptions()
@@ -392,7 +402,8 @@ def localize(
         model_files = {
             rec.images[i].name: image_path / rec.images[i].name for i in rec.reg_image_ids()
         }
-        # A photo that is itself one of the model's images keeps the model's keypoints (not extracted again).
+        # A photo that is itself one of the model's images keeps the model's keypoints
+        # (not extracted again).
         own = {m: db_name(f) for m, f in model_files.items() if db_name(f) in todo}
         if own:
             _copy_model_images(path / "database.db", database, own)
@@ -423,9 +434,8 @@ def localize(
             write_pairs(ws.path / PAIRS, pairs)
             match.match_database(database, root, ws.path / PAIRS, chosen)
         model_ids = {db_name(model_files[rec.images[i].name]): i for i in rec.reg_image_ids()}
-        elapsed = (time.time() - start) / max(
-            1, len(usable)
-        )  # extraction and matching, shared evenly
+        # extraction and matching, shared evenly
+        elapsed = (time.time() - start) / max(1, len(usable))
         with dbio.open_database(database) as db:
             rows = dbio.images_by_name(db)
             verified = verified_pairs(db, set(usable), model_ids)
@@ -488,16 +498,18 @@ def _rewrite_html(ws: Workspace) -> None:
 
     try:
         rewrite_report(ws.path)
-    except Exception as err:  # noqa: BLE001 - localized.json is complete; a failed page must not hide it
+    except Exception as err:  # noqa: BLE001
+        # localized.json is complete; a failed page must not hide it
         logger.warning("Could not write the HTML report again (%s); %s is complete.", err, RESULTS)
 
 
 def add_to_model(
     ws: Workspace, rec: pycolmap.Reconstruction, database: Path, results: dict, conf: dict
 ) -> Path:
-    """WORKSPACE/sparse_localized/0: ``rec`` with the placed photos registered (their inlier observations
-    join the model's tracks), new points triangulated from their verified matches with the model's images,
-    then bundle adjustment. Written whole into a partial folder first, then moved in place."""
+    """WORKSPACE/sparse_localized/0: ``rec`` with the placed photos registered (their inlier
+    observations join the model's tracks), new points triangulated from their verified matches with
+    the model's images, then bundle adjustment. Written whole into a partial folder first, then
+    moved in place."""
     new = pycolmap.Reconstruction(rec)
     names = {rec.images[i].name: i for i in rec.reg_image_ids()}
     image_path = Path(
@@ -510,18 +522,16 @@ def add_to_model(
     next_image = max([*new.images, *new.frames], default=0) + 1
     with dbio.open_database(database) as db:
         images = dbio.images_by_name(db)
-        photos = {db_name(Path(e["photo"])) for e in placed} - set(
-            model_ids
-        )  # not the model's own photos
+        # not the model's own photos
+        photos = {db_name(Path(e["photo"])) for e in placed} - set(model_ids)
         verified = verified_pairs(db, photos, model_ids)
         for name in sorted(photos):
             image, pairs = images[name], verified[name]
             corrs, _ = correspondences(rec, pairs)
             camera = dbio.read_camera(db, image.camera_id)
             keypoints = dbio.read_keypoints(db, image.image_id)
-            pose = estimate_pose(
-                camera, keypoints, corrs, rec, conf
-            )  # seeded: the pose of localized.json
+            # seeded: the pose of localized.json
+            pose = estimate_pose(camera, keypoints, corrs, rec, conf)
             if pose is None:
                 continue
             camera.camera_id, image_id = next_camera, next_image
@@ -562,7 +572,8 @@ def add_to_model(
 
 
 def _triangulate(rec: pycolmap.Reconstruction, image_id: int, pairs: list, conf: dict) -> int:
-    """New 3D points from the verified matches of ``image_id`` with model images whose keypoints have none."""
+    """New 3D points from the verified matches of ``image_id`` with model images whose keypoints
+    have none."""
     image = rec.image(image_id)
     camera = rec.cameras[image.camera_id]
     made = 0
@@ -593,7 +604,8 @@ def _triangulate(rec: pycolmap.Reconstruction, image_id: int, pairs: list, conf:
 
 
 def _good_point(xyz: np.ndarray, poses: tuple, cameras: tuple, xy: tuple, conf: dict) -> bool:
-    """In front of both cameras, seen under at least min_tri_angle_deg, reprojected within max_tri_error px."""
+    """In front of both cameras, seen under at least min_tri_angle_deg, reprojected within
+    max_tri_error px."""
     centres = [pose.inverse().translation for pose in poses]
     rays = [xyz - c for c in centres]
     cos = rays[0] @ rays[1] / max(np.linalg.norm(rays[0]) * np.linalg.norm(rays[1]), 1e-12)
@@ -612,8 +624,8 @@ def _good_point(xyz: np.ndarray, poses: tuple, cameras: tuple, xy: tuple, conf: 
 def with_localized(
     rec: pycolmap.Reconstruction, entries: list[dict]
 ) -> tuple[pycolmap.Reconstruction, list[str]]:
-    """A copy of ``rec`` with the cameras of the placed and uncertain photos of localized.json (named by their
-    path, no points), for the report's 3D view and map; and their names."""
+    """A copy of ``rec`` with the cameras of the placed and uncertain photos of localized.json
+    (named by their path, no points), for the report's 3D view and map; and their names."""
     shown = pycolmap.Reconstruction(rec)
     names = []
     for entry in entries:

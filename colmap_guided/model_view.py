@@ -1,14 +1,15 @@
-"""The model in report.html: an interactive 3D view of the points and cameras, and a map of the photos.
+"""The model in report.html: an interactive 3D view of the points and cameras, and a map of the
+photos.
 
-    frame = ground_frame(rec)                        # up = the photos' mean up direction, origin, scale
-    html = view_html(rec, eras, image_path)          # <canvas> + its data + a small viewer script
-    uri = photo_map(rec, eras)                       # PNG data URI: camera positions and directions from above
+    frame = ground_frame(rec)  # up = the photos' mean up direction, origin, scale
+    html = view_html(rec, eras, image_path)  # <canvas> + its data + a small viewer script
+    uri = photo_map(rec, eras)  # PNG data URI: camera positions and directions from above
 
 The viewer is our own (a canvas 2D point splatter with a depth buffer, ~100 lines of JavaScript in
-assets/model_view.js), not plotly's offline HTML: plotly would add ~3.5 MB of script to every page and
-WebGL, which headless or old browsers may lack; a 2D canvas works everywhere, offline, and a page with
-30,000 points stays under a megabyte. Points are stored as uint16 coordinates (6 bytes) and RGB
-(3 bytes), base64 in a JSON block.
+assets/model_view.js), not plotly's offline HTML: plotly would add ~3.5 MB of script to every page
+and WebGL, which headless or old browsers may lack; a 2D canvas works everywhere, offline, and a
+page with 30,000 points stays under a megabyte. Points are stored as uint16 coordinates (6 bytes)
+and RGB (3 bytes), base64 in a JSON block.
 """
 
 from __future__ import annotations
@@ -29,12 +30,8 @@ MAX_THUMBS = 300  # cameras that show their photo on hover (160 px JPEGs, ~6 KB 
 FRUSTUM = 0.07  # frustum depth in units of the model's radius
 # amber / blue: visible on dark and light; red: photos placed later by `localize`
 ERA_COLORS = {"historical": "#f0a030", "modern": "#3a8ee6", "localized": "#e03c31"}
-OTHER_COLORS = (
-    "#3a8ee6",
-    "#e05a8a",
-    "#4fb86b",
-    "#a070e0",
-)  # for a model without eras, or other era names
+# for a model without eras, or other era names
+OTHER_COLORS = ("#3a8ee6", "#e05a8a", "#4fb86b", "#a070e0")
 
 
 def era_colors(eras: dict[str, str], names: list[str]) -> dict[str, str]:
@@ -47,18 +44,17 @@ def era_colors(eras: dict[str, str], names: list[str]) -> dict[str, str]:
 def ground_frame(rec: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray, float]:
     """(origin, axes (3, 3) rows x, y, up, radius): a frame with z up in which the model is shown.
 
-    Up is the mean up direction of the photos (photos are taken upright; COLMAP's model_orientation_aligner
-    does the same, "IMAGE-ORIENTATION"); when they disagree (scans rotated by 90 degrees) it is the normal
-    of the camera centres' best plane. x is the points' main horizontal direction (PCA); the origin is the
-    median point, the radius the 95th (points) or 90th (cameras) percentile of their distances to it,
-    whichever is larger.
+    Up is the mean up direction of the photos (photos are taken upright; COLMAP's
+    model_orientation_aligner does the same, "IMAGE-ORIENTATION"); when they disagree (scans rotated
+    by 90 degrees) it is the normal of the camera centres' best plane. x is the points' main
+    horizontal direction (PCA); the origin is the median point, the radius the 95th (points) or 90th
+    (cameras) percentile of their distances to it, whichever is larger.
     """
     images = [rec.images[i] for i in rec.reg_image_ids()]
     centres = np.array([im.projection_center() for im in images]).reshape(-1, 3)
     xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
-    ups = -np.array([im.cam_from_world().rotation.matrix()[1] for im in images]).reshape(
-        -1, 3
-    )  # image y points down
+    # image y points down
+    ups = -np.array([im.cam_from_world().rotation.matrix()[1] for im in images]).reshape(-1, 3)
     up = ups.mean(axis=0) if len(ups) else np.array([0.0, 0.0, 1.0])
     if np.linalg.norm(up) < 0.5 and len(centres) >= 3:
         normal = np.linalg.svd(centres - centres.mean(axis=0))[2][2]
@@ -92,7 +88,8 @@ def ground_frame(rec: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray, 
 
 
 def _cameras(rec: pycolmap.Reconstruction, origin, axes, radius) -> list[dict]:
-    """Per registered image: name, centre and the 4 far corners of its frustum, in the display frame."""
+    """Per registered image: name, centre and the 4 far corners of its frustum, in the display
+    frame."""
     out = []
     for image_id in sorted(rec.reg_image_ids(), key=lambda i: rec.images[i].name):
         image = rec.images[image_id]
@@ -126,7 +123,8 @@ def view_data(
     image_path: Path | None = None,
     max_points: int = MAX_POINTS,
 ) -> dict:
-    """What the viewer draws (and what a test reads back): points, cameras, eras and the display frame."""
+    """What the viewer draws (and what a test reads back): points, cameras, eras and the display
+    frame."""
     eras = eras or {}
     origin, axes, radius = ground_frame(rec)
     ids = np.array(sorted(rec.points3D), np.int64)
@@ -147,7 +145,8 @@ def view_data(
                 cam["thumb"] = embed.encode_jpeg(
                     read_thumbnail(Path(image_path) / cam["name"], 160)[0], 75
                 )
-            except Exception:  # noqa: BLE001 - a photo moved away since the run: the camera stays, without preview
+            except Exception:  # noqa: BLE001
+                # a photo moved away since the run: the camera stays, without preview
                 pass
     centre = np.mean([c["c"][:2] for c in cameras], axis=0) if cameras else np.zeros(2)
     return {
@@ -163,7 +162,8 @@ def view_data(
         "yaw": float(np.arctan2(centre[0], centre[1]) + np.pi)
         if np.linalg.norm(centre) > 1e-6
         else -0.6,
-        # The eye's distance to the centre: beyond the farthest camera, so that every camera is in front of it.
+        # The eye's distance to the centre: beyond the farthest camera, so that every camera is in
+        # front of it.
         "dist": float(max(3.0, 1.5 * max((np.linalg.norm(c["c"]) for c in cameras), default=0.0))),
     }
 
@@ -176,8 +176,9 @@ def decode_points(data: dict) -> np.ndarray:
     return view * frame["radius"] @ np.array(frame["axes"]) + np.array(frame["origin"])
 
 
-# Orbit (drag), zoom (wheel), pan (shift-drag), hover/click a camera for its photo (or page.html#photo=NAME).
-# Points go through a depth buffer into an ImageData (no sort, fast for 100k); frusta and labels on top.
+# Orbit (drag), zoom (wheel), pan (shift-drag), hover/click a camera for its photo
+# (or page.html#photo=NAME). Points go through a depth buffer into an ImageData
+# (no sort, fast for 100k); frusta and labels on top.
 VIEW_JS = embed.asset("model_view.js")
 
 
@@ -187,7 +188,8 @@ def view_html(
     image_path: Path | None = None,
     max_points: int = MAX_POINTS,
 ) -> str:
-    """The 3D view: a legend, the canvas, its data (JSON) and the viewer script; nothing loaded from outside."""
+    """The 3D view: a legend, the canvas, its data (JSON) and the viewer script; nothing loaded from
+    outside."""
     data = view_data(rec, eras, image_path, max_points)
     legend = "".join(
         f"<i style='background:{color}'></i>{html.escape(era)}"
@@ -201,17 +203,20 @@ def view_html(
     )
     payload = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
     return (
-        f"<p class='legend'><span class='model-buttons'><button id='model-home'>Reset view</button><button id='model-top'>From above</button></span>"
-        f"{len(data['cameras'])} cameras:{legend}</p>"
-        "<div id='model-box'><canvas id='model-view'></canvas><div id='model-tip'></div></div>"
-        f"<p class='muted'>Showing {note}, coloured from the photos. Drag to turn, wheel to zoom, shift-drag to move, "
-        "double-click to reset; point at a camera (or click it) to see its photo.</p>"
-        f"<script type='application/json' id='model-data'>{payload}</script><script>\n{VIEW_JS}</script>"
+        "<p class='legend'><span class='model-buttons'>"
+        "<button id='model-home'>Reset view</button><button id='model-top'>From above</button>"
+        f"</span>{len(data['cameras'])} cameras:{legend}</p><div id='model-box'>"
+        "<canvas id='model-view'></canvas><div id='model-tip'></div></div>"
+        f"<p class='muted'>Showing {note}, coloured from the photos. Drag to turn, wheel to "
+        "zoom, shift-drag to move, double-click to reset; point at a camera (or click it) to "
+        f"see its photo.</p><script type='application/json' id='model-data'>{payload}</script>"
+        f"<script>\n{VIEW_JS}</script>"
     )
 
 
 def photo_map(rec: pycolmap.Reconstruction, eras: dict[str, str] | None = None) -> str:
-    """Top-down map (PNG data URI): points in grey-scale of their colour, each camera's position and viewing direction."""
+    """Top-down map (PNG data URI): points in grey-scale of their colour, each camera's position and
+    viewing direction."""
     import matplotlib
 
     matplotlib.use("Agg")

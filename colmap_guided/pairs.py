@@ -5,7 +5,8 @@
   (GeM pooling of the coarse network's backbone features, L2-normalised), symmetric union — the
   visibility graph that hloc / COLMAP's vocabulary tree build; the coarse matches alone cannot
   (the paper's §Limitations: they look consistent even between different places).
-- ``sequential``: each image with the ``num_neighbors`` next ones in name order (video, a scanned film).
+- ``sequential``: each image with the ``num_neighbors`` next ones in name order
+  (video, a scanned film).
 - ``auto`` (default): exhaustive up to ``AUTO_EXHAUSTIVE_MAX`` images, retrieval above.
 - a pairs file: one pair per line, ``name_a name_b`` (hloc / COLMAP matches_importer format);
   names that contain spaces are separated by a tab instead, or resolved against the known names.
@@ -51,8 +52,8 @@ def gem(features: np.ndarray, p: float = 3.0) -> np.ndarray:
 def retrieval_pairs(
     names: list[str], descriptors: np.ndarray, num_neighbors: int
 ) -> list[tuple[str, str]]:
-    """Top-``num_neighbors`` neighbours of each image by cosine similarity of ``descriptors`` (N, D),
-    symmetric union, in name order (deterministic: a resumed run selects the same pairs)."""
+    """Top-``num_neighbors`` neighbours of each image by cosine similarity of ``descriptors``
+    (N, D), symmetric union, in name order (deterministic: a resumed run selects the same pairs)."""
     order = np.argsort(names, kind="stable")
     names, descriptors = [names[i] for i in order], np.asarray(descriptors, np.float32)[order]
     sim = descriptors @ descriptors.T
@@ -69,13 +70,15 @@ def select_pairs(
     num_neighbors: int = DEFAULT_NUM_NEIGHBORS,
     descriptors: Callable[[list[str]], np.ndarray] | None = None,
 ) -> tuple[list[tuple[str, str]], str]:
-    """The pairs to match and the mode used. ``pairs``: a mode of ``PAIR_MODES`` or a pairs file (None = auto);
-    ``descriptors(names)`` returns the global descriptors (N, D) that retrieval needs."""
+    """The pairs to match and the mode used. ``pairs``: a mode of ``PAIR_MODES`` or a pairs file
+    (None = auto); ``descriptors(names)`` returns the global descriptors (N, D) that retrieval
+    needs."""
     mode = "auto" if pairs is None else str(pairs)
     if mode not in PAIR_MODES:
         if not Path(mode).is_file():
             raise FileNotFoundError(
-                f"--pairs {mode}: no such pairs file; pass a file or one of {', '.join(PAIR_MODES)}."
+                f"--pairs {mode}: no such pairs file; pass "
+                f"a file or one of {', '.join(PAIR_MODES)}."
             )
         return read_pairs(Path(mode), names), "file"
     if num_neighbors < 1:
@@ -104,7 +107,8 @@ def _split_line(line: str, known: set[str]) -> tuple[str, str] | None:
 
 
 def read_pairs(path: Path, names: list[str]) -> list[tuple[str, str]]:
-    """Pairs from a file, deduplicated (a-b and b-a are one pair), self-pairs dropped, in file order."""
+    """Pairs from a file, deduplicated (a-b and b-a are one pair), self-pairs dropped, in file
+    order."""
     known = set(names)
     pairs, seen = [], set()
     for lineno, raw in enumerate(Path(path).read_text(encoding="utf-8").splitlines(), 1):
@@ -117,7 +121,8 @@ def read_pairs(path: Path, names: list[str]) -> list[tuple[str, str]]:
         for name in pair:
             if name not in known:
                 raise ValueError(
-                    f"{path}:{lineno}: image {name!r} is not in the database/image folder; fix the pairs file."
+                    f"{path}:{lineno}: image {name!r} is not in the "
+                    "database/image folder; fix the pairs file."
                 )
         key = tuple(sorted(pair))
         if pair[0] != pair[1] and key not in seen:
@@ -132,8 +137,9 @@ def write_pairs(path: Path, pairs: list[tuple[str, str]]) -> None:
 
 
 def global_descriptors(coarse, paths: dict[str, Path], desc: str = "retrieval") -> np.ndarray:
-    """GeM descriptor (N, C) of each image of ``paths`` (name → file), in its order, from the backbone of a
-    ``colmap_guided.coarse.CoarseMatcher``; each image's features are released at once (memory flat in N)."""
+    """GeM descriptor (N, C) of each image of ``paths`` (name → file), in its order, from the
+    backbone of a ``colmap_guided.coarse.CoarseMatcher``; each image's features are released at once
+    (memory flat in N)."""
     from tqdm import tqdm
 
     out = []

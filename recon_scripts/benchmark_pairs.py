@@ -1,12 +1,14 @@
-"""Benchmark: pair selection (exhaustive vs retrieval at several k, optionally sequential) end to end.
+"""Benchmark: pair selection (exhaustive vs retrieval at several k, optionally sequential) end to
+end.
 
-    python recon_scripts/benchmark_pairs.py [--sets sacre_coeur_hloc opensfm_lund ...] [--k 5 10] [--matcher guided]
+    python recon_scripts/benchmark_pairs.py [--sets sacre_coeur_hloc opensfm_lund ...] [--k 5 10]
+        [--matcher guided]
 
 One SIFT extraction per set; for each pair selection the matches are cleared, matched, verified and
 mapped again (same keypoints). Prints per set and selection: pairs matched (fraction of exhaustive),
-verified pairs, exhaustive's verified pairs that the selection kept (recall), registered images of the
-largest model, and the match + verify time as a ratio of exhaustive's (same run). A set is a folder of
-../shared/data with images/, or ``train/SCENE``. Writes JSON.
+verified pairs, exhaustive's verified pairs that the selection kept (recall), registered images of
+the largest model, and the match + verify time as a ratio of exhaustive's (same run). A set is a
+folder of ../shared/data with images/, or ``train/SCENE``. Writes JSON.
 """
 
 from __future__ import annotations
@@ -19,8 +21,8 @@ import time
 from pathlib import Path
 
 import colmap_guided  # noqa: F401  (zlib before pycolmap)
-from colmap_guided import features, mapping, report
 from colmap_guided import database as dbio
+from colmap_guided import features, mapping, report
 from colmap_guided.log import set_verbosity
 from colmap_guided.match import match_database
 from colmap_guided.matchers import get_matcher
@@ -38,7 +40,7 @@ def verified_pairs(database_path: Path) -> set[tuple[str, str]]:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument(
         "--sets", nargs="+", default=["sacre_coeur_hloc", "phototourism_superglue", "opensfm_lund"]
     )
@@ -94,10 +96,12 @@ def main(argv=None):
                 }
             shutil.rmtree(Path(tmp) / name, ignore_errors=True)
     print(
-        f"\nPair selection, {args.matcher} matcher, camera_mode={args.camera_mode} (time = select + match + verify, ratio to exhaustive's in the same run)\n"
+        f"\nPair selection, {args.matcher} matcher, camera_mode={args.camera_mode} "
+        "(time = select + match + verify, ratio to exhaustive's in the same run)\n"
     )
     print(
-        "| set | pairs | pairs (of exhaustive) | verified | exhaustive's verified kept | registered | 3D points | time ratio |"
+        "| set | pairs | pairs (of exhaustive) | verified | "
+        "exhaustive's verified kept | registered | 3D points | time ratio |"
     )
     print("|---|---|---|---|---|---|---|---|")
     for name, rows in results.items():
@@ -105,13 +109,16 @@ def main(argv=None):
         for label, r in rows.items():
             n = r["num_images"]
             kept = (
-                f"{len(set(map(tuple, r['verified'])) & set(map(tuple, ex['verified'])))}/{len(ex['verified'])}"
+                f"{len(set(map(tuple, r['verified'])) & set(map(tuple, ex['verified'])))}"
+                f"/{len(ex['verified'])}"
                 if ex
                 else "–"
             )
             ratio = f"{r['time'] / ex['time']:.2f}" if ex else "–"
             print(
-                f"| {name} | {label} | {r['num_pairs']} ({r['num_pairs'] / (n * (n - 1) / 2):.0%}) | {r['num_verified_pairs']} | {kept} | {r['num_registered']}/{n} | {r['num_points3D']} | {ratio} |"
+                f"| {name} | {label} | {r['num_pairs']} ({r['num_pairs'] / (n * (n - 1) / 2):.0%}) "
+                f"| {r['num_verified_pairs']} | {kept} | {r['num_registered']}/{n} "
+                f"| {r['num_points3D']} | {ratio} |"
             )
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(results, indent=1))

@@ -1,15 +1,17 @@
-"""Benchmark: pycolmap's default pipeline vs `reconstruct` (matcher x mapper x seed) on the same images, in one run.
+"""Benchmark: pycolmap's default pipeline vs `reconstruct` (matcher x mapper x seed) on the same
+images, in one run.
 
-    python recon_scripts/benchmark_pipeline.py [--sets sacre_coeur_hloc opensfm_lund ...] [--matchers raw guided guided:raw_matches=none]
+    python recon_scripts/benchmark_pipeline.py [--sets sacre_coeur_hloc opensfm_lund ...]
+        [--matchers raw guided guided:raw_matches=none]
         [--mappers incremental global] [--seeds 0 1]
 
 Per set and seed round: pycolmap's default pipeline (extract_features + match_exhaustive +
 incremental_mapping, default options, unseeded: its own run-to-run spread), the same database mapped
-by each --mapper (seeded), and each matcher's `reconstruct`: matched once, then mapped by each mapper
-with each seed (matching and verification are deterministic, so the database is shared). Prints
-registered images (largest model), images whose pose agrees with the set's reference model (where it
-has one: lund_door_gtsfm), the model check, 3D points and the time ratio to the default pipeline of the
-same round (extract + match + verify + that mapping). Writes JSON.
+by each --mapper (seeded), and each matcher's `reconstruct`: matched once, then mapped by each
+mapper with each seed (matching and verification are deterministic, so the database is shared).
+Prints registered images (largest model), images whose pose agrees with the set's reference model
+(where it has one: lund_door_gtsfm), the model check, 3D points and the time ratio to the default
+pipeline of the same round (extract + match + verify + that mapping). Writes JSON.
 """
 
 from __future__ import annotations
@@ -77,7 +79,8 @@ def main(argv=None):
         "--matchers",
         nargs="+",
         default=["guided"],
-        help="matcher specs, e.g. guided guided:raw_matches=none raw guided:type=aliked (feature options go to extraction)",
+        help="matcher specs, e.g. guided guided:raw_matches=none "
+        "raw guided:type=aliked (feature options go to extraction)",
     )
     parser.add_argument("--mappers", nargs="+", default=["incremental", "global"], choices=MAPPERS)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
@@ -96,7 +99,8 @@ def main(argv=None):
     parser.add_argument("--output", type=Path, default=Path("outputs/benchmark_pipeline.json"))
     args = parser.parse_args(argv)
     set_verbosity(quiet=True)
-    # (label, matcher spec, feature options): 'guided:type=aliked' = guided matching of ALIKED features; unknown options: the matcher raises
+    # (label, matcher spec, feature options): 'guided:type=aliked' = guided matching of ALIKED
+    # features; unknown options: the matcher raises
     specs = []
     for text in args.matchers:
         matcher, feature_conf, _ = split_stage_options(text)
@@ -168,7 +172,8 @@ def main(argv=None):
                     mapping_conf=first,
                 )
                 verified = res["database"]["num_verified_pairs"]
-                # Where the run's time went: stages, and within matching the read / coarse / fine / write steps.
+                # Where the run's time went: stages, and within matching the read / coarse / fine /
+                # write steps.
                 profile = {
                     "extract": res["timings"]["extract"],
                     **res["database"]["profile"],
@@ -206,10 +211,12 @@ def main(argv=None):
                         )
             shutil.rmtree(work, ignore_errors=True)
     print(
-        f"\nPipeline benchmark, camera_mode={args.camera_mode}, mapping threads {args.threads} (time ratio = total wall time / pycolmap default's, same set and seed round)\n"
+        f"\nPipeline benchmark, camera_mode={args.camera_mode}, mapping threads {args.threads} "
+        "(time ratio = total wall time / pycolmap default's, same set and seed round)\n"
     )
     print(
-        "| set | seed | pipeline | verified pairs | registered | correct (reference) | model check | 3D points | total s | time ratio |"
+        "| set | seed | pipeline | verified pairs | registered | "
+        "correct (reference) | model check | 3D points | total s | time ratio |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(row_markdown(row) for row in rows))
@@ -217,9 +224,12 @@ def main(argv=None):
 
 
 def peer_ratios(rows: list[tuple], peer: str, seed: int) -> list[str]:
-    """Per set, each pipeline's end-to-end and match-stage (matching + verification) time over ``peer``'s, first
-    mapper and seed; nothing where ``peer`` did not run."""
-    stage = lambda stats: stats["timings"].get("match", 0.0) + stats["timings"].get("verify", 0.0)  # noqa: E731
+    """Per set, each pipeline's end-to-end and match-stage (matching + verification) time over
+    ``peer``'s, first mapper and seed; nothing where ``peer`` did not run."""
+
+    def stage(stats):
+        return stats["timings"].get("match", 0.0) + stats["timings"].get("verify", 0.0)
+
     first = {(row[0], row[2]): row for row in rows if row[1] == seed}
     lines = [
         f"\nTimes over {peer}'s, same set and round\n",
@@ -230,8 +240,8 @@ def peer_ratios(rows: list[tuple], peer: str, seed: int) -> list[str]:
         base = first.get((name, peer))
         if base is not None:
             lines.append(
-                f"| {name} | {label} | {row[4]:.1f} | {row[4] / base[4]:.2f} | {stage(row[3]):.1f} | "
-                f"{stage(row[3]) / max(stage(base[3]), 1e-9):.2f} |"
+                f"| {name} | {label} | {row[4]:.1f} | {row[4] / base[4]:.2f} | "
+                f"{stage(row[3]):.1f} | {stage(row[3]) / max(stage(base[3]), 1e-9):.2f} |"
             )
     return lines if len(lines) > 3 else []
 
@@ -244,7 +254,11 @@ def row_markdown(row: tuple) -> str:
         if stats["model_check"]["ok"]
         else f"{len(stats['model_check']['problems'])} problem(s)"
     )
-    return f"| {name} | {seed} | {label} | {stats['num_verified_pairs']} | {stats['num_registered']}/{stats['num_images']} | {correct} | {check} | {stats['num_points3D']} | {total:.1f} | {ratio:.2f} |"
+    return (
+        f"| {name} | {seed} | {label} | {stats['num_verified_pairs']} | "
+        f"{stats['num_registered']}/{stats['num_images']} | {correct} | "
+        f"{check} | {stats['num_points3D']} | {total:.1f} | {ratio:.2f} |"
+    )
 
 
 if __name__ == "__main__":

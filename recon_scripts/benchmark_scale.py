@@ -1,23 +1,26 @@
 """Scale benchmark: time per stage, pairs, registered images and peak memory vs N photos.
 
-    python recon_scripts/benchmark_scale.py pool                      # the photo pool (once, ~5 min)
+    python recon_scripts/benchmark_scale.py pool      # the photo pool (once, ~5 min)
     python recon_scripts/benchmark_scale.py run --n 1000 --pairs retrieval
     python recon_scripts/benchmark_scale.py run --n 50 200 --pairs retrieval exhaustive
-    python recon_scripts/benchmark_scale.py map --n 50 200 1000 --mappers global hierarchical incremental
+    python recon_scripts/benchmark_scale.py map --n 50 200 1000
+        --mappers global hierarchical incremental
     python recon_scripts/benchmark_scale.py ray --n 200 --num_pairs 160
-    python recon_scripts/benchmark_scale.py report                    # Markdown tables + scale.png
+    python recon_scripts/benchmark_scale.py report    # Markdown tables + scale.png
 
-Photos: the 437 photos of the 20 training scenes of ../shared/data/train pooled (long side <= 1024 px;
-symlinked, never copied) and 563 photos of 24 landmarks rendered by ``colmap_guided.synthetic`` (1024x768,
-seeds 1000-1023, 24 views each on an arc around the landmark, the last landmark 11): no photo twice. The
-set of N photos is the first N of the scenes in a fixed order (training and rendered scenes alternating,
-whole scenes, the last one cut), so a smaller set is a prefix of the larger ones.
+Photos: the 437 photos of the 20 training scenes of ../shared/data/train pooled (long side <=
+1024 px; symlinked, never copied) and 563 photos of 24 landmarks rendered by
+``colmap_guided.synthetic`` (1024x768, seeds 1000-1023, 24 views each on an arc around the landmark,
+the last landmark 11): no photo twice. The set of N photos is the first N of the scenes in a fixed
+order (training and rendered scenes alternating, whole scenes, the last one cut), so a smaller set
+is a prefix of the larger ones.
 
-Every stage (extract, match = select + match, verify, map) runs in a fresh process under ``nice``, with one
-torch/BLAS thread per worker: its wall and CPU time, peak RSS (``ru_maxrss``), load average before and after
-and, for the match stage, the RSS every second and the most images held at once are written to
-OUT/n<N>/<pairs>/<stage>.json. A stage with its JSON is skipped: a killed benchmark resumes. Everything is
-under OUT (default outputs/benchmark_scale, git-ignored); nothing is written next to the photos.
+Every stage (extract, match = select + match, verify, map) runs in a fresh process under ``nice``,
+with one torch/BLAS thread per worker: its wall and CPU time, peak RSS (``ru_maxrss``), load average
+before and after and, for the match stage, the RSS every second and the most images held at once are
+written to OUT/n<N>/<pairs>/<stage>.json. A stage with its JSON is skipped: a killed benchmark
+resumes. Everything is under OUT (default outputs/benchmark_scale, git-ignored); nothing is written
+next to the photos.
 """
 
 from __future__ import annotations
@@ -46,7 +49,7 @@ def load() -> str:
     return "/".join(f"{x:.1f}" for x in os.getloadavg())
 
 
-# -- the photo pool ---------------------------------------------------------------------------------
+# -- the photo pool -------------------------------------------------------------------------------
 
 
 def _render(args):
@@ -59,7 +62,8 @@ def _render(args):
 
 
 def make_pool(out: Path, workers: int = 2) -> list[dict]:
-    """Scenes in pool order: [{'name', 'kind', 'files': [abs paths]}]; rendered scenes under OUT/synthetic."""
+    """Scenes in pool order: [{'name', 'kind', 'files': [abs paths]}]; rendered scenes under
+    OUT/synthetic."""
     if (out / "pool.json").exists():
         return json.loads((out / "pool.json").read_text())
     train = shared_data_dir() / "train"
@@ -167,8 +171,8 @@ class RssSampler:
 
 def stage_main(args) -> None:
     """Runs one stage (this process) and writes its JSON."""
-    from colmap_guided import features, mapping, report
     from colmap_guided import database as dbio
+    from colmap_guided import features, mapping, report
     from colmap_guided.log import set_verbosity
     from colmap_guided.match import match_database
 
@@ -229,8 +233,9 @@ def stage_main(args) -> None:
 
 
 def _verified_pairs(db: Path) -> set:
-    from colmap_guided import database as dbio
     import pycolmap
+
+    from colmap_guided import database as dbio
 
     with dbio.open_database(db) as d:
         return {
@@ -241,8 +246,9 @@ def _verified_pairs(db: Path) -> set:
 
 
 def _in_verified_pairs(db: Path) -> int:
-    from colmap_guided import database as dbio
     import pycolmap
+
+    from colmap_guided import database as dbio
 
     with dbio.open_database(db) as d:
         ids = set()
@@ -279,7 +285,8 @@ def run_stage(
         "OPENBLAS_NUM_THREADS": "1",
     }
     print(
-        f"[{time.strftime('%H:%M:%S', time.gmtime())}] {stage} {run_dir.name} {extra} (load {load()})",
+        f"[{time.strftime('%H:%M:%S', time.gmtime())}] "
+        f"{stage} {run_dir.name} {extra} (load {load()})",
         flush=True,
     )
     try:
@@ -292,7 +299,8 @@ def run_stage(
         return None
     r = json.loads(result.read_text())
     print(
-        f"  {r['wall']:.0f} s wall, {r['cpu']:.0f} s CPU, peak RSS {r['peak_rss_mb']} MB, load {r['load_before']} -> {r['load_after']}",
+        f"  {r['wall']:.0f} s wall, {r['cpu']:.0f} s CPU, peak RSS "
+        f"{r['peak_rss_mb']} MB, load {r['load_before']} -> {r['load_after']}",
         flush=True,
     )
     return r
@@ -351,11 +359,12 @@ def map_main(args) -> None:
                     )
 
 
-# -- executors: throughput per worker ---------------------------------------------------------------
+# -- executors: throughput per worker -------------------------------------------------------------
 
 
 def _ray_nodes(root: Path, port: int) -> tuple[str, list]:
-    """A head node and a second node, one CPU each, on this machine (``ray start --block``, own process groups)."""
+    """A head node and a second node, one CPU each, on this machine (``ray start --block``, own
+    process groups)."""
     env = {
         **os.environ,
         "HOME": str(root),
@@ -399,10 +408,11 @@ def _ray_nodes(root: Path, port: int) -> tuple[str, list]:
 
 
 def _stop_nodes(procs: list, root: Path) -> None:
-    """Stop what ``_ray_nodes`` started: its two ``ray start --block`` processes (which stop their own
-    daemons), then any process still running from this benchmark's Ray folder (by pid)."""
-    import psutil
+    """Stop what ``_ray_nodes`` started: its two ``ray start --block`` processes (which stop their
+    own daemons), then any process still running from this benchmark's Ray folder (by pid)."""
     import signal
+
+    import psutil
 
     for p in reversed(procs):
         try:
@@ -422,8 +432,9 @@ def _stop_nodes(procs: list, root: Path) -> None:
 
 
 def ray_main(args) -> None:
-    """Same pairs matched from scratch by: local threads (1, 2), a private Ray instance (1, 2 CPUs), and
-    two Ray nodes of one CPU each; pairs/s and the ratio per added worker. One process, one run."""
+    """Same pairs matched from scratch by: local threads (1, 2), a private Ray instance (1, 2 CPUs),
+    and two Ray nodes of one CPU each; pairs/s and the ratio per added worker. One process, one
+    run."""
     import ray
 
     from colmap_guided import database as dbio
@@ -439,9 +450,8 @@ def ray_main(args) -> None:
     work = args.out / "executors"
     work.mkdir(exist_ok=True)
     pairs_file = work / "pairs.txt"
-    if (
-        not pairs_file.exists()
-    ):  # the first retrieval pairs of the N-photo set (the match stage's selection)
+    # the first retrieval pairs of the N-photo set (the match stage's selection)
+    if not pairs_file.exists():
         src = args.out / f"n{n}" / "retrieval" / "database.db"
         import pycolmap
 
@@ -454,8 +464,9 @@ def ray_main(args) -> None:
         write_pairs(pairs_file, pairs[: args.num_pairs])
     root = Path(tempfile.mkdtemp(prefix="rayb", dir="/tmp"))
     saved = {k: os.environ.get(k) for k in ("HOME", "RAY_TMPDIR", "RAY_worker_niceness")}
-    # Same session (one scheduler autogroup) and the same niceness for every configuration: Ray's default
-    # nice +15 for workers starved them 4x beside the other processes of this shared machine.
+    # Same session (one scheduler autogroup) and the same niceness for every configuration: Ray's
+    # default nice +15 for workers starved them 4x beside the other processes of this shared
+    # machine.
     os.environ.update(HOME=str(root), RAY_TMPDIR=str(root), RAY_worker_niceness="0")
     rows, dumps = [], {}
 
@@ -542,7 +553,7 @@ def ray_main(args) -> None:
     (work / "executors.json").write_text(json.dumps(rows, indent=1))
 
 
-# -- report -------------------------------------------------------------------------------------------
+# -- report ---------------------------------------------------------------------------------------
 
 
 def _json(path: Path) -> dict | None:
@@ -567,8 +578,10 @@ def report_main(args) -> None:
         return f"{train} train + {synth} rendered"
 
     p(
-        "| N (photos) | pairs | pairs matched (of exhaustive) | verified (exhaustive's kept) | extract s | select s | match s | verify s | map (global) s | "
-        "total s (CPU s) | peak RSS: run / match stage (start) MB | images held max / reads | registered (train + rendered) | models | load 1-min |"
+        "| N (photos) | pairs | pairs matched (of exhaustive) | "
+        "verified (exhaustive's kept) | extract s | select s | match s | verify s | "
+        "map (global) s | total s (CPU s) | peak RSS: run / match stage (start) MB | "
+        "images held max / reads | registered (train + rendered) | models | load 1-min |"
     )
     p("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     per_pair, rows = {}, {}
@@ -601,7 +614,10 @@ def report_main(args) -> None:
             kept = "–"
             if (out / f"n{n}" / "exhaustive" / "match.json").exists():
                 truth = _verified_pairs(out / f"n{n}" / "exhaustive" / "database.db")
-                kept = f"{len(_verified_pairs(out / f'n{n}' / mode / 'database.db') & truth)}/{len(truth)}"
+                kept = (
+                    f"{len(_verified_pairs(out / f'n{n}' / mode / 'database.db') & truth)}"
+                    f"/{len(truth)}"
+                )
             reg = (
                 f"{g['registered']}/{n} ({g['registered_train']} + {g['registered_synthetic']})"
                 if g
@@ -613,28 +629,31 @@ def report_main(args) -> None:
             p(
                 f"| {n} ({composition(n)}) | {mode}"
                 + (f" k={args.k}" if mode == "retrieval" else "")
-                + f" | {m['num_pairs']} ({m['num_pairs'] / (n * (n - 1) / 2):.1%}) | "
-                f"{m['num_verified_pairs']} ({kept}) | {ex['wall']:.0f} | {m['select_time']:.0f} | {m['match_time']:.0f} | {m['verify_time']:.0f} | "
-                f"{g['wall']:.0f} | "
+                + f" | {m['num_pairs']} ({m['num_pairs'] / (n * (n - 1) / 2):.1%}) "
+                f"| {m['num_verified_pairs']} ({kept}) | {ex['wall']:.0f} | {m['select_time']:.0f} "
+                f"| {m['match_time']:.0f} | {m['verify_time']:.0f} | {g['wall']:.0f} | "
                 if g
                 else "– | "
             )
             lines[-1] += (
-                f"{total:.0f} ({cpu:.0f}) | {max(r['peak_rss_mb'] for r in stages)} / {m['peak_rss_mb']} ({m['rss_start_mb']}) | "
-                f"{mem.get('images_held_max', '–')} / {mem.get('image_reads', '–')} | {reg} | {g['num_models'] if g else '–'} | "
-                f"{min(loads):.1f}–{max(loads):.1f} |"
+                f"{total:.0f} ({cpu:.0f}) | {max(r['peak_rss_mb'] for r in stages)} / "
+                f"{m['peak_rss_mb']} ({m['rss_start_mb']}) | "
+                f"{mem.get('images_held_max', '–')} / {mem.get('image_reads', '–')} | {reg} | "
+                f"{g['num_models'] if g else '–'} | {min(loads):.1f}–{max(loads):.1f} |"
             )
     if per_pair:
         n0 = min(per_pair)
         wall_pp, cpu_pp = per_pair[n0]
         p("")
         p(
-            f"Exhaustive matching projected from its measured time per pair at N={n0} ({wall_pp:.2f} s wall match + verify per pair, "
-            f"{cpu_pp:.2f} s CPU with selection): a projection, not a measurement:"
+            f"Exhaustive matching projected from its measured time per pair at N={n0} "
+            f"({wall_pp:.2f} s wall match + verify per pair, {cpu_pp:.2f} s CPU with "
+            "selection): a projection, not a measurement:"
         )
         p("")
         p(
-            "| N | exhaustive pairs | projected match + verify h (wall, this load) | projected CPU h |"
+            "| N | exhaustive pairs | projected match + verify h (wall, this load) | "
+            "projected CPU h |"
         )
         p("|---|---|---|---|")
         for n in args.n:
@@ -650,13 +669,17 @@ def report_main(args) -> None:
     if mapping:
         p("")
         p(
-            "| N | pairs | mapper | wall s (CPU s) | models | registered (train + rendered) | largest model | photos in a verified pair | peak RSS MB | load 1-min |"
+            "| N | pairs | mapper | wall s (CPU s) | models | registered (train + rendered) | "
+            "largest model | photos in a verified pair | peak RSS MB | load 1-min |"
         )
         p("|---|---|---|---|---|---|---|---|---|---|")
         for n, mode, r in mapping:
             p(
-                f"| {n} | {mode} | {r['mapper']} | {r['wall']:.0f} ({r['cpu']:.0f}) | {r['num_models']} | {r['registered']} ({r['registered_train']} + {r['registered_synthetic']}) | "
-                f"{r['largest']} | {r['images_in_verified_pairs']} | {r['peak_rss_mb']} | {r['load_before'].split('/')[0]}–{r['load_after'].split('/')[0]} |"
+                f"| {n} | {mode} | {r['mapper']} | {r['wall']:.0f} ({r['cpu']:.0f}) | "
+                f"{r['num_models']} | {r['registered']} ({r['registered_train']} + "
+                f"{r['registered_synthetic']}) | {r['largest']} | "
+                f"{r['images_in_verified_pairs']} | {r['peak_rss_mb']} | "
+                f"{r['load_before'].split('/')[0]}–{r['load_after'].split('/')[0]} |"
             )
     executors = _json(out / "executors" / "executors.json") or []
     if executors:
@@ -667,7 +690,8 @@ def report_main(args) -> None:
             ) if r["workers"] == 1 else None
         p("")
         p(
-            "| configuration | workers | pairs | match s | pairs/s | per worker vs 1 worker | same matches | load 1-min |"
+            "| configuration | workers | pairs | match s | pairs/s | "
+            "per worker vs 1 worker | same matches | load 1-min |"
         )
         p("|---|---|---|---|---|---|---|---|")
         for r in executors:
@@ -676,8 +700,9 @@ def report_main(args) -> None:
             )
             ratio = r["pairs_per_s"] / (r["workers"] * b["pairs_per_s"]) if b else float("nan")
             p(
-                f"| {r['config']} | {r['workers']} | {r['pairs']} | {r['match_time']:.0f} | {r['pairs_per_s']:.2f} | {ratio:.2f} | "
-                f"{r['same_matches_as_local_1']} | {r['load_before'].split('/')[0]}–{r['load_after'].split('/')[0]} |"
+                f"| {r['config']} | {r['workers']} | {r['pairs']} | {r['match_time']:.0f} | "
+                f"{r['pairs_per_s']:.2f} | {ratio:.2f} | {r['same_matches_as_local_1']} | "
+                f"{r['load_before'].split('/')[0]}–{r['load_after'].split('/')[0]} |"
             )
     text = "\n".join(lines)
     print(text)

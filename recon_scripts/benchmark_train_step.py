@@ -1,8 +1,9 @@
 """Seconds per training iteration of the coarse filter's paths, interleaved in one run.
 
 Sparse filter on whole grids (the default, what the CPU pipeline runs), dense filter on 12x12-cell
-windows (the former CPU recipe) and dense on whole grids (the GPU recipe; slow on a CPU: --dense_whole
-steps only). Uses the frozen-feature cache of the default training data (built on first use).
+windows (the former CPU recipe) and dense on whole grids (the GPU recipe; slow on a CPU:
+--dense_whole steps only). Uses the frozen-feature cache of the default training data
+(built on first use).
 
     python recon_scripts/benchmark_train_step.py [--steps 6] [--dense_whole 1] [--resolution 512]
 """

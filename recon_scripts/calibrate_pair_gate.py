@@ -1,15 +1,18 @@
-"""Which pairs are worth the fine matcher: the coarse network's pair-level evidence against the fine matcher's verdict.
+"""Which pairs are worth the fine matcher: the coarse network's pair-level evidence against the fine
+matcher's verdict.
 
-    python recon_scripts/calibrate_pair_gate.py --output outputs/pair_gate [--sources sacre_coeur_hloc ...]
+    python recon_scripts/calibrate_pair_gate.py --output outputs/pair_gate
+        [--sources sacre_coeur_hloc ...]
         [--max_images 8] [--matcher guided_lightglue]
 
-On development scenes of the historical proxy (half of each set a damaged print, plus distractors), every pair of
-photos is matched by the fine matcher and verified as the pipeline does; beside it, the coarse network's evidence
-for the pair (``CoarseFlows.pair_score``, paper eq. 3's image-level score: the mean over grid cells of their best
-match probability, the smaller direction) and the eq. 1 matches of the guided matcher on the same descriptors.
-Prints, per threshold, the verified pairs a gate would lose and the pairs it would skip (``guided_lightglue``'s
-``min_pair_score``), and the pairs whose eq. 1 matches would stand in for the fine matcher's (``eq1_enough``).
-Development split only: the gate's threshold is chosen here.
+On development scenes of the historical proxy (half of each set a damaged print, plus distractors),
+every pair of photos is matched by the fine matcher and verified as the pipeline does; beside it,
+the coarse network's evidence for the pair (``CoarseFlows.pair_score``, paper eq. 3's image-level
+score: the mean over grid cells of their best match probability, the smaller direction) and the
+eq. 1 matches of the guided matcher on the same descriptors. Prints, per threshold, the verified
+pairs a gate would lose and the pairs it would skip (``guided_lightglue``'s ``min_pair_score``), and
+the pairs whose eq. 1 matches would stand in for the fine matcher's (``eq1_enough``). Development
+split only: the gate's threshold is chosen here.
 """
 
 from __future__ import annotations
@@ -38,7 +41,8 @@ DEV_SOURCES = (
 
 
 def scene_pairs(scene_dir: Path, matcher, min_inliers: int) -> list[dict]:
-    """Every pair of the scene: related (neither a distractor), coarse evidence, verified inliers."""
+    """Every pair of the scene: related (neither a distractor), coarse evidence, verified
+    inliers."""
     eras = {
         im["name"]: im["era"]
         for im in json.loads((scene_dir / "manifest.json").read_text())["images"]
@@ -100,7 +104,8 @@ def scene_pairs(scene_dir: Path, matcher, min_inliers: int) -> list[dict]:
 def gate_table(rows: list[dict], key: str, thresholds) -> list[str]:
     verified = [r for r in rows if r["verified"]]
     lines = [
-        f"| {key} below | verified pairs lost | related pairs skipped | unrelated skipped | fine time skipped |",
+        f"| {key} below | verified pairs lost | related pairs skipped | "
+        "unrelated skipped | fine time skipped |",
         "|---|---|---|---|---|",
     ]
     total = sum(r["fine_s"] for r in rows)
@@ -108,7 +113,8 @@ def gate_table(rows: list[dict], key: str, thresholds) -> list[str]:
         gated = [r for r in rows if r[key] < t]
         lost = [r for r in gated if r["verified"]]
         lines.append(
-            f"| {t:g} | {len(lost)} / {len(verified)} (max {max((r['inliers'] for r in lost), default=0)} inliers) "
+            f"| {t:g} | {len(lost)} / {len(verified)} "
+            f"(max {max((r['inliers'] for r in lost), default=0)} inliers) "
             f"| {sum(r['related'] for r in gated)} / {sum(r['related'] for r in rows)} "
             f"| {sum(not r['related'] for r in gated)} / {sum(not r['related'] for r in rows)} "
             f"| {sum(r['fine_s'] for r in gated) / total:.0%} |"
@@ -117,10 +123,12 @@ def gate_table(rows: list[dict], key: str, thresholds) -> list[str]:
 
 
 def eq1_table(rows: list[dict], thresholds, min_inliers: int) -> list[str]:
-    """Pairs whose eq. 1 matches reach each threshold: what the fine matcher would have given them."""
+    """Pairs whose eq. 1 matches reach each threshold: what the fine matcher would have given
+    them."""
     lines = [
-        "| eq. 1 matches at least | pairs (unrelated) | fine-verified among them | eq. 1 inliers / fine's, "
-        "min · median | eq. 1 inliers on the fine geometry, min | verified by eq. 1 only | fine time skipped |",
+        "| eq. 1 matches at least | pairs (unrelated) | fine-verified among them | "
+        "eq. 1 inliers / fine's, min · median | eq. 1 inliers on the fine geometry, min | "
+        "verified by eq. 1 only | fine time skipped |",
         "|---|---|---|---|---|---|---|",
     ]
     total = sum(r["fine_s"] for r in rows)
@@ -159,7 +167,8 @@ def main(argv=None):
     leaked = set(args.sources) & set(proxy.SPLITS["test"])
     if leaked:
         parser.error(
-            f"{sorted(leaked)} belong to the test split: the gate is chosen on development scenes only"
+            f"{sorted(leaked)} belong to the test split: "
+            "the gate is chosen on development scenes only"
         )
     spec = matcher_specs.parse_spec(args.matcher)
     matcher = get_matcher(spec.name, spec.conf)
@@ -168,9 +177,8 @@ def main(argv=None):
     for key in args.sources:
         scene_dir = proxy.build_scene(key, args.output, max_images=args.max_images)
         workspace = Workspace(args.output, "proxy")
-        if workspace.owns(
-            f"{scene_dir.name}/database.db"
-        ):  # an earlier run's, for photos drawn again
+        # an earlier run's, for photos drawn again
+        if workspace.owns(f"{scene_dir.name}/database.db"):
             workspace.remove(f"{scene_dir.name}/database.db")
         workspace.record(f"{scene_dir.name}/database.db")
         rows += scene_pairs(scene_dir, matcher, min_inliers)
@@ -184,7 +192,8 @@ def main(argv=None):
         values = np.array([r["score"] for r in rows if pick(r)])
         if len(values):
             print(
-                f"{label} pairs ({len(values)}): score min {values.min():.3f}, 5% {np.percentile(values, 5):.3f}, "
+                f"{label} pairs ({len(values)}): score min "
+                f"{values.min():.3f}, 5% {np.percentile(values, 5):.3f}, "
                 f"median {np.median(values):.3f}, max {values.max():.3f}"
             )
 

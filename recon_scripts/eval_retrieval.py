@@ -7,7 +7,8 @@ exhaustive pipeline: a pair "verified by exhaustive matching" is one whose image
 ``--min_shared`` 3D points of that model. Each scene alone, and all scenes pooled into one archive
 (every other scene a distractor), pick top-k pairs by the GeM descriptor of ``colmap_guided.pairs``;
 printed: recall of the co-visible pairs, pairs as a fraction of exhaustive, and cross-scene pairs.
-Images registered end to end (retrieval vs exhaustive): run `reconstruct --pairs retrieval` on a set.
+Images registered end to end (retrieval vs exhaustive): run `reconstruct --pairs retrieval` on a
+set.
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from itertools import combinations
 from pathlib import Path
 
 import colmap_guided  # noqa: F401  (zlib before pycolmap)
+
+# isort: split
 import numpy as np
 import pycolmap
 
@@ -96,9 +99,8 @@ def main() -> None:
     def row(label, scene_names, d, true_pairs, k):
         sel = set(retrieval_pairs(scene_names, d, k))
         n = len(scene_names)
-        truths = [
-            t for _, sn, _, t in scenes if set(sn) <= set(scene_names)
-        ]  # largest connected per scene, summed
+        # largest connected per scene, summed
+        truths = [t for _, sn, _, t in scenes if set(sn) <= set(scene_names)]
         cross = sum(a.split("/")[0] != b.split("/")[0] for a, b in sel)
         recall = len(sel & true_pairs) / max(len(true_pairs), 1)
         return {
@@ -120,16 +122,20 @@ def main() -> None:
         per = [row(s, sn, d, t, k) for s, sn, d, t in scenes]
         rows += per
     print(
-        "| set | k | images | co-visible pairs | recall | pairs / exhaustive | cross-scene pairs | images connected (exhaustive) |"
+        "| set | k | images | co-visible pairs | recall | pairs / exhaustive | "
+        "cross-scene pairs | images connected (exhaustive) |"
     )
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         if r["set"].startswith("pooled"):
             print(
-                f"| {r['set']} | {r['k']} | {r['images']} | {r['covisible']} | {r['recall']:.3f} | {r['fraction']:.3f} | {r['cross_scene']} | {r['connected']} ({r['connected_exhaustive']}) |"
+                f"| {r['set']} | {r['k']} | {r['images']} | {r['covisible']} | "
+                f"{r['recall']:.3f} | {r['fraction']:.3f} | {r['cross_scene']} | "
+                f"{r['connected']} ({r['connected_exhaustive']}) |"
             )
     print(
-        "\nPer scene (alone): recall (pairs / exhaustive) [largest connected of the co-visible pairs selected, exhaustive's] at each k:"
+        "\nPer scene (alone): recall (pairs / exhaustive) [largest connected "
+        "of the co-visible pairs selected, exhaustive's] at each k:"
     )
     print("| scene | images | co-visible | " + " | ".join(f"k={k}" for k in args.k) + " |")
     print("|---|---|---|" + "---|" * len(args.k))
@@ -138,7 +144,8 @@ def main() -> None:
         print(
             f"| {s} | {len(sn)} | {len(t)} | "
             + " | ".join(
-                f"{r['recall']:.2f} ({r['fraction']:.2f}) [{r['connected']}/{r['connected_exhaustive']}]"
+                f"{r['recall']:.2f} ({r['fraction']:.2f}) "
+                f"[{r['connected']}/{r['connected_exhaustive']}]"
                 for r in rs
             )
             + " |"

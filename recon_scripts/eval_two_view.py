@@ -1,17 +1,20 @@
-"""Two-view geometry benchmark (paper Table 2 protocol) + WxBS, for every matcher variant of the registry.
+"""Two-view geometry benchmark (paper Table 2 protocol) + WxBS, for every matcher variant of the
+registry.
 
-    python recon_scripts/eval_two_view.py [--max_pairs 10] [--wxbs_max_pairs 33] [--output outputs/eval_two_view]
+    python recon_scripts/eval_two_view.py [--max_pairs 10] [--wxbs_max_pairs 33]
+        [--output outputs/eval_two_view]
     python recon_scripts/eval_two_view.py --matchers raw guided_ratio0.9 --max_pairs 3 --no_wxbs
 
-Pose: pairs of lund_door_gtsfm (reference COLMAP model), train/strecha_castle, train/strecha_entry_P10
-(Strecha reference cameras) and train/instantngp_fox (instant-ngp cameras) — held out of training —,
-sampled deterministically among covisible pairs; 2000 SIFT (pycolmap) per image as in the paper;
-essential matrix by OpenCV RANSAC at 1 px / mean focal; AUC of max(R, t) angular error at 5/10/20°.
-WxBS: F by MAGSAC++, share of hand-labelled correspondences within 3/5/10 px.
+Pose: pairs of lund_door_gtsfm (reference COLMAP model), train/strecha_castle,
+train/strecha_entry_P10 (Strecha reference cameras) and train/instantngp_fox (instant-ngp cameras) —
+held out of training —, sampled deterministically among covisible pairs; 2000 SIFT (pycolmap) per
+image as in the paper; essential matrix by OpenCV RANSAC at 1 px / mean focal; AUC of max(R, t)
+angular error at 5/10/20°. WxBS: F by MAGSAC++, share of hand-labelled correspondences within
+3/5/10 px.
 
 Writes OUTPUT/two_view.{md,json,png} and OUTPUT/wxbs.{md,json,png}; prints the Markdown tables.
-Matcher variants: ``name[:key=value,...]`` (see colmap_guided/evaluation/matcher_specs.py); a variant whose
-matcher is not in the registry, or cannot run, stops the script with its error.
+Matcher variants: ``name[:key=value,...]`` (see colmap_guided/evaluation/matcher_specs.py); a
+variant whose matcher is not in the registry, or cannot run, stops the script with its error.
 """
 
 from __future__ import annotations
@@ -154,7 +157,7 @@ def plot_wxbs(result: dict, path: Path) -> None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        description=__doc__.splitlines()[0],
+        description=" ".join(__doc__.split("\n\n")[0].split()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__,
     )
@@ -233,7 +236,9 @@ def main(argv=None) -> int:
         publish(
             "two_view",
             result,
-            f"### Relative pose AUC ({sum(1 for _ in result['pairs'])} pairs; {note['date']}, {note['torch_device']}, {note['cpu_count']} CPUs)\n\n{pose_table(result)}\n\nPer scene:\n\n{pose_scene_table(result)}\n",
+            f"### Relative pose AUC ({sum(1 for _ in result['pairs'])} pairs; {note['date']}, "
+            f"{note['torch_device']}, {note['cpu_count']} CPUs)\n\n{pose_table(result)}\n\n"
+            f"Per scene:\n\n{pose_scene_table(result)}\n",
             plot_pose,
         )
     if not args.no_wxbs:
@@ -247,7 +252,9 @@ def main(argv=None) -> int:
         publish(
             "wxbs",
             result,
-            f"### WxBS ({result['config']['num_pairs']} pairs, {args.wxbs_geometry} by MAGSAC++; {note['date']})\n\n{wxbs_table(result)}\n\nPer category (share @5 px):\n\n{wxbs_category_table(result)}\n",
+            f"### WxBS ({result['config']['num_pairs']} pairs, {args.wxbs_geometry} "
+            f"by MAGSAC++; {note['date']})\n\n{wxbs_table(result)}\n\n"
+            f"Per category (share @5 px):\n\n{wxbs_category_table(result)}\n",
             plot_wxbs,
         )
     print(f"Results in {out}")

@@ -1,10 +1,13 @@
-"""Build the offline historical proxy: sets of ../shared/data with half of each degraded + distractors.
+"""Build the offline historical proxy: sets of ../shared/data with half of each degraded +
+distractors.
 
-    python recon_scripts/make_historical_proxy.py [--output outputs/historical_proxy] [--split dev|test] [--sources KEY ...]
+    python recon_scripts/make_historical_proxy.py [--output outputs/historical_proxy]
+        [--split dev|test] [--sources KEY ...]
 
-Writes OUTPUT/<scene>/images + OUTPUT/<scene>/manifest.json per source set and OUTPUT/proxy_manifest.json
-(the datasets/ltll_manifest.json schema), never anything inside ../shared. Deterministic for a --seed.
-Then: python recon_scripts/eval_registration.py --manifest OUTPUT/proxy_manifest.json
+Writes OUTPUT/<scene>/images + OUTPUT/<scene>/manifest.json per source set and
+OUTPUT/proxy_manifest.json (the datasets/ltll_manifest.json schema), never anything inside
+../shared. Deterministic for a --seed. Then: python recon_scripts/eval_registration.py --manifest
+OUTPUT/proxy_manifest.json
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ DEFAULT_OUTPUT = REPO_ROOT / "outputs" / "historical_proxy"
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        description=__doc__.splitlines()[0],
+        description=" ".join(__doc__.split("\n\n")[0].split()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__,
     )

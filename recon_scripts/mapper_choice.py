@@ -1,16 +1,22 @@
-"""What can the choice of mapper do? Each finished database of eval_registration runs, mapped again by each mapper,
-scored against the reference, and what each way of choosing among those models would place on the pose.
+"""What can the choice of mapper do? Each finished database of eval_registration runs, mapped again
+by each mapper, scored against the reference, and what each way of choosing among those models would
+place on the pose.
 
-    python recon_scripts/mapper_choice.py RESULTS/results.json --method guided [--baseline PYCOLMAP_RESULTS/results.json]
-        [--reference sacre_coeur_hloc=MODEL_DIR] [--variant colmap_thresholds:abs_pose_min_num_inliers=30,init_min_num_inliers=100] [--json choice.json]
+    python recon_scripts/mapper_choice.py RESULTS/results.json --method guided
+        [--baseline PYCOLMAP_RESULTS/results.json]
+        [--reference sacre_coeur_hloc=MODEL_DIR]
+            [--variant colmap_thresholds:abs_pose_min_num_inliers=30,init_min_num_inliers=100]
+            [--json choice.json]
 
-Per (scene, subset, seed) run of METHOD that a reference covers: its database mapped by incremental and by global
-mapping (the run's seed, one thread), and by incremental mapping under each --variant's mapping options; each
-largest model scored against the reference (photos on / off the reference pose). Then one row per way of
-choosing: each model alone, ``auto`` (mapping._auto's rule: the model check, then the larger model, then the
-verified inliers its poses explain, then incremental) and the oracle (the model with the most photos on the pose, then the fewest off it): photos on / off the
-pose summed over the runs, and the runs with fewer photos on the pose than pycolmap's default pipeline of the same
-seed in RESULTS. The oracle bounds what any choice among these models can do with this database.
+Per (scene, subset, seed) run of METHOD that a reference covers: its database mapped by incremental
+and by global mapping (the run's seed, one thread), and by incremental mapping under each
+--variant's mapping options; each largest model scored against the reference (photos on / off the
+reference pose). Then one row per way of choosing: each model alone, ``auto`` (mapping._auto's rule:
+the model check, then the larger model, then the verified inliers its poses explain, then
+incremental) and the oracle (the model with the most photos on the pose, then the fewest off it):
+photos on / off the pose summed over the runs, and the runs with fewer photos on the pose than
+pycolmap's default pipeline of the same seed in RESULTS. The oracle bounds what any choice among
+these models can do with this database.
 """
 
 from __future__ import annotations
@@ -42,7 +48,8 @@ def map_and_score(
     reference: pycolmap.Reconstruction,
     work: Path,
 ) -> dict:
-    """The database mapped with ``conf`` (seeded, one thread); its largest model scored against the reference."""
+    """The database mapped with ``conf`` (seeded, one thread); its largest model scored against the
+    reference."""
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     conf = mapping.check_conf({**conf, "random_seed": seed, "num_threads": 1})
@@ -70,7 +77,7 @@ def choose(models: dict[str, dict], rule: str) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        description=__doc__.splitlines()[0],
+        description=" ".join(__doc__.split("\n\n")[0].split()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__,
     )
@@ -180,7 +187,8 @@ def main(argv=None) -> int:
                 ]
             )
         print(
-            f"\n**{args.method}, {title}** — photos on the reference pose ✓ / off it ✗ summed over {len(chosen)} runs; runs below pycolmap's default pipeline (same seed)\n"
+            f"\n**{args.method}, {title}** — photos on the reference pose ✓ / off it ✗ summed "
+            f"over {len(chosen)} runs; runs below pycolmap's default pipeline (same seed)\n"
         )
         print(markdown_table(["models chosen by", "✓", "✗", "runs below pycolmap"], rows))
     if args.json:

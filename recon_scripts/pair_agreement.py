@@ -1,15 +1,18 @@
-"""Per pair of the historical proxy: how right are the guided and the raw verified inliers, and does their agreement tell?
+"""Per pair of the historical proxy: how right are the guided and the raw verified inliers, and does
+their agreement tell?
 
-    python recon_scripts/pair_agreement.py --results outputs/eval_s7_agree [--proxy_dir outputs/historical_proxy_s5]
+    python recon_scripts/pair_agreement.py --results outputs/eval_s7_agree
+        [--proxy_dir outputs/historical_proxy_s5]
         [--reference sacre_coeur_hloc=outputs/refs/sacre_coeur_hloc/sparse/0] [--json pairs.json]
 
-For every pair of photos of a proxy scene that the reference model covers, the guided matches (no raw side) and
-the raw matches (mutual NN + ratio) on the keypoints of an eval_registration run (RESULTS/scenes/<scene>__all/
-runs/seed0/guided/database.db) are verified as the pipeline does; each side's inliers are scored against the
-reference: the share within 6 px of the reference epipolar line (a proxy photo maps to its reference camera by
-its recorded scale and crop). The agreement of the two sides (``verify.agreement``: the share of one side's
-inliers that fit the other's fundamental matrix, both ways) is what the guided matcher's ``min_agreement``
-reads; the table shows how right each side is per agreement bucket, over the pairs where both verify.
+For every pair of photos of a proxy scene that the reference model covers, the guided matches
+(no raw side) and the raw matches (mutual NN + ratio) on the keypoints of an eval_registration run
+(RESULTS/scenes/<scene>__all/ runs/seed0/guided/database.db) are verified as the pipeline does; each
+side's inliers are scored against the reference: the share within 6 px of the reference epipolar
+line (a proxy photo maps to its reference camera by its recorded scale and crop). The agreement of
+the two sides (``verify.agreement``: the share of one side's inliers that fit the other's
+fundamental matrix, both ways) is what the guided matcher's ``min_agreement`` reads; the table shows
+how right each side is per agreement bucket, over the pairs where both verify.
 """
 
 from __future__ import annotations
@@ -35,8 +38,9 @@ BUCKETS = [(0.0, 0.3), (0.3, 0.6), (0.6, 0.8), (0.8, 0.9), (0.9, 1.01)]
 
 
 def reference_fundamental(ref: pycolmap.Reconstruction, entry_a: dict, entry_b: dict) -> np.ndarray:
-    """F of the pair from the reference poses, in the proxy photos' pixels (a proxy photo is its source resized
-    by ``scale``, then cropped at ``crop_offset``; COLMAP's keypoints put the image corner at 0, 0)."""
+    """F of the pair from the reference poses, in the proxy photos' pixels (a proxy photo is its
+    source resized by ``scale``, then cropped at ``crop_offset``; COLMAP's keypoints put the image
+    corner at 0, 0)."""
     images = {im.name: im for im in ref.images.values()}
 
     def calibration(entry: dict) -> np.ndarray:
@@ -131,9 +135,12 @@ def scene_pairs(
 def table(rows: list[dict], guided_min: int, raw_min: int) -> str:
     both = [r for r in rows if r["guided"] >= guided_min and r["raw"] >= raw_min]
     lines = [
-        f"{len(rows)} pairs, {len(both)} where both sides verify (guided >= {guided_min}, raw >= {raw_min} inliers)",
+        f"{len(rows)} pairs, {len(both)} where both sides verify "
+        f"(guided >= {guided_min}, raw >= {raw_min} inliers)",
         "",
-        "| agreement (min of both ways) | pairs | guided inliers right (median) | raw inliers right (median) | raw better / guided better (±5 pts) | wrong inliers guided / raw |",
+        "| agreement (min of both ways) | pairs | "
+        "guided inliers right (median) | raw inliers right (median) | "
+        "raw better / guided better (±5 pts) | wrong inliers guided / raw |",
         "|---|---|---|---|---|---|",
     ]
     for lo, hi in BUCKETS:
@@ -145,14 +152,15 @@ def table(rows: list[dict], guided_min: int, raw_min: int) -> str:
         wrong_r = sum(s["raw"] * (1 - s["raw_right"]) for s in sel)
         span = f"≥ {lo}" if hi > 1 else (f"< {hi}" if lo == 0 else f"{lo}–{hi}")
         lines.append(
-            f"| {span} | {len(sel)} | {100 * np.median(g):.0f} % | {100 * np.median(r):.0f} % | {np.sum(r > g + 0.05)} / {np.sum(g > r + 0.05)} | {wrong_g:.0f} / {wrong_r:.0f} |"
+            f"| {span} | {len(sel)} | {100 * np.median(g):.0f} % | {100 * np.median(r):.0f} % | "
+            f"{np.sum(r > g + 0.05)} / {np.sum(g > r + 0.05)} | {wrong_g:.0f} / {wrong_r:.0f} |"
         )
     return "\n".join(lines)
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        description=__doc__.splitlines()[0],
+        description=" ".join(__doc__.split("\n\n")[0].split()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__,
     )

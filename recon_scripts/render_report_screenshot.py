@@ -1,15 +1,20 @@
-"""Render OUTPUT/report.html in headless Chromium and save a screenshot PNG (checks the page really renders).
+"""Render OUTPUT/report.html in headless Chromium and save a screenshot PNG (checks the page really
+renders).
 
-    python recon_scripts/render_report_screenshot.py OUTPUT/report.html [--out shot.png] [--size 1200,1600]
-    python recon_scripts/render_report_screenshot.py --demo /tmp/demo_scene --photo view_007.jpg --size 1400,1600 --out docs/report_demo.png
+    python recon_scripts/render_report_screenshot.py OUTPUT/report.html [--out shot.png]
+        [--size 1200,1600]
+    python recon_scripts/render_report_screenshot.py --demo /tmp/demo_scene --photo view_007.jpg
+        --size 1400,1600 --out docs/report_demo.png
 
-``--demo DIR`` first makes the README's demo: the synthetic scene (12 views), a manifest that marks every
-third view "historical" (those photos toned sepia, as old prints are), and a view of another building (the
-synthetic scene of another seed) that cannot register; then reconstructs it with the default matcher.
+``--demo DIR`` first makes the README's demo: the synthetic scene (12 views), a manifest that marks
+every third view "historical" (those photos toned sepia, as old prints are), and a view of another
+building (the synthetic scene of another seed) that cannot register; then reconstructs it with the
+default matcher.
 
-Chromium comes from Debian (`apt-get install chromium`); the page is opened from the file system with the
-network off, so the screenshot also proves the page needs nothing from outside (images are embedded).
-Prints the screenshot path; exit status 1 with a one-line message when no browser is installed.
+Chromium comes from Debian (`apt-get install chromium`); the page is opened from the file system
+with the network off, so the screenshot also proves the page needs nothing from outside
+(images are embedded). Prints the screenshot path; exit status 1 with a one-line message when no
+browser is installed.
 """
 
 from __future__ import annotations
@@ -40,11 +45,13 @@ def screenshot(
     timeout: float = 120.0,
     photo: str | None = None,
 ) -> Path:
-    """Screenshot of ``html_path`` (a local file) at ``size`` pixels, with the 3D view showing ``photo``; raises RuntimeError when it fails."""
+    """Screenshot of ``html_path`` (a local file) at ``size`` pixels, with the 3D view showing
+    ``photo``; raises RuntimeError when it fails."""
     browser = find_chromium()
     if browser is None:
         raise RuntimeError(
-            "No Chromium found: install it (Debian: apt-get install chromium) to check the page renders."
+            "No Chromium found: install it (Debian: apt-get "
+            "install chromium) to check the page renders."
         )
     html_path, out_png = Path(html_path).resolve(), Path(out_png).resolve()
     if not html_path.is_file():
@@ -80,7 +87,8 @@ def screenshot(
 
 
 def make_demo(scene_dir: Path) -> Path:
-    """The demo scene with eras and one photo of another building, reconstructed; returns its report.html."""
+    """The demo scene with eras and one photo of another building, reconstructed; returns its
+    report.html."""
     import json
 
     import numpy as np
@@ -129,7 +137,7 @@ def small_png(path: Path, max_bytes: int = 300_000) -> Path:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("html", type=Path, nargs="?", help="a report.html (not with --demo)")
     parser.add_argument(
         "--demo",

@@ -1,18 +1,22 @@
-"""Lay a multi-scene manifest out as scene folders and reconstruct each (historical-only and all images).
+"""Lay a multi-scene manifest out as scene folders and reconstruct each (historical-only and all
+images).
 
     # LTLL (not downloadable here): scan a local copy, then run
-    python recon_scripts/run_manifest.py --manifest datasets/ltll_manifest.json --root /data/LTLL --scan
+    python recon_scripts/run_manifest.py --manifest datasets/ltll_manifest.json --root /data/LTLL
+        --scan
     # the photo sets of ../shared/data (all modern), offline
-    python recon_scripts/run_manifest.py --manifest datasets/shared_manifest.json --scenes sacre_coeur_hloc --subsets all
+    python recon_scripts/run_manifest.py --manifest datasets/shared_manifest.json
+        --scenes sacre_coeur_hloc --subsets all
     # regenerate datasets/shared_manifest.json from ../shared/data
     python recon_scripts/run_manifest.py --write_shared_manifest datasets/shared_manifest.json
 
---scan lists ROOT/SCENE/{historical|old|...,modern|new|...}/... (or ROOT/{historical,modern}/SCENE/...) and
-writes the filled manifest to --scanned_manifest (the repository's manifest is not overwritten).
-Each scene and subset becomes OUTPUT/<scene>__<subset>/images (symlinks; --copy to copy) +
-manifest.json; the source is never modified. --methods: 'pycolmap' (pycolmap's default pipeline) and/or
-matcher specs of the registry (raw, guided, guided:ratio=0.9, ...), each run with `reconstruct`.
-Prints the per-scene table, writes OUTPUT/results.json, results.md and registered.png.
+--scan lists ROOT/SCENE/{historical|old|...,modern|new|...}/... (or
+ROOT/{historical,modern}/SCENE/...) and writes the filled manifest to --scanned_manifest (the
+repository's manifest is not overwritten). Each scene and subset becomes
+OUTPUT/<scene>__<subset>/images (symlinks; --copy to copy) + manifest.json; the source is never
+modified. --methods: 'pycolmap' (pycolmap's default pipeline) and/or matcher specs of the registry
+(raw, guided, guided:ratio=0.9, ...), each run with `reconstruct`. Prints the per-scene table,
+writes OUTPUT/results.json, results.md and registered.png.
 """
 
 from __future__ import annotations
@@ -30,7 +34,8 @@ from colmap_guided.workspace import Workspace
 
 
 def shared_manifest(data_dir: Path | None = None) -> dict:
-    """The manifest of ../shared/data: every multi-view set, all era=modern (no real historical set)."""
+    """The manifest of ../shared/data: every multi-view set, all era=modern
+    (no real historical set)."""
     data_dir = Path(data_dir) if data_dir else shared_data_dir()
     skip = {
         "wxbs_v1.1": "two-view pairs, not a scene",
@@ -69,21 +74,24 @@ def shared_manifest(data_dir: Path | None = None) -> dict:
         )
     return {
         "name": "shared_data",
-        "description": "The real photo sets of ../shared/data described with the LTLL manifest schema. All photos are modern (no real "
-        "historical multi-view set is available offline); for historical images use the proxy of recon_scripts/make_historical_proxy.py "
-        "(its OUTPUT/proxy_manifest.json has the same schema). Skipped: "
+        "description": "The real photo sets of ../shared/data described with the LTLL manifest "
+        "schema. All photos are modern (no real historical multi-view set is available offline); "
+        "for historical images use the proxy of recon_scripts/make_historical_proxy.py (its "
+        "OUTPUT/proxy_manifest.json has the same schema). Skipped: "
         + "; ".join(f"{k} ({v})" for k, v in skip.items())
         + ".",
-        "source": "../shared/data/README.md and each set's _source.json (provenance, licences: research/test use only)",
+        "source": "../shared/data/README.md and each set's "
+        "_source.json (provenance, licences: research/test use only)",
         "root": "$COLMAP_GUIDED_DATA",
-        "reference_paths": "relative to the scene's path; 'colmap_ground_truth' is a reference model, 'colmap' the train scenes' pseudo ground truth",
+        "reference_paths": "relative to the scene's path; 'colmap_ground_truth' "
+        "is a reference model, 'colmap' the train scenes' pseudo ground truth",
         "scenes": scenes,
     }
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        description=__doc__.splitlines()[0],
+        description=" ".join(__doc__.split("\n\n")[0].split()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__,
     )

@@ -1,14 +1,17 @@
-"""Tables of eval_registration runs over seeds, one per LTLL protocol, methods of several runs side by side.
+"""Tables of eval_registration runs over seeds, one per LTLL protocol, methods of several runs side
+by side.
 
-    python recon_scripts/summarize_registration.py OUT_A/results.json [OUT_B/results.json ...] [--reference SCENE=MODEL_DIR ...]
+    python recon_scripts/summarize_registration.py OUT_A/results.json [OUT_B/results.json ...]
+        [--reference SCENE=MODEL_DIR ...]
 
-One table per protocol, a row per method and a column per scene: historical photos on the reference pose
-(correct), off it (wrong), and for the whole set the photos on the reference pose, over the seeds of the
-runs (min-max when they differ); then the mean share, the wrong ones, distractors registered and, beside
-pycolmap's default pipeline, the (scene, seed) runs with fewer photos on the reference pose than it and those
-with at least 1.25x as many. Then the time per image and per pair of each method (first seed). ``--reference`` checks a
-scene whose manifest has no reference against a model of its own (e.g. pycolmap's model of the clean photos):
-the registered models are read back from the runs' folders.
+One table per protocol, a row per method and a column per scene: historical photos on the reference
+pose (correct), off it (wrong), and for the whole set the photos on the reference pose, over the
+seeds of the runs (min-max when they differ); then the mean share, the wrong ones, distractors
+registered and, beside pycolmap's default pipeline, the (scene, seed) runs with fewer photos on the
+reference pose than it and those with at least 1.25x as many. Then the time per image and per pair
+of each method (first seed). ``--reference`` checks a scene whose manifest has no reference against
+a model of its own (e.g. pycolmap's model of the clean photos): the registered models are read back
+from the runs' folders.
 """
 
 from __future__ import annotations
@@ -64,7 +67,7 @@ def era_checks(record: dict, scene: dict) -> tuple[int | None, int | None]:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        description=__doc__.splitlines()[0],
+        description=" ".join(__doc__.split("\n\n")[0].split()),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog=__doc__,
     )
@@ -79,7 +82,9 @@ def main(argv=None) -> int:
         "--label",
         nargs="*",
         default=[],
-        help="METHOD=LABEL: one row for runs of the same method under different specs; RESULTS:METHOD=LABEL: that file's runs of METHOD only (the same method before and after a change)",
+        help="METHOD=LABEL: one row for runs of the same method under "
+        "different specs; RESULTS:METHOD=LABEL: that file's runs of "
+        "METHOD only (the same method before and after a change)",
     )
     args = parser.parse_args(argv)
     labels = dict(r.rsplit("=", 1) for r in args.label)
@@ -111,7 +116,8 @@ def main(argv=None) -> int:
         scenes = sorted(name for name, sub in runs if sub == subset)
         if not scenes:
             continue
-        # the baseline's count per scene and seed, the one the goal is about (historical only: historical photos)
+        # the baseline's count per scene and seed, the one the goal is about (historical only:
+        # historical photos)
         base_counts = {
             name: {
                 seed: (era_checks(rec, sc)[0] if subset == "historical" else rec["correct"])
@@ -140,7 +146,10 @@ def main(argv=None) -> int:
                     continue
                 cell = f"{_span([c[0] for c in checks])} ✓ {_span([c[1] for c in checks])} ✗"
                 if subset == "all":
-                    cell += f" · {_span([rec['correct'] for _, rec, _ in entries])}/{entries[0][1]['num_images']}"
+                    cell += (
+                        f" · {_span([rec['correct'] for _, rec, _ in entries])}"
+                        f"/{entries[0][1]['num_images']}"
+                    )
                 row.append(cell)
                 total = totals.setdefault(m, {}).setdefault(subset, [0, 0, 0, 0])
                 for (_, rec, _), c in zip(entries, checks):
@@ -148,9 +157,8 @@ def main(argv=None) -> int:
                     total[1] += c[1] if subset == "historical" else len(rec.get("wrong") or [])
                     total[3] += 1
                 wrong.append(max(c[1] for c in checks))
-                if all(
-                    by_method.get(other) for other in methods
-                ):  # means over the scenes every method ran
+                # means over the scenes every method ran
+                if all(by_method.get(other) for other in methods):
                     shares.append(np.mean([c[0] for c in checks]) / max(n_hist, 1))
                 if baseline and m != baseline and base_counts[name]:
                     base = base_counts[name]
@@ -189,13 +197,16 @@ def main(argv=None) -> int:
             ", then all photos on the reference pose / all" if subset == "all" else ""
         )
         print(
-            f"\n**Protocol: {title}** — {what}, over the seeds (a range when they differ); mean share over the scenes that every method ran; "
-            f"runs below pycolmap: (scene, seed) runs with fewer {'historical ' if subset == 'historical' else ''}photos on the reference pose than pycolmap's default pipeline with the same seed\n"
+            f"\n**Protocol: {title}** — {what}, over the seeds (a range when they differ); "
+            "mean share over the scenes that every method ran; runs below pycolmap: (scene, "
+            f"seed) runs with fewer {'historical ' if subset == 'historical' else ''}photos "
+            "on the reference pose than pycolmap's default pipeline with the same seed\n"
         )
         print(markdown_table(head, rows))
     if totals:
         print(
-            "\n**Totals** — photos on the reference pose ✓ / off it ✗, summed over the scenes (scored against a reference) and seeds"
+            "\n**Totals** — photos on the reference pose ✓ / off it ✗, "
+            "summed over the scenes (scored against a reference) and seeds"
             + ("; runs below pycolmap's default pipeline" if baseline else "")
             + "\n"
         )
@@ -224,7 +235,8 @@ def main(argv=None) -> int:
             )
         )
     print(
-        "\n**Time** (first seed; extract per image, match per pair of the exhaustive pairs, distractors included)\n"
+        "\n**Time** (first seed; extract per image, match per "
+        "pair of the exhaustive pairs, distractors included)\n"
     )
     rows = []
     for m in methods:

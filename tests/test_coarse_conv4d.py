@@ -1,4 +1,5 @@
-"""4D convolutions: the fast dense and the sparse implementations against the naive loop of conv3d."""
+"""4D convolutions: the fast dense and the sparse implementations against the naive loop of
+conv3d."""
 
 import pytest
 import torch
@@ -9,7 +10,6 @@ from colmap_guided.coarse.conv4d import SparseNeighbourhood, conv4d, kernel_offs
 from colmap_guided.coarse.model import correlation
 from colmap_guided.images import read_image
 from colmap_guided.paths import shared_data_dir
-
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -68,7 +68,8 @@ def test_dense_equals_naive(c_in, c_out, groups, kernel):
     "c_in,c_out,groups", [(1, 4, 1), (4, 6, 2), (3, 1, 1), (4, 2, 2), (2, 3, 1)]
 )
 def test_sparse_all_active_equals_dense(c_in, c_out, groups):
-    """Each form of sparse_conv4d: gather (1 input channel), scatter (1 output channel per group), rulebook."""
+    """Each form of sparse_conv4d: gather (1 input channel), scatter (1 output channel per group),
+    rulebook."""
     torch.manual_seed(1)
     shape = (4, 5, 3, 6)
     x = torch.randn(1, c_in, *shape)
@@ -84,7 +85,8 @@ def test_sparse_all_active_equals_dense(c_in, c_out, groups):
 
 @pytest.mark.parametrize("c_in,c_out", [(1, 3), (2, 3), (2, 1)])
 def test_sparse_subset_reads_inactive_as_zero(c_in, c_out):
-    """On a subset of positions, sparse = dense conv of the volume zeroed outside the subset, sampled there."""
+    """On a subset of positions, sparse = dense conv of the volume zeroed outside the subset,
+    sampled there."""
     torch.manual_seed(2)
     shape = (5, 4, 5, 4)
     x = torch.randn(1, c_in, *shape)
@@ -97,7 +99,8 @@ def test_sparse_subset_reads_inactive_as_zero(c_in, c_out):
 
 
 def test_dense_equals_naive_on_real_correlation(real_corr):
-    """A real correlation volume (two photos, EfficientNet-Lite0 features) through a 16-channel layer."""
+    """A real correlation volume (two photos, EfficientNet-Lite0 features) through a 16-channel
+    layer."""
     torch.manual_seed(3)
     x = real_corr[None, None]
     w, b = torch.randn(16, 1, 3, 3, 3, 3) * 0.1, torch.randn(16) * 0.1

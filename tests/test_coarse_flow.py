@@ -9,8 +9,8 @@ from colmap_guided.coarse.model import GridMatches
 
 
 def test_interpolation_exact_on_affine_flow():
-    """Per-cell values of an affine map of the cell centres interpolate to that map everywhere inside
-    the hull of the centres (bilinear reproduces affine functions)."""
+    """Per-cell values of an affine map of the cell centres interpolate to that map everywhere
+    inside the hull of the centres (bilinear reproduces affine functions)."""
     g = resize_geometry(1063, 780, 512, 16, 15.5)
     A = np.array([[0.9, -0.2], [0.15, 1.1]])
     t = np.array([40.0, -25.0])

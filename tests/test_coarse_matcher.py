@@ -1,4 +1,5 @@
-"""CoarseMatcher end to end on real photos: homography PCK in raw mode, caches, image reading, CLI."""
+"""CoarseMatcher end to end on real photos: homography PCK in raw mode, caches, image reading,
+CLI."""
 
 import numpy as np
 import pytest
@@ -36,8 +37,8 @@ def warp_pair(image: np.ndarray):
 
 
 def test_raw_mode_on_a_homography(raw, shared_data):
-    """Raw correlation (no weights) on a real photo and its known warp: PCK at original pixels (cells are
-    32 px here). Measured: PCK@8/16/32 = 23.5/60.9/77.0 %, 83 % within 16 px among points
+    """Raw correlation (no weights) on a real photo and its known warp: PCK at original pixels
+    (cells are 32 px here). Measured: PCK@8/16/32 = 23.5/60.9/77.0 %, 83 % within 16 px among points
     whose forward-backward error is under one cell."""
     a = read_image(IMAGES / "sacre_coeur1.jpg")
     b, H = warp_pair(a)
@@ -86,9 +87,9 @@ def test_grayscale_input(raw, shared_data):
 
 
 def test_extract_path_reads_16bit_grey_and_exif_rotated_files_like_colmap(raw, tmp_path):
-    """A 16-bit grey scan gives the network the same input as its 8-bit copy (Pillow's convert("RGB")
-    saturated I;16: almost white), and a JPEG tagged 'rotate 90°' is read in its stored frame (COLMAP's
-    keypoints), not as a viewer shows it."""
+    """A 16-bit grey scan gives the network the same input as its 8-bit copy (Pillow's
+    convert("RGB") saturated I;16: almost white), and a JPEG tagged 'rotate 90°' is read in its
+    stored frame (COLMAP's keypoints), not as a viewer shows it."""
     cv2 = pytest.importorskip("cv2")
     from PIL import Image
 
@@ -134,7 +135,8 @@ def test_cli_writes_png(tmp_path, shared_data):
 
 
 def test_match_pairs_batches_like_single_pairs(tmp_path, shared_data):
-    """Dense impl: pairs of equal grid shapes go through the filter as one batch, with the same result."""
+    """Dense impl: pairs of equal grid shapes go through the filter as one batch, with the same
+    result."""
     torch.manual_seed(0)
     weights = save_filter_weights(
         CoarseNet({"pretrained": False}), tmp_path / "f.safetensors", resize_max=128
@@ -156,8 +158,9 @@ def test_match_pairs_batches_like_single_pairs(tmp_path, shared_data):
 
 @pytest.mark.parametrize("precision", ["float16", "bfloat16"])
 def test_half_precision_dense_filter_keeps_the_matches(precision, shared_data):
-    """The GPU option precision=float16/bfloat16 (autocast; run here on CPU) changes almost no argmax of
-    the shipped filter on a real pair. Measured at 384 px: fp16 99.7-100 %, bf16 99.0-99.8 % agreement."""
+    """The GPU option precision=float16/bfloat16 (autocast; run here on CPU) changes almost no
+    argmax of the shipped filter on a real pair. Measured at 384 px: fp16 99.7-100 %, bf16
+    99.0-99.8 % agreement."""
     conf = {"impl": "dense", "resize_max": 256, "device": "cpu"}
     full, half = CoarseMatcher(conf), CoarseMatcher({**conf, "precision": precision})
     fa, fb = (

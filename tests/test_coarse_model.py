@@ -15,7 +15,6 @@ from colmap_guided.coarse.model import (
     transpose_volume,
 )
 
-
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
@@ -55,7 +54,8 @@ def test_filter_is_both_orders_averaged():
 
 
 def test_softmaxes_and_padded_batch(net):
-    """s_ab sums to 1 over B, s_ba over A; a zero-padded batch with masks gives the single-pair values."""
+    """s_ab sums to 1 over B, s_ba over A; a zero-padded batch with masks gives the single-pair
+    values."""
     fa1, fb1 = random_features(112, 3, 4, 3), random_features(112, 4, 4, 4)
     fa2, fb2 = random_features(112, 4, 2, 5), random_features(112, 2, 3, 6)
     with torch.no_grad():
@@ -122,7 +122,8 @@ def test_sparse_with_full_support_equals_dense(net):
 
 
 def test_sparse_support():
-    """Top-k in both directions plus the 3x3 cells around each best match; swapping A and B transposes it."""
+    """Top-k in both directions plus the 3x3 cells around each best match; swapping A and B
+    transposes it."""
     torch.manual_seed(5)
     shape = (4, 5, 6, 3)
     c2 = torch.rand(20, 18)

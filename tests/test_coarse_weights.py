@@ -14,7 +14,6 @@ from colmap_guided.coarse import (
     save_filter_weights,
 )
 
-
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
@@ -100,8 +99,8 @@ def test_raw_net_has_no_filter_to_save(tmp_path):
     "name", ["coarse_filter.safetensors", "coarse_filter_permissive.safetensors"]
 )
 def test_shipped_weights_load_and_record_their_training(name):
-    """Both shipped filters load for the default backbone; the permissive one was trained only on the
-    permissively licensed scenes, and neither saw the held-out evaluation scenes."""
+    """Both shipped filters load for the default backbone; the permissive one was trained only on
+    the permissively licensed scenes, and neither saw the held-out evaluation scenes."""
     from colmap_guided.coarse import DEFAULT_WEIGHTS
     from colmap_guided.train.scenes import PERMISSIVE_SCENES, VAL_SCENES
 
@@ -116,8 +115,8 @@ def test_shipped_weights_load_and_record_their_training(name):
 
 
 def test_every_file_of_the_package_data_folders_is_installed():
-    """The model card, the weights and the training curve it shows, and the report page's script and style
-    sheet, are package data (a wheel has them)."""
+    """The model card, the weights and the training curve it shows, and the report page's script and
+    style sheet, are package data (a wheel has them)."""
     from fnmatch import fnmatchcase
 
     tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
@@ -140,8 +139,9 @@ def test_every_file_of_the_package_data_folders_is_installed():
 
 
 def test_a_finetuned_backbone_travels_with_its_filter(tmp_path):
-    """`train --finetune_backbone` exports the backbone's feature layers with the filter and loading applies
-    them; a filter without them leaves the backbone as built; the pipeline's feature cache tells them apart."""
+    """`train --finetune_backbone` exports the backbone's feature layers with the filter and loading
+    applies them; a filter without them leaves the backbone as built; the pipeline's feature cache
+    tells them apart."""
     torch.manual_seed(0)
     tuned = make_net()
     with torch.no_grad():
@@ -155,9 +155,8 @@ def test_a_finetuned_backbone_travels_with_its_filter(tmp_path):
         "backbone._blocks.10._project_conv.weight" in stored
         and "backbone._blocks.11._project_conv.weight" not in stored
     )
-    assert (
-        not {"backbone._fc.weight", "backbone._conv_head.weight"} & stored
-    )  # the classifier is not used
+    # the classifier is not used
+    assert not {"backbone._fc.weight", "backbone._conv_head.weight"} & stored
 
     x = torch.rand(1, 3, 64, 96) * 255
     loaded = make_net()

@@ -1,4 +1,5 @@
-"""database.py: the only database io, importable without torch (a tool that only reads a database loads no network)."""
+"""database.py: the only database io, importable without torch (a tool that only reads a database
+loads no network)."""
 
 import contextlib
 import re
@@ -17,7 +18,10 @@ from colmap_guided.log import set_verbosity
 
 
 def test_database_io_imports_no_torch():
-    code = "import sys, colmap_guided.database, colmap_guided.verify, colmap_guided.image_data; assert 'torch' not in sys.modules, 'torch imported'"
+    code = (
+        "import sys, colmap_guided.database, colmap_guided.verify, "
+        "colmap_guided.image_data; assert 'torch' not in sys.modules, 'torch imported'"
+    )
     subprocess.run([sys.executable, "-c", code], check=True)
 
 
@@ -50,11 +54,15 @@ def test_no_module_but_database_py_calls_pycolmap_database(tmp_path):
 
 OUR_ERROR = re.compile(r"^\[[\d:]+ colmap_guided ERROR\] (.+)$", re.M)
 # Another program's write transaction on the database, open until this process's stdin closes.
-HOLD_LOCK = "import sqlite3, sys; c = sqlite3.connect(sys.argv[1], isolation_level=None); c.execute('BEGIN IMMEDIATE'); print('locked', flush=True); sys.stdin.read()"
+HOLD_LOCK = (
+    "import sqlite3, sys; c = sqlite3.connect(sys.argv[1], isolation_level=None); "
+    "c.execute('BEGIN IMMEDIATE'); print('locked', flush=True); sys.stdin.read()"
+)
 
 
 def _match_cli(database: Path, capfd) -> tuple[int, str]:
-    """`python -m colmap_guided match` in this process; returns its exit code and its one error line."""
+    """`python -m colmap_guided match` in this process; returns its exit code and its one error
+    line."""
     (database.parent / "images").mkdir(exist_ok=True)
     try:
         code = main(
@@ -100,7 +108,8 @@ def test_a_file_that_is_not_a_colmap_database_is_one_line_and_left_as_it_is(
     tmp_path, capfd, case, says
 ):
     """Random bytes, another program's SQLite database, an empty file: one line naming the file and
-    what to do, from the library and the CLI (exit 2); the file's bytes unchanged, nothing beside it."""
+    what to do, from the library and the CLI (exit 2); the file's bytes unchanged, nothing beside
+    it."""
     database = tmp_path / "database.db"
     if case == "corrupt":
         database.write_bytes(
@@ -127,8 +136,8 @@ def test_a_file_that_is_not_a_colmap_database_is_one_line_and_left_as_it_is(
 def test_a_database_locked_by_another_program_is_one_line_and_left_as_it_is(
     tmp_path, capfd, monkeypatch
 ):
-    """Another program writing to the database: one line saying so (library and CLI), nothing written;
-    once it is done the same database works (its orphan camera removed)."""
+    """Another program writing to the database: one line saying so (library and CLI), nothing
+    written; once it is done the same database works (its orphan camera removed)."""
     database = tmp_path / "database.db"
     with dbio.open_database(
         database, must_exist=False
@@ -164,7 +173,8 @@ def test_a_database_locked_by_another_program_is_one_line_and_left_as_it_is(
 
 
 def test_no_module_but_database_py_opens_sqlite(tmp_path):
-    """Plain SQLite connections (remove_orphans, the checks) are database.py's too, behind its one-line errors."""
+    """Plain SQLite connections (remove_orphans, the checks) are database.py's too, behind its
+    one-line errors."""
     import colmap_guided
 
     package = Path(colmap_guided.__file__).parent

@@ -91,9 +91,8 @@ def test_essential_ransac_recovers_pose_and_fails_on_shuffled_matches(estimator)
     est = metrics.estimate_relative_pose(p1, p2, cam, cam, estimator=estimator)
     err = metrics.relative_pose_error(est["R"], est["t"], R, t)
     assert err["pose"] < 1.0 and est["num_inliers"] > 250
-    if (
-        estimator == "pycolmap"
-    ):  # LO-RANSAC runs all its trials on pure outliers: slow, and cv2 covers it
+    # LO-RANSAC runs all its trials on pure outliers: slow, and cv2 covers it
+    if estimator == "pycolmap":
         return
     shuffled = metrics.estimate_relative_pose(
         p1, rng.permutation(p2), cam, cam, estimator=estimator
@@ -189,9 +188,10 @@ def test_matcher_specs_parse_and_refuse_unknown():
         matcher_specs.parse_spec("raw:ratio")
 
 
-def test_one_preset_name_means_the_same_matcher_on_the_command_line_in_python_and_in_the_benchmarks():
-    """matchers.PRESETS is the one set of named confs: get_matcher, the CLI's --matcher and the benchmark
-    specs resolve a name to the same matcher and options, and every default benchmark row is a preset."""
+def test_one_preset_name_means_the_same_matcher_on_the_command_line_in_python_and_benchmarks():
+    """matchers.PRESETS is the one set of named confs: get_matcher, the CLI's --matcher and the
+    benchmark specs resolve a name to the same matcher and options, and every default benchmark row
+    is a preset."""
     from colmap_guided.__main__ import build_parser
     from colmap_guided.match import matcher_conf_from_args
     from colmap_guided.matchers import PRESETS, get_matcher, resolve_auto
@@ -225,16 +225,15 @@ def test_one_preset_name_means_the_same_matcher_on_the_command_line_in_python_an
         .matcher
         == "auto"
     )
-    assert resolve_auto("auto", "sift") == (
-        "guided",
-        "sift",
-    )  # the drop-in on COLMAP's SIFT database
+    # the drop-in on COLMAP's SIFT database
+    assert resolve_auto("auto", "sift") == ("guided", "sift")
     with pytest.raises(ValueError, match="choose one of"):
         get_matcher("raw_ratio")
 
 
 def test_estimate_geometry_returns_none_when_opencv_asserts(monkeypatch):
-    """OpenCV 5's MAGSAC++ raises (!model.empty()) on some degenerate WxBS match sets: no model, no crash."""
+    """OpenCV 5's MAGSAC++ raises (!model.empty()) on some degenerate WxBS match sets: no model, no
+    crash."""
     import cv2
 
     def failing(*args, **kwargs):

@@ -15,7 +15,8 @@ from colmap_guided.paths import REPO_ROOT
 
 @pytest.mark.parametrize("key", ["train/strecha_entry_P10", "train/instantngp_fox"])
 def test_reference_cameras_agree_with_the_pseudo_ground_truth(shared_data, key):
-    """The Strecha / instant-ngp conversions (axes, K rescaling) agree with the independent COLMAP model."""
+    """The Strecha / instant-ngp conversions (axes, K rescaling) agree with the independent COLMAP
+    model."""
     ref, pseudo = load_reference(key, "reference"), load_reference(key, "pseudo_gt")
     assert ref.source == "reference" and pseudo.source == "pseudo_gt"
     pairs = two_view.sample_pairs(ref, 12, seed=0)
@@ -34,9 +35,8 @@ def test_reference_cameras_agree_with_the_pseudo_ground_truth(shared_data, key):
 
 def test_strecha_castle_frames_are_not_mixed(shared_data):
     ref = load_reference("train/strecha_castle")
-    assert not ref.comparable(
-        "castle-P19_0000.jpg", "castle-P30_0020.jpg"
-    )  # two calibration frames
+    # two calibration frames
+    assert not ref.comparable("castle-P19_0000.jpg", "castle-P30_0020.jpg")
     assert all(ref.comparable(p["a"], p["b"]) for p in two_view.sample_pairs(ref, None))
 
 
@@ -64,8 +64,8 @@ def test_pose_protocol_on_real_pairs(shared_data, sift_cache):
     assert len(errors) == 2
     # the summary is the trapezoid AUC of the per-pair errors
     assert r["summary"]["auc"] == pytest.approx([100 * v for v in metrics.pose_auc(errors)])
-    # raw SIFT on easy Strecha pairs: a right protocol (intrinsics, pixel convention, pose direction)
-    # gives errors of a few degrees at most; a wrong one gives tens of degrees
+    # raw SIFT on easy Strecha pairs: a right protocol (intrinsics, pixel convention, pose
+    # direction) gives errors of a few degrees at most; a wrong one gives tens of degrees
     assert max(errors) < 5.0 and r["summary"]["precision"] > 50
     # the metric itself: reference poses score 100, the poses of the other pair score ~0
     ref = load_reference("train/strecha_entry_P10")
@@ -91,8 +91,8 @@ def test_wxbs_ground_truth_correspondences_score_high(shared_data):
 
 
 def test_eval_two_view_script_in_process(shared_data, sift_cache, tmp_path, capsys):
-    """The script on one pair (features cached by the test above) and one WxBS pair; a matcher it cannot
-    run stops it before any work (a table never loses a row silently)."""
+    """The script on one pair (features cached by the test above) and one WxBS pair; a matcher it
+    cannot run stops it before any work (a table never loses a row silently)."""
     out = tmp_path / "out"
     argv = [
         "--scenes",

@@ -1,4 +1,5 @@
-"""hloc h5 export and import: hloc's layout and conventions, and an exact round trip of the database."""
+"""hloc h5 export and import: hloc's layout and conventions, and an exact round trip of the
+database."""
 
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ from colmap_guided.synthetic import render_scene
 
 @pytest.fixture(scope="module")
 def matched(tmp_path_factory):
-    """A database with SIFT, raw matches and two-view geometries; names with sub-folders and spaces."""
+    """A database with SIFT, raw matches and two-view geometries; names with sub-folders and
+    spaces."""
     root = tmp_path_factory.mktemp("export")
     scene = render_scene(root / "render", num_images=5, width=400, height=300)
     image_path = root / "images"
@@ -65,9 +67,8 @@ def assert_same_database(path_a, path_b, geometry=True):
             assert np.array_equal(ca.params, cb.params), name
             groups_a.setdefault(ia[name].camera_id, set()).add(name)
             groups_b.setdefault(ib[name].camera_id, set()).add(name)
-        assert sorted(map(sorted, groups_a.values())) == sorted(
-            map(sorted, groups_b.values())
-        )  # same camera sharing
+        # same camera sharing
+        assert sorted(map(sorted, groups_a.values())) == sorted(map(sorted, groups_b.values()))
         assert (a.num_rigs(), a.num_frames()) == (b.num_rigs(), b.num_frames())
         names = sorted(ia)
         for i, x in enumerate(names):
@@ -102,16 +103,14 @@ def test_export_has_hlocs_layout(matched, tmp_path):
         h5py.File(tmp_path / "h5" / "matches.h5") as fm,
     ):
         images = _by_name(db)
-        assert (
-            "north side" in fd and "view 0.jpg" in fd["north side"]
-        )  # '/' in a name: nested groups, as hloc's
+        # '/' in a name: nested groups, as hloc's
+        assert "north side" in fd and "view 0.jpg" in fd["north side"]
         for name, im in images.items():
             grp = fd[name]
             kp = np.asarray(db.read_keypoints(im.image_id))
             assert grp["keypoints"].shape == (len(kp), 2)
-            assert np.array_equal(
-                grp["keypoints"][()], kp[:, :2] - 0.5
-            )  # hloc: pixel centre at integers
+            # hloc: pixel centre at integers
+            assert np.array_equal(grp["keypoints"][()], kp[:, :2] - 0.5)
             assert (
                 grp["descriptors"].shape == (128, len(kp)) and grp["descriptors"].dtype == np.uint8
             )
@@ -160,7 +159,8 @@ def test_round_trip_gives_the_same_database_and_it_maps(matched, tmp_path):
 
 
 def test_import_of_plain_hloc_files_default_cameras_then_verification(matched, tmp_path):
-    """Files with only hloc's datasets (no colmap_ extras): COLMAP default cameras, then verification."""
+    """Files with only hloc's datasets (no colmap_ extras): COLMAP default cameras, then
+    verification."""
     export_h5(matched["database"], tmp_path / "ours")
     plain = tmp_path / "plain"
     plain.mkdir()
@@ -202,9 +202,8 @@ def test_import_of_plain_hloc_files_default_cameras_then_verification(matched, t
                 a.read_descriptors(ia[name].image_id).data,
                 b.read_descriptors(ib[name].image_id).data,
             )
-            camera = b.read_camera(
-                ib[name].camera_id
-            )  # COLMAP's default camera: no EXIF in hloc's files
+            # COLMAP's default camera: no EXIF in hloc's files
+            camera = b.read_camera(ib[name].camera_id)
             assert camera.model.name == "SIMPLE_RADIAL" and camera.params[0] == pytest.approx(
                 1.2 * 400
             )

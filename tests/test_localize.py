@@ -1,6 +1,7 @@
-"""`localize` on a real COLMAP workspace: a model of six synthetic views, two held-out views placed on their
-true poses (one without EXIF: focal length estimated), a photo of another scene not placed, the model only
-read, a rerun that redoes nothing, and --add writing a new model version beside the old one."""
+"""`localize` on a real COLMAP workspace: a model of six synthetic views, two held-out views placed
+on their true poses (one without EXIF: focal length estimated), a photo of another scene not placed,
+the model only read, a rerun that redoes nothing, and --add writing a new model version beside the
+old one."""
 
 from __future__ import annotations
 
@@ -55,8 +56,9 @@ def pose_of(entry: dict) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.fixture(scope="module")
 def workspace(synthetic_scene, tmp_path_factory):
-    """A reconstruct workspace of the synthetic views but the held-out ones; the photos to localize: a held-out
-    view, the other re-saved without EXIF (a scan: no focal length), a view of another scene, a missing file."""
+    """A reconstruct workspace of the synthetic views but the held-out ones; the photos to localize:
+    a held-out view, the other re-saved without EXIF (a scan: no focal length), a view of another
+    scene, a missing file."""
     root = tmp_path_factory.mktemp("localize")
     model_images = root / "model" / "images"
     model_images.mkdir(parents=True)
@@ -69,9 +71,8 @@ def workspace(synthetic_scene, tmp_path_factory):
     assert result["num_registered"] >= 5
     scans = root / "scans"
     scans.mkdir()
-    Image.open(synthetic_scene.image_dir / HELD_OUT[1]).save(
-        scans / HELD_OUT[1], quality=95
-    )  # no EXIF
+    # no EXIF
+    Image.open(synthetic_scene.image_dir / HELD_OUT[1]).save(scans / HELD_OUT[1], quality=95)
     other = render_scene(root / "other", num_images=2, seed=5)
     (ws / "notes.txt").write_text("the user's own notes\n")
     photos = [
@@ -145,9 +146,8 @@ def test_a_photo_of_another_place_and_a_missing_file_are_not_placed(first, works
 def test_the_model_photos_and_user_files_are_only_read(first, workspace):
     ws, before = workspace["ws"], workspace["before"]
     assert digests(ws / "sparse") == before["sparse"]
-    assert (
-        database_content(ws / "database.db") == before["database"]
-    )  # COLMAP's open rewrites its header only
+    # COLMAP's open rewrites its header only
+    assert database_content(ws / "database.db") == before["database"]
     assert {
         str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in workspace["photos"]
     } == before["photos"]
@@ -169,9 +169,8 @@ def test_the_report_shows_the_localized_photos(first, workspace):
     data = json.loads(
         re.search(r"<script[^>]*id='model-data'[^>]*>(.*?)</script>", page, re.DOTALL).group(1)
     )
-    shown = {
-        c["name"] for c in data["cameras"] if c["era"] == "localized"
-    }  # highlighted in the 3D view
+    # highlighted in the 3D view
+    shown = {c["name"] for c in data["cameras"] if c["era"] == "localized"}
     assert {Path(name).name for name in shown} == set(HELD_OUT)
 
 
@@ -191,7 +190,8 @@ def logged(*args, **kwargs) -> tuple[dict, list[str]]:
 
 @pytest.fixture(scope="module")
 def second(first, workspace):
-    """The same command again, with --add: nothing is localized again, a new model version is written."""
+    """The same command again, with --add: nothing is localized again, a new model version is
+    written."""
     return logged(workspace["ws"], workspace["photos"], add=True)
 
 
@@ -199,9 +199,8 @@ def test_a_rerun_redoes_nothing(first, second):
     out, messages = second
     assert any("3 of 3 photo(s) already localized" in m for m in messages), messages
     assert not any(m.startswith(("Extracting", "Matching")) for m in messages), messages
-    assert (
-        out["photos"] == first[0]["photos"][:3]
-    )  # the same entries, times included: not computed again
+    # the same entries, times included: not computed again
+    assert out["photos"] == first[0]["photos"][:3]
 
 
 def test_add_writes_a_new_model_version_and_keeps_the_old_one(second, workspace, synthetic_scene):
@@ -258,9 +257,8 @@ def test_reconstruct_overwrite_removes_what_localize_wrote_and_nothing_else(
 
     copy = tmp_path / "ws"
     shutil.copytree(workspace["ws"], copy)
-    Workspace.claim(
-        copy, "reconstruct", overwrite=True
-    )  # what `reconstruct --overwrite` does first
+    # what `reconstruct --overwrite` does first
+    Workspace.claim(copy, "reconstruct", overwrite=True)
     assert sorted(p.name for p in copy.iterdir()) == [".colmap_guided.json", "notes.txt"]
 
 
@@ -288,8 +286,8 @@ def test_the_command_retrieves_the_top_k_model_images(second, workspace, tmp_pat
 
 
 def test_a_run_killed_before_the_poses_continues_from_the_database(second, workspace, tmp_path):
-    """localize.db holds the photos' keypoints and matches: without localized.json (a run killed after
-    matching), the rerun extracts and matches nothing again and finds the same poses."""
+    """localize.db holds the photos' keypoints and matches: without localized.json (a run killed
+    after matching), the rerun extracts and matches nothing again and finds the same poses."""
     copy = tmp_path / "ws"
     shutil.copytree(workspace["ws"], copy)
     (copy / "localized.json").unlink()

@@ -8,17 +8,18 @@ import numpy as np
 import pycolmap
 import pytest
 
+from colmap_guided.evaluation.ground_truth import pose_errors
 from colmap_guided.mapping import MAPPERS, check_conf, run_mapping
 from colmap_guided.model_check import check_models
-from colmap_guided.evaluation.ground_truth import pose_errors
 
 NUM_FRAMES = 12
 
 
 @pytest.fixture(scope="module")
 def thin_chain(tmp_path_factory) -> str:
-    """A chain of 12 photos in which each point is seen by 3 consecutive photos only: neighbours share 50
-    verified inliers, second neighbours 25 (a thin but correct view graph, like a ring of archival views)."""
+    """A chain of 12 photos in which each point is seen by 3 consecutive photos only: neighbours
+    share 50 verified inliers, second neighbours 25 (a thin but correct view graph, like a ring of
+    archival views)."""
     path = tmp_path_factory.mktemp("thin") / "database.db"
     options = pycolmap.SyntheticDatasetOptions()
     options.num_rigs, options.num_cameras_per_rig, options.num_frames_per_rig = 1, 1, NUM_FRAMES
@@ -28,9 +29,8 @@ def thin_chain(tmp_path_factory) -> str:
     with pycolmap.Database.open(str(path)) as db:
         gt = pycolmap.synthesize_dataset(options, db)
         ids = sorted(gt.reg_image_ids(), key=lambda i: gt.images[i].name)
-        window = {
-            pid: k % NUM_FRAMES for k, pid in enumerate(sorted(gt.points3D))
-        }  # first photo that sees it
+        # first photo that sees it
+        window = {pid: k % NUM_FRAMES for k, pid in enumerate(sorted(gt.points3D))}
         for i in range(NUM_FRAMES - 1):
             a, b = ids[i], ids[i + 1]
             in_b = {p.point3D_id: k for k, p in enumerate(gt.images[b].points2D) if p.has_point3D()}
@@ -56,7 +56,8 @@ def thin_chain(tmp_path_factory) -> str:
 
 
 def test_colmap_thresholds_break_the_thin_chain(thin_chain, tmp_path):
-    """The test can fail: COLMAP's registration threshold (30 2D-3D inliers) stops at the initial pair."""
+    """The test can fail: COLMAP's registration threshold (30 2D-3D inliers) stops at the initial
+    pair."""
     options = pycolmap.IncrementalPipelineOptions()
     options.min_model_size, options.num_threads, options.random_seed = 2, 1, 0
     models = pycolmap.incremental_mapping(thin_chain, str(tmp_path), str(tmp_path), options)
@@ -104,9 +105,9 @@ def test_mapping_conf_is_strict():
 
 
 def test_cli_global_mapping(synthetic_scene, tmp_path):
-    """`reconstruct --mapper global --seed 3 --threads 1`: true poses, the options in report.json. Global
-    mapping leaves out view_007, whose only strong pair is planar (149 inliers to view_006; 17 to
-    view_005), where incremental mapping registers all 8."""
+    """`reconstruct --mapper global --seed 3 --threads 1`: true poses, the options in report.json.
+    Global mapping leaves out view_007, whose only strong pair is planar (149 inliers to view_006;
+    17 to view_005), where incremental mapping registers all 8."""
     out = tmp_path / "out"
     run = subprocess.run(
         [
@@ -161,13 +162,10 @@ def test_model_check_passes_a_real_model_and_flags_a_corrupted_focal(lund_door):
         "problems": [],
         "conf": check_models({})["conf"],
     }
-    camera = next(
-        iter(lund_door.cameras.values())
-    )  # the model's own camera object: edited in place
-    camera.params = [
-        camera.params[0] * 1000,
-        *camera.params[1:],
-    ]  # 2.4 million px: an orthographic camera
+    # the model's own camera object: edited in place
+    camera = next(iter(lund_door.cameras.values()))
+    # 2.4 million px: an orthographic camera
+    camera.params = [camera.params[0] * 1000, *camera.params[1:]]
     checked = check_models({0: lund_door})
     assert not checked["ok"]
     focal = [p for p in checked["problems"] if "focal length" in p]
@@ -181,9 +179,10 @@ def test_model_check_passes_a_real_model_and_flags_a_corrupted_focal(lund_door):
 def test_model_check_flags_a_pose_jump(lund_door):
     image = next(im for im in lund_door.images.values() if im.name == "DSC_0005.JPG")
     frame = lund_door.frames[image.frame_id]
+    # 90° about x
     turn = pycolmap.Rigid3d(
         pycolmap.Rotation3d(np.array([np.sin(np.pi / 4), 0, 0, np.cos(np.pi / 4)])), np.zeros(3)
-    )  # 90° about x
+    )
     frame.rig_from_world = turn * frame.rig_from_world
     problems = check_models({0: lund_door})["problems"]
     assert any("pose jump" in p and "DSC_0005.JPG" in p for p in problems), problems
@@ -196,8 +195,8 @@ def _keep_observations(rec: pycolmap.Reconstruction, image: pycolmap.Image, keep
 
 
 def test_photos_on_too_few_3d_points_are_taken_out_until_none_is_left(lund_door):
-    """A photo observing 10 3D points goes; one observing 16, 3 of them seen only with the first, is left
-    with 13 and goes too; every other photo stays, each on >= 15 points."""
+    """A photo observing 10 3D points goes; one observing 16, 3 of them seen only with the first, is
+    left with 13 and goes too; every other photo stays, each on >= 15 points."""
     from colmap_guided.mapping import prune_weak_images
 
     a, b = (
@@ -210,9 +209,10 @@ def test_photos_on_too_few_3d_points_are_taken_out_until_none_is_left(lund_door)
     )
     only_b = sorted({p.point3D_id for p in b.points2D if p.has_point3D()} - set(shared))
     for pid in shared[:3]:  # three points seen by a and b only
+        # copied: the track changes
         for image_id, idx in [
             (el.image_id, el.point2D_idx) for el in lund_door.points3D[pid].track.elements
-        ]:  # copied: the track changes
+        ]:
             if image_id not in (a.image_id, b.image_id):
                 lund_door.delete_observation(image_id, idx)
     _keep_observations(lund_door, a, set(shared[:10]))
@@ -231,8 +231,8 @@ def test_photos_on_too_few_3d_points_are_taken_out_until_none_is_left(lund_door)
 def test_pose_support_counts_the_inliers_a_model_explains_and_drops_for_a_wrong_pose(
     thin_chain, tmp_path
 ):
-    """``auto``'s tie-break: a right model explains every verified inlier between its photos; turning one photo
-    by 20° leaves its pairs' inliers unexplained (the other pairs keep theirs)."""
+    """``auto``'s tie-break: a right model explains every verified inlier between its photos;
+    turning one photo by 20° leaves its pairs' inliers unexplained (the other pairs keep theirs)."""
     from colmap_guided import database as dbio
     from colmap_guided.mapping import auto_key, pose_support
 
@@ -247,10 +247,8 @@ def test_pose_support_counts_the_inliers_a_model_explains_and_drops_for_a_wrong_
         NUM_FRAMES,
         pose_support(rec, thin_chain),
     ) and auto_key(None, thin_chain) == (False, 0, 0)
-    assert auto_key(rec, None)[1:] == (NUM_FRAMES,) and auto_key(None, None) == (
-        False,
-        0,
-    )  # pose support left out
+    # pose support left out
+    assert auto_key(rec, None)[1:] == (NUM_FRAMES,) and auto_key(None, None) == (False, 0)
     image = next(
         im
         for im in rec.images.values()
@@ -258,8 +256,9 @@ def test_pose_support_counts_the_inliers_a_model_explains_and_drops_for_a_wrong_
     )
     own = sum(len(m) for pair, m in inliers.items() if image.image_id in pair)
     frame = rec.frames[image.frame_id]
+    # 20° about y
     turn = pycolmap.Rigid3d(
         pycolmap.Rotation3d(np.array([0, np.sin(np.pi / 18), 0, np.cos(np.pi / 18)])), np.zeros(3)
-    )  # 20° about y
+    )
     frame.rig_from_world = turn * frame.rig_from_world
     assert own >= 100 and pose_support(rec, thin_chain) <= total - 0.95 * own

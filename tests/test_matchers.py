@@ -1,4 +1,5 @@
-"""Raw, guided (eq. 1) and classical guided matching against brute-force references and known geometry."""
+"""Raw, guided (eq. 1) and classical guided matching against brute-force references and known
+geometry."""
 
 import logging
 import warnings
@@ -30,7 +31,8 @@ def _unit(x):
 
 
 def _reference_mutual(dist: np.ndarray, ratio):
-    """Brute force on a full (N, M) distance matrix, inf = not a candidate: mutual NN + ratio both ways."""
+    """Brute force on a full (N, M) distance matrix, inf = not a candidate: mutual NN + ratio both
+    ways."""
     matches = []
     for i in range(dist.shape[0]):
         row = dist[i]
@@ -91,14 +93,14 @@ def test_raw_matcher_on_uint8_descriptors_normalises_them():
         _pairwise(_unit(desc_a.astype(np.float64)), _unit(desc_b.astype(np.float64))), 0.8
     )
     np.testing.assert_array_equal(got, expected)
-    np.testing.assert_array_equal(
-        got[:, 1], 199 - got[:, 0]
-    )  # desc_b is desc_a reversed, perturbed
+    # desc_b is desc_a reversed, perturbed
+    np.testing.assert_array_equal(got[:, 1], 199 - got[:, 0])
 
 
 def _random_guided_problem(seed, n=900, m=800, clustered=False):
-    """Random eq. 1 problem; ``clustered`` puts half the keypoints in a few small blobs, as on textured
-    facades, so that many queries share a window (more than one unit of queries per cell)."""
+    """Random eq. 1 problem; ``clustered`` puts half the keypoints in a few small blobs, as on
+    textured facades, so that many queries share a window (more than one unit of queries per
+    cell)."""
     g = torch.Generator().manual_seed(seed)
     ka = torch.rand(n, 2, generator=g) * torch.tensor([640.0, 480.0])
     kb = torch.rand(m, 2, generator=g) * torch.tensor([600.0, 500.0])
@@ -127,9 +129,8 @@ def test_guided_equals_bruteforce_eq1(ratio, clustered):
     cand_ab = np.linalg.norm(fab.numpy()[:, None] - kb.numpy()[None], axis=-1) < wb  # nan -> False
     cand_ba = np.linalg.norm(ka.numpy()[:, None] - fba.numpy()[None], axis=-1) < wa
     if clustered:
-        assert (
-            cand_ab.sum(1).max() > 100
-        )  # windows far larger than one unit of queries or one block
+        # windows far larger than one unit of queries or one block
+        assert cand_ab.sum(1).max() > 100
     expected = _reference_guided(dist, cand_ab, cand_ba, ratio)
     for max_pairs in (1, 5000, 1 << 20):
         np.testing.assert_array_equal(
@@ -140,7 +141,8 @@ def test_guided_equals_bruteforce_eq1(ratio, clustered):
 
 
 def _reference_guided(dist, cand_ab, cand_ba, ratio):
-    """Eq. 1 in both directions by brute force: per-direction candidate sets, mutual, ratio among candidates."""
+    """Eq. 1 in both directions by brute force: per-direction candidate sets, mutual, ratio among
+    candidates."""
 
     def one_way(d, cand):
         best, ok = np.zeros(len(d), np.int64), np.zeros(len(d), bool)
@@ -175,9 +177,8 @@ def test_guided_chunked_equals_unchunked_window_and_mutual():
         )
     i, j = full[:, 0], full[:, 1]
     assert len(full) > 100
-    assert torch.all(
-        torch.linalg.norm(fab[i] - kb[j], dim=1) < wb
-    )  # within W of its coarse match in B
+    # within W of its coarse match in B
+    assert torch.all(torch.linalg.norm(fab[i] - kb[j], dim=1) < wb)
     assert torch.all(torch.linalg.norm(fba[j] - ka[i], dim=1) < wa)  # and in A
     assert len(torch.unique(i)) == len(i) and len(torch.unique(j)) == len(j)
     reverse = guided_match(kb, db, ka, da, fba, fab, wb, wa, 0.95)  # the mutual test is symmetric
@@ -198,7 +199,8 @@ def _sift(gray: np.ndarray):
 
 
 def _facade(h=480, w=640, period=(48, 40)):
-    """A periodic facade: identical windows with mullions on a smooth wall, no distinctive detail."""
+    """A periodic facade: identical windows with mullions on a smooth wall, no distinctive
+    detail."""
     y, x = np.mgrid[0:h, 0:w].astype(np.float32)
     img = 150 + 0.05 * x
     wy, wx = period
@@ -249,9 +251,8 @@ def test_repeated_structure_confuses_raw_but_not_guided(facade_pair):
     flow_ab, flow_ba = apply_homography(H, ta), apply_homography(torch.linalg.inv(H), tb)
     guided = guided_match(ta, na, tb, nb, flow_ab, flow_ba, 16.0, 16.0, 0.8).numpy()
     raw_correct = len(raw) * _share_correct(raw, ka, kb, H_TRUE)
-    assert (
-        raw_correct < 20 and _share_correct(raw_off, ka, kb, H_TRUE) < 0.3
-    )  # the period fools nearest neighbours
+    # the period fools nearest neighbours
+    assert raw_correct < 20 and _share_correct(raw_off, ka, kb, H_TRUE) < 0.3
     assert len(guided) > 500 and _share_correct(guided, ka, kb, H_TRUE) > 0.9
     assert np.all(
         np.linalg.norm(flow_ab.numpy()[guided[:, 0]] - kb[guided[:, 1], :2], axis=1) < 16.0
@@ -260,7 +261,8 @@ def test_repeated_structure_confuses_raw_but_not_guided(facade_pair):
 
 @pytest.fixture(scope="module")
 def photo_pair(tmp_path_factory):
-    """A real photo and its warp by a known homography, written as files (SIFT at 640 px to stay fast)."""
+    """A real photo and its warp by a known homography, written as files (SIFT at 640 px to stay
+    fast)."""
     path = shared_data_dir() / "lightglue_assets" / "images" / "sacre_coeur1.jpg"
     if not path.exists():
         pytest.skip(f"{path} not available")
@@ -312,7 +314,8 @@ def test_classical_guided_baselines_on_known_homography(photo_pair, name):
 
 
 def test_colmap_guided_matching_on_known_homography(photo_pair):
-    """COLMAP's own guided matching re-matches along the verified geometry: more matches, still right, one-to-one."""
+    """COLMAP's own guided matching re-matches along the verified geometry: more matches, still
+    right, one-to-one."""
 
     def as_stored(im):  # SIFT as COLMAP's database stores it (uint8)
         return ImageData(
@@ -331,9 +334,8 @@ def test_colmap_guided_matching_on_known_homography(photo_pair):
     assert len(got) > len(raw) and _share_correct(got, a.keypoints, b.keypoints, H) > 0.9
     assert len(np.unique(got[:, 0])) == len(got) and len(np.unique(got[:, 1])) == len(got)
     with pytest.raises(ValueError, match="SIFT"):
-        get_matcher("guided_colmap", {"device": "cpu"}).match(
-            photo_pair[0], photo_pair[1]
-        )  # float descriptors
+        # float descriptors
+        get_matcher("guided_colmap", {"device": "cpu"}).match(photo_pair[0], photo_pair[1])
 
 
 def test_epipolar_distance_convention_matches_pycolmap():
@@ -354,9 +356,8 @@ def test_keypoint_scales_from_affine_and_scale_columns():
     kp4 = np.array([[0, 0, 2.0, 0.3], [0, 0, 5.0, 1.0], [0, 0, 1.0, 0.0]], np.float32)
     theta = 0.7
     rot = np.array([np.cos(theta), -np.sin(theta), np.sin(theta), np.cos(theta)])
-    kp6 = np.concatenate(
-        [np.zeros((3, 2)), kp4[:, 2:3] * rot], 1
-    )  # COLMAP affine: scale * rotation
+    # COLMAP affine: scale * rotation
+    kp6 = np.concatenate([np.zeros((3, 2)), kp4[:, 2:3] * rot], 1)
     np.testing.assert_allclose(keypoint_scales(kp6), kp4[:, 2], rtol=1e-6)
     np.testing.assert_array_equal(top_scale_indices(kp4, 0.34), [1])
 
@@ -419,8 +420,8 @@ def test_guided_matcher_weights_fallback_is_loud(tmp_path):
 
 @pytest.mark.parametrize("ratio, raw_ratio", [(0.8, 0.8), (0.9, 0.8), (0.8, None)])
 def test_raw_merge_adds_raw_matches_of_unmatched_keypoints_only(photo_pair, ratio, raw_ratio):
-    """raw_matches="merge": the guided matches (ratio), plus raw matches (raw_ratio) whose keypoints guidance left
-    unmatched; one-to-one."""
+    """raw_matches="merge": the guided matches (ratio), plus raw matches (raw_ratio) whose keypoints
+    guidance left unmatched; one-to-one."""
     a, b, _ = photo_pair
     guided = get_matcher("guided", {"device": "cpu", "raw_matches": None})
     flows = guided.coarse_flows(a, b)
@@ -436,19 +437,17 @@ def test_raw_merge_adds_raw_matches_of_unmatched_keypoints_only(photo_pair, rati
     )
     assert len(np.unique(both[:, 0])) == len(both) and len(np.unique(both[:, 1])) == len(both)
     with pytest.raises(ValueError, match=r"takes no option \['min_inliers'\] after its guidance"):
-        guided.match_flows(
-            a, b, flows, min_inliers=15
-        )  # a verification option, not one applied after the flows
+        # a verification option, not one applied after the flows
+        guided.match_flows(a, b, flows, min_inliers=15)
     in_both, ga, gb = {tuple(m) for m in both}, set(only[:, 0]), set(only[:, 1])
-    assert all(
-        tuple(m) in in_both or m[0] in ga or m[1] in gb for m in raw
-    )  # a raw match is kept unless guidance overrules it
+    # a raw match is kept unless guidance overrules it
+    assert all(tuple(m) in in_both or m[0] in ga or m[1] in gb for m in raw)
 
 
 def test_matching_uses_one_torch_thread_and_leaves_the_process_as_it_was(synthetic_scene, tmp_path):
-    """A library changes no global state: building a guided matcher leaves torch's thread count alone;
-    match_database matches with the matcher's torch_threads (1 on CPU, the pipeline's speed) and restores
-    it. The pair workers still count on one torch thread per pair."""
+    """A library changes no global state: building a guided matcher leaves torch's thread count
+    alone; match_database matches with the matcher's torch_threads (1 on CPU, the pipeline's speed)
+    and restores it. The pair workers still count on one torch thread per pair."""
     import os
 
     import pycolmap
@@ -477,8 +476,9 @@ def test_matching_uses_one_torch_thread_and_leaves_the_process_as_it_was(synthet
 
 
 def test_default_camera_is_the_one_colmaps_feature_extractor_writes(synthetic_scene, tmp_path):
-    """verify.default_camera (the camera of a pair without a database: guided_colmap, imports of plain
-    hloc files, benchmarks) equals the camera pycolmap's extractor writes for a photo without EXIF focal."""
+    """verify.default_camera (the camera of a pair without a database: guided_colmap, imports of
+    plain hloc files, benchmarks) equals the camera pycolmap's extractor writes for a photo without
+    EXIF focal."""
     import pycolmap
     from PIL import Image
 
@@ -501,9 +501,10 @@ def test_default_camera_is_the_one_colmaps_feature_extractor_writes(synthetic_sc
 
 
 def test_raw_matches_verified_never_loses_what_raw_matching_verifies(photo_pair):
-    """raw_matches='verified' (default): with the coarse flow wrong across the whole pair (shifted by 120 px),
-    guided matching alone verifies little, and the matcher keeps the raw side's verified inliers instead;
-    with the right flow it verifies at least as many inliers as the better side."""
+    """raw_matches='verified' (default): with the coarse flow wrong across the whole pair
+    (shifted by 120 px), guided matching alone verifies little, and the matcher keeps the raw side's
+    verified inliers instead; with the right flow it verifies at least as many inliers as the better
+    side."""
     import dataclasses
 
     from colmap_guided import verify
@@ -541,10 +542,10 @@ def test_raw_matches_verified_never_loses_what_raw_matching_verifies(photo_pair)
 def test_a_new_matcher_plugs_into_the_pipeline_through_the_base_class_only(
     synthetic_scene, tmp_path
 ):
-    """What match_database asks of a matcher is declared on Matcher: ``prepare`` runs once per image, before
-    its first pair, and what it puts in ``image.extra`` reaches ``match``; ``verification_conf`` sets the
-    pair's two-view verification (an impossible 10**6 inliers: no pair verifies); ``release`` comes once
-    per image after its last pair."""
+    """What match_database asks of a matcher is declared on Matcher: ``prepare`` runs once per
+    image, before its first pair, and what it puts in ``image.extra`` reaches ``match``;
+    ``verification_conf`` sets the pair's two-view verification (an impossible 10**6 inliers: no
+    pair verifies); ``release`` comes once per image after its last pair."""
     import pycolmap
 
     from colmap_guided import database as dbio
@@ -593,7 +594,8 @@ def test_a_new_matcher_plugs_into_the_pipeline_through_the_base_class_only(
             dbio.read_image_data(database, image, synthetic_scene.image_dir)
             for image in list(dbio.images_by_name(database).values())[:2]
         )
-    # A matcher without a guidance step runs variants through the same two-step calls as the guided one.
+    # A matcher without a guidance step runs variants through the same two-step calls as the guided
+    # one.
     matcher.prepare(a), matcher.prepare(b)
     assert np.array_equal(
         matcher.match_flows(a, b, matcher.coarse_flows(a, b)), matcher.raw.match(a, b)
@@ -603,9 +605,9 @@ def test_a_new_matcher_plugs_into_the_pipeline_through_the_base_class_only(
 
 
 def test_raw_matches_verified_keeps_a_raw_pair_at_colmaps_threshold_and_guided_at_25():
-    """A pair whose raw matches verify 20 inliers (COLMAP's 15 would keep it) and whose guided matches are
-    chance matches: the raw matches are kept and pass the pipeline's verification; 20 correct guided matches
-    alone (under the guided 25) do not pass."""
+    """A pair whose raw matches verify 20 inliers (COLMAP's 15 would keep it) and whose guided
+    matches are chance matches: the raw matches are kept and pass the pipeline's verification; 20
+    correct guided matches alone (under the guided 25) do not pass."""
     from colmap_guided import verify
 
     rng = np.random.default_rng(0)
@@ -613,9 +615,10 @@ def test_raw_matches_verified_keeps_a_raw_pair_at_colmaps_threshold_and_guided_a
     pts = rng.uniform(50, 590, (300, 2)).astype(np.float32)
     proj = np.c_[pts, np.ones(len(pts))] @ H.T
     kp_b = (proj[:, :2] / proj[:, 2:]).astype(np.float32)
-    keypoints = lambda xy: np.c_[xy, np.ones((len(xy), 1)), np.zeros((len(xy), 1))].astype(
-        np.float32
-    )
+
+    def keypoints(xy):
+        return np.c_[xy, np.ones((len(xy), 1)), np.zeros((len(xy), 1))].astype(np.float32)
+
     desc = np.zeros((len(pts), 128), np.uint8)
     a = ImageData("a.jpg", 1, Path("a.jpg"), keypoints(pts), desc, 640, 640)
     b = ImageData("b.jpg", 2, Path("b.jpg"), keypoints(kp_b), desc, 640, 640)
@@ -633,28 +636,27 @@ def test_raw_matches_verified_keeps_a_raw_pair_at_colmaps_threshold_and_guided_a
             ).inlier_matches
         )
 
-    t = lambda m: torch.from_numpy(np.asarray(m, np.int64))
+    def t(m):
+        return torch.from_numpy(np.asarray(m, np.int64))
+
     kept = guided.verified_best(a, b, t(chance), t(np.r_[right, chance[:30]]))
-    assert (
-        verified(kept) == 20
-    )  # the raw pair, as plain COLMAP keeps it (before: lost under the guided 25)
-    assert (
-        verified(guided.verified_best(a, b, t(right), t(chance))) == 0
-    )  # 20 guided inliers < 25: rejected
+    # the raw pair, as plain COLMAP keeps it (before: lost under the guided 25)
+    assert verified(kept) == 20
+    # 20 guided inliers < 25: rejected
+    assert verified(guided.verified_best(a, b, t(right), t(chance))) == 0
     more = np.stack([np.arange(30), np.arange(30)], 1)
-    assert (
-        verified(guided.verified_best(a, b, t(more), t(chance))) == 30
-    )  # >= 25 guided inliers pass
+    # >= 25 guided inliers pass
+    assert verified(guided.verified_best(a, b, t(more), t(chance))) == 30
     assert get_matcher("guided", {"device": "cpu", "raw_matches": None}).verification_conf == {
         "min_num_inliers": 25
     }
 
 
 def test_raw_matches_verified_keeps_the_raw_pair_when_the_guided_geometry_contradicts_it():
-    """Guided and raw matches that both verify on their own but tell two different epipolar geometries (one
-    of them holds wrong inliers its own RANSAC accepted: proxy sacre_coeur_hloc_realistic, 30-60 % wrong
-    inliers on 11 of 45 pairs): the raw matches are kept, as plain COLMAP keeps the pair; when the two
-    agree, the union of their inliers."""
+    """Guided and raw matches that both verify on their own but tell two different epipolar
+    geometries (one of them holds wrong inliers its own RANSAC accepted: proxy
+    sacre_coeur_hloc_realistic, 30-60 % wrong inliers on 11 of 45 pairs): the raw matches are kept,
+    as plain COLMAP keeps the pair; when the two agree, the union of their inliers."""
     from colmap_guided import verify
 
     rng = np.random.default_rng(1)
@@ -668,12 +670,12 @@ def test_raw_matches_verified_keeps_the_raw_pair_when_the_guided_geometry_contra
 
     X = np.c_[rng.uniform(-2, 2, (200, 2)), rng.uniform(6, 10, 200)]  # a deep, non-planar scene
     kp_a = project(X, 0, np.zeros(3))
-    kp_b = np.r_[
-        project(X, 12, np.array([-1.0, 0, 0])), project(X, -15, np.array([0.8, 0.3, 0]))
-    ]  # true view, then a wrong one
-    keypoints = lambda xy: np.c_[xy, np.ones((len(xy), 1)), np.zeros((len(xy), 1))].astype(
-        np.float32
-    )
+    # true view, then a wrong one
+    kp_b = np.r_[project(X, 12, np.array([-1.0, 0, 0])), project(X, -15, np.array([0.8, 0.3, 0]))]
+
+    def keypoints(xy):
+        return np.c_[xy, np.ones((len(xy), 1)), np.zeros((len(xy), 1))].astype(np.float32)
+
     desc = np.zeros((len(kp_b), 128), np.uint8)
     a = ImageData("a.jpg", 1, Path("a.jpg"), keypoints(kp_a), desc[:200], 640, 640)
     b = ImageData("b.jpg", 2, Path("b.jpg"), keypoints(kp_b), desc, 640, 640)
@@ -687,24 +689,25 @@ def test_raw_matches_verified_keeps_the_raw_pair_when_the_guided_geometry_contra
 
     right_raw = np.stack([np.arange(0, 40), np.arange(0, 40)], 1)
     right_guided = np.stack([np.arange(20, 100), np.arange(20, 100)], 1)
-    wrong_guided = np.stack(
-        [np.arange(100, 180), np.arange(300, 380)], 1
-    )  # a consistent but wrong geometry
+    # a consistent but wrong geometry
+    wrong_guided = np.stack([np.arange(100, 180), np.arange(300, 380)], 1)
     assert len(verified(right_raw)) == 40 and len(verified(wrong_guided)) == 80
-    t = lambda m: torch.from_numpy(np.asarray(m, np.int64))
+
+    def t(m):
+        return torch.from_numpy(np.asarray(m, np.int64))
+
     guided = get_matcher("guided", {"device": "cpu"})
     wrong_geometry = verify.verify_pair(
         cam, a.keypoints, cam, b.keypoints, wrong_guided.astype(np.uint32), options
     )
-    assert (
-        verify.agreement(wrong_geometry, a.keypoints, b.keypoints, right_raw, 4.0) < 0.2
-    )  # the raw inliers do not fit it
+    # the raw inliers do not fit it
+    assert verify.agreement(wrong_geometry, a.keypoints, b.keypoints, right_raw, 4.0) < 0.2
     kept = guided.verified_best(a, b, t(wrong_guided), t(right_raw))
     assert np.array_equal(kept.numpy(), right_raw)  # 40 raw inliers, not the 80 wrong guided ones
     union = np.asarray(verified(guided.verified_best(a, b, t(right_guided), t(right_raw))))
-    assert len(union) == 100 and set(union[:, 0]) == set(
-        range(100)
-    )  # agreeing sides: the union of both
+    # agreeing sides: the union of both
+    assert len(union) == 100 and set(union[:, 0]) == set(range(100))
+    # the old choice
     assert (
         len(
             verified(
@@ -714,4 +717,4 @@ def test_raw_matches_verified_keeps_the_raw_pair_when_the_guided_geometry_contra
             )
         )
         == 80
-    )  # the old choice
+    )

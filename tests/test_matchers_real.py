@@ -1,4 +1,5 @@
-"""Guided matching with the real coarse network on real photos (slow: SIFT + backbone on full images)."""
+"""Guided matching with the real coarse network on real photos (slow: SIFT + backbone on full
+images)."""
 
 import cv2
 import numpy as np
@@ -18,9 +19,8 @@ def _image_data(path, image_id):
         pytest.skip(f"{path} not available")
     gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     keypoints, descriptors = pycolmap.Sift().extract(np.ascontiguousarray(gray))
-    descriptors = np.clip(np.round(descriptors * 512), 0, 255).astype(
-        np.uint8
-    )  # as stored in the database
+    # as stored in the database
+    descriptors = np.clip(np.round(descriptors * 512), 0, 255).astype(np.uint8)
     name = path.relative_to(
         shared_data_dir()
     ).as_posix()  # unique: the guided matcher caches features by name
@@ -28,9 +28,8 @@ def _image_data(path, image_id):
 
 
 def _verified_inliers(a, b, matches, matcher):
-    options = verify.two_view_options(
-        matcher.verification_conf
-    )  # as the pipeline verifies this matcher's pairs
+    # as the pipeline verifies this matcher's pairs
+    options = verify.two_view_options(matcher.verification_conf)
     geometry = verify.verify_pair(
         verify.default_camera(a.width, a.height),
         a.keypoints,
@@ -84,10 +83,11 @@ def test_unrelated_pairs_verify_no_more_often_with_guided(matchers):
     "pair", ["WGABS/kremlin", "WGALBS/flood", "WGALBS/kyiv_dolltheater", "WGABS/petrzin"]
 )
 def test_guided_never_verifies_a_wrong_geometry_on_day_night_pairs(matchers, pair):
-    """WxBS pairs where guided matching (ratio 0.8, W = 1) once verified a wrong geometry with 15-20 inliers
-    (kremlin, flood, kyiv_dolltheater) and one where it found the right one (petrzin, 38 inliers; raw: none).
-    With the pipeline's verification of guided pairs (min_inliers 25) a verified geometry must agree with the
-    hand-labelled correspondences (median symmetric epipolar / transfer error < 5 px)."""
+    """WxBS pairs where guided matching (ratio 0.8, W = 1) once verified a wrong geometry with 15-20
+    inliers (kremlin, flood, kyiv_dolltheater) and one where it found the right one (petrzin, 38
+    inliers; raw: none). With the pipeline's verification of guided pairs (min_inliers 25) a
+    verified geometry must agree with the hand-labelled correspondences (median symmetric epipolar /
+    transfer error < 5 px)."""
     from colmap_guided.evaluation.metrics import geometry_errors
 
     _, guided = matchers

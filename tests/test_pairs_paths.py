@@ -21,7 +21,8 @@ def test_pairs_file_with_spaces_duplicates_and_comments(tmp_path):
     names = ["old photo 1.jpg", "old photo 2.jpg", "sub/new.jpg"]
     path = tmp_path / "pairs.txt"
     path.write_text(
-        "# my pairs\nold photo 1.jpg old photo 2.jpg\nold photo 2.jpg\told photo 1.jpg\n\nsub/new.jpg old photo 1.jpg\nsub/new.jpg sub/new.jpg\n",
+        "# my pairs\nold photo 1.jpg old photo 2.jpg\nold photo 2.jpg\told photo 1.jpg\n"
+        "\nsub/new.jpg old photo 1.jpg\nsub/new.jpg sub/new.jpg\n",
         encoding="utf-8",
     )
     assert read_pairs(path, names) == [
@@ -72,8 +73,9 @@ def test_caches_live_outside_the_package_and_the_repository(monkeypatch, tmp_pat
 
 
 def test_an_installed_package_finds_shared_data_only_through_the_environment(tmp_path):
-    """paths.py copied into a site-packages layout (no pyproject.toml above the package): the ../shared beside
-    site-packages is not the project's; the variable is; a checkout keeps its ../shared."""
+    """paths.py copied into a site-packages layout (no pyproject.toml above the package): the
+    ../shared beside site-packages is not the project's; the variable is; a checkout keeps its
+    ../shared."""
     from colmap_guided import paths
 
     site = tmp_path / "site-packages"

@@ -38,9 +38,8 @@ def test_retrieval_takes_the_nearest_images_symmetrically_whatever_the_input_ord
     assert all(a[0] == b[0] for a, b in pairs)  # never across the two places
     assert {n for p in pairs for n in p} == set(names) and all(a < b for a, b in pairs)
     order = rng.permutation(8)
-    assert (
-        retrieval_pairs([names[i] for i in order], desc[order], 2) == pairs
-    )  # a resumed run selects the same pairs
+    # a resumed run selects the same pairs
+    assert retrieval_pairs([names[i] for i in order], desc[order], 2) == pairs
 
 
 def test_gem_is_unit_norm_and_pools_the_positive_part():
@@ -64,8 +63,8 @@ def test_auto_is_exhaustive_for_small_sets_and_retrieval_above(tmp_path):
 
 
 def test_retrieval_separates_three_real_places(shared_data):
-    """Five photos each of three training scenes pooled, two neighbours per image: no pair across places,
-    and each place's photos are linked (the backbone of the shipped guided matcher)."""
+    """Five photos each of three training scenes pooled, two neighbours per image: no pair across
+    places, and each place's photos are linked (the backbone of the shipped guided matcher)."""
     root = shared_data / "train"
     scenes = ["bundler_kermit", "dfsfm_sacre_coeur", "strecha_entry_P10"]
     names = [

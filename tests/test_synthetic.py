@@ -1,4 +1,5 @@
-"""The rendered scene: files, determinism, pixel-exact ground truth, and COLMAP reconstructing it."""
+"""The rendered scene: files, determinism, pixel-exact ground truth, and COLMAP reconstructing
+it."""
 
 import math
 
@@ -81,7 +82,8 @@ def test_same_seed_same_images_other_seed_differs(scene, tmp_path):
 
 def test_texture_lands_where_the_camera_projects_it():
     """A white square on a black board is rendered centred on the projection of its 3D centre
-    (COLMAP pixel convention, through supersampling and area downscaling), to a few hundredths of a pixel."""
+    (COLMAP pixel convention, through supersampling and area downscaling), to a few hundredths of a
+    pixel."""
     K = np.array([[300.0, 0, 64], [0, 300, 48], [0, 0, 1]])
     conf = {**synthetic.default_conf, "noise_sigma": 0.0}
     rng = np.random.default_rng(0)

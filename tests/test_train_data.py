@@ -43,9 +43,8 @@ def test_sfm_pairs_and_fundamental_matrices(shared_data):
         A, B = scene.images[p.a], scene.images[p.b]
         xa, xb = G.ideal_pixels(A.camera, p.xy_a), G.ideal_pixels(B.camera, p.xy_b)
         d = _dist(p.F, xa, xb)
-        assert (
-            np.median(d) < 0.5 and np.percentile(d, 90) < 2.0
-        )  # pseudo-GT reprojection error level
+        # pseudo-GT reprojection error level
+        assert np.median(d) < 0.5 and np.percentile(d, 90) < 2.0
         # wrong pairing of the same points is far from the lines: the check has teeth
         assert np.median(_dist(p.F, xa, np.roll(xb, 7, axis=0))) > 20
         # F in scaled frames
@@ -129,9 +128,8 @@ def test_sampler_is_seeded_and_balanced(small_data):
     assert kinds == {"sfm", "synthetic"}
     assert any("/v1" in s.a.key or "/v1" in s.b.key for s in many)  # archival versions are drawn
     assert any("/v2" in s.a.key or "/v2" in s.b.key for s in many)  # and small soft scans
-    assert any(
-        s.a.key.endswith("/v0") and "/v0" not in s.b.key for s in many
-    )  # either image may be old
+    # either image may be old
+    assert any(s.a.key.endswith("/v0") and "/v0" not in s.b.key for s in many)
     assert any("/v0" not in s.a.key and s.b.key.endswith("/v0") for s in many)
     assert set(small_data.val_scenes).isdisjoint(s.a.scene for s in many)
 
@@ -171,9 +169,8 @@ def test_collate_cell_indices_and_padding(small_data, max_cells):
         n_kept += int(valid.sum())
         for view, key in ((s.a, "xy_a"), (s.b, "xy_b")):
             _, _, h, ww = view.grid
-            assert np.allclose(
-                batch[key][i, :h, :ww].numpy(), view.crop_xy()
-            )  # the window's centres
+            # the window's centres
+            assert np.allclose(batch[key][i, :h, :ww].numpy(), view.crop_xy())
     if not max_cells:
         assert n_kept == sum(len(s.pts_a) for s in samples)  # nothing dropped without windows
     assert n_kept > 0
@@ -192,9 +189,8 @@ def test_cached_features_match_backbone(small_data):
     got = small_data.features(keys[0])
     assert got.shape == ref.shape
     assert torch.allclose(got, ref, atol=2e-3)  # float16 storage
-    assert torch.allclose(
-        got.norm(dim=0), torch.ones_like(got[0]), atol=5e-3
-    )  # L2-normalised per cell
+    # L2-normalised per cell
+    assert torch.allclose(got.norm(dim=0), torch.ones_like(got[0]), atol=5e-3)
 
 
 def test_soft_scan_is_a_soft_copy_in_place(shared_data):

@@ -1,4 +1,5 @@
-"""Losses of §4.2 on hand-built volumes whose values are computed by hand, and against loop references."""
+"""Losses of §4.2 on hand-built volumes whose values are computed by hand, and against loop
+references."""
 
 import math
 
@@ -125,11 +126,17 @@ def _epipolar_reference(s_ab, s_ba, positive, F, xy_a, xy_b, mask_a, mask_b, lam
         for direction in ("ab", "ba"):
             if direction == "ab":
                 src_cells = [(i, j) for i in range(ha) for j in range(wa) if mask_a[n, i, j]]
-                vol = lambda c: s_ab[n, c[0], c[1]]
+
+                def vol(c):
+                    return s_ab[n, c[0], c[1]]
+
                 Fn, xs, xt = F[n], xy_a[n], xy_b[n]
             else:
-                src_cells = [(k, l) for k in range(hb) for l in range(wb) if mask_b[n, k, l]]
-                vol = lambda c: s_ba[n, :, :, c[0], c[1]]
+                src_cells = [(k, l_) for k in range(hb) for l_ in range(wb) if mask_b[n, k, l_]]
+
+                def vol(c):
+                    return s_ba[n, :, :, c[0], c[1]]
+
                 Fn, xs, xt = F[n].T, xy_b[n], xy_a[n]
             P, N = [], []
             for c in src_cells:
@@ -205,7 +212,8 @@ def test_epipolar_distance_on_real_geometry():
 
 
 def test_losses_train_a_filter_in_the_right_direction():
-    """Gradient steps on the raw scores with the epipolar loss move argmaxes onto the epipolar lines."""
+    """Gradient steps on the raw scores with the epipolar loss move argmaxes onto the epipolar
+    lines."""
     s_ab, s_ba, positive, F, xy_a, xy_b, mask_a, mask_b = _random_case(5, B=2)
     positive = torch.tensor([True, True])
     g = torch.Generator().manual_seed(5)
@@ -228,8 +236,9 @@ def test_losses_train_a_filter_in_the_right_direction():
 
 def test_sparse_training_path_equals_dense_with_full_support():
     """The sparse filter the CPU path runs (CoarseNet.sparse_volume + sparse_best) gives the dense
-    epipolar loss and the same filter gradients when its support holds every entry (k >= grid sizes),
-    so training it trains what inference runs; with the product's k = 3 the loss still flows."""
+    epipolar loss and the same filter gradients when its support holds every entry
+    (k >= grid sizes), so training it trains what inference runs; with the product's k = 3 the loss
+    still flows."""
     from colmap_guided.coarse.model import CoarseNet, correlation, sparse_best
     from colmap_guided.train.losses import epipolar_loss_from_best
 
@@ -237,23 +246,24 @@ def test_sparse_training_path_equals_dense_with_full_support():
     net = CoarseNet({"pretrained": False}).double()
     fa = torch.nn.functional.normalize(torch.randn(1, 8, 3, 4, dtype=torch.float64), dim=1)
     fb = torch.nn.functional.normalize(torch.randn(1, 8, 4, 3, dtype=torch.float64), dim=1)
+    # (3, 4, 2)
     xa = (
         torch.stack(
             torch.meshgrid(torch.arange(4.0), torch.arange(3.0), indexing="xy"), -1
         ).double()
         * 16
         + 8
-    )  # (3, 4, 2)
+    )
+    # (4, 3, 2)
     xb = (
         torch.stack(
             torch.meshgrid(torch.arange(3.0), torch.arange(4.0), indexing="xy"), -1
         ).double()
         * 16
         + 8
-    )  # (4, 3, 2)
-    F = torch.tensor(
-        [[[0, 0, 1], [0, 0, 0], [-1, 0, 0]]], dtype=torch.float64
-    )  # line of (u, v): x = u
+    )
+    # line of (u, v): x = u
+    F = torch.tensor([[[0, 0, 1], [0, 0, 0], [-1, 0, 0]]], dtype=torch.float64)
     pos = torch.tensor([True])
 
     out = net(fa, fb)

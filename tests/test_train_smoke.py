@@ -1,5 +1,5 @@
-"""Tiny CPU training on the sparse filter the CPU pipeline runs (default) and on dense windows: the loss
-goes down, checkpoints resume exactly, weights are exported."""
+"""Tiny CPU training on the sparse filter the CPU pipeline runs (default) and on dense windows: the
+loss goes down, checkpoints resume exactly, weights are exported."""
 
 import json
 
@@ -97,12 +97,13 @@ def test_pck_errors_zero_on_an_exact_translation():
             s[r, c, min(r + 1, h - 1), min(c + 2, w - 1)] = 1
     view = View("x", "scene", "x", g, np.zeros((h, w, 2)))
     shift = np.array([2, 1]) * 16 / g.scale  # in original pixels
+    # interior
     pts_a = g.cell_centers()[[43, 64, 110, 172]] + [
         [3.0, 4.0],
         [0.0, 0.0],
         [10.0, -7.0],
         [5.0, 5.0],
-    ]  # interior
+    ]
     sample = PairSample(view, view, True, "sfm", np.eye(3), pts_a, pts_a + shift)
     ab, ba = s.reshape(h * w, h * w).argmax(1).numpy(), s.reshape(h * w, h * w).argmax(0).numpy()
     err = T.pck_errors(ab, ba, sample)
@@ -136,7 +137,8 @@ def test_finetune_stage_updates_the_backbone(straight, tmp_path):
 
 
 def test_dense_windowed_path_trains_and_resume_checks_the_path(straight, tmp_path):
-    """The batched dense filter on grid windows (--impl dense --max_cells, the GPU / old CPU recipe)."""
+    """The batched dense filter on grid windows (--impl dense --max_cells, the GPU / old CPU
+    recipe)."""
     _, root, _, _ = straight
     conf = _conf(root / "features", impl="dense", iterations=6, lr=1e-2, lr_steps=(5,))
     conf["data"] = {**conf["data"], "max_cells": 4}
@@ -144,12 +146,10 @@ def test_dense_windowed_path_trains_and_resume_checks_the_path(straight, tmp_pat
     before = _fixed_loss(tr)
     assert tr.train() is True
     assert _fixed_loss(tr) < before - 1e-3
-    assert tr.optimizer.param_groups[0]["lr"] == pytest.approx(
-        1e-3
-    )  # the last iteration ran after the 10x drop
-    with pytest.raises(
-        ValueError, match="impl"
-    ):  # a checkpoint continues on the path it was trained on
+    # the last iteration ran after the 10x drop
+    assert tr.optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)
+    # a checkpoint continues on the path it was trained on
+    with pytest.raises(ValueError, match="impl"):
         T.Trainer(tmp_path / "dense", {**conf, "impl": "sparse"})
     with pytest.raises(ValueError, match="point supervision"):
         T.Trainer(tmp_path / "points", {**conf, "impl": "sparse", "supervision": "points"})

@@ -1,5 +1,5 @@
-"""A user's files are never lost: every writing command, pointed at the wrong place, refuses in one line
-and leaves every file byte-identical; --overwrite removes only what the project wrote."""
+"""A user's files are never lost: every writing command, pointed at the wrong place, refuses in one
+line and leaves every file byte-identical; --overwrite removes only what the project wrote."""
 
 from __future__ import annotations
 
@@ -36,7 +36,8 @@ def _snapshot(root: Path) -> dict[str, str]:
 @pytest.fixture
 def user_tree(tmp_path):
     """tmp/data/scene/images (3 photos), the user's notes beside them and in the parent, a folder of
-    letters (with a report.json of the user's own) and a lone file; returns (root, scene, places)."""
+    letters (with a report.json of the user's own) and a lone file; returns
+    (root, scene, places)."""
     scene = tmp_path / "data" / "scene"
     (scene / "images").mkdir(parents=True)
     rng = np.random.default_rng(0)
@@ -151,7 +152,8 @@ def test_export_and_report_refuse_the_users_files_and_overwrite_only_their_own(
             _one_line(err)
     assert _snapshot(root) == before
 
-    # --overwrite in the project's own folders: the user's file put there stays, the run's files are new.
+    # --overwrite in the project's own folders: the user's file put there stays, the run's files are
+    # new.
     exported = root / "exported"
     assert _cli(["export", "--database_path", database, "--output", exported], capfd)[0] == 0
     (exported / "my_pairs.txt").write_text("mine\n")

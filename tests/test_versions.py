@@ -1,4 +1,5 @@
-"""Dependency floors: pyproject.toml's are versions the suite runs on; an older pycolmap is refused on import."""
+"""Dependency floors: pyproject.toml's are versions the suite runs on; an older pycolmap is refused
+on import."""
 
 import re
 import subprocess
@@ -34,7 +35,10 @@ def test_the_installed_dependencies_meet_the_floors():
 
 
 def test_an_older_pycolmap_is_refused_on_import_in_one_line():
-    code = "from importlib import metadata; metadata.version = lambda name: '4.1.0'; import colmap_guided"
+    code = (
+        "from importlib import metadata; metadata.version = "
+        "lambda name: '4.1.0'; import colmap_guided"
+    )
     run = subprocess.run(
         [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60
     )

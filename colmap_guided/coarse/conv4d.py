@@ -3,13 +3,14 @@
 Both use PyTorch's convention (cross-correlation, zero 'same' padding, odd kernels) and the weight
 layout (C_out, C_in / groups, kI, kJ, kK, kL), so the same weights run in either.
 
-- ``conv4d``: dense. The 4D kernel is split along its first dimension into kI 3D kernels; one batched
-  conv3d over all I-slices computes the kI partial outputs, which are summed with a shift along I.
-  This is the GPU and training path (the paper's loop of per-slice 3D convolutions, batched).
-- ``sparse_conv4d``: submanifold sparse convolution on a set of active positions (Sparse-NCNet's idea,
-  written in plain torch as gathers, matmuls and index_add over a ``SparseNeighbourhood``): outputs
-  only at the active positions, inactive neighbours read as zero. With every position active it equals
-  ``conv4d`` (tested). The CPU path.
+- ``conv4d``: dense. The 4D kernel is split along its first dimension into kI 3D kernels; one
+  batched conv3d over all I-slices computes the kI partial outputs, which are summed with a shift
+  along I. This is the GPU and training path (the paper's loop of per-slice 3D convolutions,
+  batched).
+- ``sparse_conv4d``: submanifold sparse convolution on a set of active positions (Sparse-NCNet's
+  idea, written in plain torch as gathers, matmuls and index_add over a ``SparseNeighbourhood``):
+  outputs only at the active positions, inactive neighbours read as zero. With every position active
+  it equals ``conv4d`` (tested). The CPU path.
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ def conv4d(
     c_out, c_in_g, ki, kj, kk, kl = weight.shape
     if c_in_g * groups != c_in or any(k % 2 == 0 for k in (ki, kj, kk, kl)):
         raise ValueError(
-            f"conv4d: weight {tuple(weight.shape)} does not fit input {tuple(x.shape)} with groups={groups} (odd kernels only)"
+            f"conv4d: weight {tuple(weight.shape)} does not fit input {tuple(x.shape)} "
+            f"with groups={groups} (odd kernels only)"
         )
     cg = c_out // groups
     # (G, cg, c_in_g, ki, kj, kk, kl) → (G, ki, cg, ...): output channels stay grouped for conv3d.
@@ -59,7 +61,8 @@ def conv4d(
 def kernel_offsets(
     kernel_size: tuple[int, int, int, int], device: torch.device | None = None
 ) -> torch.Tensor:
-    """(prod(kernel_size), 4) offsets of the kernel taps, row-major like the weight's last four dims."""
+    """(prod(kernel_size), 4) offsets of the kernel taps, row-major like the weight's last four
+    dims."""
     ranges = [range(-(k // 2), k // 2 + 1) for k in kernel_size]
     return torch.tensor(list(itertools.product(*ranges)), dtype=torch.long, device=device)
 
@@ -67,9 +70,9 @@ def kernel_offsets(
 def neighbour_table(
     coords: torch.Tensor, shape: tuple[int, int, int, int], kernel_size: tuple[int, int, int, int]
 ) -> torch.Tensor:
-    """For N active positions coords (N, 4) in a volume of ``shape``, the (N, taps) index of each tap's
-    neighbour among the active positions, or N where the neighbour is inactive or outside. Uses a
-    lookup volume padded by the kernel radius, so that no bounds checks are needed."""
+    """For N active positions coords (N, 4) in a volume of ``shape``, the (N, taps) index of each
+    tap's neighbour among the active positions, or N where the neighbour is inactive or outside.
+    Uses a lookup volume padded by the kernel radius, so that no bounds checks are needed."""
     n = coords.shape[0]
     pad = torch.tensor([k // 2 for k in kernel_size], device=coords.device)
     padded = [s + 2 * (k // 2) for s, k in zip(shape, kernel_size)]
@@ -83,15 +86,14 @@ def neighbour_table(
     lin = ((coords + pad) * strides).sum(dim=1)
     lut[lin] = torch.arange(n, device=coords.device)
     taps = (kernel_offsets(kernel_size, coords.device) * strides).sum(dim=1)
-    return lut.index_select(0, (lin[:, None] + taps[None]).view(-1)).view(
-        n, len(taps)
-    )  # lut[...]: 3x faster on CPU
+    # lut[...]: 3x faster on CPU
+    return lut.index_select(0, (lin[:, None] + taps[None]).view(-1)).view(n, len(taps))
 
 
 class SparseNeighbourhood:
     """The neighbourhood structure of N active positions, shared by all layers of a sparse filter:
-    ``table`` (N, taps) from ``neighbour_table`` and, built on first use, the ``rulebook``: per tap t
-    with active pairs, (t, output indices, input indices) of the active positions whose tap-t
+    ``table`` (N, taps) from ``neighbour_table`` and, built on first use, the ``rulebook``: per tap
+    t with active pairs, (t, output indices, input indices) of the active positions whose tap-t
     neighbour is active."""
 
     def __init__(
@@ -107,9 +109,8 @@ class SparseNeighbourhood:
     @property
     def rulebook(self) -> list[tuple[int, torch.Tensor, torch.Tensor]]:
         if self._rulebook is None:
-            by_tap = (
-                self.table.t().contiguous().view(-1)
-            )  # (taps * N): active pairs come out sorted by tap
+            # (taps * N): active pairs come out sorted by tap
+            by_tap = self.table.t().contiguous().view(-1)
             flat = torch.nonzero(by_tap < self.n).squeeze(1)
             tap = flat // self.n
             out, inp = flat - tap * self.n, by_tap.index_select(0, flat)
@@ -130,14 +131,17 @@ def sparse_conv4d(
     groups: int = 1,
 ) -> torch.Tensor:
     """Submanifold 4D convolution of features x (N, C_in) at N active positions: returns (N, C_out),
-    out[p] = b + sum_t W_t x[p + offset_t] over the active neighbours only (inactive ones read as 0).
+    out[p] = b + sum_t W_t x[p + offset_t] over the active neighbours only
+    (inactive ones read as 0).
 
     Three equivalent forms, picked by the channel counts of a group (CPU cost, measured):
-    - one input channel (first NC layer): gather form, one (N, taps) gather of scalars and one matmul;
+    - one input channel (first NC layer): gather form, one (N, taps) gather of scalars and one
+      matmul;
     - one output channel (last NC layer): scatter form, z = x W_t for all taps in one matmul, then
       out[p] = sum_t z[p + offset_t, t], a gather of scalars;
-    - otherwise: per-tap gather-matmul-scatter over the rulebook, proportional to the number of active
-      (position, neighbour) pairs rather than N x taps (most neighbours of a sparse support are inactive).
+    - otherwise: per-tap gather-matmul-scatter over the rulebook, proportional to the number of
+      active (position, neighbour) pairs rather than N x taps (most neighbours of a sparse support
+      are inactive).
     """
     n, c_in = x.shape
     c_out, c_in_g = weight.shape[:2]
@@ -167,7 +171,8 @@ def sparse_conv4d(
             xs = x.index_select(0, i)
             if groups == 1:
                 y = xs @ w_taps[t, 0]
-            else:  # one small matmul per group: half the work of a block-diagonal matrix for 2 groups
+            else:
+                # one small matmul per group: half the work of a block-diagonal matrix for 2 groups
                 y = torch.cat(
                     [xs[:, g * c_in_g : (g + 1) * c_in_g] @ w_taps[t, g] for g in range(groups)],
                     dim=1,

@@ -1,5 +1,5 @@
-"""Pixel-level coarse flow m^{A→B}, m^{B→A} from grid matches (paper §4.1: "bilinear interpolation of
-the feature matches of its four nearest features"), in original image pixels."""
+"""Pixel-level coarse flow m^{A→B}, m^{B→A} from grid matches (paper §4.1: "bilinear interpolation
+of the feature matches of its four nearest features"), in original image pixels."""
 
 from __future__ import annotations
 
@@ -14,9 +14,10 @@ from colmap_guided.coarse.model import GridMatches
 def interpolate_grid(
     geometry: ImageGeometry, values: np.ndarray, xy: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Bilinear interpolation of per-cell ``values`` (h * w, D), row-major, at original pixels ``xy``
-    (N, 2) from the four nearest cell centres. Points outside the hull of the cell centres are clamped
-    onto it (no extrapolation). Returns the (N, D) values and the clamped points (N, 2)."""
+    """Bilinear interpolation of per-cell ``values`` (h * w, D), row-major, at original pixels
+    ``xy`` (N, 2) from the four nearest cell centres. Points outside the hull of the cell centres
+    are clamped onto it (no extrapolation). Returns the (N, D) values and the clamped points
+    (N, 2)."""
     xy = np.asarray(xy, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] < 2 or not np.isfinite(xy[:, :2]).all():
         raise ValueError(
@@ -68,9 +69,11 @@ class CoarseResult:
     def flow_ab(self, xy_a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """m^{A→B} at points (N, 2) of A (original pixels). Returns
         - ``xy_b`` (N, 2) float32: the coarse match in B's original pixels;
-        - ``score`` (N,) float32: s^{A→B} at the matches of the four cells, interpolated the same way;
+        - ``score`` (N,) float32: s^{A→B} at the matches of the four cells, interpolated the same
+          way;
         - ``fb_err`` (N,) float32: forward-backward error in B's pixels, |m^{B→A}(m^{A→B}(x)) - x|
-          measured in A and scaled by cell_size_b / cell_size_a (0 at mutual matches' cell centres)."""
+          measured in A and scaled by cell_size_b / cell_size_a (0 at mutual matches' cell
+          centres)."""
         return self._flow(xy_a, self.geometry_a, self.geometry_b, self._table_ab, self._table_ba)
 
     def flow_ba(self, xy_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -91,8 +94,8 @@ class CoarseResult:
         )
 
     def grid_matches_ab(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Cell-level matches A→B: A cell centres (NA, 2), matched B cell centres (NA, 2), score (NA,),
-        mutual (NA,) bool; original pixels."""
+        """Cell-level matches A→B: A cell centres (NA, 2), matched B cell centres (NA, 2), score
+        (NA,), mutual (NA,) bool; original pixels."""
         return (
             self.geometry_a.cell_centers(),
             self._table_ab[:, :2],

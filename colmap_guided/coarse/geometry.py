@@ -2,12 +2,12 @@
 
 Coordinates follow COLMAP: (0, 0) is the top-left corner of the top-left pixel. An image of
 ``width x height`` pixels is resized (corner-aligned, as cv2.resize does) to ``resized_width x
-resized_height``, both multiples of the stride, keeping the aspect ratio up to that rounding, with the
-long side equal to ``resize_max`` (paper §4.3: 401 px for training, 497 px at test time for ResNet's
-padding; multiples of 16 here, see ``backbone.py``). A point ``x`` maps to ``x * resized_width /
-width``. Feature cell ``(col, row)`` has its centre at ``stride * col + cell_offset`` in the resized image,
-``cell_offset`` being the backbone's (15.5 for EfficientNet's TF 'same' padding, 0.5 for ResNet).
-"Cell coordinates" are continuous: integer values are cell centres.
+resized_height``, both multiples of the stride, keeping the aspect ratio up to that rounding, with
+the long side equal to ``resize_max`` (paper §4.3: 401 px for training, 497 px at test time for
+ResNet's padding; multiples of 16 here, see ``backbone.py``). A point ``x`` maps to ``x *
+resized_width / width``. Feature cell ``(col, row)`` has its centre at ``stride * col +
+cell_offset`` in the resized image, ``cell_offset`` being the backbone's (15.5 for EfficientNet's TF
+'same' padding, 0.5 for ResNet). "Cell coordinates" are continuous: integer values are cell centres.
 
 Batches of different sizes are zero-padded at the bottom/right, which keeps the origin.
 """
@@ -74,8 +74,9 @@ class ImageGeometry:
 def resize_geometry(
     width: int, height: int, resize_max: int, stride: int, cell_offset: float
 ) -> ImageGeometry:
-    """Geometry of an image resized so its long side is ``resize_max`` (rounded down to a multiple of
-    ``stride``) and its short side the nearest multiple of ``stride`` to the aspect-preserving size."""
+    """Geometry of an image resized so its long side is ``resize_max`` (rounded down to a multiple
+    of ``stride``) and its short side the nearest multiple of ``stride`` to the aspect-preserving
+    size."""
     if width < 1 or height < 1:
         raise ValueError(f"Image size must be positive, got {width}x{height}")
     if resize_max < stride:
@@ -94,7 +95,8 @@ def as_rgb(image: np.ndarray) -> np.ndarray:
     image = np.asarray(image)
     if image.dtype != np.uint8:
         raise TypeError(
-            f"Expected a uint8 image, got {image.dtype}: convert with np.clip(img, 0, 255).astype(np.uint8)"
+            f"Expected a uint8 image, got {image.dtype}: "
+            "convert with np.clip(img, 0, 255).astype(np.uint8)"
         )
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
@@ -106,7 +108,8 @@ def as_rgb(image: np.ndarray) -> np.ndarray:
 
 
 def resize_image(image: np.ndarray, geometry: ImageGeometry) -> np.ndarray:
-    """Resize an RGB uint8 image to the geometry's network input size (area filter when shrinking)."""
+    """Resize an RGB uint8 image to the geometry's network input size (area filter when
+    shrinking)."""
     size = (geometry.resized_width, geometry.resized_height)
     shrink = geometry.resized_width < geometry.width or geometry.resized_height < geometry.height
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
@@ -121,8 +124,8 @@ def pad_to_shape(x: torch.Tensor, height: int, width: int) -> torch.Tensor:
 
 
 def stack_padded(tensors: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Stack (C, H_i, W_i) tensors into (B, C, H, W) zero-padded at the bottom/right, with a (B, H, W)
-    bool mask of the valid positions."""
+    """Stack (C, H_i, W_i) tensors into (B, C, H, W) zero-padded at the bottom/right, with
+    a (B, H, W) bool mask of the valid positions."""
     height = max(t.shape[-2] for t in tensors)
     width = max(t.shape[-1] for t in tensors)
     batch = torch.stack([pad_to_shape(t, height, width) for t in tensors])

@@ -1,12 +1,13 @@
 """CoarseMatcher: the coarse matching network as the guided matcher uses it.
 
-    cm = CoarseMatcher({"mode": "raw"})            # or the default mode='filter' with trained weights
-    fa = cm.extract_path(path_a, name="a")         # backbone once per image, cached by name
-    res = cm.match(fa, fb)                          # CoarseResult
+    cm = CoarseMatcher({"mode": "raw"})     # or the default mode='filter' with trained weights
+    fa = cm.extract_path(path_a, name="a")  # backbone once per image, cached by name
+    res = cm.match(fa, fb)                  # CoarseResult
     xy_b, score, fb_err = res.flow_ab(xy_a)
 
-Files are read by ``colmap_guided.images.read_image`` (the project's one reader: COLMAP's frame, EXIF
-orientation NOT applied, 16-bit scaled), so keypoints and the coarse flow share one frame and pixels.
+Files are read by ``colmap_guided.images.read_image`` (the project's one reader: COLMAP's frame,
+EXIF orientation NOT applied, 16-bit scaled), so keypoints and the coarse flow share one frame and
+pixels.
 """
 
 from __future__ import annotations
@@ -38,7 +39,8 @@ PRECISIONS = {"float32": torch.float32, "float16": torch.float16, "bfloat16": to
 
 @dataclass
 class CoarseFeatures:
-    """Backbone features of one image: L2-normalised (C, h, w) on the matcher's device + geometry."""
+    """Backbone features of one image: L2-normalised (C, h, w) on the matcher's device +
+    geometry."""
 
     features: torch.Tensor
     geometry: ImageGeometry
@@ -56,12 +58,15 @@ class CoarseMatcher:
         "weights": None,  # filter weights; None: colmap_guided/weights/coarse_filter.safetensors
         "device": "auto",  # 'auto' (cuda if available) | 'cpu' | 'cuda' | 'cuda:N'
         "impl": "auto",  # filter: 'dense' | 'sparse' | 'auto' (dense on CUDA, sparse on CPU)
-        "sparse_k": 3,  # sparse filter: best cells kept per cell and direction (README: cost vs accuracy)
+        # sparse filter: best cells kept per cell and direction (README: cost vs accuracy)
+        "sparse_k": 3,
         "sparse_radius": 1,  # sparse filter: also the (2r+1)^2 cells around each cell's best match
         "raw_temperature": 0.02,  # raw mode: softmax temperature of the scores
         "cache_path": None,  # optional .h5 file caching backbone features across runs
-        "precision": "float32",  # dense filter: 'float32' | 'float16' | 'bfloat16' (autocast; README: accuracy)
-        "num_threads": 1,  # CPU: torch threads the pipeline sets while matching (restored after); None: leave as is
+        # dense filter: 'float32' | 'float16' | 'bfloat16' (autocast; README: accuracy)
+        "precision": "float32",
+        # CPU: torch threads the pipeline sets while matching (restored after); None: leave as is
+        "num_threads": 1,
     }
 
     def __init__(self, conf: dict | None = None):
@@ -88,9 +93,10 @@ class CoarseMatcher:
                 f"precision must be one of {sorted(PRECISIONS)}, got {conf['precision']!r}"
             )
         self.dtype = PRECISIONS[conf["precision"]]
-        # The sparse filter is hundreds of small ops; on shared cores every OpenMP barrier waits for a
-        # descheduled thread. On the 2-core dev machine (load ~5-10) one thread was 3-8x faster than two
-        # for the sparse filter and 2.4x faster for the backbone (README.md). Set around matching only.
+        # The sparse filter is hundreds of small ops; on shared cores every OpenMP barrier waits for
+        # a descheduled thread. On the 2-core dev machine (load ~5-10) one thread was 3-8x faster
+        # than two for the sparse filter and 2.4x faster for the backbone (README.md). Set around
+        # matching only.
         self.torch_threads = conf["num_threads"] if self.device.type == "cpu" else None
         net_conf = {
             "backbone": conf["backbone"],
@@ -100,19 +106,20 @@ class CoarseMatcher:
         }
         self.weights_config = None
         if conf["mode"] == "filter":
-            tensors, self.weights_config = read_filter_weights(
-                conf["weights"]
-            )  # FileNotFoundError → caller falls back
+            # FileNotFoundError → caller falls back
+            tensors, self.weights_config = read_filter_weights(conf["weights"])
             if has_backbone(tensors) and conf["backbone_weights"]:
                 raise ValueError(
-                    f"Filter weights {conf['weights'] or DEFAULT_WEIGHTS} carry the backbone they were trained with: "
-                    f"drop backbone_weights={conf['backbone_weights']!r} or use weights without a backbone"
+                    f"Filter weights {conf['weights'] or DEFAULT_WEIGHTS} carry the backbone "
+                    f"they were trained with: drop backbone_weights={conf['backbone_weights']!r} "
+                    "or use weights without a backbone"
                 )
             wanted = net_conf_from_config(self.weights_config)
             if wanted["backbone"] != conf["backbone"]:
                 raise ValueError(
-                    f"Filter weights {conf['weights'] or DEFAULT_WEIGHTS} were trained on {wanted['backbone']}, "
-                    f"not {conf['backbone']}: set backbone={wanted['backbone']!r} or use other weights"
+                    f"Filter weights {conf['weights'] or DEFAULT_WEIGHTS} were "
+                    f"trained on {wanted['backbone']}, not {conf['backbone']}: "
+                    f"set backbone={wanted['backbone']!r} or use other weights"
                 )
             net_conf.update(wanted)
         self.net = CoarseNet(net_conf)
@@ -120,8 +127,12 @@ class CoarseMatcher:
             load_filter_weights(self.net, conf["weights"])
         self.net.to(self.device).eval()
         self.spec = BACKBONES[conf["backbone"]]
-        # Which features: the backbone, its weights (ImageNet, a file, or fine-tuned with the filter) and input size.
-        self.features_key = f"{self.spec.name}_{conf['resize_max']}_{fingerprint(self.net.backbone.feature_state_dict())}"
+        # Which features: the backbone, its weights (ImageNet, a file, or fine-tuned with the
+        # filter) and input size.
+        self.features_key = (
+            f"{self.spec.name}_{conf['resize_max']}_"
+            f"{fingerprint(self.net.backbone.feature_state_dict())}"
+        )
         self.cache: dict[str, CoarseFeatures] = {}
 
     # -- features -------------------------------------------------------------------------------
@@ -135,8 +146,9 @@ class CoarseMatcher:
     def extract(
         self, image: np.ndarray, name: str | None = None, size: tuple[int, int] | None = None
     ) -> CoarseFeatures:
-        """Features of a uint8 HxW (gray) or HxWx3 (RGB) image. With ``name``, cached in memory (and in
-        ``cache_path`` if set): later calls with the same name return the cache without the image.
+        """Features of a uint8 HxW (gray) or HxWx3 (RGB) image. With ``name``, cached in memory (and
+        in ``cache_path`` if set): later calls with the same name return the cache without the
+        image.
         ``size``: the (width, height) of the photo that ``image`` is a reduced decode of."""
         if name is not None and name in self.cache:
             return self.cache[name]
@@ -164,7 +176,8 @@ class CoarseMatcher:
         key = name or str(path)
         if key in self.cache:
             return self.cache[key]
-        # A JPEG 8x the network's input or more is decoded reduced: photos to 4095 px read as before.
+        # A JPEG 8x the network's input or more is decoded reduced: photos to 4095 px read as
+        # before.
         return self.extract(read_image(path, 4 * self.conf["resize_max"]), key, image_size(path))
 
     def release(self, name: str) -> None:

@@ -5,23 +5,25 @@ Volumes are laid out (B, hA, wA, hB, wB): ``volume[n, i, j, k, l]`` relates cell
 to cell (row k, col l) of B. Grids are flattened row-major (cell index ``row * width + col``).
 
 Decisions (documented for the trainer and the guided matcher):
-- Filter input: ReLU of the correlation. NCNet correlates post-ReLU ResNet features, so its volume is
-  non-negative; EfficientNet's block outputs are linear, so their cosine can be negative, and the
+- Filter input: ReLU of the correlation. NCNet correlates post-ReLU ResNet features, so its volume
+  is non-negative; EfficientNet's block outputs are linear, so their cosine can be negative, and the
   clamp restores NCNet's setting (the argmax is unchanged).
 - NCNet's soft mutual-nearest-neighbour step ``c * (c / max_A c) * (c / max_B c)`` is applied before
   and after the filter, as in NCNet (conf ``mutual_before`` / ``mutual_after``, both stored with the
-  weights). Before, it damps ambiguous correlations the filter would otherwise spread; after, it makes
-  the output favour mutual matches, which is what the guided matcher relies on.
+  weights). Before, it damps ambiguous correlations the filter would otherwise spread; after, it
+  makes the output favour mutual matches, which is what the guided matcher relies on.
 - Symmetry (paper §4.3, "feeding the images in both orders ... average"): running the filter on the
   transposed volume and transposing back equals running it with every kernel's (kI, kJ) and (kK, kL)
-  dims swapped, so both orders run in one pass as a 2-group network; the output is their mean. Exact.
+  dims swapped, so both orders run in one pass as a 2-group network; the output is their mean.
+  Exact.
 - Raw mode (``filter=False``, the paper's guided-VGG4-style baseline): the volume is the correlation
   divided by ``raw_temperature``, no filter, no weights needed.
 - ``forward`` (dense, differentiable, batched) and ``sparse_volume`` (one pair, differentiable) are
-  the two training paths; ``match_sparse`` is the CPU inference path (Sparse-NCNet-style submanifold filter on ``sparse_support``: each cell's ``k`` best
-  correlations in both directions plus the cells around its best match; entries outside read as 0).
-  The same weights run in both; sparse approximates dense (README.md has the measured agreement), and
-  weights trained on the sparse path see exactly what inference on the CPU sees.
+  the two training paths; ``match_sparse`` is the CPU inference path (Sparse-NCNet-style submanifold
+  filter on ``sparse_support``: each cell's ``k`` best correlations in both directions plus the
+  cells around its best match; entries outside read as 0). The same weights run in both; sparse
+  approximates dense (README.md has the measured agreement), and weights trained on the sparse path
+  see exactly what inference on the CPU sees.
 """
 
 from __future__ import annotations
@@ -40,7 +42,8 @@ from colmap_guided.conf import merge_conf
 
 
 def correlation(feat_a: torch.Tensor, feat_b: torch.Tensor) -> torch.Tensor:
-    """c_ijkl = <fA_ij, fB_kl> (paper §4.1) of (B, C, hA, wA) and (B, C, hB, wB) → (B, hA, wA, hB, wB)."""
+    """c_ijkl = <fA_ij, fB_kl> (paper §4.1) of (B, C, hA, wA) and (B, C, hB, wB) →
+    (B, hA, wA, hB, wB)."""
     return torch.einsum("ncij,nckl->nijkl", feat_a, feat_b)
 
 
@@ -57,8 +60,9 @@ def transpose_volume(volume: torch.Tensor) -> torch.Tensor:
 
 
 class NeighConsensus(nn.Module):
-    """Symmetric 4D filter: conv4d layers (1 → channels[0] → ... → channels[-1] = 1), ReLU after each,
-    run in both image orders and averaged (paper §4.3: three layers, 16 channels, kernel 3)."""
+    """Symmetric 4D filter: conv4d layers (1 → channels[0] → ... → channels[-1] = 1), ReLU after
+    each, run in both image orders and averaged (paper §4.3: three layers, 16 channels, kernel
+    3)."""
 
     def __init__(
         self, channels: tuple[int, ...] = (16, 16, 1), kernel_sizes: tuple[int, ...] = (3, 3, 3)
@@ -66,7 +70,8 @@ class NeighConsensus(nn.Module):
         super().__init__()
         if len(channels) != len(kernel_sizes) or channels[-1] != 1:
             raise ValueError(
-                f"channels {channels} and kernel_sizes {kernel_sizes}: one kernel size per layer, last layer 1 channel"
+                f"channels {channels} and kernel_sizes {kernel_sizes}: "
+                "one kernel size per layer, last layer 1 channel"
             )
         self.channels, self.kernel_sizes = tuple(channels), tuple(kernel_sizes)
         self.weights = nn.ParameterList()
@@ -90,8 +95,8 @@ class NeighConsensus(nn.Module):
         return layers
 
     def forward(self, volume: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        """Dense filter of (B, hA, wA, hB, wB); ``mask`` (same shape, bool) zeroes padded cells after
-        each layer so that padded batches give the same values as single pairs."""
+        """Dense filter of (B, hA, wA, hB, wB); ``mask`` (same shape, bool) zeroes padded cells
+        after each layer so that padded batches give the same values as single pairs."""
         x = volume.unsqueeze(1)
         m = None if mask is None else mask.unsqueeze(1).to(volume.dtype)
         for w, b, groups in self.fused_layers():
@@ -103,8 +108,8 @@ class NeighConsensus(nn.Module):
     def forward_sparse(
         self, values: torch.Tensor, coords: torch.Tensor, shape: tuple[int, int, int, int]
     ) -> torch.Tensor:
-        """Submanifold filter of N active entries (values (N,) at coords (N, 4) (i, j, k, l) of a volume
-        of ``shape``): outputs at the active entries only, inactive ones read as 0 → (N,)."""
+        """Submanifold filter of N active entries (values (N,) at coords (N, 4) (i, j, k, l) of a
+        volume of ``shape``): outputs at the active entries only, inactive ones read as 0 → (N,)."""
         nbhds = {k: SparseNeighbourhood(coords, shape, (k,) * 4) for k in set(self.kernel_sizes)}
         x = values.unsqueeze(1)
         for (w, b, groups), k in zip(self.fused_layers(), self.kernel_sizes):
@@ -170,7 +175,8 @@ def sparse_support(
     """Sorted linear indices (a * NB + b) of the entries of a (NA, NB) correlation the sparse filter
     runs on: the ``k`` best B cells of every A cell and the ``k`` best A cells of every B cell
     (Sparse-NCNet), plus the (2 radius + 1)^2 cells around each cell's best match in the other image
-    (where the filtered peak moves when neighbourhood consensus corrects a match). Symmetric in A, B."""
+    (where the filtered peak moves when neighbourhood consensus corrects a match). Symmetric
+    in A, B."""
     ha, wa, hb, wb = shape
     na, nb = c2.shape
     dev = c2.device
@@ -197,9 +203,10 @@ class CoarseNet(nn.Module):
     """Backbone + correlation + neighbourhood-consensus filter (paper §4.1, §4.3).
 
     Training API (dense, differentiable w.r.t. the filter, and the backbone if unfrozen):
-        feats = net.extract_features(net.normalize(images))   # (B, C, h, w), L2-normalised; cacheable
-        out = net(feat_a, feat_b, mask_a, mask_b)             # dict, see ``forward``
-        loss = l(out["s_ab"]) + l(out["s_ba"])                # paper eq. (2)
+        feats = net.extract_features(net.normalize(images))
+            # (B, C, h, w), L2-normalised; cacheable
+        out = net(feat_a, feat_b, mask_a, mask_b)  # dict, see ``forward``
+        loss = l(out["s_ab"]) + l(out["s_ba"])  # paper eq. (2)
     Inference: ``match(feat_a, feat_b, impl='dense'|'sparse', k=...)`` → ``GridMatches`` per pair.
     """
 
@@ -233,7 +240,8 @@ class CoarseNet(nn.Module):
         return self.backbone.normalize(images)
 
     def extract_features(self, images: torch.Tensor) -> torch.Tensor:
-        """Normalised images (B, 3, H, W), H and W multiples of 16 → L2-normalised (B, C, H/16, W/16)."""
+        """Normalised images (B, 3, H, W), H and W multiples of 16 → L2-normalised
+        (B, C, H/16, W/16)."""
         return F.normalize(self.backbone(images), dim=1)
 
     def filter_volume(self, corr: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -253,8 +261,8 @@ class CoarseNet(nn.Module):
         mask_a: torch.Tensor | None = None,
         mask_b: torch.Tensor | None = None,
     ) -> dict[str, torch.Tensor]:
-        """Dense pass on batched features (B, C, hA, wA), (B, C, hB, wB) (L2-normalised, zero-padded,
-        with optional bool masks (B, hA, wA), (B, hB, wB) of the valid cells). Returns
+        """Dense pass on batched features (B, C, hA, wA), (B, C, hB, wB) (L2-normalised,
+        zero-padded, with optional bool masks (B, hA, wA), (B, hB, wB) of the valid cells). Returns
         - ``corr``: correlation (B, hA, wA, hB, wB);
         - ``volume``: the filtered volume s (raw mode: corr / raw_temperature);
         - ``s_ab``: softmax of ``volume`` over B's cells (sums to 1 over (hB, wB)), s^{A→B};
@@ -289,7 +297,8 @@ class CoarseNet(nn.Module):
         dtype: torch.dtype = torch.float32,
     ) -> GridMatches:
         """Coarse matches of one pair of features (C, hA, wA), (C, hB, wB). ``impl``: 'dense' (whole
-        volume; GPU) or 'sparse' (filter on ``sparse_support(k, radius)``; CPU). Raw mode ignores it."""
+        volume; GPU) or 'sparse' (filter on ``sparse_support(k, radius)``; CPU). Raw mode ignores
+        it."""
         if impl not in ("dense", "sparse"):
             raise ValueError(f"impl must be 'dense' or 'sparse', got {impl!r}")
         if impl == "sparse" and self.filter is not None:
@@ -300,8 +309,9 @@ class CoarseNet(nn.Module):
     def match_batch(
         self, feat_a: torch.Tensor, feat_b: torch.Tensor, dtype: torch.dtype = torch.float32
     ) -> list[GridMatches]:
-        """Dense coarse matches of a batch of same-size pairs (B, C, hA, wA), (B, C, hB, wB). ``dtype``
-        float16/bfloat16 runs correlation and filter under autocast (GPU); argmax and scores in float32."""
+        """Dense coarse matches of a batch of same-size pairs (B, C, hA, wA), (B, C, hB, wB).
+        ``dtype`` float16/bfloat16 runs correlation and filter under autocast (GPU); argmax and
+        scores in float32."""
         with torch.autocast(feat_a.device.type, dtype=dtype, enabled=dtype != torch.float32):
             corr = correlation(feat_a, feat_b)
             volume = (
@@ -315,11 +325,11 @@ class CoarseNet(nn.Module):
     def sparse_volume(
         self, corr: torch.Tensor, k: int, radius: int = 0
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The filtered volume of one pair's correlation (hA, wA, hB, wB) on ``sparse_support(k, radius)``
-        (Sparse-NCNet's idea): flat A cells ``a``, flat B cells ``b`` and values ``v`` (N,) of the active
-        entries; the rest of the volume reads as 0. Differentiable in the filter (and ``corr``): the CPU
-        inference path and the sparse training path run exactly this. With k ≥ the grid sizes it
-        equals the dense filter."""
+        """The filtered volume of one pair's correlation (hA, wA, hB, wB) on
+        ``sparse_support(k, radius)`` (Sparse-NCNet's idea): flat A cells ``a``, flat B cells ``b``
+        and values ``v`` (N,) of the active entries; the rest of the volume reads as 0.
+        Differentiable in the filter (and ``corr``): the CPU inference path and the sparse training
+        path run exactly this. With k ≥ the grid sizes it equals the dense filter."""
         ha, wa, hb, wb = corr.shape
         na, nb = ha * wa, hb * wb
         c2 = F.relu(corr.reshape(na, nb))
@@ -348,7 +358,8 @@ class CoarseNet(nn.Module):
     def _sparse_mutual(
         v: torch.Tensor, a: torch.Tensor, b: torch.Tensor, na: int, nb: int, eps: float = 1e-5
     ) -> torch.Tensor:
-        """``soft_mutual_nn`` on sparse non-negative entries (inactive = 0 never changes a maximum)."""
+        """``soft_mutual_nn`` on sparse non-negative entries (inactive = 0 never changes a
+        maximum)."""
         max_b = v.new_zeros(na).scatter_reduce(0, a, v, "amax")
         max_a = v.new_zeros(nb).scatter_reduce(0, b, v, "amax")
         return v * (v / (max_a[b] + eps)) * (v / (max_b[a] + eps))

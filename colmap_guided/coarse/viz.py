@@ -25,7 +25,8 @@ def draw_coarse_matches(
     height: int = 600,
     lines: bool = True,
 ) -> np.ndarray:
-    """RGB uint8 canvas with both images at ``height`` px and the A→B coarse matches colour-coded."""
+    """RGB uint8 canvas with both images at ``height`` px and the A→B coarse matches
+    colour-coded."""
     a, b = as_rgb(image_a), as_rgb(image_b)
     sa, sb = height / a.shape[0], height / b.shape[0]
     a = cv2.resize(a, (round(a.shape[1] * sa), height), interpolation=cv2.INTER_AREA)

@@ -2,10 +2,10 @@
 
 The config records what the filter was trained with (backbone, its layer and channels, the filter's
 channels and kernel sizes, the soft mutual-NN placement, the training resolution) plus free-form
-``training`` info (data, loss, iterations, date) for the model card. A filter trained with its backbone
-(``train --finetune_backbone``) carries the backbone's feature layers too (tensors ``backbone.*``), and
-loading applies them; without them the backbone keeps its ImageNet weights. Loading weights into a
-network built differently is a one-line error saying what to change.
+``training`` info (data, loss, iterations, date) for the model card. A filter trained with its
+backbone (``train --finetune_backbone``) carries the backbone's feature layers too
+(tensors ``backbone.*``), and loading applies them; without them the backbone keeps its ImageNet
+weights. Loading weights into a network built differently is a one-line error saying what to change.
 """
 
 from __future__ import annotations
@@ -61,8 +61,8 @@ def save_filter_weights(
     training: dict | None = None,
     backbone: bool = False,
 ) -> Path:
-    """Write ``net``'s filter to ``path`` (.safetensors) with its config; with ``backbone`` (a fine-tuned one)
-    also the backbone's feature layers."""
+    """Write ``net``'s filter to ``path`` (.safetensors) with its config; with ``backbone``
+    (a fine-tuned one) also the backbone's feature layers."""
     if net.filter is None:
         raise ValueError(
             "This CoarseNet is in raw mode (filter=False): there are no filter weights to save"
@@ -96,30 +96,35 @@ def has_backbone(tensors: dict[str, torch.Tensor]) -> bool:
 
 
 def read_filter_weights(path: str | Path | None = None) -> tuple[dict[str, torch.Tensor], dict]:
-    """(filter state dict, config) from ``path`` (default: ``DEFAULT_WEIGHTS``). A missing file raises
-    FileNotFoundError, so that callers can fall back to raw mode."""
+    """(filter state dict, config) from ``path`` (default: ``DEFAULT_WEIGHTS``). A missing file
+    raises FileNotFoundError, so that callers can fall back to raw mode."""
     path = Path(path) if path else DEFAULT_WEIGHTS
     if not path.is_file():
         raise FileNotFoundError(
-            f"Coarse filter weights {path}: no such file; pass the path of trained filter weights (.safetensors), "
-            f"train them (python -m colmap_guided.train), or use mode='raw' (no filter)"
+            f"Coarse filter weights {path}: no such file; pass the path of "
+            "trained filter weights (.safetensors), train them (python "
+            "-m colmap_guided.train), or use mode='raw' (no filter)"
         )
     try:
         with safe_open(str(path), framework="pt") as f:
             meta = f.metadata() or {}
-            tensors = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 (safe_open is not a dict)
+            # f.keys(): safe_open is not a dict
+            tensors = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118
     except (SafetensorError, OSError) as e:
         raise ValueError(
-            f"{path} is not a readable safetensors file ({type(e).__name__}): download or train the filter weights again"
+            f"{path} is not a readable safetensors file ({type(e).__name__}): "
+            "download or train the filter weights again"
         ) from None
     if "config" not in meta:
         raise ValueError(
-            f"{path} has no coarse-filter config in its metadata: re-save it with save_filter_weights"
+            f"{path} has no coarse-filter config in its "
+            "metadata: re-save it with save_filter_weights"
         )
     config = json.loads(meta["config"])
     if config.get("format") != FORMAT:
         raise ValueError(
-            f"{path} has format {config.get('format')!r}, expected {FORMAT!r}: re-export it with this version"
+            f"{path} has format {config.get('format')!r}, expected {FORMAT!r}: "
+            "re-export it with this version"
         )
     return tensors, config
 
@@ -134,16 +139,18 @@ def check_config(config: dict, net: CoarseNet, path: str | Path) -> None:
     ]
     if diff:
         raise ValueError(
-            f"Coarse filter weights {path} do not fit this network ({'; '.join(diff)}): build it with the weights' settings or use other weights"
+            f"Coarse filter weights {path} do not fit this network ({'; '.join(diff)}): "
+            "build it with the weights' settings or use other weights"
         )
 
 
 def load_filter_weights(net: CoarseNet, path: str | Path | None = None) -> dict:
-    """Load filter weights (and the fine-tuned backbone they carry, if any) into ``net`` after checking the
-    config; returns the config."""
+    """Load filter weights (and the fine-tuned backbone they carry, if any) into ``net`` after
+    checking the config; returns the config."""
     if net.filter is None:
         raise ValueError(
-            "This CoarseNet is in raw mode (filter=False): build it with filter=True to load weights"
+            "This CoarseNet is in raw mode (filter=False): "
+            "build it with filter=True to load weights"
         )
     tensors, config = read_filter_weights(path)
     check_config(config, net, path or DEFAULT_WEIGHTS)
@@ -158,7 +165,8 @@ def load_filter_weights(net: CoarseNet, path: str | Path | None = None) -> dict:
     if backbone:
         if set(backbone) != set(net.backbone.feature_state_dict()):
             raise ValueError(
-                f"Coarse filter weights {path or DEFAULT_WEIGHTS}: their backbone tensors are not {config['backbone']}'s feature layers; export them again"
+                f"Coarse filter weights {path or DEFAULT_WEIGHTS}: their backbone tensors "
+                f"are not {config['backbone']}'s feature layers; export them again"
             )
         net.backbone.load_state_dict(backbone, strict=False)
     return config

@@ -1,4 +1,5 @@
-"""Pose errors of a reconstruction against a ground-truth model (the synthetic scene's, or any COLMAP model)."""
+"""Pose errors of a reconstruction against a ground-truth model (the synthetic scene's, or any
+COLMAP model)."""
 
 from __future__ import annotations
 
@@ -20,9 +21,9 @@ def pose_errors(
     """Per ground-truth image: (rotation error in degrees, camera-centre error / scene extent).
 
     The estimate is aligned to the ground truth by the similarity that pycolmap fits to the camera
-    centres (LO-RANSAC, inlier threshold 5 % of the extent). The scene extent is the largest distance
-    between two ground-truth camera centres. Images missing from ``reconstruction`` (or all images,
-    when no alignment is found) get (inf, inf).
+    centres (LO-RANSAC, inlier threshold 5 % of the extent). The scene extent is the largest
+    distance between two ground-truth camera centres. Images missing from ``reconstruction`` (or all
+    images, when no alignment is found) get (inf, inf).
     """
     gt_rec = load_ground_truth(gt)
     centers = {im.name: im.projection_center() for im in gt_rec.images.values()}

@@ -1,4 +1,5 @@
-"""Multi-scene manifests (datasets/ltll_manifest.json schema): load, scan a local copy, lay scenes out.
+"""Multi-scene manifests (datasets/ltll_manifest.json schema): load, scan a local copy, lay scenes
+out.
 
 Schema (JSON)::
 
@@ -6,17 +7,18 @@ Schema (JSON)::
       "name": "LTLL", "description": "...", "citation": "...", "source": "...",
       "root": "/abs/path" | "relative/to/this/file" | "$COLMAP_GUIDED_DATA[/...]" | null,
       "scenes": [
-        {"name": "scene", "path": "relative/to/root",          # the scene's folder
-         "image_dir": "images",                                 # photos below path (default: path itself)
-         "reference": {"type": "colmap", "path": "..."} | null, # model to check registrations against
+        {"name": "scene", "path": "relative/to/root",  # the scene's folder
+         "image_dir": "images",                         # photos below path (default: path itself)
+         "reference": {"type": "colmap", "path": "..."}
+                      | null,                           # model to check registrations against
          "images": [{"name": "historical/a.jpg", "era": "historical" | "modern" | "distractor",
                      "ref_name": "name in the reference model (optional)"}]}
       ]
     }
 
-``root: null`` means the data is not shipped (LTLL): pass ``--root``. ``$COLMAP_GUIDED_DATA`` expands to
-``colmap_guided.paths.shared_data_dir()``. Eras: ``historical`` and ``modern`` as in LTLL; ``distractor``
-marks images of another scene that must not register (the historical proxy).
+``root: null`` means the data is not shipped (LTLL): pass ``--root``. ``$COLMAP_GUIDED_DATA``
+expands to ``colmap_guided.paths.shared_data_dir()``. Eras: ``historical`` and ``modern`` as in
+LTLL; ``distractor`` marks images of another scene that must not register (the historical proxy).
 
 A laid-out scene is SCENE/images (symlinks to the photos, or copies) + SCENE/manifest.json (the
 one-scene schema ``colmap_guided.report.read_manifest`` reads); the source is never modified.
@@ -35,7 +37,8 @@ from colmap_guided.paths import shared_data_dir
 from colmap_guided.workspace import Workspace
 
 ERAS = ("historical", "modern", "distractor")
-# A subset of a scene: the eras it keeps. Distractors stay in every subset: they must never register.
+# A subset of a scene: the eras it keeps. Distractors stay in every subset: they must never
+# register.
 SUBSETS = {
     "historical": ("historical", "distractor"),
     "modern": ("modern", "distractor"),
@@ -88,7 +91,8 @@ def scene_image_dir(manifest: dict, scene: dict) -> Path:
     root = manifest.get("_root")
     if root is None:
         raise ValueError(
-            f"Manifest {manifest.get('name')} has no root: pass --root (the folder of your local copy)."
+            f"Manifest {manifest.get('name')} has no root: "
+            "pass --root (the folder of your local copy)."
         )
     base = Path(root) / scene.get("path", scene["name"])
     return base / scene["image_dir"] if scene.get("image_dir") else base
@@ -123,8 +127,8 @@ def era_of_folder(name: str) -> str | None:
 
 def scan_root(root: Path) -> list[dict]:
     """Scenes of a local copy laid out as ROOT/SCENE/{historical,modern}/... (or old/new, ...) or as
-    ROOT/{historical,modern}/SCENE/... . Images without an era folder get era 'unknown' (with a warning);
-    they are kept in the 'all' subset only."""
+    ROOT/{historical,modern}/SCENE/... . Images without an era folder get era 'unknown'
+    (with a warning); they are kept in the 'all' subset only."""
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"{root} is not a folder")
@@ -185,7 +189,8 @@ def layout_scene(
     manifest: dict, scene: dict, subset: str, out_dir: Path, copy: bool = False
 ) -> Path | None:
     """OUT_DIR/<scene>__<subset>/images (links or copies) + manifest.json; None when the subset has
-    fewer than 2 images that are not distractors. Only files this function made are ever replaced."""
+    fewer than 2 images that are not distractors. Only files this function made are ever
+    replaced."""
     images = subset_images(scene, subset)
     if sum(im["era"] != "distractor" for im in images) < 2:
         return None
@@ -223,7 +228,8 @@ def select_scenes(manifest: dict, names=None, max_scenes: int | None = None) -> 
         unknown = set(names) - {s["name"] for s in scenes}
         if unknown:
             raise ValueError(
-                f"Unknown scene(s) {sorted(unknown)}; the manifest has {[s['name'] for s in scenes]}"
+                f"Unknown scene(s) {sorted(unknown)}; the "
+                f"manifest has {[s['name'] for s in scenes]}"
             )
         scenes = [s for s in scenes if s["name"] in names]
     return scenes[:max_scenes] if max_scenes else scenes

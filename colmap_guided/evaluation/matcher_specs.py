@@ -1,11 +1,13 @@
-"""Matcher variants for the benchmarks: a preset of ``matchers.PRESETS`` by name, with options over it.
+"""Matcher variants for the benchmarks: a preset of ``matchers.PRESETS`` by name, with options over
+it.
 
-A spec is ``preset[:key=value[,key=value...]]``, e.g. ``raw_mutual`` (mutual check only), ``raw`` (ratio +
-mutual), ``guided_ratio0.9``, ``guided:window_cells=2`` (an option swept outside the presets). Values are
-parsed as JSON when they can be (``none``/``null`` -> None, numbers, true/false), else kept as strings.
-A spec whose preset does not exist, or whose option its matcher does not know, raises ValueError: a
-benchmark never drops a row silently. A parsed spec names the matcher (``name``) and holds the preset's
-options with the overrides (``conf``); ``label`` is its text.
+A spec is ``preset[:key=value[,key=value...]]``, e.g. ``raw_mutual`` (mutual check only), ``raw``
+(ratio + mutual), ``guided_ratio0.9``, ``guided:window_cells=2`` (an option swept outside the
+presets). Values are parsed as JSON when they can be (``none``/``null`` -> None, numbers,
+true/false), else kept as strings. A spec whose preset does not exist, or whose option its matcher
+does not know, raises ValueError: a benchmark never drops a row silently. A parsed spec names the
+matcher (``name``) and holds the preset's options with the overrides (``conf``); ``label`` is its
+text.
 """
 
 from __future__ import annotations
@@ -13,7 +15,8 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 
-# Paper Table 2 rows that this project can produce (the best ratio among 0.8/0.9/0.95 is reported there).
+# Paper Table 2 rows that this project can produce (the best ratio among 0.8/0.9/0.95 is reported
+# there).
 DEFAULT_TWO_VIEW_SPECS = (
     "raw_mutual",  # bidirectional check only
     "raw",  # ratio test 0.8 + bidirectional check (the paper's strong baseline)
@@ -67,8 +70,9 @@ def matcher_class(name: str):
 
 
 def parse_specs(texts, extra_conf: dict | None = None) -> list[MatcherSpec]:
-    """Parse specs into (matcher, preset options + overrides); ValueError for one that cannot be built.
-    ``extra_conf`` (e.g. device, weights) is added to each spec for the options its matcher knows."""
+    """Parse specs into (matcher, preset options + overrides); ValueError for one that cannot be
+    built. ``extra_conf`` (e.g. device, weights) is added to each spec for the options its matcher
+    knows."""
     from colmap_guided.matchers import PRESETS, preset
 
     out = []
@@ -76,14 +80,16 @@ def parse_specs(texts, extra_conf: dict | None = None) -> list[MatcherSpec]:
         spec = parse_spec(text)
         if spec.name not in PRESETS:
             raise ValueError(
-                f"Matcher {spec.name!r} of {text!r} is not in the registry ({', '.join(sorted(PRESETS))})"
+                f"Matcher {spec.name!r} of {text!r} is not in "
+                f"the registry ({', '.join(sorted(PRESETS))})"
             )
         cls, options = preset(spec.name)
         known = cls.default_conf
         unknown = sorted(set(spec.conf) - set(known))
         if unknown:
             raise ValueError(
-                f"The {cls.name} matcher has no option {', '.join(unknown)} ({text!r}); known: {', '.join(sorted(known))}"
+                f"The {cls.name} matcher has no option {', '.join(unknown)} "
+                f"({text!r}); known: {', '.join(sorted(known))}"
             )
         spec = MatcherSpec(cls.name, {**options, **spec.conf}, text)
         for key, value in (extra_conf or {}).items():

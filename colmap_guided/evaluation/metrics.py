@@ -1,16 +1,18 @@
 """Metrics of the paper's evaluation (§5, Table 2) and of WxBS.
 
 Relative pose (the SuperGlue / OANet YFCC protocol):
-- poses are ``cam_from_world`` (x_cam = R x_world + t); the relative pose of a pair is cam2_from_cam1;
+- poses are ``cam_from_world`` (x_cam = R x_world + t); the relative pose of a pair is
+  cam2_from_cam1;
 - rotation error = angle of R_est^T R_gt; translation error = angle between the directions of t_est
   and t_gt, folded to [0, 90] (an essential matrix fixes t up to sign); pose error = max of both;
   a pair whose pose could not be estimated has error = inf;
 - AUC at 5/10/20 degrees of the cumulative error curve, trapezoid rule, normalised by the threshold.
 
-Essential matrix: OpenCV's RANSAC (``cv2.findEssentialMat`` on normalised coordinates, threshold = 1 px
-divided by the mean focal length, confidence 0.99999) then ``cv2.recoverPose`` on its inliers, keeping the
-candidate E with most cheirality inliers, as in the SuperGlue evaluation. ``estimator='pycolmap'`` uses
-``pycolmap.estimate_essential_matrix`` (COLMAP's LO-RANSAC, threshold in pixels) instead.
+Essential matrix: OpenCV's RANSAC (``cv2.findEssentialMat`` on normalised coordinates, threshold =
+1 px divided by the mean focal length, confidence 0.99999) then ``cv2.recoverPose`` on its inliers,
+keeping the candidate E with most cheirality inliers, as in the SuperGlue evaluation.
+``estimator='pycolmap'`` uses ``pycolmap.estimate_essential_matrix`` (COLMAP's LO-RANSAC, threshold
+in pixels) instead.
 
 WxBS: hand-labelled correspondences ``x1 y1 x2 y2`` scored against the estimated fundamental matrix
 (symmetric epipolar distance, see ``symmetric_epipolar_distance``) or homography (symmetric transfer
@@ -47,7 +49,8 @@ def translation_error(
 ) -> float:
     """Angle (degrees) between translation directions; folded to [0, 90] when the sign is ambiguous.
 
-    A reference translation of (near) zero length has no direction: the error is 0 (SuperGlue's rule).
+    A reference translation of (near) zero length has no direction: the error is 0
+    (SuperGlue's rule).
     """
     t_est, t_gt = np.asarray(t_est, float).ravel(), np.asarray(t_gt, float).ravel()
     n_est, n_gt = np.linalg.norm(t_est), np.linalg.norm(t_gt)
@@ -75,9 +78,9 @@ def relative_pose_error(R_est, t_est, R_gt, t_gt, sign_ambiguous: bool = True) -
 def pose_auc(errors, thresholds=AUC_THRESHOLDS) -> list[float]:
     """Area under the cumulative error curve up to each threshold, normalised to [0, 1].
 
-    The curve is recall(e) = share of errors <= e, a step at each sorted error joined by straight lines
-    from (0, 0) (trapezoid rule), continued flat to the threshold. Infinite / NaN errors count as
-    failures (they lower the recall but are never below a threshold).
+    The curve is recall(e) = share of errors <= e, a step at each sorted error joined by straight
+    lines from (0, 0) (trapezoid rule), continued flat to the threshold. Infinite / NaN errors count
+    as failures (they lower the recall but are never below a threshold).
     """
     errors = np.asarray(errors, float).ravel()
     errors = np.where(np.isnan(errors), np.inf, errors)
@@ -88,9 +91,8 @@ def pose_auc(errors, thresholds=AUC_THRESHOLDS) -> list[float]:
     recall = np.concatenate([[0.0], np.arange(1, n + 1) / n])
     aucs = []
     for thr in thresholds:
-        k = int(
-            np.searchsorted(errors, thr, side="left")
-        )  # errors[:k] < thr (errors[0] = 0 always)
+        # errors[:k] < thr (errors[0] = 0 always)
+        k = int(np.searchsorted(errors, thr, side="left"))
         k = max(k, 1)
         e = np.concatenate([errors[:k], [thr]])
         r = np.concatenate([recall[:k], [recall[k - 1]]])
@@ -109,7 +111,8 @@ def pose_accuracy(errors, thresholds=AUC_THRESHOLDS) -> list[float]:
 
 # ---------------------------------------------------------------------------- essential RANSAC
 def normalize_points(camera, points: np.ndarray) -> np.ndarray:
-    """Pixels (COLMAP convention) -> normalised image coordinates through a pycolmap.Camera (undistorts)."""
+    """Pixels (COLMAP convention) -> normalised image coordinates through a pycolmap.Camera
+    (undistorts)."""
     points = np.ascontiguousarray(np.asarray(points, np.float64).reshape(-1, 2))
     if len(points) == 0:
         return np.zeros((0, 2))
@@ -188,7 +191,8 @@ def symmetric_epipolar_distance(x1: np.ndarray, x2: np.ndarray, F: np.ndarray) -
     """Per correspondence sqrt((d(x2, F x1)^2 + d(x1, F^T x2)^2) / 2), in the points' units.
 
     d(x, l) is the distance of point x to line l. This is Hartley & Zisserman's symmetric epipolar
-    distance (eq. 11.10, a sum of squares) turned into a length: the RMS of the two point-line distances.
+    distance (eq. 11.10, a sum of squares) turned into a length: the RMS of the two point-line
+    distances.
     """
     h1, h2 = _homogeneous(x1), _homogeneous(x2)
     l2 = h1 @ np.asarray(F, float).T  # lines in image 2: F x1
@@ -200,7 +204,8 @@ def symmetric_epipolar_distance(x1: np.ndarray, x2: np.ndarray, F: np.ndarray) -
 
 
 def homography_transfer_error(x1: np.ndarray, x2: np.ndarray, H: np.ndarray) -> np.ndarray:
-    """Per correspondence mean of ||H x1 - x2|| and ||H^-1 x2 - x1|| (symmetric transfer error, px)."""
+    """Per correspondence mean of ||H x1 - x2|| and ||H^-1 x2 - x1|| (symmetric transfer
+    error, px)."""
     H = np.asarray(H, float)
     x1, x2 = (np.asarray(x, np.float64).reshape(-1, 2) for x in (x1, x2))
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -219,7 +224,8 @@ def estimate_geometry(
     max_iters: int = 10000,
     seed: int = 0,
 ) -> dict | None:
-    """Fundamental matrix ('F', >= 8 matches) or homography ('H', >= 4) with OpenCV's MAGSAC++ (USAC)."""
+    """Fundamental matrix ('F', >= 8 matches) or homography ('H', >= 4) with OpenCV's MAGSAC++
+    (USAC)."""
     pts1 = np.ascontiguousarray(np.asarray(pts1, np.float64).reshape(-1, 2))
     pts2 = np.ascontiguousarray(np.asarray(pts2, np.float64).reshape(-1, 2))
     cv2.setRNGSeed(seed)
@@ -244,7 +250,8 @@ def estimate_geometry(
 
 
 def geometry_errors(corrs: np.ndarray, M: np.ndarray | None, geometry: str = "F") -> np.ndarray:
-    """Errors (px) of the hand-labelled correspondences (N, 4) under an estimated geometry (inf if None)."""
+    """Errors (px) of the hand-labelled correspondences (N, 4) under an estimated geometry
+    (inf if None)."""
     corrs = np.asarray(corrs, np.float64).reshape(-1, 4)
     if M is None:
         return np.full(len(corrs), np.inf)

@@ -1,23 +1,24 @@
 """Offline historical proxy: real photo sets with half of their images turned into archival photos.
 
-No historical multi-view collection (LTLL) is available offline, so each source set of ../shared/data
-becomes a proxy scene:
-- a deterministic half of its images (seeded permutation) is degraded with ``colmap_guided.archival``
-  (named presets in turn, plus a random crop keeping >= 90 % of each side): era ``historical``. Two
-  looks, each a scene of its own: ``damaged`` (OUT/<scene>: B&W print, sepia print, faded colour,
-  damaged scan, old postcard) and ``realistic`` (OUT/<scene>_realistic: prints kept well, with moderate
-  fading, soft focus, fine grain and dust);
+No historical multi-view collection (LTLL) is available offline, so each source set of
+../shared/data becomes a proxy scene:
+- a deterministic half of its images (seeded permutation) is degraded with
+  ``colmap_guided.archival`` (named presets in turn, plus a random crop keeping >= 90 % of each
+  side): era ``historical``. Two looks, each a scene of its own: ``damaged`` (OUT/<scene>: B&W
+  print, sepia print, faded colour, damaged scan, old postcard) and ``realistic``
+  (OUT/<scene>_realistic: prints kept well, with moderate fading, soft focus, fine grain and dust);
 - the other half is kept as is: era ``modern``;
 - a few images of OTHER, unrelated scenes are added (half of them degraded too): era ``distractor``;
   they must never register.
 All images are resized so the long side is <= ``max_size`` (default 1024, as the train scenes).
 
-Output (never inside ../shared): OUT/<scene>/images/*.jpg + OUT/<scene>/manifest.json (one-scene schema
-with era, source file, reference name, preset, crop) and OUT/proxy_manifest.json (the multi-scene
-datasets/ltll_manifest.json schema, root = OUT), so eval_registration.py runs on it like on LTLL.
-The crop changes the pixel frame but not the camera pose: registrations are checked on poses only, against
-the set's reference model, or for a set without one a model of its original photos (``pseudo_reference``).
-Two splits (``SPLITS``): thresholds are chosen on ``dev``; figures are reported on ``test``.
+Output (never inside ../shared): OUT/<scene>/images/*.jpg + OUT/<scene>/manifest.json (one-scene
+schema with era, source file, reference name, preset, crop) and OUT/proxy_manifest.json (the
+multi-scene datasets/ltll_manifest.json schema, root = OUT), so eval_registration.py runs on it like
+on LTLL. The crop changes the pixel frame but not the camera pose: registrations are checked on
+poses only, against the set's reference model, or for a set without one a model of its original
+photos (``pseudo_reference``). Two splits (``SPLITS``): thresholds are chosen on ``dev``; figures
+are reported on ``test``.
 """
 
 from __future__ import annotations
@@ -62,8 +63,9 @@ SAME_LANDMARK = (
     {"lund_door_gtsfm", "opensfm_lund"},
     {"train/vggsfm_british_museum", "phototourism_superglue"},
 )
-# Thresholds and defaults are chosen on the development split; figures are reported on the test split,
-# whose landmarks the shipped coarse filter saw neither in training nor in validation (tested).
+# Thresholds and defaults are chosen on the development split; figures are reported on the test
+# split, whose landmarks the shipped coarse filter saw neither in training nor in validation
+# (tested).
 SPLITS = {"dev": DEFAULT_SOURCES, "test": ("sceaux_castle", "opensfm_berlin")}
 HISTORICAL_PRESETS = ("bw_print", "sepia_print", "faded_colour", "damaged_scan", "old_postcard")
 REALISTIC_PRESETS = ("realistic_bw", "realistic_sepia", "realistic_colour")
@@ -107,13 +109,15 @@ def _degrade(
 
 
 def _claim(out_dir: Path, data_dir: Path | None = None) -> Workspace:
-    """The proxy's folder: never overlapping the photo sets it reads, never a folder of other files."""
+    """The proxy's folder: never overlapping the photo sets it reads, never a folder of other
+    files."""
     keep = {shared_dir(), shared_data_dir(), *([Path(data_dir)] if data_dir else [])}
     return Workspace.claim(out_dir, "proxy", keep=tuple(p for p in keep if p.exists()))
 
 
 def same_landmark(key: str) -> set[str]:
-    """Scene names (last path component) of every set that shows ``key``'s landmark, ``key``'s own too."""
+    """Scene names (last path component) of every set that shows ``key``'s landmark, ``key``'s own
+    too."""
     return {k.split("/")[-1] for k in set().union(*(g for g in SAME_LANDMARK if key in g)) | {key}}
 
 
@@ -126,8 +130,9 @@ def seen_scenes(weights: Path | None = None) -> set[str]:
 
 
 def pseudo_reference(key: str, data_dir: Path, workspace: Workspace) -> Path | None:
-    """For a set without a reference model: the largest model of pycolmap's default pipeline on its original,
-    undegraded photos (OUT/references/<key>, kind pseudo_gt), built once; None when nothing registers."""
+    """For a set without a reference model: the largest model of pycolmap's default pipeline on its
+    original, undegraded photos (OUT/references/<key>, kind pseudo_gt), built once; None when
+    nothing registers."""
     from .registration import largest_model, run_pycolmap_default
 
     name = f"references/{key.replace('/', '_')}"
@@ -171,7 +176,8 @@ def build_scene(
     pool=DISTRACTOR_POOL,
     look: str = "damaged",
 ) -> Path:
-    """One proxy scene from the set ``key`` of ../shared/data in one of ``LOOKS``; returns OUT/<scene>."""
+    """One proxy scene from the set ``key`` of ../shared/data in one of ``LOOKS``; returns
+    OUT/<scene>."""
     if look not in LOOKS:
         raise ValueError(f"unknown proxy look {look!r}; known: {sorted(LOOKS)}")
     suffix, presets = LOOKS[look]
@@ -288,7 +294,9 @@ def build_proxy(out_dir: Path, sources=DEFAULT_SOURCES, looks=tuple(LOOKS), **kw
         )
     manifest = {
         "name": "historical_proxy",
-        "description": "Offline historical proxy built by recon_scripts/make_historical_proxy.py: half of each set degraded (era historical), the rest modern, plus distractors of unrelated scenes that must not register.",
+        "description": "Offline historical proxy built by "
+        "recon_scripts/make_historical_proxy.py: half of each set degraded (era historical), "
+        "the rest modern, plus distractors of unrelated scenes that must not register.",
         "source": "../shared/data (see its README.md for provenance and licences)",
         "root": ".",
         "scenes": scenes,

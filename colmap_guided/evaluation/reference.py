@@ -1,16 +1,18 @@
 """Reference cameras (intrinsics + cam_from_world pose) of the scenes the two-view protocol uses.
 
-Every loader returns a ``RefScene`` in the pixel frame of the image files as they are on disk (COLMAP's
-convention, pixel centre = +0.5), so keypoints extracted from those files can be normalised directly.
+Every loader returns a ``RefScene`` in the pixel frame of the image files as they are on disk
+(COLMAP's convention, pixel centre = +0.5), so keypoints extracted from those files can be
+normalised directly.
 
 Sources (see ../shared/data/README.md and train/README.md)
 - ``lund_door_gtsfm``: ``colmap_ground_truth/`` (COLMAP text model, full-size images).
-- ``train/strecha_*``: ``calibration_gt*.json`` (K, R, T with x_cam = R x_world + T, 3072x2048 frame),
-  K rescaled to the downscaled files; real reference cameras.
-- ``train/instantngp_fox``: ``transforms.json`` (NeRF camera-to-world, OpenGL axes, OPENCV distortion).
+- ``train/strecha_*``: ``calibration_gt*.json`` (K, R, T with x_cam = R x_world + T, 3072x2048
+  frame), K rescaled to the downscaled files; real reference cameras.
+- ``train/instantngp_fox``: ``transforms.json`` (NeRF camera-to-world, OpenGL axes, OPENCV
+  distortion).
 - any ``train/<scene>``: ``colmap/`` pseudo ground truth (``source='pseudo_gt'``).
-Covisibility (shared 3D points) always comes from a COLMAP model of the scene: the reference model for
-lund_door, the pseudo-GT model of the train scenes.
+Covisibility (shared 3D points) always comes from a COLMAP model of the scene: the reference model
+for lund_door, the pseudo-GT model of the train scenes.
 """
 
 from __future__ import annotations
@@ -123,7 +125,8 @@ def _strecha_views(scene_dir: Path) -> dict[str, RefView]:
                 height=h,
                 params=[K[0, 0] * sx, K[1, 1] * sy, K[0, 2] * sx, K[1, 2] * sy],
             )
-            # Each calibration file has its own world frame (castle P19 and P30 differ by a similarity).
+            # Each calibration file has its own world frame (castle P19 and P30 differ by a
+            # similarity).
             views[name] = RefView(
                 name, camera, _orthonormal(cal["R"]), np.asarray(cal["T"], float), group=path.stem
             )
@@ -132,9 +135,8 @@ def _strecha_views(scene_dir: Path) -> dict[str, RefView]:
 
 def _instantngp_views(scene_dir: Path) -> dict[str, RefView]:
     data = json.loads((scene_dir / "transforms.json").read_text())
-    flip = np.diag(
-        [1.0, -1.0, -1.0]
-    )  # OpenGL camera axes (x right, y up, z back) -> OpenCV (y down, z forward)
+    # OpenGL camera axes (x right, y up, z back) -> OpenCV (y down, z forward)
+    flip = np.diag([1.0, -1.0, -1.0])
     views = {}
     for frame in data["frames"]:
         name = Path(frame["file_path"]).name
@@ -144,7 +146,10 @@ def _instantngp_views(scene_dir: Path) -> dict[str, RefView]:
         fw, fh = float(frame.get("w", data["w"])), float(frame.get("h", data["h"]))
         w, h = image_size(file)
         sx, sy = w / fw, h / fh
-        g = lambda k: float(frame.get(k, data.get(k, 0.0)))  # noqa: E731 - per-frame value or the global one
+
+        def g(k):  # per-frame value or the global one
+            return float(frame.get(k, data.get(k, 0.0)))
+
         camera = pycolmap.Camera(
             model="OPENCV",
             width=w,
@@ -171,7 +176,8 @@ def load_reference(key: str, source: str = "auto", data_dir: Path | None = None)
     """Reference of a scene of ../shared/data ('lund_door_gtsfm', 'train/strecha_castle', ...).
 
     source: 'auto' (real reference cameras where the set has them, else the pseudo-GT model),
-    'reference' (real cameras only; error if none) or 'pseudo_gt' (the COLMAP model of train/<scene>).
+    'reference' (real cameras only; error if none) or 'pseudo_gt' (the COLMAP model of
+    train/<scene>).
     """
     data_dir = Path(data_dir) if data_dir else shared_data_dir()
     scene_dir = data_dir / key
@@ -206,7 +212,8 @@ def load_reference(key: str, source: str = "auto", data_dir: Path | None = None)
 
 
 def reference_model_dir(key: str, data_dir: Path | None = None) -> Path | None:
-    """The COLMAP model a registration is checked against (reference where it exists, else pseudo-GT)."""
+    """The COLMAP model a registration is checked against (reference where it exists, else
+    pseudo-GT)."""
     scene_dir = (Path(data_dir) if data_dir else shared_data_dir()) / key
     for sub in ("colmap_ground_truth", "colmap"):
         if (scene_dir / sub).is_dir():

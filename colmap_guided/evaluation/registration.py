@@ -1,4 +1,5 @@
-"""Registration benchmark (paper Fig. 5a): registered ratio per scene, checked against a reference model.
+"""Registration benchmark (paper Fig. 5a): registered ratio per scene, checked against a reference
+model.
 
 Methods
 - ``pycolmap``: pycolmap's default pipeline, untouched (extract_features + match_exhaustive +
@@ -6,13 +7,13 @@ Methods
 - any matcher spec of the registry (``raw``, ``guided``, ``guided:ratio=0.9``...): ``reconstruct``.
 
 A registered image counts as *correct* only when its pose agrees with the reference model (where the
-scene has one): the est->ref world rotation is the consensus of R_ref_i^T R_est_i over the registered
-images (the candidate agreeing with most others within ``max_rotation_deg``), an image is wrong when its
-rotation error exceeds ``max_rotation_deg`` (5°) or, with >= 3 images, its camera centre is farther than
-``max_center_frac`` (10 %) of the scene depth (median depth of the reference's 3D points in its
-cameras; the spread of the reference centres when it has no points) from its reference after a robust
-similarity fit. Images without a reference pose are 'unverified'. Distractors (era 'distractor') must
-never register; each one registered is a failure.
+scene has one): the est->ref world rotation is the consensus of R_ref_i^T R_est_i over the
+registered images (the candidate agreeing with most others within ``max_rotation_deg``), an image is
+wrong when its rotation error exceeds ``max_rotation_deg`` (5°) or, with >= 3 images, its camera
+centre is farther than ``max_center_frac`` (10 %) of the scene depth (median depth of the
+reference's 3D points in its cameras; the spread of the reference centres when it has no points)
+from its reference after a robust similarity fit. Images without a reference pose are 'unverified'.
+Distractors (era 'distractor') must never register; each one registered is a failure.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from colmap_guided.matchers import AUTO, resolve_auto
 from colmap_guided.workspace import Workspace
 
 from . import matcher_specs
+from .metrics import rotation_angle
 
 # What an evaluation writes beside its scenes (``write_report``) and its WxBS table.
 REPORT_FILES = (
@@ -42,7 +44,6 @@ REPORT_FILES = (
     "wxbs_appearance.json",
     "manifest_scanned.json",
 )
-from .metrics import rotation_angle
 
 MAX_ROTATION_DEG = 5.0
 MAX_CENTER_FRAC = 0.1
@@ -62,9 +63,9 @@ def compare_poses(
     max_center_frac: float = MAX_CENTER_FRAC,
     scale: float | None = None,
 ) -> dict[str, dict]:
-    """Per image of ``est`` (name -> (R, t) cam_from_world) that ``ref`` also has: rotation error (deg),
-    centre error (fraction of ``scale``, the scene depth in reference units; default the median spread
-    of the reference centres; None with < 3 images) and 'ok'."""
+    """Per image of ``est`` (name -> (R, t) cam_from_world) that ``ref`` also has: rotation error
+    (deg), centre error (fraction of ``scale``, the scene depth in reference units; default the
+    median spread of the reference centres; None with < 3 images) and 'ok'."""
     names = sorted(set(est) & set(ref))
     if len(names) < 2:
         return {n: {"rotation_error": None, "center_error": None, "ok": None} for n in names}
@@ -215,8 +216,8 @@ def method_slug(method: str) -> str:
 
 
 def _fresh_workspace(workspace: Path, database: Path | None) -> Path:
-    """``workspace`` without what an earlier run wrote (with a copy of ``database`` when given); returns
-    its database path."""
+    """``workspace`` without what an earlier run wrote (with a copy of ``database`` when given);
+    returns its database path."""
     from colmap_guided.reconstruct import WRITES
 
     workspace = Workspace.claim(workspace, "reconstruct", overwrite=True)
@@ -226,7 +227,8 @@ def _fresh_workspace(workspace: Path, database: Path | None) -> Path:
     return workspace.path / "database.db"
 
 
-# pycolmap's default pipeline, and its database mapped by this project's mapping stage (what the mapper alone gives)
+# pycolmap's default pipeline, and its database mapped by this project's mapping stage (what the
+# mapper alone gives)
 PYCOLMAP_METHODS = ("pycolmap", "pycolmap_mapping")
 
 
@@ -239,10 +241,11 @@ def run_pycolmap_default(
     threads: int | None = None,
     own_mapping: bool = False,
 ) -> tuple[dict, dict]:
-    """pycolmap's default pipeline with default options (``seed``: only the mapper's random seed, and
-    ``threads``: the mapper's threads, 1 = runs repeat exactly; ``database``: a finished database of this
-    pipeline to map again, extraction and matching skipped; ``own_mapping``: the database mapped by
-    ``mapping.run_mapping`` with its defaults instead); returns (models, timings)."""
+    """pycolmap's default pipeline with default options (``seed``: only the mapper's random seed,
+    and
+    ``threads``: the mapper's threads, 1 = runs repeat exactly; ``database``: a finished database of
+    this pipeline to map again, extraction and matching skipped; ``own_mapping``: the database
+    mapped by ``mapping.run_mapping`` with its defaults instead); returns (models, timings)."""
     db = _fresh_workspace(workspace, database)
     (Path(workspace) / "sparse").mkdir()
     timings = {}
@@ -276,7 +279,8 @@ def run_pycolmap_default(
 def split_stage_options(method: str) -> tuple[str, dict, dict]:
     """A method spec's feature-stage options (keys of ``features.default_conf``, e.g.
     ``guided:type=aliked``) and mapping options (keys of ``mapping.default_conf``, e.g.
-    ``guided:mapper=global``) apart from its matcher spec: (matcher spec, feature conf, mapping conf)."""
+    ``guided:mapper=global``) apart from its matcher spec: (matcher spec, feature conf, mapping
+    conf)."""
     from colmap_guided.features import default_conf as feature_defaults
     from colmap_guided.mapping import default_conf as mapping_defaults
 
@@ -294,9 +298,9 @@ def split_stage_options(method: str) -> tuple[str, dict, dict]:
 
 
 def database_key(method: str) -> tuple[str, str]:
-    """What a method's database depends on: (features key, features + matching key). Mapping options do
-    not change the database, so ``guided`` and ``guided:mapper=global`` share one; ``raw:type=aliked`` and
-    ``guided:type=aliked`` share their keypoints."""
+    """What a method's database depends on: (features key, features + matching key). Mapping options
+    do not change the database, so ``guided`` and ``guided:mapper=global`` share one;
+    ``raw:type=aliked`` and ``guided:type=aliked`` share their keypoints."""
     if method in PYCOLMAP_METHODS:  # one database, mapped two ways
         return "pycolmap", "pycolmap|pycolmap"
     matcher, feature, _ = split_stage_options(method)
@@ -320,10 +324,12 @@ def run_method(
     features_only: bool = False,
     threads: int | None = None,
 ) -> tuple[pycolmap.Reconstruction | None, dict]:
-    """One reconstruction of a laid-out scene (``seed``: the mapper's random seed, None = each method's
-    default; ``threads``: the mapper's threads, None = each method's default, 1 = a rerun gives the same model; ``database``: a finished database of this method, or of another mapper, so only mapping runs
-    (the database does not depend on the mapper); with ``features_only`` its matches are cleared first, so
-    only the keypoints of a method with the same feature options are reused); returns (largest model, summary)."""
+    """One reconstruction of a laid-out scene (``seed``: the mapper's random seed, None = each
+    method's default; ``threads``: the mapper's threads, None = each method's default, 1 = a rerun
+    gives the same model; ``database``: a finished database of this method, or of another mapper, so
+    only mapping runs (the database does not depend on the mapper); with ``features_only`` its
+    matches are cleared first, so only the keypoints of a method with the same feature options are
+    reused); returns (largest model, summary)."""
     scene_dir = Path(scene_dir)
     image_dir = scene_dir / "images"
     start = time.time()
@@ -378,9 +384,9 @@ def run_method(
 def _reusable(
     runs_dirs: list[Path], methods: list[str], method: str
 ) -> tuple[Path | None, bool, dict]:
-    """A finished database to start ``method`` from: (path, features only, the source's timings). First
-    one of the same features and matcher (map only), then one of the same features (match and map), in
-    ``runs_dirs`` in order; (None, False, {}) when there is none."""
+    """A finished database to start ``method`` from: (path, features only, the source's timings).
+    First one of the same features and matcher (map only), then one of the same features
+    (match and map), in ``runs_dirs`` in order; (None, False, {}) when there is none."""
     features, full = database_key(method)
     for want_full in (True, False):
         for runs_dir in runs_dirs:
@@ -417,10 +423,10 @@ def evaluate_scene(
     **tol,
 ) -> dict:
     """Run every method on one laid-out scene (SCENE/images + SCENE/manifest.json) and score it
-    (``seed``: the mappers' random seed; runs go to SCENE/runs/seed<seed>/ then; ``threads``: the mappers'
-    threads, 1 = every run repeats exactly; ``databases_from``: the runs folder of another seed whose
-    finished databases are mapped again; ``remap``: a finished run maps its own database again, after a
-    change of the mapping stage or of ``threads``; pycolmap's runs too)."""
+    (``seed``: the mappers' random seed; runs go to SCENE/runs/seed<seed>/ then; ``threads``: the
+    mappers' threads, 1 = every run repeats exactly; ``databases_from``: the runs folder of another
+    seed whose finished databases are mapped again; ``remap``: a finished run maps its own database
+    again, after a change of the mapping stage or of ``threads``; pycolmap's runs too)."""
     scene_dir = Path(scene_dir)
     one = json.loads((scene_dir / "manifest.json").read_text(encoding="utf-8"))
     images = one["images"]
@@ -472,9 +478,8 @@ def evaluate_scene(
             logger.error("%s [%s] %s failed: %r", out["scene"], out["subset"], method, err)
             out["methods"][method] = {"error": repr(err)}
             continue
-        if (
-            reuse is not None
-        ):  # the stages reused count in this method's time, as if it had run them
+        # the stages reused count in this method's time, as if it had run them
+        if reuse is not None:
             reused = {
                 k: v
                 for k, v in source_timings.items()
@@ -555,7 +560,8 @@ def markdown_tables(results: list[dict], methods: list[str]) -> str:
         ["subset"] + methods, means
     )
     text += (
-        "\n\nAgreement with the reference model (rotation < 5°, centre < 10 % of the scene depth) and distractors registered (must be 0):\n\n"
+        "\n\nAgreement with the reference model (rotation < 5°, centre < "
+        "10 % of the scene depth) and distractors registered (must be 0):\n\n"
         + markdown_table(["scene", "subset"] + methods, rows2)
     )
     return text
@@ -592,13 +598,15 @@ def write_report(
     results: list[dict],
     extra_text: str = "",
 ) -> str:
-    """The registration tables under a title with the machine and date, then ``extra_text``, written to
-    OUTPUT/results.md, with OUTPUT/results.json and the OUTPUT/registered.png plot; returns the Markdown."""
+    """The registration tables under a title with the machine and date, then ``extra_text``, written
+    to OUTPUT/results.md, with OUTPUT/results.json and the OUTPUT/registered.png plot; returns the
+    Markdown."""
     from . import tables
 
     note = tables.machine_note()
     text = (
-        f"### {title}: registration ({note['date']}, {note['torch_device']}, {note['cpu_count']} CPUs)\n\n"
+        f"### {title}: registration ({note['date']}, "
+        f"{note['torch_device']}, {note['cpu_count']} CPUs)\n\n"
         + markdown_tables(results, methods)
         + extra_text
     )

@@ -1,4 +1,5 @@
-"""Markdown tables, JSON and PNG plots of the benchmarks (matplotlib, Agg backend: no display needed)."""
+"""Markdown tables, JSON and PNG plots of the benchmarks (matplotlib, Agg backend: no display
+needed)."""
 
 from __future__ import annotations
 
@@ -81,7 +82,8 @@ def grouped_bars(
     ylim: tuple | None = None,
     ax=None,
 ) -> None:
-    """Bars of several series (legend) for each group (x axis); writes ``path`` unless an ``ax`` is given."""
+    """Bars of several series (legend) for each group (x axis); writes ``path`` unless an ``ax`` is
+    given."""
     plt = _plt()
     own = ax is None
     if own:

@@ -1,11 +1,11 @@
 """Two-view protocols: relative pose AUC on pairs with reference cameras (paper Table 2) and WxBS.
 
-Pose protocol (SuperGlue/OANet YFCC): for each sampled pair, SIFT keypoints (pycolmap, as the pipeline
-extracts them, into a cached COLMAP database), matches of each matcher variant, essential matrix by RANSAC
-with threshold 1 px / mean focal on the reference intrinsics, pose error vs the reference relative pose,
-AUC at 5/10/20 degrees over all pairs. Pairs are sampled deterministically among covisible pairs
-(>= ``min_covisible`` shared 3D points of the scene's COLMAP model), spread over bins of reference
-relative rotation so that easy and hard pairs are both present.
+Pose protocol (SuperGlue/OANet YFCC): for each sampled pair, SIFT keypoints (pycolmap, as the
+pipeline extracts them, into a cached COLMAP database), matches of each matcher variant, essential
+matrix by RANSAC with threshold 1 px / mean focal on the reference intrinsics, pose error vs the
+reference relative pose, AUC at 5/10/20 degrees over all pairs. Pairs are sampled deterministically
+among covisible pairs (>= ``min_covisible`` shared 3D points of the scene's COLMAP model), spread
+over bins of reference relative rotation so that easy and hard pairs are both present.
 
 WxBS protocol: fundamental matrix (or homography) by MAGSAC++ from the matches, score = share of the
 hand-labelled correspondences within 3/5/10 px (symmetric epipolar distance / transfer error).
@@ -39,7 +39,8 @@ DEFAULT_CACHE = paths.cache_dir("evaluation")
 def sample_pairs(
     ref: RefScene, max_pairs: int | None, seed: int = 0, min_covisible: int = 50, bins=ROTATION_BINS
 ) -> list[dict]:
-    """Deterministic sample of covisible pairs with reference poses, round-robin over rotation bins."""
+    """Deterministic sample of covisible pairs with reference poses, round-robin over rotation
+    bins."""
     names = sorted(ref.views)
     candidates = []
     for a, b in combinations(names, 2):
@@ -83,10 +84,12 @@ def sift_features(
     max_num_features: int = 2000,
     max_image_size: int = 3200,
 ) -> dict[str, ImageData]:
-    """SIFT of ``names`` (paths relative to ``image_dir``) with pycolmap, as the pipeline extracts them.
+    """SIFT of ``names`` (paths relative to ``image_dir``) with pycolmap, as the pipeline extracts
+    them.
 
-    Cached in ``cache_dir/database.db`` (one camera per image; the cameras are not used: the protocol
-    uses the reference intrinsics). Returns name -> ImageData (keypoints in COLMAP pixel convention).
+    Cached in ``cache_dir/database.db`` (one camera per image; the cameras are not used: the
+    protocol uses the reference intrinsics). Returns name -> ImageData (keypoints in COLMAP pixel
+    convention).
     """
     cache_dir = Path(cache_dir)
     cache_dir.mkdir(parents=True, exist_ok=True)
@@ -123,8 +126,8 @@ def _fresh(image: ImageData) -> ImageData:
 
 
 def _flow_options(spec) -> tuple[str, ...]:
-    """Options the spec's matcher applies after its guidance (``Matcher.flow_options``): variants differing
-    only in these share one ``coarse_flows`` per pair."""
+    """Options the spec's matcher applies after its guidance (``Matcher.flow_options``): variants
+    differing only in these share one ``coarse_flows`` per pair."""
     return matcher_specs.matcher_class(spec.name).flow_options
 
 
@@ -140,8 +143,8 @@ def run_specs(
     specs, pairs: list[tuple[str, str]], images: dict[str, ImageData]
 ) -> dict[str, tuple[list[np.ndarray], list[float]]]:
     """Matches and per-pair times of several variants. A variant's time is what it would cost alone
-    (coarse match + eq. 1 for grouped guided variants). A variant that cannot run raises: a benchmark
-    table never loses a row silently."""
+    (coarse match + eq. 1 for grouped guided variants). A variant that cannot run raises: a
+    benchmark table never loses a row silently."""
     groups: dict[str, list] = {}
     for spec in specs:
         groups.setdefault(_group_key(spec), []).append(spec)
@@ -256,7 +259,8 @@ def run_pose_benchmark(
     extra_conf: dict | None = None,
     data_dir: Path | None = None,
 ) -> dict:
-    """The Table 2 protocol on the given scenes; returns {'config', 'pairs', 'results': label -> ...}."""
+    """The Table 2 protocol on the given scenes; returns {'config', 'pairs', 'results': label ->
+    ...}."""
     specs = _as_specs(specs, extra_conf)
     refs, all_pairs, images = {}, [], {}
     for key in scenes:

@@ -1,4 +1,5 @@
-"""Matcher registry and presets: ``get_matcher(name, conf)`` for a preset name (below) or a matcher of ``MATCHERS``."""
+"""Matcher registry and presets: ``get_matcher(name, conf)`` for a preset name (below) or a matcher
+of ``MATCHERS``."""
 
 from __future__ import annotations
 
@@ -9,14 +10,13 @@ from colmap_guided.matchers.geometric import (
     HomographyGuidedMatcher,
 )
 from colmap_guided.matchers.guided import GuidedMatcher
-from colmap_guided.matchers.raw import RawMatcher
-
 from colmap_guided.matchers.lightglue import (
-    GuidedLightGlueMatcher,
     GuidedLighterGlueMatcher,
-    LightGlueMatcher,
+    GuidedLightGlueMatcher,
     LighterGlueMatcher,
+    LightGlueMatcher,
 )
+from colmap_guided.matchers.raw import RawMatcher
 
 MATCHERS: dict[str, type[Matcher]] = {
     cls.name: cls
@@ -36,19 +36,15 @@ AUTO = "auto"  # the default matcher and features of reconstruct and match: see 
 DEFAULT_MATCHER = AUTO
 
 # Named matcher confs (hloc style), one set for the command line (--matcher NAME), the Python API
-# (get_matcher, reconstruct, match_database) and the evaluation scripts: {"matcher": a MATCHERS name, "conf": its options}.
+# (get_matcher, reconstruct, match_database) and the evaluation scripts: {"matcher": a MATCHERS
+# name, "conf": its options}.
 PRESETS: dict[str, dict] = {
-    **{
-        name: {"matcher": name, "conf": {}} for name in MATCHERS
-    },  # every matcher with its default_conf
-    "raw_mutual": {
-        "matcher": "raw",
-        "conf": {"ratio": None},
-    },  # bidirectional check only (paper Table 2)
-    "guided_mutual": {
-        "matcher": "guided",
-        "conf": {"ratio": None},
-    },  # eq. 1, mutual check, no ratio test
+    # every matcher with its default_conf
+    **{name: {"matcher": name, "conf": {}} for name in MATCHERS},
+    # bidirectional check only (paper Table 2)
+    "raw_mutual": {"matcher": "raw", "conf": {"ratio": None}},
+    # eq. 1, mutual check, no ratio test
+    "guided_mutual": {"matcher": "guided", "conf": {"ratio": None}},
     "guided_ratio0.9": {"matcher": "guided", "conf": {"ratio": 0.9}},
     "guided_ratio0.95": {"matcher": "guided", "conf": {"ratio": 0.95}},
     # LightGlue 3-4.5x faster, fewer archival photos on the reference pose (docs/RESULTS.md)
@@ -57,13 +53,15 @@ PRESETS: dict[str, dict] = {
 
 
 def preset(name: str) -> tuple[type[Matcher], dict]:
-    """The matcher class and options of a preset; ValueError naming the presets for an unknown name."""
+    """The matcher class and options of a preset; ValueError naming the presets for an unknown
+    name."""
     if name not in PRESETS:
         raise ValueError(f"Unknown matcher {name!r}; choose one of {sorted(PRESETS)}.")
     return MATCHERS[PRESETS[name]["matcher"]], dict(PRESETS[name]["conf"])
 
 
-# The guided matcher of each feature type, and the learned types ``auto`` prefers, the first installed wins.
+# The guided matcher of each feature type, and the learned types ``auto`` prefers, the first
+# installed wins.
 GUIDED = {"sift": "guided", "aliked": "guided_lightglue", "xfeat": "guided_lighterglue"}
 LEARNED = ("aliked",)
 
@@ -81,10 +79,11 @@ def installed_learned() -> tuple[str, ...]:
 def resolve_auto(
     matcher: str, feature_type: str, installed: tuple[str, ...] | None = None
 ) -> tuple[str, str]:
-    """(matcher preset, feature type) that ``auto`` stands for: the guided matcher (``GUIDED``) of the first of
-    ``LEARNED`` whose package is installed (``installed``, default ``installed_learned()``), else guided SIFT.
-    ``auto`` features follow an explicit matcher (LightGlue's: ALIKED; the others: SIFT), an ``auto`` matcher
-    explicit features. Historical proxy, development split, 10 scenes x 3 seeds (docs/RESULTS.md)."""
+    """(matcher preset, feature type) that ``auto`` stands for: the guided matcher (``GUIDED``) of
+    the first of ``LEARNED`` whose package is installed (``installed``, default
+    ``installed_learned()``), else guided SIFT. ``auto`` features follow an explicit matcher
+    (LightGlue's: ALIKED; the others: SIFT), an ``auto`` matcher explicit features. Historical
+    proxy, development split, 10 scenes x 3 seeds (docs/RESULTS.md)."""
     installed = installed_learned() if installed is None else installed
     if feature_type == AUTO:
         needs = None if matcher == AUTO else preset(matcher)[0].feature_types
@@ -100,7 +99,8 @@ def resolve_auto(
 
 
 def get_matcher(name: str, conf: dict | None = None) -> Matcher:
-    """The matcher of preset ``name`` with ``conf`` over the preset's options (unknown keys are an error)."""
+    """The matcher of preset ``name`` with ``conf`` over the preset's options (unknown keys are an
+    error)."""
     cls, options = preset(name)
     return cls({**options, **(conf or {})})
 

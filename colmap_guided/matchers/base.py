@@ -1,9 +1,10 @@
-"""The matcher interface: everything the pipeline (match.py, executor.py, evaluation/) asks of a matcher.
+"""The matcher interface: everything the pipeline (match.py, executor.py, evaluation/) asks of a
+matcher.
 
-A new matcher subclasses ``Matcher``, sets ``name`` and ``default_conf`` (one comment line per option),
-implements ``match`` and adds itself to ``matchers.MATCHERS``; the other hooks have defaults that fit
-a matcher needing no per-image work, no own verification options and no separate guidance step.
-Coordinates follow COLMAP (see ``colmap_guided.image_data``).
+A new matcher subclasses ``Matcher``, sets ``name`` and ``default_conf`` (one comment line per
+option), implements ``match`` and adds itself to ``matchers.MATCHERS``; the other hooks have
+defaults that fit a matcher needing no per-image work, no own verification options and no separate
+guidance step. Coordinates follow COLMAP (see ``colmap_guided.image_data``).
 """
 
 from __future__ import annotations
@@ -17,16 +18,17 @@ import numpy as np
 from colmap_guided.conf import merge_conf
 from colmap_guided.image_data import ImageData
 
-
 _steps_lock = threading.Lock()
 
 
 class Matcher:
-    """Base class: ``match(a, b)`` returns (M, 2) uint32 indices into a.keypoints and b.keypoints."""
+    """Base class: ``match(a, b)`` returns (M, 2) uint32 indices into a.keypoints and
+    b.keypoints."""
 
     name = "base"
     default_conf: dict = {}
-    device = "auto"  # torch device it runs on (subclasses resolve it); retrieval's backbone runs there too
+    # torch device it runs on (subclasses resolve it); retrieval's backbone runs there too
+    device = "auto"
     pair_workers: int = (
         1  # pairs that match_database may match at once in threads (``match`` must be thread-safe)
     )
@@ -48,45 +50,51 @@ class Matcher:
 
     @property
     def verification_conf(self) -> dict:
-        """Options of ``verify.two_view_options`` for this matcher's pairs (e.g. min_num_inliers); {}: COLMAP's."""
+        """Options of ``verify.two_view_options`` for this matcher's pairs (e.g. min_num_inliers);
+        {}: COLMAP's."""
         return {}
 
     def prepare(self, image: ImageData) -> None:
-        """Per-image work done once, before the image's first pair, by the process that reads the database.
-        What it stores in ``image.extra`` travels with the image to pair workers (the guided matcher's
-        backbone features); ``prepares_images`` says whether there is any."""
+        """Per-image work done once, before the image's first pair, by the process that reads the
+        database. What it stores in ``image.extra`` travels with the image to pair workers (the
+        guided matcher's backbone features); ``prepares_images`` says whether there is any."""
 
     @property
     def prepares_images(self) -> bool:
         return type(self).prepare is not Matcher.prepare
 
     def release(self, name: str) -> None:
-        """Called when the pipeline will not pass image ``name`` again: drop what is cached for it."""
+        """Called when the pipeline will not pass image ``name`` again: drop what is cached for
+        it."""
 
     def coarse_flows(self, a: ImageData, b: ImageData) -> object | None:
-        """The pair's guidance (guided matchers: the coarse match at both images' keypoints), computed once
-        for variants that differ only in ``flow_options``; None for a matcher without that step."""
+        """The pair's guidance (guided matchers: the coarse match at both images' keypoints),
+        computed once for variants that differ only in ``flow_options``; None for a matcher without
+        that step."""
         return None
 
     def match_flows(
         self, a: ImageData, b: ImageData, flows: object | None, **overrides
     ) -> np.ndarray:
-        """``match`` given ``coarse_flows``' result, with ``overrides`` of the options in ``flow_options``."""
+        """``match`` given ``coarse_flows``' result, with ``overrides`` of the options in
+        ``flow_options``."""
         self.flow_conf(overrides)
         return self.match(a, b)
 
     def flow_conf(self, overrides: dict) -> dict:
-        """``conf`` with ``overrides`` of ``match_flows``; an option outside ``flow_options`` is a ValueError."""
+        """``conf`` with ``overrides`` of ``match_flows``; an option outside ``flow_options`` is a
+        ValueError."""
         unknown = sorted(set(overrides) - set(self.flow_options))
         if unknown:
             raise ValueError(
-                f"The {self.name} matcher takes no option {unknown} after its guidance; known: {list(self.flow_options)}"
+                f"The {self.name} matcher takes no option {unknown} "
+                f"after its guidance; known: {list(self.flow_options)}"
             )
         return {**self.conf, **overrides}
 
     def retrieval_backbone(self):
-        """The ``coarse.CoarseMatcher`` whose backbone features give retrieval descriptors (pairs.py);
-        None: an ImageNet backbone on this matcher's ``device``."""
+        """The ``coarse.CoarseMatcher`` whose backbone features give retrieval descriptors
+        (pairs.py); None: an ImageNet backbone on this matcher's ``device``."""
         return None
 
     @contextlib.contextmanager
@@ -105,7 +113,8 @@ class Matcher:
         return dict(self.__dict__.get("_steps", {}))
 
     def match_guided(self, a: ImageData, b: ImageData) -> np.ndarray:
-        """``match`` of a guided matcher: the coarse guidance, then the matching it restricts, each timed."""
+        """``match`` of a guided matcher: the coarse guidance, then the matching it restricts, each
+        timed."""
         with self.timed("coarse"):
             flows = self.coarse_flows(a, b)
         with self.timed("fine"):
@@ -118,8 +127,8 @@ class Matcher:
 
 @contextlib.contextmanager
 def scoped_torch_threads(threads: int | None):
-    """torch's (process-wide) CPU thread count set to ``threads`` inside the block, restored after it.
-    A library call must not leave global state changed; None leaves it as it is."""
+    """torch's (process-wide) CPU thread count set to ``threads`` inside the block, restored after
+    it. A library call must not leave global state changed; None leaves it as it is."""
     if threads is None:
         yield
         return

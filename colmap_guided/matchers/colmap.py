@@ -46,7 +46,8 @@ class ColmapGuidedMatcher(Matcher):
     default_conf = {
         "ratio": 0.8,  # Lowe's ratio of the raw matches and of COLMAP's guided re-matching
         "max_distance": 0.7,  # COLMAP's SiftMatchingOptions.max_distance for the guided re-matching
-        "max_error": 4.0,  # px: the epipolar/homography window of the re-matching (COLMAP: the RANSAC threshold)
+        # px: the epipolar/homography window of the re-matching (COLMAP: the RANSAC threshold)
+        "max_error": 4.0,
         "device": "auto",  # of the raw matches (torch)
         "chunk_size": 1024,
     }
@@ -67,7 +68,8 @@ class ColmapGuidedMatcher(Matcher):
         for image in (a, b):  # before any work: COLMAP's matcher reads only its own SIFT encoding
             if image.descriptors.dtype != np.uint8:
                 raise ValueError(
-                    f"{image.name}: COLMAP's guided matching needs SIFT (uint8) descriptors; use --matcher guided_epipolar for other features."
+                    f"{image.name}: COLMAP's guided matching needs SIFT (uint8) "
+                    "descriptors; use --matcher guided_epipolar for other features."
                 )
         raw = self.raw.match(a, b)
         cam_a, cam_b = (im.camera or verify.default_camera(im.width, im.height) for im in (a, b))

@@ -27,7 +27,8 @@ from colmap_guided.matchers.raw import (
 
 
 def keypoint_scales(keypoints: np.ndarray) -> np.ndarray:
-    """Scale of each keypoint: column 2 of (x, y, scale, orientation) or sqrt|det| of COLMAP's affine (x, y, a11, a12, a21, a22)."""
+    """Scale of each keypoint: column 2 of (x, y, scale, orientation) or sqrt|det| of COLMAP's
+    affine (x, y, a11, a12, a21, a22)."""
     if keypoints.shape[1] >= 6:
         a11, a12, a21, a22 = keypoints[:, 2], keypoints[:, 3], keypoints[:, 4], keypoints[:, 5]
         return np.sqrt(np.abs(a11 * a22 - a12 * a21))
@@ -63,14 +64,16 @@ def epipolar_distances(
 
 
 def apply_homography(H: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
-    """Map (N, 2) points through a 3x3 homography (points at infinity become NaN-free far points)."""
+    """Map (N, 2) points through a 3x3 homography (points at infinity become NaN-free far
+    points)."""
     p = _homogeneous(pts) @ H.T
     w = torch.where(p[:, 2].abs() < 1e-12, torch.full_like(p[:, 2], 1e-12), p[:, 2])
     return p[:, :2] / w[:, None]
 
 
 class _ShahGuidedMatcher(Matcher):
-    """Shared part: seed matches on the largest-scale keypoints, model by LO-RANSAC, guided re-matching."""
+    """Shared part: seed matches on the largest-scale keypoints, model by LO-RANSAC, guided
+    re-matching."""
 
     model = ""
 

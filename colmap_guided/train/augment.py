@@ -26,8 +26,8 @@ def random_homography(
 ) -> np.ndarray:
     """Random H (COLMAP frames) from a (width, height) photo to an (out_w, out_h) view of it.
 
-    A random crop (35–100 % of the area) of the photo is rotated (±30°·strength), its corners moved by
-    up to 12 %·strength of its size (perspective), and fitted into the output frame.
+    A random crop (35–100 % of the area) of the photo is rotated (±30°·strength), its corners moved
+    by up to 12 %·strength of its size (perspective), and fitted into the output frame.
     """
     frac = np.sqrt(rng.uniform(0.35, 1.0))
     cw, ch = width * frac, height * frac
@@ -55,7 +55,8 @@ def random_homography(
 def warp_image(image: np.ndarray, H: np.ndarray, out_w: int, out_h: int) -> np.ndarray:
     """Warp with H given between COLMAP frames (pixel centres at +0.5); black outside the photo.
 
-    When H shrinks the photo, it is first downscaled with area averaging (no aliasing) and H adapted.
+    When H shrinks the photo, it is first downscaled with area averaging (no aliasing) and H
+    adapted.
     """
     h, w = image.shape[:2]
     centre = np.array([[w / 2, h / 2], [w / 2 + 1, h / 2], [w / 2, h / 2 + 1]])
@@ -79,8 +80,8 @@ def warp_image(image: np.ndarray, H: np.ndarray, out_w: int, out_h: int) -> np.n
 
 
 def random_epipole(width: int, height: int, rng: np.random.Generator) -> np.ndarray:
-    """A virtual epipole for the plane-induced F: at infinity (sideways motion) or outside/inside the
-    image (forward motion), so epipolar lines take varied directions."""
+    """A virtual epipole for the plane-induced F: at infinity (sideways motion) or outside/inside
+    the image (forward motion), so epipolar lines take varied directions."""
     angle = rng.uniform(0, 2 * np.pi)
     if rng.random() < 0.5:
         return np.array([np.cos(angle), np.sin(angle), 0.0])
@@ -92,9 +93,9 @@ def soft_scan(
     image: np.ndarray, rng: np.random.Generator, long_side: tuple[int, int] = (128, 288)
 ) -> np.ndarray:
     """A small, soft scan (realistic scale gaps): the network input downscaled to a long side
-    of ``long_side`` px (a small print or a low-resolution scan), blurred there (sigma 0.4-1.2 px: soft
-    focus, print grain), and brought back to the input size as the pipeline upsamples small photos.
-    Corner-aligned resizes keep the geometry of the view exact (a pure scale)."""
+    of ``long_side`` px (a small print or a low-resolution scan), blurred there (sigma 0.4-1.2 px:
+    soft focus, print grain), and brought back to the input size as the pipeline upsamples small
+    photos. Corner-aligned resizes keep the geometry of the view exact (a pure scale)."""
     h, w = image.shape[:2]
     s = rng.uniform(*long_side) / max(h, w)
     if s >= 1:

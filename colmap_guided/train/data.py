@@ -1,11 +1,11 @@
-"""Training data for the coarse network (paper §4.3): ``CoarseTrainData`` (scenes, views, the feature
-cache and the seeded batch sampler) and ``collate`` (batches of tensors for the dense path).
+"""Training data for the coarse network (paper §4.3): ``CoarseTrainData`` (scenes, views, the
+feature cache and the seeded batch sampler) and ``collate`` (batches of tensors for the dense path).
 
-Positives: SfM pairs (``scenes``) and synthetic homography pairs (``augment``); negatives pair images of
-two different scenes (half of each batch for the image and epipolar supervisions). Either image of a
-pair may be an archival version: with a frozen backbone the features of ``n_variants`` versions of each
-image (version 0 clean, odd versions an archival print, even ones a small soft scan of one, seeded by
-the view's name) are cached (``cache``), and every draw picks a version.
+Positives: SfM pairs (``scenes``) and synthetic homography pairs (``augment``); negatives pair
+images of two different scenes (half of each batch for the image and epipolar supervisions). Either
+image of a pair may be an archival version: with a frozen backbone the features of ``n_variants``
+versions of each image (version 0 clean, odd versions an archival print, even ones a small soft scan
+of one, seeded by the view's name) are cached (``cache``), and every draw picks a version.
 """
 
 from __future__ import annotations
@@ -56,12 +56,16 @@ class CoarseTrainData:
 
     default_conf = {
         "backbone": DEFAULT_BACKBONE,
-        "resolution": 512,  # long side of training images (the pipeline's resize_max; paper: 401 px), multiple of the stride
+        # long side of training images (the pipeline's
+        # resize_max; paper: 401 px), multiple of the stride
+        "resolution": 512,
         "min_shared": 30,  # positive pair: at least this many common 3D points (paper §4.3)
         "train_scenes": None,  # None: every scene with a model except val_scenes
         "val_scenes": VAL_SCENES,
         "max_images_per_scene": None,  # small subsets for smoke tests
-        "n_variants": 3,  # cached versions of each image: 0 clean, odd k archival print, even k > 0 small soft scan of one
+        # cached versions of each image: 0 clean, odd k
+        # archival print, even k > 0 small soft scan of one
+        "n_variants": 3,
         "archival_prob": 0.5,  # chance that a side of a pair is an archival version
         "archival_strength": 1.0,
         "n_synthetic": 1,  # homography views cached per training photo
@@ -69,7 +73,8 @@ class CoarseTrainData:
         "homography_strength": 1.0,
         "max_matches": 256,  # ground-truth matches kept per pair (point loss, PCK)
         "val_pairs_per_scene": 16,
-        "max_cells": None,  # training crop: at most this many cells per grid side (CPU budget), see crop_sample
+        # training crop: at most this many cells per grid side (CPU budget), see crop_sample
+        "max_cells": None,
         "cache_dir": None,  # default: ~/.cache/colmap_guided/train_features ($COLMAP_GUIDED_CACHE)
     }
 
@@ -102,15 +107,18 @@ class CoarseTrainData:
                     self._image_view(im, k)
                 for k in range(c["n_synthetic"]):
                     self._synthetic_view(im, k)
-        self.val_samples = (
-            self._make_val_samples()
-        )  # adds the (clean) views of the validation pairs only
+        # adds the (clean) views of the validation pairs only
+        self.val_samples = self._make_val_samples()
         cache_dir = Path(c["cache_dir"]) if c["cache_dir"] else paths.cache_dir("train_features")
-        tag = f"{c['backbone']}_l2_r{c['resolution']}_a{c['archival_strength']:g}_h{c['homography_strength']:g}"
+        tag = (
+            f"{c['backbone']}_l2_r{c['resolution']}_a"
+            f"{c['archival_strength']:g}_h{c['homography_strength']:g}"
+        )
         self.cache = FeatureCache(cache_dir / f"{tag}.h5")
         n_pairs = sum(len(self.scenes[s].pairs) for s in self.train_scenes)
         logger.info(
-            "Training data: %d scenes, %d positive pairs, %d views; validation: %d scenes, %d pairs.",
+            "Training data: %d scenes, %d positive pairs, "
+            "%d views; validation: %d scenes, %d pairs.",
             len(self.train_scenes),
             n_pairs,
             len(self.views),
@@ -151,7 +159,8 @@ class CoarseTrainData:
         return self.views[key]
 
     def render(self, key: str) -> np.ndarray:
-        """The resized uint8 RGB network input of a view (deterministic: seeds come from the key)."""
+        """The resized uint8 RGB network input of a view (deterministic: seeds come from the
+        key)."""
         view = self.views[key]
         im = self.scenes[view.scene].images[view.name]
         rgb = read_image(im.path)
@@ -222,11 +231,11 @@ class CoarseTrainData:
     ) -> PairSample:
         a = self._image_view(image, va)
         b = self._synthetic_view(image, k)
-        Ha = b.H @ np.diag(
-            [1 / a.geometry.scale[0], 1 / a.geometry.scale[1], 1.0]
-        )  # A resized -> B
+        # A resized -> B
+        Ha = b.H @ np.diag([1 / a.geometry.scale[0], 1 / a.geometry.scale[1], 1.0])
         F = induced_fundamental(Ha, random_epipole(b.geometry.width, b.geometry.height, rng))
-        # Exact matches: A's cell centres seen in B, and B's cell centres seen in A (inside both images).
+        # Exact matches: A's cell centres seen in B, and B's cell centres seen in A
+        # (inside both images).
         ca = a.geometry.cell_centers()
         cb = b.geometry.cell_centers()
         ca_b = apply_h(b.H, ca)
@@ -261,7 +270,8 @@ class CoarseTrainData:
     def sample_batch(
         self, rng: np.random.Generator, batch_size: int, n_negative: int
     ) -> list[PairSample]:
-        """``batch_size`` pairs: ``n_negative`` negatives, the rest positives (a share synthetic)."""
+        """``batch_size`` pairs: ``n_negative`` negatives, the rest positives
+        (a share synthetic)."""
         c = self.conf
         samples = []
         for i in range(batch_size):
@@ -284,7 +294,8 @@ class CoarseTrainData:
         return samples
 
     def _make_val_samples(self) -> list[PairSample]:
-        """Fixed validation pairs: up to ``val_pairs_per_scene`` per held-out scene, clean images."""
+        """Fixed validation pairs: up to ``val_pairs_per_scene`` per held-out scene, clean
+        images."""
         rng = np.random.default_rng(12345)
         out = []
         for name in self.val_scenes:
@@ -300,8 +311,9 @@ def collate(
 ) -> dict:
     """Tensors for a batch: padded features and masks, F, cell centres, GT cell matches, labels.
 
-    Views with a window are cropped to it. Flat cell indices of ``matches`` (row * width + col) use the
-    padded grid width of the batch, as the losses expect; GT matches outside a window are dropped.
+    Views with a window are cropped to it. Flat cell indices of ``matches`` (row * width + col) use
+    the padded grid width of the batch, as the losses expect; GT matches outside a window are
+    dropped.
     """
     out: dict = {"samples": samples, "positive": torch.tensor([s.positive for s in samples])}
     if with_features:

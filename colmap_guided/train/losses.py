@@ -6,9 +6,9 @@ Shapes (batch of B pairs, feature grids hA×wA and hB×wB padded to a common bat
     mask_a  (B, hA, wA) bool     True on real (not zero-padded) feature cells of A; mask_b likewise.
     positive (B,) bool           y_AB = +1 (same scene) or -1 (different scenes).
 
-The total loss is the paper's eq. (2), L = Σ_pairs l^{A→B}(s^{A→B}) + l^{B→A}(s^{B→A}); every function
-here returns the mean over the batch of l^{A→B} + l^{B→A} (a constant factor that Adam ignores) and a
-dict of detached statistics for logging.
+The total loss is the paper's eq. (2), L = Σ_pairs l^{A→B}(s^{A→B}) + l^{B→A}(s^{B→A}); every
+function here returns the mean over the batch of l^{A→B} + l^{B→A} (a constant factor that Adam
+ignores) and a dict of detached statistics for logging.
 
 Normalisation choices (documented departures from the letter of the paper):
 * image level (eq. 3) sums max s over all features of A; we average over the valid cells instead, so
@@ -30,9 +30,9 @@ def directional_softmax(
 ):
     """s^{A→B} (softmax over B's cells) and s^{B→A} (over A's cells), ignoring zero-padded cells.
 
-    scores: (B, hA, wA, hB, wB) filtered correlation. Padded cells get probability 0 in the direction
-    where they are candidates; rows of padded source cells are left finite and must be masked by the
-    losses (they are).
+    scores: (B, hA, wA, hB, wB) filtered correlation. Padded cells get probability 0 in the
+    direction where they are candidates; rows of padded source cells are left finite and must be
+    masked by the losses (they are).
     """
     b, ha, wa, hb, wb = scores.shape
     flat = scores.reshape(b, ha * wa, hb * wb)
@@ -74,13 +74,15 @@ def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def image_loss(s_ab, s_ba, positive, mask_a=None, mask_b=None):
-    """Weak image-level supervision, NCNet's loss (eq. 3): l^{A→B} = −y_AB · mean_{ij} max_{kl} s^{A→B}_{ijkl}."""
+    """Weak image-level supervision, NCNet's loss (eq. 3): l^{A→B} = −y_AB · mean_{ij} max_{kl}
+    s^{A→B}_{ijkl}."""
     ab, ba, ma, mb = _flat(s_ab, s_ba, mask_a, mask_b)
     return image_loss_from_best(ab.amax(dim=2), ba.amax(dim=2), positive, ma, mb)
 
 
 def image_loss_from_best(best_ab, best_ba, positive, ma, mb):
-    """Eq. 3 from max_{kl} s^{A→B} (B, nA) and max s^{B→A} (B, nB) of every source cell, masks (B, n)."""
+    """Eq. 3 from max_{kl} s^{A→B} (B, nA) and max s^{B→A} (B, nB) of every source cell, masks
+    (B, n)."""
     y = positive.to(best_ab.dtype) * 2 - 1
     mean_ab = _masked_mean(best_ab, ma)
     mean_ba = _masked_mean(best_ba, mb)
@@ -122,11 +124,11 @@ def _epipolar_direction(best, idx, F, x_src, x_tgt, m_src, positive, lam):
 def epipolar_loss(s_ab, s_ba, positive, F, xy_a, xy_b, mask_a=None, mask_b=None, lam: float = 16.0):
     """Weak epipolar supervision (eq. 4–5), both directions.
 
-    F: (B, 3, 3) fundamental matrices with x_B^T F x_A = 0 in the frame of xy_a / xy_b (any value for
-    negative pairs); xy_a: (B, hA, wA, 2) and xy_b: (B, hB, wB, 2) pixel centres (x, y) of the feature
-    cells in that frame; lam: threshold λ on the epipolar distance, one feature-cell spacing in that frame.
-    P = valid source cells whose argmax lies within λ of the epipolar line; N its complement (all valid
-    cells of negative pairs).
+    F: (B, 3, 3) fundamental matrices with x_B^T F x_A = 0 in the frame of xy_a / xy_b (any value
+    for negative pairs); xy_a: (B, hA, wA, 2) and xy_b: (B, hB, wB, 2) pixel centres (x, y) of the
+    feature cells in that frame; lam: threshold λ on the epipolar distance, one feature-cell spacing
+    in that frame. P = valid source cells whose argmax lies within λ of the epipolar line; N its
+    complement (all valid cells of negative pairs).
     """
     ab, ba, ma, mb = _flat(s_ab, s_ba, mask_a, mask_b)
     b = ab.shape[0]
@@ -150,9 +152,10 @@ def epipolar_loss(s_ab, s_ba, positive, F, xy_a, xy_b, mask_a=None, mask_b=None,
 def epipolar_loss_from_best(
     best_ab, idx_ab, best_ba, idx_ba, positive, F, xa, xb, ma, mb, lam: float = 16.0
 ):
-    """Eq. 4–5 from max s^{A→B} (B, nA) with its argmax among B's cells (B, nA) and the same for B → A;
-    xa (B, nA, 2), xb (B, nB, 2) cell centres in F's frames; ma (B, nA), mb (B, nB) valid cells.
-    Shared by the dense path (``epipolar_loss``) and the sparse one (``trainer``: one pair at a time)."""
+    """Eq. 4–5 from max s^{A→B} (B, nA) with its argmax among B's cells (B, nA) and the same for B →
+    A; xa (B, nA, 2), xb (B, nB, 2) cell centres in F's frames; ma (B, nA), mb (B, nB) valid cells.
+    Shared by the dense path (``epipolar_loss``) and the sparse one (``trainer``: one pair at a
+    time)."""
     xa, xb, F = xa.to(best_ab.dtype), xb.to(best_ab.dtype), F.to(best_ab.dtype)
     l_ab, P_ab, _ = _epipolar_direction(best_ab, idx_ab, F, xa, xb, ma, positive, lam)
     l_ba, P_ba, _ = _epipolar_direction(
@@ -204,7 +207,8 @@ def point_loss(s_ab, s_ba, positive, matches, mask_a=None, mask_b=None):
 
 
 def coarse_loss(supervision: str, s_ab, s_ba, batch: dict, lam: float = 16.0):
-    """Dispatch on the supervision name ('image', 'epipolar', 'points') with a batch dict from train.data."""
+    """Dispatch on the supervision name ('image', 'epipolar', 'points') with a batch dict from
+    train.data."""
     common = dict(mask_a=batch.get("mask_a"), mask_b=batch.get("mask_b"))
     if supervision == "image":
         return image_loss(s_ab, s_ba, batch["positive"], **common)

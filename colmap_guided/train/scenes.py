@@ -1,7 +1,7 @@
 """The SfM scenes training and validation read (paper §4.3, as its MegaDepth use): every scene is a
-``pycolmap.Reconstruction``; positive pairs are registered images sharing at least ``min_shared`` (30)
-3D points, with F from the calibrations and poses (x_B^T F x_A = 0) and ground-truth point matches from
-the two observations of each shared track.
+``pycolmap.Reconstruction``; positive pairs are registered images sharing at least ``min_shared``
+(30) 3D points, with F from the calibrations and poses (x_B^T F x_A = 0) and ground-truth point
+matches from the two observations of each shared track.
 """
 
 from __future__ import annotations
@@ -20,7 +20,8 @@ from colmap_guided.paths import shared_data_dir
 VAL_SCENES = ["strecha_castle", "strecha_entry_P10", "instantngp_fox", "lund_door_gtsfm"]
 # Training scenes under permissive terms (BSD/Apache/CC BY, no NC/SA/GPL clause) per the licence
 # column of train/README.md, for the permissive-only variant of the weights.
-# Left out on purpose: Flickr photo sets (per-image CC, some NC), GPL/AGPL and NC/research-only sets.
+# Left out on purpose: Flickr photo sets (per-image CC, some NC), GPL/AGPL and NC/research-only
+# sets.
 PERMISSIVE_SCENES = ["aliked_tum", "dim_cyprus", "gtsfm_hilti_exp4"]
 
 
@@ -80,7 +81,8 @@ class SfmScene:
 
 
 def load_scene(scene: str, min_shared: int = 30) -> SfmScene:
-    """Registered images, and positive pairs (≥ ``min_shared`` common 3D points) with F and GT matches."""
+    """Registered images, and positive pairs (≥ ``min_shared`` common 3D points) with F and GT
+    matches."""
     rec = pycolmap.Reconstruction(str(scene_model_dir(scene)))
     image_dir = scene_image_dir(scene)
     images: dict[str, SfmImage] = {}
@@ -136,7 +138,8 @@ def load_scene(scene: str, min_shared: int = 30) -> SfmScene:
 
 
 def subset_scene(scene: SfmScene, n: int) -> SfmScene:
-    """At most n images, taken from the pairs with the most shared points (keeps pairs available)."""
+    """At most n images, taken from the pairs with the most shared points
+    (keeps pairs available)."""
     keep: list[str] = []
     for p in sorted(scene.pairs, key=lambda p: -p.n_shared):
         for name in (p.a, p.b):

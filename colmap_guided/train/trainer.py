@@ -1,23 +1,25 @@
 """Training loop of the coarse network (paper §4.3): Adam, lr 1e-3, batch 8, frozen backbone first.
 
-Resumable across sessions: ``OUT/checkpoint.pt`` holds the filter (and backbone when fine-tuned), the
-optimiser, the batch sampler's and torch's RNG states, the iteration and the history, written
+Resumable across sessions: ``OUT/checkpoint.pt`` holds the filter (and backbone when fine-tuned),
+the optimiser, the batch sampler's and torch's RNG states, the iteration and the history, written
 atomically every ``checkpoint_every`` iterations and when ``max_minutes`` is reached. Running the
 same command again continues exactly where it stopped (same batches, same parameters as an
 uninterrupted run). ``OUT/curves.png`` plots the losses and the validation PCK; ``OUT/history.json``
 has the numbers; ``OUT/coarse_filter.safetensors`` (the coarse package's weight format, with the
 training config) is refreshed at every checkpoint, so the latest filter can be evaluated any time;
-a fine-tuned backbone's feature layers go into that file too (the pipeline loads them with the filter).
+a fine-tuned backbone's feature layers go into that file too (the pipeline loads them with the
+filter).
 
-Filter paths (``impl``): 'sparse' (default) trains what the CPU pipeline runs, ``CoarseNet.sparse_volume``
-on the matcher's support (k best cells both ways + cells around each best match), on whole grids, one
-pair at a time; 'dense' trains the batched dense filter (GPU; on a CPU only on ``max_cells`` windows:
-its whole-grid step costs ~120x the sparse one, MODEL_CARD.md).
+Filter paths (``impl``): 'sparse' (default) trains what the CPU pipeline runs,
+``CoarseNet.sparse_volume`` on the matcher's support (k best cells both ways + cells around each
+best match), on whole grids, one pair at a time; 'dense' trains the batched dense filter (GPU; on a
+CPU only on ``max_cells`` windows: its whole-grid step costs ~120x the sparse one, MODEL_CARD.md).
 
 Stages: ``finetune_backbone=False`` trains the 4D filter on cached frozen-backbone features
 (``CoarseTrainData.build_cache``); ``finetune_backbone=True`` (after convergence, ``init`` = the
-frozen-stage checkpoint or weights) also trains the backbone with ``backbone_lr``, computing features
-from the rendered images at every step (BatchNorm statistics stay frozen: batches are small).
+frozen-stage checkpoint or weights) also trains the backbone with ``backbone_lr``, computing
+features from the rendered images at every step (BatchNorm statistics stay frozen: batches are
+small).
 """
 
 from __future__ import annotations
@@ -59,9 +61,11 @@ default_conf = {
     "batch_size": 8,
     "negatives": None,  # negatives per batch; None: half the batch for image/epipolar, 0 for points
     "lr": 1e-3,
-    "lr_steps": (),  # iterations after which the learning rates drop 10x (each); () = constant (paper §4.3)
+    # iterations after which the learning rates drop 10x (each); () = constant (paper §4.3)
+    "lr_steps": (),
     "seed": 0,
-    "impl": "sparse",  # filter during training: 'dense' (batched 4D conv; windows with data max_cells on CPU)
+    # filter during training: 'dense' (batched 4D conv; windows with data max_cells on CPU)
+    "impl": "sparse",
     # or 'sparse' (the CPU inference path, CoarseNet.sparse_volume, whole grids, one pair at a time)
     "sparse_k": CoarseMatcher.default_conf["sparse_k"],  # sparse support as the pipeline matches
     "sparse_radius": CoarseMatcher.default_conf["sparse_radius"],
@@ -79,8 +83,9 @@ default_conf = {
 
 # ------------------------------------------------------------------------------------------- PCK
 def pck_errors(ab: np.ndarray, ba: np.ndarray, sample: PairSample) -> np.ndarray:
-    """Errors (pixels, original resolution) of the coarse flow at the GT points, both directions, from
-    the coarse matches ab (hA·wA,) and ba (hB·wB,) of the pair's whole grids (flat cell indices)."""
+    """Errors (pixels, original resolution) of the coarse flow at the GT points, both directions,
+    from the coarse matches ab (hA·wA,) and ba (hB·wB,) of the pair's whole grids
+    (flat cell indices)."""
     ga, gb = sample.a.geometry, sample.b.geometry
     if len(sample.pts_a) == 0:
         return np.zeros(0)
@@ -103,8 +108,8 @@ def evaluate_pck(
     batch_size: int = 4,
 ) -> dict:
     """PCK@8/16/32 px (original resolution) of the coarse flow on ``samples`` (whole grids) with the
-    dense filter or the sparse one (``k``, ``radius``). ``features(views)`` returns padded features and
-    masks (cached or computed)."""
+    dense filter or the sparse one (``k``, ``radius``). ``features(views)`` returns padded features
+    and masks (cached or computed)."""
     model.eval()
     errors = []
     for i in range(0, len(samples), batch_size):
@@ -209,7 +214,8 @@ class Trainer:
         }
 
     def save_checkpoint(self) -> None:
-        """checkpoint.pt (atomic), history.json, and the current filter as coarse_filter.safetensors."""
+        """checkpoint.pt (atomic), history.json, and the current filter as
+        coarse_filter.safetensors."""
         tmp = self.checkpoint_path.with_suffix(".tmp")
         torch.save(self.state_dict(), tmp)
         os.replace(tmp, self.checkpoint_path)
@@ -282,9 +288,8 @@ class Trainer:
         self.model.backbone.eval()  # BatchNorm statistics frozen (also when fine-tuning)
         samples = self.data.sample_batch(self.rng, c["batch_size"], self.n_negative())
         loss, stats = self.loss(samples)
-        decay = 0.1 ** sum(
-            self.iteration >= s for s in c["lr_steps"]
-        )  # from the iteration: resume-safe
+        # from the iteration: resume-safe
+        decay = 0.1 ** sum(self.iteration >= s for s in c["lr_steps"])
         for group, base in zip(self.optimizer.param_groups, (c["lr"], c["backbone_lr"])):
             group["lr"] = base * decay
         self.optimizer.zero_grad(set_to_none=True)
@@ -293,7 +298,8 @@ class Trainer:
         return {"loss": float(loss.detach()), **stats}
 
     def loss(self, samples: list[PairSample]) -> tuple[torch.Tensor, dict]:
-        """The training loss of a batch (paper eq. 2) and its statistics, on the conf's filter path."""
+        """The training loss of a batch (paper eq. 2) and its statistics, on the conf's filter
+        path."""
         c = self.conf
         if c["impl"] == "sparse":
             return self._sparse_loss(samples)
@@ -307,9 +313,10 @@ class Trainer:
         )
 
     def _sparse_loss(self, samples: list[PairSample]) -> tuple[torch.Tensor, dict]:
-        """Image or epipolar loss (eq. 3, 5) on the sparse filter the CPU path runs (``sparse_volume``
-        with the pipeline's k and radius; entries outside the support read as 0 in the softmax), whole
-        grids, one pair at a time; the per-cell max s and argmax are padded into a batch for the loss."""
+        """Image or epipolar loss (eq. 3, 5) on the sparse filter the CPU path runs
+        (``sparse_volume`` with the pipeline's k and radius; entries outside the support read
+        as 0 in the softmax), whole grids, one pair at a time; the per-cell max s and argmax are
+        padded into a batch for the loss."""
         c = self.conf
         rows = {key: [] for key in ("best_ab", "idx_ab", "best_ba", "idx_ba", "xa", "xb")}
         for s in samples:
@@ -430,7 +437,8 @@ class Trainer:
 
     # ------------------------------------------------------------------ outputs
     def export(self, path: Path) -> Path:
-        """Filter weights (written atomically) + config (backbone, supervision, data scenes, iterations, seed) as safetensors."""
+        """Filter weights (written atomically) + config (backbone, supervision, data scenes,
+        iterations, seed) as safetensors."""
         meta = {
             "supervision": self.conf["supervision"],
             "iterations": self.iteration,
@@ -516,7 +524,8 @@ class _NormalizedBackbone(torch.nn.Module):
 def save_trained(
     model: CoarseNet, path: Path, meta: dict, resize_max: int, backbone: bool = False
 ) -> Path:
-    """Export the filter (and a fine-tuned backbone) with the coarse package's format (safetensors + checked config)."""
+    """Export the filter (and a fine-tuned backbone) with the coarse package's format (safetensors +
+    checked config)."""
     save_filter_weights(
         model, path, resize_max=resize_max, training=_jsonable(meta), backbone=backbone
     )

@@ -29,7 +29,8 @@ class View:
 
     @property
     def grid(self) -> tuple[int, int, int, int]:
-        """(row0, col0, rows, cols) of the cells the network sees (the whole grid without a window)."""
+        """(row0, col0, rows, cols) of the cells the network sees (the whole grid without a
+        window)."""
         g = self.geometry
         return self.window if self.window is not None else (0, 0, g.grid_height, g.grid_width)
 
@@ -74,8 +75,9 @@ def crop_sample(sample: PairSample, max_cells: int, rng: np.random.Generator) ->
     The 4D filter is what costs on a CPU (its work grows with the fourth power of the grid side), so
     training can see windows of the native-resolution grids instead of downscaled images. For a
     positive pair both windows are centred (with a random jitter of a quarter window) on the two
-    cells of one random ground-truth match, so they overlap in the scene; negatives get random windows.
-    F, the cell centres and the GT matches stay in the full resized frames (collate crops them).
+    cells of one random ground-truth match, so they overlap in the scene; negatives get random
+    windows. F, the cell centres and the GT matches stay in the full resized frames
+    (collate crops them).
     """
 
     def window(view: View, centre) -> tuple[int, int, int, int]:
