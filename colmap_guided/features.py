@@ -423,6 +423,7 @@ def check_conf(conf: dict | None) -> dict:
     """``conf`` over ``default_conf``, validated (unknown keys, camera mode, feature type, ALIKED
     options)."""
     conf = merge_conf(default_conf, conf, "feature")
+    images.check_conf(conf["image_checks"])  # a typo there fails before any photo is read
     if conf["camera_mode"] not in CAMERA_MODES:
         raise ValueError(
             f"Unknown camera_mode {conf['camera_mode']!r}; choose one of {sorted(CAMERA_MODES)}."

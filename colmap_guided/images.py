@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageFile, UnidentifiedImageError
 
+from .conf import merge_conf
 from .log import logger
 
 MIN_SIZE = 64  # pixels; smaller photos give (almost) no SIFT keypoints
@@ -60,9 +61,14 @@ def _colmap_reads(path: Path) -> bool:
     return pycolmap.Bitmap.read(str(path), False) is not None
 
 
+def check_conf(conf: dict | None) -> dict:
+    """``conf`` over ``default_conf``; an unknown key is a one-line ValueError."""
+    return merge_conf(default_conf, conf, "image check")
+
+
 def check_image(path: Path, conf: dict | None = None) -> tuple[str | None, dict]:
     """(None, info) for a usable photo, else (reason, info); the reason says what to do about it."""
-    conf = {**default_conf, **(conf or {})}
+    conf = check_conf(conf)
     path = Path(path)
     info: dict = {}
     try:
@@ -180,6 +186,7 @@ def check_images(
     others."""
     from tqdm import tqdm
 
+    conf = check_conf(conf)  # a typo fails before the first photo is opened
     ok, skipped, huge, rotated = [], {}, [], []
     for name in tqdm(
         names,
@@ -350,6 +357,7 @@ def folder_digests(folder: Path) -> dict[str, tuple[str, int]]:
 
 
 __all__ = [
+    "check_conf",
     "check_image",
     "check_images",
     "read_image",

@@ -97,7 +97,9 @@ def test_seeded_single_thread_mapping_repeats_exactly(thin_chain, tmp_path, mapp
 
 
 def test_mapping_conf_is_strict():
-    with pytest.raises(ValueError, match=r"Unknown mapping option\(s\) \['min_modelsize'\]") as err:
+    with pytest.raises(
+        ValueError, match="Unknown mapping option 'min_modelsize'; did you mean 'min_model_size'?"
+    ) as err:
         check_conf({"min_modelsize": 3})
     assert "\n" not in str(err.value)
     with pytest.raises(ValueError, match="Unknown mapper 'glomap'"):

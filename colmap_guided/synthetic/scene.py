@@ -14,6 +14,7 @@ import numpy as np
 import pycolmap
 from PIL import Image
 
+from colmap_guided.conf import merge_conf
 from colmap_guided.log import logger
 from colmap_guided.workspace import Workspace
 
@@ -249,7 +250,7 @@ def render_scene(
         raise ValueError(f"num_images must be at least 2, got {num_images}.")
     if width < 32 or height < 32:
         raise ValueError(f"Image size {width}x{height} is too small; use at least 32x32 pixels.")
-    conf = {**default_conf, **(conf or {})}
+    conf = merge_conf(default_conf, conf, "synthetic scene")
     workspace = Workspace.claim(out_dir, "synthetic", flag="OUT_DIR")
     image_dir, gt_dir, depth_dir = workspace.record("images", "ground_truth", "depth")
     out_dir = workspace.path
