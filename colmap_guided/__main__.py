@@ -13,6 +13,17 @@ def _float_or_none(text: str) -> float | None:
     return None if text.strip().lower() in ("none", "off") else float(text)
 
 
+def _matcher_conf(args, matcher: str) -> dict:
+    """--ratio, --device and --weights for ``matcher``; one it does not take is a usage error (exit
+    status 1) before anything runs."""
+    from . import match
+
+    try:
+        return match.matcher_conf_from_args(args, matcher)
+    except ValueError as err:
+        raise SystemExit(f"error: {err}") from None
+
+
 def _add_common(parser: argparse.ArgumentParser) -> None:
     group = parser.add_mutually_exclusive_group()
     group.add_argument(
@@ -278,7 +289,7 @@ def main(argv=None) -> int:
                 image_path=args.image_path,
                 output=args.output,
                 matcher=matcher,
-                matcher_conf=match.matcher_conf_from_args(args, chosen),
+                matcher_conf=_matcher_conf(args, chosen),
                 pairs_path=args.pairs,
                 feature_conf=feature_conf,
                 mapping_conf={
@@ -307,7 +318,7 @@ def main(argv=None) -> int:
                 feature_type = features.database_feature_type(db)
             matcher = match.matcher_for_features(matcher, feature_type)
             matcher_conf = features.matcher_defaults(
-                feature_type, matcher, match.matcher_conf_from_args(args, matcher)
+                feature_type, matcher, _matcher_conf(args, matcher)
             )
             stats = match.match_database(
                 args.database_path,

@@ -316,8 +316,8 @@ def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def matcher_conf_from_args(args, matcher: str) -> dict:
-    """The command-line options that the chosen matcher knows; an option it does not know is an
-    error."""
+    """The command-line options that the chosen matcher knows; one it does not know is a one-line
+    ValueError naming a matcher that takes it."""
     given = {
         "ratio": None if args.ratio is None else (args.ratio if args.ratio > 0 else None),
         "device": args.device,
@@ -332,8 +332,8 @@ def matcher_conf_from_args(args, matcher: str) -> dict:
     unknown = sorted(set(given) - set(known))
     if unknown:
         users = sorted(name for name in PRESETS if unknown[0] in preset(name)[0].default_conf)
-        raise SystemExit(
-            f"error: --{unknown[0]} does not apply to the {matcher} matcher; pass "
+        raise ValueError(
+            f"--{unknown[0]} does not apply to the {matcher} matcher; pass "
             f"--matcher {users[0] if users else '...'} (or another that takes it)"
         )
     return given

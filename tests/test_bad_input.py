@@ -504,9 +504,16 @@ def test_a_matcher_that_cannot_match_the_features_fails_before_any_work(syntheti
 
 
 def test_an_option_the_matcher_does_not_take_names_a_matcher_that_does(tmp_path):
-    with pytest.raises(
-        SystemExit, match="--weights does not apply to the raw matcher; pass --matcher guided "
-    ):
+    """A ValueError in the library; the command line exits with it as a usage error (status 1)."""
+    from colmap_guided.__main__ import build_parser
+    from colmap_guided.match import matcher_conf_from_args
+
+    line = "--weights does not apply to the raw matcher; pass --matcher guided "
+    args = build_parser().parse_args(["match", "--database_path", "d", "--image_path", "i"])
+    args.weights = tmp_path / "w.safetensors"
+    with pytest.raises(ValueError, match=line):
+        matcher_conf_from_args(args, "raw")
+    with pytest.raises(SystemExit, match=f"^error: {line}") as err:
         main(
             [
                 "reconstruct",
@@ -519,4 +526,5 @@ def test_an_option_the_matcher_does_not_take_names_a_matcher_that_does(tmp_path)
                 str(tmp_path / "w.safetensors"),
             ]
         )
+    assert isinstance(err.value.code, str)  # Python prints it and exits with status 1
     assert not (tmp_path / "out").exists()
