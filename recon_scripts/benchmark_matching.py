@@ -39,7 +39,7 @@ from colmap_guided import features, learned_features, verify, xfeat
 from colmap_guided.evaluation import matcher_specs
 from colmap_guided.images import image_size, read_image
 from colmap_guided.log import logger
-from colmap_guided.matchers import get_matcher
+from colmap_guided.matchers import get_matcher, resolve_auto
 from colmap_guided.matchers.base import ImageData
 from colmap_guided.matchers.guided import GuidedMatcher
 from colmap_guided.paths import shared_data_dir
@@ -497,11 +497,11 @@ def main(argv=None) -> None:
     matchers = {
         n: get_matcher(
             sp.name,
-            features.matcher_defaults(
-                args.features,
+            resolve_auto(
                 sp.name,
+                args.features,
                 {"device": args.device, **sp.conf, **(args.guided_conf if n == "guided" else {})},
-            ),
+            ).matcher_conf,
         )
         for n, sp in specs.items()
     }

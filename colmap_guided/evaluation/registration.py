@@ -307,7 +307,9 @@ def database_key(method: str) -> tuple[str, str]:
     # the features it extracts: 'guided' and 'guided:type=sift' share them
     feature = {
         **feature,
-        "type": resolve_auto(matcher_specs.parse_spec(matcher).name, feature.get("type", AUTO))[1],
+        "type": resolve_auto(
+            matcher_specs.parse_spec(matcher).name, feature.get("type", AUTO), log=False
+        ).feature_type,
     }
     features = json.dumps(feature, sort_keys=True)
     return features, f"{matcher}|{features}"

