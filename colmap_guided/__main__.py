@@ -6,11 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from .conf import none_or
 from .log import logger, set_verbosity
-
-
-def _float_or_none(text: str) -> float | None:
-    return None if text.strip().lower() in ("none", "off") else float(text)
 
 
 def _matcher_conf(args, matcher: str) -> dict:
@@ -64,14 +61,14 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--camera_model", default=features.default_conf["camera_model"])
     rec.add_argument(
         "--stretch_contrast_below",
-        type=_float_or_none,
+        type=none_or(float, old_off=lambda text: text == "off"),
         default=features.default_conf["stretch_contrast_below"],
         help="SIFT on a contrast-stretched copy of photos whose 1-99 %% grey "
         "range is below this fraction (faded prints; default 0.5, none = off)",
     )
     rec.add_argument(
         "--smooth_noise_above",
-        type=_float_or_none,
+        type=none_or(float, old_off=lambda text: text == "off"),
         default=features.default_conf["smooth_noise_above"],
         help="smooth photos noisier than this many grey "
         "levels before SIFT (film grain; default none = off)",
@@ -103,9 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rec.add_argument(
         "--seed",
-        type=int,
+        type=none_or(int, old_off=lambda text: int(text) < 0),
         default=mapping.default_conf["random_seed"],
-        help="random seed of the mapper (-1: unseeded)",
+        help="random seed of the mapper (none: unseeded)",
     )
     rec.add_argument(
         "--threads",

@@ -1,8 +1,11 @@
-"""One way to merge options over a stage's defaults: an unknown key (a typo) is a one-line error."""
+"""One way to merge options over a stage's defaults (an unknown key, a typo, is a one-line error),
+and one spelling of an option that is off: None in Python, ``none`` on the command line."""
 
 from __future__ import annotations
 
 import difflib
+from collections.abc import Callable
+from typing import Any
 
 
 def merge_conf(defaults: dict, conf: dict | None, what: str) -> dict:
@@ -28,3 +31,24 @@ def merge_conf(defaults: dict, conf: dict | None, what: str) -> dict:
             f"known: {sorted(defaults)}"
         )
     return {**defaults, **(conf or {})}
+
+
+def none_or(kind: Callable[[str], Any], old_off: Callable[[str], bool] | None = None):
+    """An argparse type for an option that can be off: ``none`` (the one documented spelling) is
+    None, other text ``kind(text)``. ``old_off``: the flag's other spellings of off (e.g. 0), read
+    as None too so that existing command lines keep working."""
+
+    def parse(text: str):
+        text = text.strip()
+        if text.lower() == "none" or (old_off is not None and old_off(text.lower())):
+            return None
+        return kind(text)
+
+    parse.__name__ = getattr(kind, "__name__", "value")  # argparse's "invalid float value: ..."
+    return parse
+
+
+def at_most_zero(text: str) -> bool:
+    """Whether a count or threshold given on the command line is 0 or below: off for the flags
+    that read it so."""
+    return float(text) <= 0

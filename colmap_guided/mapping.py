@@ -41,7 +41,7 @@ default_conf = {
     # incremental 341 / 26, global 330 / 21, auto 349 / 21 (347 / 23 without the pose-support
     # tie-break).
     "mapper": "auto",
-    "random_seed": 0,  # seeds every random choice of the mapper; -1 = COLMAP's unseeded default
+    "random_seed": 0,  # seeds every random choice of the mapper; None = unseeded (COLMAP's default)
     "num_threads": -1,  # -1 = all cores; 1 = the same model on every rerun
     # keep models of at least this many images (COLMAP: 10 incremental, 3 global)
     "min_model_size": 3,
@@ -52,7 +52,7 @@ default_conf = {
     "init_min_num_inliers": 50,
     # 2D-3D inliers to register a photo [30]: a ring's next photo sees ~25 points
     "abs_pose_min_num_inliers": 15,
-    # A photo that observes fewer 3D points than this in the final model is taken out of it (0 =
+    # A photo that observes fewer 3D points than this in the final model is taken out of it (None =
     # keep every photo): its pose rests on too little (proxy: 14 of the 21 such photos were off the
     # reference pose).
     "min_image_points": 15,
@@ -64,7 +64,14 @@ def check_conf(conf: dict | None) -> dict:
     conf = merge_conf(default_conf, conf, "mapping")
     if conf["mapper"] not in MAPPERS:
         raise ValueError(f"Unknown mapper {conf['mapper']!r}; choose one of {list(MAPPERS)}.")
+    if conf["random_seed"] is not None and conf["random_seed"] < 0:  # COLMAP's -1: unseeded
+        conf["random_seed"] = None
     return conf
+
+
+def _colmap_seed(conf: dict) -> int:
+    """The mapper's seed as COLMAP takes it (-1: unseeded)."""
+    return -1 if conf["random_seed"] is None else conf["random_seed"]
 
 
 def _pipeline_options(options, conf: dict):
@@ -79,7 +86,7 @@ def _incremental_options(conf: dict) -> pycolmap.IncrementalPipelineOptions:
     options.mapper.init_min_num_inliers = conf["init_min_num_inliers"]
     options.mapper.abs_pose_min_num_inliers = conf["abs_pose_min_num_inliers"]
     for seeded in (options, options.mapper, options.triangulation):
-        seeded.random_seed = conf["random_seed"]
+        seeded.random_seed = _colmap_seed(conf)
     return options
 
 
@@ -93,7 +100,7 @@ def _global_options(conf: dict) -> pycolmap.GlobalPipelineOptions:
         mapper.global_positioning,
         mapper.retriangulation,
     ):
-        seeded.random_seed = conf["random_seed"]
+        seeded.random_seed = _colmap_seed(conf)
     return options
 
 
@@ -241,7 +248,7 @@ def run_mapping(
     tmp = sparse_path.with_name(sparse_path.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    if conf["random_seed"] >= 0:
+    if conf["random_seed"] is not None:
         pycolmap.set_random_seed(conf["random_seed"])
     logger.info("%s mapping", conf["mapper"].capitalize())
     with colmap_quiet():

