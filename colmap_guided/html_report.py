@@ -26,6 +26,7 @@ import numpy as np
 
 from . import database as dbio
 from . import embed, images, model_view
+from .localized import with_localized
 from .log import logger
 from .workspace import read_marker
 
@@ -356,8 +357,6 @@ def render_html(
     localized = _localized(report)
     # the localized photos' cameras, in their colour
     if rec is not None and rec.num_reg_images() and localized:
-        from .localize import with_localized
-
         rec, names = with_localized(rec, localized)
         model_eras = {rec.images[i].name: "photo" for i in rec.reg_image_ids()}
         eras = {**model_eras, **eras, **dict.fromkeys(names, "localized")}
