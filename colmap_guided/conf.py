@@ -1,10 +1,17 @@
 """One way to merge options over a stage's defaults (an unknown key, a typo, is a one-line error),
-and one spelling of an option that is off: None in Python, ``none`` on the command line."""
+one spelling of an option that is off: None in Python, ``none`` on the command line, and command
+line flags generated from a ``default_conf`` dict, its comments as their help."""
 
 from __future__ import annotations
 
+import argparse
+import ast
 import difflib
-from collections.abc import Callable
+import inspect
+import io
+import textwrap
+import tokenize
+from collections.abc import Callable, Sequence
 from typing import Any
 
 
@@ -52,3 +59,133 @@ def at_most_zero(text: str) -> bool:
     """Whether a count or threshold given on the command line is 0 or below: off for the flags
     that read it so."""
     return float(text) <= 0
+
+
+def conf_comments(owner, name: str = "default_conf") -> dict[str, str]:
+    """The comment of each option of ``owner.<name>`` (``owner``: the module or class that assigns
+    the dict literal) in its source: the comment lines directly above the key and a comment at the
+    end of the key's line, joined."""
+    tokens = list(
+        tokenize.generate_tokens(io.StringIO(textwrap.dedent(inspect.getsource(owner))).readline)
+    )
+    body = 1 if inspect.isclass(owner) else 0  # the indentation level of the owner's statements
+    skip = (tokenize.NL, tokenize.COMMENT)
+    level, depth, start = 0, 0, None
+    for i, tok in enumerate(tokens[:-2]):
+        level += (tok.type == tokenize.INDENT) - (tok.type == tokenize.DEDENT)
+        if tok.type == tokenize.OP and tok.string in "([{)]}":
+            depth += 1 if tok.string in "([{" else -1
+        before = tokens[i - 1].type if i else tokenize.NEWLINE
+        statement = before in (tokenize.NEWLINE, tokenize.INDENT, tokenize.DEDENT, tokenize.NL)
+        if (level, depth, statement, tok.string) == (body, 0, True, name):
+            if tokens[i + 1].string == "=" and tokens[i + 2].string == "{":
+                start = i + 3
+                break
+    if start is None:
+        raise ValueError(f"{getattr(owner, '__name__', owner)} assigns no {name} dict literal")
+    comments: dict[str, list[str]] = {}
+    above: list[str] = []
+    depth, key, key_row = 1, None, -1
+    for i in range(start, len(tokens)):
+        tok = tokens[i]
+        if tok.type == tokenize.OP and tok.string in "([{":
+            depth += 1
+        elif tok.type == tokenize.OP and tok.string in ")]}":
+            depth -= 1
+            if depth == 0:
+                break
+        elif tok.type == tokenize.COMMENT:
+            text = tok.string.lstrip("#").strip()
+            if tok.start[0] == key_row and tok.line[: tok.start[1]].strip():
+                comments[key].append(text)
+            elif depth == 1 and not tok.line[: tok.start[1]].strip():
+                above.append(text)
+        elif tok.type == tokenize.NL and not tok.line.strip():
+            above = []  # a blank line: the comments above it are not the next key's
+        elif depth == 1 and tok.type == tokenize.STRING:
+            after = next(t for t in tokens[i + 1 :] if t.type not in skip)
+            if after.string == ":":
+                key, key_row = ast.literal_eval(tok.string), tok.start[0]
+                comments[key], above = above, []
+    return {key: " ".join(lines) for key, lines in comments.items() if lines}
+
+
+class _Switch(argparse.Action):
+    """``--key`` sets the option on, ``--no_key`` off."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, not option_string.startswith("--no_"))
+
+
+def _shown(value) -> str:
+    if value is None:
+        return "none"
+    if isinstance(value, (list, tuple)):
+        return " ".join(str(v) for v in value) or "empty"
+    return str(value)
+
+
+def add_conf_flags(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    owner,
+    keys: Sequence[str] | None = None,
+    *,
+    types: dict[str, Callable[[str], Any]] | None = None,
+    choices: dict[str, Sequence] | None = None,
+    what: str | None = None,
+) -> list[str]:
+    """A flag ``--key`` for each of ``keys`` (default: all) of ``owner.default_conf``, ``owner``
+    being the module or class that assigns it; returns the keys, for ``conf_from_flags``.
+
+    The default's type is the flag's: a bool is a ``--key``/``--no_key`` pair, a list or tuple
+    takes any number of values (``types`` gives their type when the default is empty), int,
+    float and str one value; a None default (an option that can be off) needs its type in
+    ``types`` and also takes ``none``. The help is the option's comment (``conf_comments``) and
+    its default. ``choices``: the allowed values of some keys. A key ``default_conf`` does not
+    have is merge_conf's one-line error."""
+    defaults = owner.default_conf
+    what = what or owner.__name__.rsplit(".", 1)[-1]
+    types, choices = types or {}, choices or {}
+    keys = list(defaults) if keys is None else list(keys)
+    merge_conf(defaults, dict.fromkeys([*keys, *types, *choices]), what)
+    comments = conf_comments(owner)
+    for key in keys:
+        default, kind = defaults[key], types.get(key)
+        shown = f"--{key}" if default is True else f"--no_{key}" if default is False else None
+        text = f"{comments.get(key, '')} (default: {shown or _shown(default)})".lstrip()
+        kwargs = {"default": default, "help": text.replace("%", "%%")}
+        if key in choices:
+            kwargs["choices"] = choices[key]
+        if isinstance(default, bool):
+            parser.add_argument(f"--{key}", f"--no_{key}", action=_Switch, **kwargs)
+            continue
+        if isinstance(default, (list, tuple)):
+            kind = kind or (type(default[0]) if default else None)
+            kwargs["nargs"] = "*"
+        elif default is not None:
+            kind = kind or type(default)
+        elif kind is not None:
+            kind = none_or(kind)
+        if kind not in (int, float, str) and key not in types:
+            raise TypeError(f"{what} option {key!r} (default {default!r}): give its type in types")
+        parser.add_argument(f"--{key}", type=kind, **kwargs)
+    return keys
+
+
+def conf_from_flags(
+    args: argparse.Namespace, owner, keys: Sequence[str], what: str | None = None
+) -> dict:
+    """The options ``keys`` of ``owner.default_conf`` as parsed from ``add_conf_flags``'s flags
+    (a list comes back as the default's list or tuple), checked by ``merge_conf``."""
+    defaults = owner.default_conf
+    conf = {}
+    for key in keys:
+        value, default = getattr(args, key), defaults.get(key)
+        if isinstance(default, (list, tuple)) and value is not None:
+            value = type(default)(value)
+        conf[key] = value
+    merge_conf(defaults, conf, what or owner.__name__.rsplit(".", 1)[-1])
+    return conf

@@ -63,3 +63,128 @@ def test_off_is_none_on_the_command_line_and_the_old_spellings_still_work():
         none_or(float)("off")  # "off" only where a flag reads it so
     with pytest.raises(SystemExit):
         parsed("--ratio", "low")
+
+
+class _Stage:
+    """A stage whose options the flag generator reads: its dict literal and comments."""
+
+    default_conf = {
+        "ratio": 0.8,  # nearest-neighbour ratio test
+        # matches kept per pair,
+        # at most
+        "max_matches": 256,
+        "name": "raw",
+        "threshold": None,  # pixels; None: no threshold
+        "sizes": (512, 1024),
+        "steps": (),
+        "refine": True,  # sub-pixel refinement
+        "nested": {"a": 1},  # options of a part
+        "verbose": False,
+        "keep": 50,  # matches kept, in % of all
+    }
+
+
+def _stage_parser(keys=None, **kwargs):
+    import argparse
+
+    from colmap_guided.conf import add_conf_flags
+
+    parser = argparse.ArgumentParser()
+    kwargs.setdefault("types", {"threshold": float, "steps": int})
+    keys = add_conf_flags(parser, _Stage, keys, **kwargs)
+    return parser, keys
+
+
+def test_conf_comments_are_the_lines_above_and_the_end_of_the_key_line(tmp_path):
+    import importlib.util
+
+    from colmap_guided.conf import conf_comments
+
+    assert conf_comments(_Stage) == {
+        "ratio": "nearest-neighbour ratio test",
+        "max_matches": "matches kept per pair, at most",
+        "threshold": "pixels; None: no threshold",
+        "refine": "sub-pixel refinement",
+        "nested": "options of a part",
+        "keep": "matches kept, in % of all",
+    }
+    source = (
+        "default_conf = {\n"
+        "    # a comment above a blank line belongs to no key\n"
+        "\n"
+        '    "a": [1,  # a\n'
+        "        # not b's\n"
+        "        2],\n"
+        '    "b": 1,\n'
+        "}\n"
+    )
+    (tmp_path / "stage_module.py").write_text(source)
+    spec = importlib.util.spec_from_file_location("stage_module", tmp_path / "stage_module.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert conf_comments(module) == {"a": "a"}
+
+
+def test_flags_from_default_conf_types_none_bools_and_lists():
+    from colmap_guided.conf import conf_from_flags
+
+    keys = ["ratio", "max_matches", "name", "threshold", "sizes", "steps", "refine", "verbose"]
+    parser, got = _stage_parser(keys)
+    assert got == keys
+    args = parser.parse_args([])
+    assert conf_from_flags(args, _Stage, keys) == {k: _Stage.default_conf[k] for k in keys}
+    args = parser.parse_args(
+        "--ratio 0.9 --max_matches 10 --name guided --threshold 2.5 --sizes 256 --steps 5 7"
+        " --no_refine --verbose".split()
+    )
+    conf = conf_from_flags(args, _Stage, keys)
+    assert conf == {
+        "ratio": 0.9,
+        "max_matches": 10,
+        "name": "guided",
+        "threshold": 2.5,
+        "sizes": (256,),
+        "steps": (5, 7),
+        "refine": False,
+        "verbose": True,
+    }
+    assert type(conf["max_matches"]) is int and type(conf["ratio"]) is float
+    assert parser.parse_args(["--refine", "--threshold", "none"]).refine is True
+    assert parser.parse_args(["--threshold", "None"]).threshold is None
+    assert parser.parse_args(["--steps"]).steps == []
+    for bad in (["--max_matches", "1.5"], ["--ratio", "none"], ["--threshold", "off"]):
+        with pytest.raises(SystemExit):  # none is off only where the default is None
+            parser.parse_args(bad)
+
+
+def test_flag_help_is_the_comment_and_the_default():
+    keys = [k for k in _Stage.default_conf if k != "nested"]
+    parser, _ = _stage_parser(keys, choices={"name": ["raw", "guided"]})
+    helps = {a.dest: a.help for a in parser._actions}
+    assert helps["ratio"] == "nearest-neighbour ratio test (default: 0.8)"
+    assert helps["max_matches"] == "matches kept per pair, at most (default: 256)"
+    assert helps["name"] == "(default: raw)"
+    assert helps["threshold"] == "pixels; None: no threshold (default: none)"
+    assert helps["sizes"] == "(default: 512 1024)" and helps["steps"] == "(default: empty)"
+    assert helps["refine"] == "sub-pixel refinement (default: --refine)"
+    assert helps["verbose"] == "(default: --no_verbose)"
+    text = parser.format_help()
+    assert "--refine, --no_refine" in text and "--name {raw,guided}" in text
+    assert "matches kept, in % of all (default: 50)" in text  # a % in a comment is not a format
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--name", "dense"])
+
+
+def test_flag_generator_errors_unknown_key_and_missing_type():
+    with pytest.raises(
+        ValueError, match=r"^Unknown stage option 'max_matchs'; did you mean 'max_m"
+    ):
+        _stage_parser(["ratio", "max_matchs"], what="stage")
+    with pytest.raises(ValueError, match="Unknown _Stage option 'treshold'; did you mean 'thr"):
+        _stage_parser(["ratio"], types={"treshold": float})
+    with pytest.raises(TypeError, match="'threshold' .*give its type"):
+        _stage_parser(["threshold"], types={})
+    with pytest.raises(TypeError, match="'steps' .*give its type"):
+        _stage_parser(["steps"], types={})
+    with pytest.raises(TypeError, match="'nested'"):
+        _stage_parser(["nested"])
