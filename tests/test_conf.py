@@ -99,6 +99,7 @@ def test_conf_comments_are_the_lines_above_and_the_end_of_the_key_line(tmp_path)
     import importlib.util
 
     from colmap_guided.conf import conf_comments
+    from colmap_guided.train import trainer
 
     assert conf_comments(_Stage) == {
         "ratio": "nearest-neighbour ratio test",
@@ -123,6 +124,10 @@ def test_conf_comments_are_the_lines_above_and_the_end_of_the_key_line(tmp_path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     assert conf_comments(module) == {"a": "a"}
+    comments = conf_comments(trainer)  # keys with comments above and after, in a module
+    assert comments["sparse_radius"] == "cells around each best match"
+    assert comments["sparse_k"].startswith("sparse support as the pipeline matches")
+    assert comments["impl"].startswith("filter during training: 'sparse' (the CPU inference")
 
 
 def test_flags_from_default_conf_types_none_bools_and_lists():
@@ -188,3 +193,29 @@ def test_flag_generator_errors_unknown_key_and_missing_type():
         _stage_parser(["steps"], types={})
     with pytest.raises(TypeError, match="'nested'"):
         _stage_parser(["nested"])
+
+
+def test_training_flags_are_the_trainer_and_data_options():
+    """python -m colmap_guided.train: each generated flag's default is its option's default."""
+    from colmap_guided.train import __main__ as cli
+    from colmap_guided.train.data import CoarseTrainData
+    from colmap_guided.train.trainer import default_conf
+
+    conf = cli.conf_from_args(cli.parse_args(["--out", "o"]))
+    assert {k: conf[k] for k in cli.TRAIN_KEYS} == {k: default_conf[k] for k in cli.TRAIN_KEYS}
+    data = CoarseTrainData.default_conf
+    assert {k: conf["data"][k] for k in cli.DATA_KEYS} == {k: data[k] for k in cli.DATA_KEYS}
+    assert conf["data"]["train_scenes"] is None and conf["data"]["val_scenes"] == data["val_scenes"]
+    args = cli.parse_args("--out o --lr_steps 100 200 --impl dense --max_cells none".split())
+    conf = cli.conf_from_args(args)
+    assert (conf["lr_steps"], conf["impl"], conf["data"]["max_cells"]) == (
+        (100, 200),
+        "dense",
+        None,
+    )
+    assert (
+        cli.conf_from_args(cli.parse_args(["--out", "o", "--max_cells", "24"]))["data"]["max_cells"]
+        == 24
+    )
+    with pytest.raises(SystemExit):
+        cli.parse_args(["--out", "o", "--impl", "fast"])

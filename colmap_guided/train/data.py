@@ -55,27 +55,31 @@ class CoarseTrainData:
     """Scenes, views, positive/negative pairs, the feature cache, and a seeded batch sampler."""
 
     default_conf = {
-        "backbone": DEFAULT_BACKBONE,
-        # long side of training images (the pipeline's
-        # resize_max; paper: 401 px), multiple of the stride
+        "backbone": DEFAULT_BACKBONE,  # feature backbone, a name of coarse.backbone.BACKBONES
+        # long side of training images (the pipeline's resize_max; paper: 401 px), a multiple of
+        # the backbone's stride
         "resolution": 512,
         "min_shared": 30,  # positive pair: at least this many common 3D points (paper §4.3)
         "train_scenes": None,  # None: every scene with a model except val_scenes
-        "val_scenes": VAL_SCENES,
-        "max_images_per_scene": None,  # small subsets for smoke tests
-        # cached versions of each image: 0 clean, odd k
-        # archival print, even k > 0 small soft scan of one
+        "val_scenes": VAL_SCENES,  # held-out scenes of the validation PCK
+        # at most this many images per scene (cache budget; small subsets for smoke tests)
+        "max_images_per_scene": None,
+        # cached versions of each image: 0 clean, odd k archival print, even k > 0 small soft
+        # scan of one
         "n_variants": 3,
         "archival_prob": 0.5,  # chance that a side of a pair is an archival version
         "archival_strength": 1.0,
         "n_synthetic": 1,  # homography views cached per training photo
-        "synthetic_ratio": 0.3,  # share of positives that are synthetic homography pairs
+        # share of positives that are synthetic homography pairs (0: SfM only, 1: synthetic only)
+        "synthetic_ratio": 0.3,
         "homography_strength": 1.0,
         "max_matches": 256,  # ground-truth matches kept per pair (point loss, PCK)
-        "val_pairs_per_scene": 16,
-        # training crop: at most this many cells per grid side (CPU budget), see crop_sample
+        "val_pairs_per_scene": 16,  # validation pairs per held-out scene
+        # training crop: at most this many feature cells per grid side (CPU budget), see
+        # crop_sample; None: whole grids
         "max_cells": None,
-        "cache_dir": None,  # default: ~/.cache/colmap_guided/train_features ($COLMAP_GUIDED_CACHE)
+        # feature cache folder; None: ~/.cache/colmap_guided/train_features ($COLMAP_GUIDED_CACHE)
+        "cache_dir": None,
     }
 
     def __init__(self, conf: dict | None = None):

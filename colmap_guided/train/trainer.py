@@ -56,26 +56,29 @@ WRITES = (
 )
 
 default_conf = {
-    "supervision": "epipolar",  # 'image' | 'epipolar' | 'points'
-    "iterations": 25000,  # paper §4.3
-    "batch_size": 8,
+    # loss (paper §4.2): 'image' (same scene or not), 'epipolar' (the pair's relative pose) or
+    # 'points' (ground-truth matches)
+    "supervision": "epipolar",
+    "iterations": 25000,  # training steps (paper §4.3)
+    "batch_size": 8,  # pairs per step, positives and negatives
     "negatives": None,  # negatives per batch; None: half the batch for image/epipolar, 0 for points
-    "lr": 1e-3,
-    # iterations after which the learning rates drop 10x (each); () = constant (paper §4.3)
+    "lr": 1e-3,  # learning rate of the 4D filter (Adam)
+    # iterations after which the learning rates drop 10x (each); empty: constant (paper §4.3)
     "lr_steps": (),
-    "seed": 0,
-    # filter during training: 'dense' (batched 4D conv; windows with data max_cells on CPU)
+    "seed": 0,  # torch's seed and the batch sampler's
+    # filter during training: 'sparse' (the CPU inference path, CoarseNet.sparse_volume, whole
+    # grids, one pair at a time) or 'dense' (batched 4D conv; GPU, or windows of max_cells on CPU)
     "impl": "sparse",
-    # or 'sparse' (the CPU inference path, CoarseNet.sparse_volume, whole grids, one pair at a time)
-    "sparse_k": CoarseMatcher.default_conf["sparse_k"],  # sparse support as the pipeline matches
-    "sparse_radius": CoarseMatcher.default_conf["sparse_radius"],
-    "finetune_backbone": False,
-    "backbone_lr": 1e-5,
-    "init": None,  # checkpoint.pt or safetensors to start from (fine-tuning stage)
-    "max_minutes": None,  # stop (after a checkpoint) once this much wall time is used in this run
-    "log_every": 10,
-    "val_every": 250,
-    "checkpoint_every": 50,
+    # sparse support as the pipeline matches: best cells per cell and direction
+    "sparse_k": CoarseMatcher.default_conf["sparse_k"],
+    "sparse_radius": CoarseMatcher.default_conf["sparse_radius"],  # cells around each best match
+    "finetune_backbone": False,  # second stage: also train the backbone
+    "backbone_lr": 1e-5,  # learning rate of the backbone when finetune_backbone
+    "init": None,  # checkpoint.pt or .safetensors to start from (fine-tuning stage)
+    "max_minutes": None,  # stop and checkpoint after this many minutes of wall time in this run
+    "log_every": 10,  # iterations between log lines
+    "val_every": 250,  # iterations between validations (PCK on the held-out scenes)
+    "checkpoint_every": 50,  # iterations between checkpoints
     "model": {},  # CoarseNet options (backbone, channels, kernel_sizes, mutual_before/after)
     "data": {},  # CoarseTrainData options
 }
