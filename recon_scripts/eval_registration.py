@@ -27,7 +27,6 @@ import argparse
 import sys
 from pathlib import Path
 
-from colmap_guided.conf import at_most_zero, none_or
 from colmap_guided.evaluation import manifest as mf
 from colmap_guided.evaluation import matcher_specs, proxy, registration, tables, two_view
 from colmap_guided.log import logger, set_verbosity
@@ -56,32 +55,13 @@ def main(argv=None) -> int:
         default=DEFAULT_PROXY,
         help="where the default proxy is (built if missing)",
     )
-    parser.add_argument(
-        "--root",
-        type=Path,
-        default=None,
-        help="local copy of the dataset (overrides the manifest's root)",
-    )
-    parser.add_argument(
-        "--scan", action="store_true", help="fill the manifest from the folders under --root (LTLL)"
-    )
-    parser.add_argument("--scenes", nargs="+", default=None)
-    parser.add_argument(
-        "--max_scenes",
-        type=none_or(int, old_off=at_most_zero),
-        default=None,
-        help="first N scenes of the manifest (default none = all)",
-    )
-    parser.add_argument(
-        "--subsets", nargs="+", default=["historical", "all"], choices=sorted(mf.SUBSETS)
-    )
-    parser.add_argument(
-        "--methods",
-        nargs="+",
-        default=["pycolmap", "raw", "guided"],
-        help="'pycolmap' (its default pipeline), 'pycolmap_mapping' (its "
-        "database, this project's mapping) and/or matcher specs of the registry; "
-        "a spec may carry feature options (guided:stretch_contrast_below=none)",
+    mf.add_manifest_flags(
+        parser,
+        output=REPO_ROOT / "outputs" / "eval_registration",
+        methods=["pycolmap", "raw", "guided"],
+        methods_help="'pycolmap' (its default pipeline), 'pycolmap_mapping' (its database, this "
+        "project's mapping) and/or matcher specs of the registry; a spec may carry feature "
+        "options (guided:stretch_contrast_below=none)",
     )
     parser.add_argument("--max_rotation_deg", type=float, default=registration.MAX_ROTATION_DEG)
     parser.add_argument("--max_center_frac", type=float, default=registration.MAX_CENTER_FRAC)
@@ -100,7 +80,6 @@ def main(argv=None) -> int:
         "each; runs go to runs/seed<N>/ and the later seeds map the first seed's "
         "databases again (default: one run, unseeded pycolmap, reconstruct's seed 0)",
     )
-    parser.add_argument("--resume", action="store_true", help="reuse finished runs")
     parser.add_argument(
         "--remap",
         action="store_true",
@@ -114,10 +93,6 @@ def main(argv=None) -> int:
         help="threads of every mapper (pycolmap's default pipeline too); 1 = "
         "every seeded run repeats exactly (default: each pipeline's, all cores)",
     )
-    parser.add_argument("--device", default=None)
-    parser.add_argument("--weights", default=None)
-    parser.add_argument("--output", type=Path, default=REPO_ROOT / "outputs" / "eval_registration")
-    parser.add_argument("--quiet", "-q", action="store_true")
     args = parser.parse_args(argv)
     set_verbosity(False, args.quiet)
     try:  # refused before any work: a folder of the user's files, or one holding the photos

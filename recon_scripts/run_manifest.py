@@ -25,7 +25,6 @@ import argparse
 import sys
 from pathlib import Path
 
-from colmap_guided.conf import at_most_zero, none_or
 from colmap_guided.evaluation import manifest as mf
 from colmap_guided.evaluation import registration
 from colmap_guided.features import list_images
@@ -99,14 +98,11 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--manifest", type=Path, default=REPO_ROOT / "datasets" / "ltll_manifest.json"
     )
-    parser.add_argument(
-        "--root",
-        type=Path,
-        default=None,
-        help="local copy of the dataset (overrides the manifest's root)",
-    )
-    parser.add_argument(
-        "--scan", action="store_true", help="fill the scenes/images from the folders under --root"
+    mf.add_manifest_flags(
+        parser,
+        output=REPO_ROOT / "outputs" / "run_manifest",
+        methods=["raw"],
+        methods_help="'pycolmap' and/or matcher specs (raw, guided, ...)",
     )
     parser.add_argument(
         "--scanned_manifest",
@@ -120,37 +116,12 @@ def main(argv=None) -> int:
         default=None,
         help="write the ../shared/data manifest here and exit",
     )
-    parser.add_argument("--scenes", nargs="+", default=None)
-    parser.add_argument(
-        "--max_scenes",
-        type=none_or(int, old_off=at_most_zero),
-        default=None,
-        help="first N scenes of the manifest (default none = all)",
-    )
-    parser.add_argument(
-        "--subsets", nargs="+", default=["historical", "all"], choices=sorted(mf.SUBSETS)
-    )
-    parser.add_argument(
-        "--methods",
-        nargs="+",
-        default=["raw"],
-        help="'pycolmap' and/or matcher specs (raw, guided, ...)",
-    )
     parser.add_argument(
         "--layout_only", action="store_true", help="lay the scenes out, do not reconstruct"
     )
     parser.add_argument(
         "--copy", action="store_true", help="copy the photos instead of symlinking them"
     )
-    parser.add_argument(
-        "--resume",
-        action="store_true",
-        help="reuse finished runs (OUTPUT/<scene>__<subset>/runs/<method>/eval.json)",
-    )
-    parser.add_argument("--device", default=None)
-    parser.add_argument("--weights", default=None)
-    parser.add_argument("--output", type=Path, default=REPO_ROOT / "outputs" / "run_manifest")
-    parser.add_argument("--quiet", "-q", action="store_true")
     args = parser.parse_args(argv)
     set_verbosity(False, args.quiet)
     try:  # refused before any work: a folder of the user's files, or one holding the photos

@@ -26,11 +26,13 @@ one-scene schema ``colmap_guided.report.read_manifest`` reads); the source is ne
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import shutil
 from pathlib import Path
 
+from colmap_guided.conf import at_most_zero, none_or
 from colmap_guided.features import IMAGE_EXTENSIONS
 from colmap_guided.log import logger
 from colmap_guided.paths import shared_data_dir
@@ -233,3 +235,40 @@ def select_scenes(manifest: dict, names=None, max_scenes: int | None = None) -> 
             )
         scenes = [s for s in scenes if s["name"] in names]
     return scenes[:max_scenes] if max_scenes else scenes
+
+
+def add_manifest_flags(
+    parser: argparse.ArgumentParser, output: Path, methods: list[str], methods_help: str
+) -> None:
+    """The flags of the scripts that run the scenes of a manifest (recon_scripts/run_manifest.py,
+    eval_registration.py): the local copy, which scenes and subsets, the methods and their
+    devices, where the results go (``output`` by default)."""
+    parser.add_argument(
+        "--root",
+        type=Path,
+        default=None,
+        help="local copy of the dataset (overrides the manifest's root)",
+    )
+    parser.add_argument(
+        "--scan",
+        action="store_true",
+        help="fill the manifest's scenes and images from the folders under --root (LTLL)",
+    )
+    parser.add_argument("--scenes", nargs="+", default=None)
+    parser.add_argument(
+        "--max_scenes",
+        type=none_or(int, old_off=at_most_zero),
+        default=None,
+        help="first N scenes of the manifest (default none = all)",
+    )
+    parser.add_argument(
+        "--subsets", nargs="+", default=["historical", "all"], choices=sorted(SUBSETS)
+    )
+    parser.add_argument("--methods", nargs="+", default=methods, help=methods_help)
+    parser.add_argument(
+        "--resume", action="store_true", help="reuse finished runs (each method's eval.json)"
+    )
+    parser.add_argument("--device", default=None)
+    parser.add_argument("--weights", default=None)
+    parser.add_argument("--output", type=Path, default=output)
+    parser.add_argument("--quiet", "-q", action="store_true")
