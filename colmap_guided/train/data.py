@@ -54,6 +54,7 @@ from colmap_guided.train.views import (
 class CoarseTrainData:
     """Scenes, views, positive/negative pairs, the feature cache, and a seeded batch sampler."""
 
+    # an option's comment is the help of its flag in python -m colmap_guided.train
     default_conf = {
         "backbone": DEFAULT_BACKBONE,  # feature backbone, a name of coarse.backbone.BACKBONES
         # long side of training images (the pipeline's resize_max; paper: 401 px), a multiple of

@@ -55,6 +55,7 @@ WRITES = (
     "curves.png",
 )
 
+# an option's comment is the help of its flag in python -m colmap_guided.train
 default_conf = {
     # loss (paper §4.2): 'image' (same scene or not), 'epipolar' (the pair's relative pose) or
     # 'points' (ground-truth matches)
