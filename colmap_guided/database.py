@@ -355,13 +355,17 @@ def _image_pair(pair_id: int) -> tuple[int, int]:
 
 def write_pair_matches(db: pycolmap.Database, id_a: int, id_b: int, matches: np.ndarray) -> None:
     """Write one pair's matches atomically, replacing what was there (so reruns never duplicate)."""
-    write_pairs_matches(db, [(id_a, id_b, matches)])
+    write_pairs_matches(db, [(id_a, id_b, matches, None)])
 
 
-def write_pairs_matches(db: pycolmap.Database, batch: list[tuple[int, int, np.ndarray]]) -> None:
-    """``write_pair_matches`` for a batch of (id_a, id_b, matches) in one transaction."""
+def write_pairs_matches(
+    db: pycolmap.Database,
+    batch: list[tuple[int, int, np.ndarray, pycolmap.TwoViewGeometry | None]],
+) -> None:
+    """``write_pair_matches`` for a batch of (id_a, id_b, matches, geometry) in one transaction;
+    a geometry (None: none yet) is written with its matches, so the pair counts as verified."""
     with pycolmap.DatabaseTransaction(db):
-        for id_a, id_b, matches in batch:
+        for id_a, id_b, matches, geometry in batch:
             if db.exists_matches(id_a, id_b):
                 db.delete_matches(id_a, id_b)
             if db.exists_two_view_geometry(id_a, id_b):
@@ -369,6 +373,8 @@ def write_pairs_matches(db: pycolmap.Database, batch: list[tuple[int, int, np.nd
             db.write_matches(
                 id_a, id_b, np.ascontiguousarray(matches, dtype=np.uint32).reshape(-1, 2)
             )
+            if geometry is not None:
+                db.write_two_view_geometry(id_a, id_b, geometry)
 
 
 def write_pair_geometry(

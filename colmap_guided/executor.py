@@ -20,8 +20,6 @@ from __future__ import annotations
 import os
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 
-import numpy as np
-
 from .log import logger
 from .matchers.base import ImageData, Matcher
 
@@ -32,8 +30,8 @@ class LocalExecutor:
     """``matcher.pair_workers`` threads of this process (torch releases the GIL); two pairs per
     thread queued."""
 
-    def __init__(self, matcher: Matcher):
-        self.matcher = matcher
+    def __init__(self, matcher: Matcher, verification: dict | None = None):
+        self.matcher, self.verification = matcher, verification or {}
         self.workers = max(1, int(matcher.pair_workers))
         self.capacity = 2 * self.workers
         self.pool = ThreadPoolExecutor(self.workers)
@@ -43,15 +41,15 @@ class LocalExecutor:
         return image
 
     def submit(self, key, a: ImageData, b: ImageData) -> None:
-        self.futures[self.pool.submit(self.matcher.match, a, b)] = key
+        self.futures[self.pool.submit(self.matcher.match_verified, a, b, self.verification)] = key
 
     @property
     def in_flight(self) -> int:
         return len(self.futures)
 
-    def wait(self) -> list[tuple[object, np.ndarray | BaseException]]:
-        """Blocks until a pair is finished; returns every finished pair's key and matches
-        (or its error)."""
+    def wait(self) -> list[tuple[object, tuple | BaseException]]:
+        """Blocks until a pair is finished; returns every finished pair's key and
+        ``match_verified`` result (or its error)."""
         done, _ = wait(list(self.futures), return_when=FIRST_COMPLETED)
         return [(self.futures.pop(f), f.exception() or f.result()) for f in done]
 
@@ -71,15 +69,15 @@ def _pair_worker_class():
     class PairWorker:
         """One matcher per worker process (loaded once), on ``threads`` torch threads."""
 
-        def __init__(self, matcher: Matcher, threads: int):
+        def __init__(self, matcher: Matcher, threads: int, verification: dict):
             import torch
 
             torch.set_num_threads(threads)
             os.environ["OMP_NUM_THREADS"] = str(threads)
-            self.matcher = matcher
+            self.matcher, self.verification = matcher, verification
 
-        def match(self, a: ImageData, b: ImageData) -> np.ndarray:
-            return self.matcher.match(a, b)
+        def match(self, a: ImageData, b: ImageData) -> tuple:
+            return self.matcher.match_verified(a, b, self.verification)
 
     return PairWorker
 
@@ -94,6 +92,7 @@ class RayExecutor:
         address: str | None = None,
         num_cpus: int | None = None,
         tasks_per_worker: int = 2,
+        verification: dict | None = None,
     ):
         try:
             import ray
@@ -144,7 +143,7 @@ class RayExecutor:
             worker_class = _pair_worker_class()
             shipped = ray.put(matcher)
             self.workers = [
-                worker_class.remote(shipped, matcher.torch_threads or 1)
+                worker_class.remote(shipped, matcher.torch_threads or 1, verification or {})
                 for _ in range(max(1, cpus))
             ]
         except BaseException:
@@ -173,7 +172,7 @@ class RayExecutor:
     def in_flight(self) -> int:
         return len(self.refs)
 
-    def wait(self) -> list[tuple[object, np.ndarray | BaseException]]:
+    def wait(self) -> list[tuple[object, tuple | BaseException]]:
         ready, _ = self.ray.wait(list(self.refs), num_returns=1)
         ready += (
             self.ray.wait(
@@ -212,11 +211,15 @@ class RayExecutor:
         return {"name": "ray", "workers": self.num_workers}
 
 
-def get_executor(name: str, matcher: Matcher, address: str | None = None):
+def get_executor(
+    name: str, matcher: Matcher, address: str | None = None, verification: dict | None = None
+):
+    """``verification``: the options of ``verify.two_view_options`` that a matcher verifying its
+    own matches (``Matcher.match_verified``) uses."""
     if name == "local":
         if address:
             raise ValueError("--ray_address applies to --executor ray only.")
-        return LocalExecutor(matcher)
+        return LocalExecutor(matcher, verification)
     if name == "ray":
-        return RayExecutor(matcher, address)
+        return RayExecutor(matcher, address, verification=verification)
     raise ValueError(f"Unknown executor {name!r}; choose one of {', '.join(EXECUTORS)}.")

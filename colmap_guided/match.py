@@ -106,7 +106,7 @@ def match_database(
         )
         start, seconds = time.time(), {"read": 0.0, "write": 0.0}
         if todo:
-            run = get_executor(executor, matcher, ray_address)
+            run = get_executor(executor, matcher, ray_address, verification_conf)
             try:
                 with scoped_torch_threads(matcher.torch_threads):
                     stats["memory"], seconds = _match_pairs(
@@ -232,7 +232,7 @@ def _match_pairs(
             errors = [value for _, value in done if isinstance(value, BaseException)]
             done = [(key, value) for key, value in done if not isinstance(value, BaseException)]
             start = time.perf_counter()
-            dbio.write_pairs_matches(db, [(key[0], key[1], matches) for key, matches in done])
+            dbio.write_pairs_matches(db, [(key[0], key[1], *result) for key, result in done])
             seconds["write"] += time.perf_counter() - start
             bar.update(len(done))
             if errors:  # the finished pairs are written (resumable); the first error stops the run

@@ -6,6 +6,8 @@ pair by pair, so progress shows and a killed run resumes at the first unverified
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pycolmap
 from tqdm import tqdm
@@ -85,6 +87,76 @@ def agreement(
         F,
     )
     return float(np.mean(np.asarray(errors) < max_error**2))
+
+
+def union(primary: np.ndarray, extra: np.ndarray) -> np.ndarray:
+    """``primary`` (K, 2) matches plus those of ``extra`` whose keypoints ``primary`` leaves
+    unmatched in both images: the union stays one-to-one, and ``primary`` wins where the two
+    disagree; sorted by index in the first image."""
+    primary, extra = (np.asarray(m, np.int64).reshape(-1, 2) for m in (primary, extra))
+    keep = ~np.isin(extra[:, 0], primary[:, 0]) & ~np.isin(extra[:, 1], primary[:, 1])
+    merged = np.concatenate([primary, extra[keep]])
+    return merged[np.argsort(merged[:, 0], kind="stable")]
+
+
+def best_of(
+    camera_a: pycolmap.Camera,
+    kpts_a: np.ndarray,
+    camera_b: pycolmap.Camera,
+    kpts_b: np.ndarray,
+    guided: np.ndarray,
+    raw: Callable[[], np.ndarray],
+    options: pycolmap.TwoViewGeometryOptions,
+    min_inliers: int,
+    raw_min_inliers: int,
+    min_agreement: float,
+    raw_below: int | None = None,
+) -> tuple[np.ndarray, pycolmap.TwoViewGeometry]:
+    """Guided or raw matches of one pair, whichever verification trusts, and their geometry (what
+    ``verify_pair`` with ``options`` gives on them: the pair needs no second verification).
+
+    Never lose what raw matching finds, never keep what it contradicts: guided passes with
+    ``min_inliers`` (a wrong coarse flow gathers chance inliers), raw with ``raw_min_inliers``
+    (COLMAP's 15, as plain COLMAP). When only one passes it is returned. When both pass and their
+    geometries agree (``agreement`` >= ``min_agreement`` both ways) the union of their inliers is
+    verified too and the candidate with the most inliers is returned (guided first on ties); when
+    they disagree, one of them holds wrong inliers that its own RANSAC accepted, and raw is
+    returned, as plain COLMAP would keep the pair. When none passes, raw (which fails
+    verification). ``raw`` is computed only when needed: not when the guided matches reach
+    ``raw_below`` inliers (None: always)."""
+
+    def check(m: np.ndarray) -> tuple[np.ndarray, pycolmap.TwoViewGeometry]:
+        m = np.asarray(m, np.uint32).reshape(-1, 2)
+        geometry = verify_pair(camera_a, kpts_a, camera_b, kpts_b, m, options)
+        return np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2), geometry
+
+    guided = np.asarray(guided, np.uint32).reshape(-1, 2)
+    with colmap_quiet():
+        g_inl, g_geo = check(guided)
+        if raw_below is not None and len(g_inl) >= max(raw_below, min_inliers):
+            return guided, g_geo
+        raw_matches = np.asarray(raw(), np.uint32).reshape(-1, 2)
+        r_inl, r_geo = check(raw_matches)
+        if len(g_inl) < min_inliers:
+            return raw_matches, r_geo
+        if len(r_inl) < raw_min_inliers:
+            return guided, g_geo
+        threshold = options.ransac.max_error
+        if (
+            min(
+                agreement(g_geo, kpts_a, kpts_b, r_inl, threshold),
+                agreement(r_geo, kpts_a, kpts_b, g_inl, threshold),
+            )
+            < min_agreement
+        ):
+            return raw_matches, r_geo
+        candidates = [(len(g_inl), guided, g_geo), (len(r_inl), raw_matches, r_geo)]
+        both = union(g_inl, r_inl).astype(np.uint32)
+        u_inl, u_geo = check(both)
+        if len(u_inl) >= min_inliers:
+            candidates.append((len(u_inl), both, u_geo))
+    _, matches, geometry = max(candidates, key=lambda c: c[0])  # the first on ties: guided, raw
+    return matches, geometry
 
 
 def verify_pairs(

@@ -636,17 +636,24 @@ def test_raw_matches_verified_keeps_a_raw_pair_at_colmaps_threshold_and_guided_a
             ).inlier_matches
         )
 
-    def t(m):
-        return torch.from_numpy(np.asarray(m, np.int64))
+    def best_of(guided_matches, raw_matches, raw_below=None):
+        matches, geometry = verify.best_of(
+            cam, a.keypoints, cam, b.keypoints, guided_matches, lambda: raw_matches, options,
+            25, 15, 0.9, raw_below,
+        )  # fmt: skip
+        # the geometry written with the matches is the pipeline's verification of them
+        assert np.array_equal(geometry.inlier_matches, verify.verify_pair(
+            cam, a.keypoints, cam, b.keypoints, matches, options).inlier_matches)  # fmt: skip
+        return matches
 
-    kept = guided.verified_best(a, b, t(chance), t(np.r_[right, chance[:30]]))
+    kept = best_of(chance, np.r_[right, chance[:30]])
     # the raw pair, as plain COLMAP keeps it (before: lost under the guided 25)
     assert verified(kept) == 20
     # 20 guided inliers < 25: rejected
-    assert verified(guided.verified_best(a, b, t(right), t(chance))) == 0
+    assert verified(best_of(right, chance)) == 0
     more = np.stack([np.arange(30), np.arange(30)], 1)
     # >= 25 guided inliers pass
-    assert verified(guided.verified_best(a, b, t(more), t(chance))) == 30
+    assert verified(best_of(more, chance)) == 30
     assert get_matcher("guided", {"device": "cpu", "raw_matches": None}).verification_conf == {
         "min_num_inliers": 25
     }
@@ -693,28 +700,31 @@ def test_raw_matches_verified_keeps_the_raw_pair_when_the_guided_geometry_contra
     wrong_guided = np.stack([np.arange(100, 180), np.arange(300, 380)], 1)
     assert len(verified(right_raw)) == 40 and len(verified(wrong_guided)) == 80
 
-    def t(m):
-        return torch.from_numpy(np.asarray(m, np.int64))
+    def best_of(guided_matches, raw_matches, min_agreement=0.9, raw_below=None):
+        def raw():
+            calls.append(1)
+            return raw_matches
 
-    guided = get_matcher("guided", {"device": "cpu"})
+        calls = []
+        matches = verify.best_of(
+            cam, a.keypoints, cam, b.keypoints, guided_matches, raw, options, 25, 15,
+            min_agreement, raw_below,
+        )[0]  # fmt: skip
+        return matches, len(calls)
+
     wrong_geometry = verify.verify_pair(
         cam, a.keypoints, cam, b.keypoints, wrong_guided.astype(np.uint32), options
     )
     # the raw inliers do not fit it
     assert verify.agreement(wrong_geometry, a.keypoints, b.keypoints, right_raw, 4.0) < 0.2
-    kept = guided.verified_best(a, b, t(wrong_guided), t(right_raw))
-    assert np.array_equal(kept.numpy(), right_raw)  # 40 raw inliers, not the 80 wrong guided ones
-    union = np.asarray(verified(guided.verified_best(a, b, t(right_guided), t(right_raw))))
+    kept, _ = best_of(wrong_guided, right_raw)
+    assert np.array_equal(kept, right_raw)  # 40 raw inliers, not the 80 wrong guided ones
+    union = np.asarray(verified(best_of(right_guided, right_raw)[0]))
     # agreeing sides: the union of both
     assert len(union) == 100 and set(union[:, 0]) == set(range(100))
     # the old choice
-    assert (
-        len(
-            verified(
-                guided.verified_best(
-                    a, b, t(wrong_guided), t(right_raw), {**guided.conf, "min_agreement": 0.0}
-                )
-            )
-        )
-        == 80
-    )
+    assert len(verified(best_of(wrong_guided, right_raw, min_agreement=0.0)[0])) == 80
+    # guided matches reaching raw_below inliers are kept without raw matching
+    kept, raw_calls = best_of(wrong_guided, right_raw, raw_below=80)
+    assert np.array_equal(kept, wrong_guided) and raw_calls == 0
+    assert best_of(wrong_guided, right_raw, raw_below=81)[1] == 1

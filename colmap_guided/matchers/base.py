@@ -52,6 +52,13 @@ class Matcher:
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
         raise NotImplementedError
 
+    def match_verified(self, a: ImageData, b: ImageData, verification: dict) -> tuple:
+        """What the pipeline's pair workers call: ``match`` and, for a matcher whose matching
+        already verified them, the matches' two-view geometry under ``verify.two_view_options(
+        verification)`` (the pipeline writes it and does not verify the pair again); None: the
+        verification stage verifies the pair."""
+        return self.match(a, b), None
+
     @property
     def verification_conf(self) -> dict:
         """Options of ``verify.two_view_options`` for this matcher's pairs (e.g. min_num_inliers);

@@ -23,7 +23,7 @@ import torch
 
 from colmap_guided import verify
 from colmap_guided.coarse import CoarseMatcher
-from colmap_guided.log import colmap_quiet, logger
+from colmap_guided.log import logger
 from colmap_guided.matchers.base import ImageData, Matcher
 from colmap_guided.matchers.raw import (
     ALIKED_RATIO,
@@ -237,15 +237,6 @@ class CoarseFlows:
     )
 
 
-def merge_matches(primary: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
-    """``primary`` (K, 2) matches plus those of ``extra`` whose keypoints ``primary`` leaves
-    unmatched in both images: the union stays one-to-one, and ``primary`` wins where the two
-    disagree."""
-    keep = ~torch.isin(extra[:, 0], primary[:, 0]) & ~torch.isin(extra[:, 1], primary[:, 1])
-    merged = torch.cat([primary, extra[keep]])
-    return merged[torch.argsort(merged[:, 0], stable=True)]
-
-
 class GuidedMatcher(Matcher):
     """Eq. 1 guided by the coarse network of ``colmap_guided.coarse``.
 
@@ -270,6 +261,7 @@ class GuidedMatcher(Matcher):
         "max_fb_cells",
         "raw_matches",
         "raw_min_inliers",
+        "raw_below",
         "min_agreement",
     )
     default_conf = {
@@ -305,12 +297,15 @@ class GuidedMatcher(Matcher):
         # 'verified': verify guided and raw (guided: min_inliers; raw: raw_min_inliers) and keep the
         # one that passes; when both do and agree (min_agreement), the one with the most inliers
         # among them and the union of their inliers (verified, min_inliers), else raw
-        # (``verified_best``);
+        # (``verify.best_of``, in the pair's worker: the pair is not verified again);
         # 'merge': add raw matches of keypoints that guidance left unmatched, unverified; None:
         # guided only.
         "raw_matches": "verified",
         # raw matches kept by 'verified' pass with COLMAP's 15, as in plain COLMAP
         "raw_min_inliers": 15,
+        # 'verified': raw matching is skipped for pairs whose guided matches verify at least this
+        # many inliers (they are kept as they are); None: raw matching on every pair
+        "raw_below": None,
         # 'verified', both sides pass: share of each side's inliers within the RANSAC threshold of
         # the other's epipolar geometry, both ways, below which the pair keeps its raw matches.
         # Historical proxy, 10 scenes x 3 seeds x 2 protocols (docs/RESULTS.md): runs with fewer
@@ -387,8 +382,7 @@ class GuidedMatcher(Matcher):
     @property
     def verification_conf(self) -> dict:
         """With 'verified' raw matches the matcher applies the guided threshold itself
-        (``verified_best``) and the pipeline's verification takes what it returns at the raw
-        threshold."""
+        (``verify.best_of``) and verifies at the raw threshold."""
         if self.conf["raw_matches"] == "verified":
             return {"min_num_inliers": min(self.conf["raw_min_inliers"], self.conf["min_inliers"])}
         return {"min_num_inliers": self.conf["min_inliers"]}
@@ -440,6 +434,13 @@ class GuidedMatcher(Matcher):
     ) -> np.ndarray:
         """Eq. 1 given the coarse flows; ``overrides`` replace options of ``flow_options``
         (the benchmark's sweep)."""
+        return self.flows_verified(a, b, flows, self.verification_conf, **overrides)[0]
+
+    def flows_verified(
+        self, a: ImageData, b: ImageData, flows: CoarseFlows, verification: dict, **overrides
+    ) -> tuple[np.ndarray, pycolmap.TwoViewGeometry | None]:
+        """``match_flows`` and, with 'verified' raw matches, the geometry of the matches that
+        ``verify.best_of`` chose (``Matcher.match_verified``)."""
         conf = self.flow_conf(overrides)
         dev = self.device
 
@@ -468,72 +469,42 @@ class GuidedMatcher(Matcher):
             valid(flows.score_ab, flows.fb_ab, flows.cell_b),
             valid(flows.score_ba, flows.fb_ba, flows.cell_a),
             conf["max_pairs"],
-        ).cpu()
+        ).numpy()
+
+        def raw() -> np.ndarray:
+            with self.timed("raw"):
+                return mutual_nn_match(da, db, conf["raw_ratio"]).cpu().numpy()
+
         if conf["raw_matches"] == "merge":
-            m = merge_matches(m, mutual_nn_match(da, db, conf["raw_ratio"]).cpu())
+            m = verify.union(m, raw())
         elif conf["raw_matches"] == "verified":
-            m = self.verified_best(a, b, m, mutual_nn_match(da, db, conf["raw_ratio"]).cpu(), conf)
-        return m.numpy().astype(np.uint32)
-
-    def verified_best(
-        self,
-        a: ImageData,
-        b: ImageData,
-        guided: torch.Tensor,
-        raw: torch.Tensor,
-        conf: dict | None = None,
-    ) -> torch.Tensor:
-        """Never lose what raw matching finds, never keep what it contradicts: verify the guided and
-        the raw matches (the pipeline's verification); guided passes with ``min_inliers`` (a wrong
-        coarse flow gathers chance inliers), raw with ``raw_min_inliers`` (COLMAP's 15, as plain
-        COLMAP). When only one passes it is returned. When both pass and their geometries agree
-        (``agreement`` >= ``min_agreement`` both ways) the union of their inliers is verified too
-        and the candidate with the most inliers is returned (guided first on ties); when they
-        disagree, one of them holds wrong inliers that its own RANSAC accepted
-        (a bent epipolar geometry), and the raw matches are returned, as plain COLMAP would keep the
-        pair. When none passes, the raw matches, which the pipeline's verification rejects.
-        Verification is deterministic, so the pipeline finds the same inliers in the returned
-        matches."""
-        conf = conf or self.conf
-        options = verify.two_view_options(
-            {"min_num_inliers": min(conf["raw_min_inliers"], conf["min_inliers"])}
-        )
-        cam_a, cam_b = (im.camera or verify.default_camera(im.width, im.height) for im in (a, b))
-
-        def check(m: torch.Tensor) -> tuple[torch.Tensor, pycolmap.TwoViewGeometry]:
-            geometry = verify.verify_pair(
-                cam_a, a.keypoints, cam_b, b.keypoints, m.numpy().astype(np.uint32), options
+            cam_a, cam_b = (
+                im.camera or verify.default_camera(im.width, im.height) for im in (a, b)
             )
-            return torch.from_numpy(
-                np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2)
-            ), geometry
+            with self.timed("choice"):
+                return verify.best_of(
+                    cam_a,
+                    a.keypoints,
+                    cam_b,
+                    b.keypoints,
+                    m,
+                    raw,
+                    verify.two_view_options(verification),
+                    conf["min_inliers"],
+                    conf["raw_min_inliers"],
+                    conf["min_agreement"],
+                    conf["raw_below"],
+                )
+        return m.astype(np.uint32), None
 
-        with colmap_quiet():
-            (g_inl, g_geo), (r_inl, r_geo) = check(guided), check(raw)
-        g_ok, r_ok = len(g_inl) >= conf["min_inliers"], len(r_inl) >= conf["raw_min_inliers"]
-        if not g_ok:
-            return raw
-        if not r_ok:
-            return guided
-        threshold = options.ransac.max_error
-        if (
-            min(
-                verify.agreement(g_geo, a.keypoints, b.keypoints, r_inl, threshold),
-                verify.agreement(r_geo, a.keypoints, b.keypoints, g_inl, threshold),
-            )
-            < conf["min_agreement"]
-        ):
-            return raw
-        candidates = [(len(g_inl), guided), (len(r_inl), raw)]
-        union = merge_matches(g_inl, r_inl)
-        with colmap_quiet():
-            u_inl, _ = check(union)
-        if len(u_inl) >= conf["min_inliers"]:
-            candidates.append((len(u_inl), union))
-        return max(candidates, key=lambda item: item[0])[1]  # the first on ties: guided, then raw
+    def match_verified(self, a: ImageData, b: ImageData, verification: dict) -> tuple:
+        with self.timed("coarse"):
+            flows = self.coarse_flows(a, b)
+        with self.timed("fine"):
+            return self.flows_verified(a, b, flows, verification)
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
-        return self.match_guided(a, b)
+        return self.match_verified(a, b, self.verification_conf)[0]
 
     def release(self, name: str) -> None:
         self.coarse.release(name)
