@@ -35,8 +35,9 @@ import numpy as np
 import pycolmap
 import torch
 
-from colmap_guided import features, learned_features, verify, xfeat
+from colmap_guided import features, verify
 from colmap_guided.evaluation import matcher_specs
+from colmap_guided.features import aliked, xfeat
 from colmap_guided.images import image_size, read_image
 from colmap_guided.log import logger
 from colmap_guided.matchers import get_matcher, resolve_auto
@@ -101,10 +102,10 @@ _networks = {}  # the learned extractors, loaded once
 
 def _aliked_features(path: Path):
     if "aliked" not in _networks:
-        conf = learned_features.check_conf({"device": "cpu"})
-        _networks["aliked"] = conf, learned_features.load_model(conf)
+        conf = aliked.check_conf({"device": "cpu"})
+        _networks["aliked"] = conf, aliked.load_model(conf)
     conf, net = _networks["aliked"]
-    kp, desc = learned_features.extract_image(*net, path, conf)
+    kp, desc = aliked.extract_image(*net, path, conf)
     return kp, desc, image_size(path)
 
 
@@ -112,7 +113,7 @@ def _xfeat_features(path: Path):
     if "xfeat" not in _networks:
         _networks["xfeat"] = xfeat.XFeat({"device": "cpu"})
     net = _networks["xfeat"]
-    kp, desc = learned_features.xfeat_image(net, path, net.conf)
+    kp, desc = xfeat.extract_image(net, path, net.conf)
     return kp, desc, image_size(path)
 
 
