@@ -17,8 +17,9 @@ verifies per matcher: guided matching must not manufacture geometry more often t
     python recon_scripts/benchmark_matching.py --features aliked
         --matchers raw guided lightglue guided_lightglue
 
-Markdown tables go to stdout, everything to --json. Features (SIFT: pycolmap, COLMAP's defaults) are
-cached in --cache_dir, so reruns only pay for matching.
+Markdown tables go to stdout, everything to --json. Features are the pipeline's own
+(``features.extract_features``, its default options), extracted into a COLMAP database in
+--cache_dir and read back through ``colmap_guided.database``, so reruns only pay for matching.
 """
 
 from __future__ import annotations
@@ -27,17 +28,17 @@ import argparse
 import itertools
 import json
 import time
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pycolmap
 import torch
 
-from colmap_guided import features, learned_features, verify, xfeat
+from colmap_guided import database as dbio
+from colmap_guided import features, verify
 from colmap_guided.evaluation import matcher_specs
-from colmap_guided.images import image_size, read_image
 from colmap_guided.log import logger
 from colmap_guided.matchers import get_matcher, resolve_auto
 from colmap_guided.matchers.base import ImageData
@@ -46,8 +47,6 @@ from colmap_guided.paths import shared_data_dir
 
 BASELINES = ["raw", "guided", "guided_epipolar", "guided_homography", "guided_colmap"]
 WXBS_RELATED = ["WGABS", "WGALBS", "WGLBS", "WLABS"]  # appearance / illumination changes
-MAX_IMAGE_SIZE = 3200  # COLMAP feature_extractor's default
-MAX_NUM_FEATURES = 8192
 
 
 # ------------------------------------------------------------------------------------------------
@@ -55,79 +54,34 @@ MAX_NUM_FEATURES = 8192
 # ------------------------------------------------------------------------------------------------
 
 
-def _cached(path: Path, cache_dir: Path, prefix: str, compute) -> ImageData:
-    """Features of one image, ``compute(path)`` -> (keypoints, descriptors, (width, height)), cached
-    as .npz."""
-    key = str(path.relative_to(shared_data_dir())).replace("/", "__")
-    cache = cache_dir / f"{prefix}{key}.npz"
-    if cache.exists():
-        z = np.load(cache)
-        kp, desc, (w, h) = z["keypoints"], z["descriptors"], z["size"]
-    else:
-        kp, desc, (w, h) = compute(path)
-        cache_dir.mkdir(parents=True, exist_ok=True)
-        np.savez(cache, keypoints=kp, descriptors=desc, size=np.array([w, h]))
-    return ImageData(key, 0, path, kp.astype(np.float32), desc, int(w), int(h))
+def image_name(path: Path) -> str:
+    """A photo's image name in the benchmark's databases (its path below the data folder)."""
+    return path.relative_to(shared_data_dir()).as_posix()
 
 
-def _sift(path: Path):
-    # COLMAP's frame (EXIF orientation not applied)
-    gray = cv2.cvtColor(read_image(path), cv2.COLOR_RGB2GRAY)
-    h, w = gray.shape
-    scale = min(1.0, MAX_IMAGE_SIZE / max(h, w))
-    small = (
-        gray
-        if scale == 1.0
-        else cv2.resize(gray, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
-    )
-    options = pycolmap.FeatureExtractionOptions()
-    options.sift.max_num_features = MAX_NUM_FEATURES
-    kp, desc = pycolmap.Sift(options).extract(np.ascontiguousarray(small))
-    kp = kp.copy()
-    # corner-origin: exact
-    kp[:, :2] *= np.array([w / small.shape[1], h / small.shape[0]], np.float32)
-    kp[:, 2] /= scale
-    # COLMAP's database encoding
-    return kp, np.clip(np.round(desc * 512), 0, 255).astype(np.uint8), (w, h)
+def extract(pairs: list[dict], kind: str, cache_dir: Path) -> Path:
+    """The pipeline's ``kind`` features (``features.extract_features``, its default options) of
+    every image of ``pairs``, in the COLMAP database ``cache_dir/<kind>.db`` (a rerun extracts only
+    the images it lacks); returns its path."""
+    names = sorted({image_name(pair[k]) for pair in pairs for k in ("a", "b")})
+    database = cache_dir / f"{kind}.db"
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    stats = features.extract_features(database, shared_data_dir(), names, {"type": kind})
+    if stats["skipped"]:
+        raise ValueError(f"The pipeline skips benchmark images: {stats['skipped']}")
+    return database
 
 
-def sift_image(path: Path, cache_dir: Path) -> ImageData:
-    """COLMAP SIFT of one image (uint8 descriptors as in the database), cached as .npz."""
-    return _cached(path, cache_dir, "", _sift)
-
-
-_networks = {}  # the learned extractors, loaded once
-
-
-def _aliked_features(path: Path):
-    if "aliked" not in _networks:
-        conf = learned_features.check_conf({"device": "cpu"})
-        _networks["aliked"] = conf, learned_features.load_model(conf)
-    conf, net = _networks["aliked"]
-    kp, desc = learned_features.extract_image(*net, path, conf)
-    return kp, desc, image_size(path)
-
-
-def _xfeat_features(path: Path):
-    if "xfeat" not in _networks:
-        _networks["xfeat"] = xfeat.XFeat({"device": "cpu"})
-    net = _networks["xfeat"]
-    kp, desc = learned_features.xfeat_image(net, path, net.conf)
-    return kp, desc, image_size(path)
-
-
-def aliked_image(path: Path, cache_dir: Path) -> ImageData:
-    """ALIKED-N(16)rot of one image as the pipeline extracts it (top 2048, float descriptors),
-    cached as .npz."""
-    return _cached(path, cache_dir, "aliked__", _aliked_features)
-
-
-def xfeat_image(path: Path, cache_dir: Path) -> ImageData:
-    """XFeat of one image as the pipeline extracts it, cached as .npz."""
-    return _cached(path, cache_dir, "xfeat__", _xfeat_features)
-
-
-FEATURES = {"sift": sift_image, "aliked": aliked_image, "xfeat": xfeat_image}
+def read_pair(database: Path, pair: dict) -> tuple[ImageData, ImageData]:
+    """The two images of ``pair`` as the database holds them, new objects (no matcher cache carried
+    over from another pair)."""
+    with dbio.open_database(database) as db:
+        a, b = (
+            dbio.read_image_data(db, dbio.read_image(db, image_name(pair[k])), shared_data_dir())
+            for k in ("a", "b")
+        )
+    # no database camera: matchers and verify_matches use COLMAP's default camera of the image size
+    return replace(a, camera=None), replace(b, camera=None)
 
 
 def wxbs_corrs(pair_dir: Path) -> np.ndarray:
@@ -269,10 +223,8 @@ def extract_coarse(matcher: GuidedMatcher, a: ImageData, b: ImageData) -> None:
         matcher.prepare(image)
 
 
-def run_pair(
-    pair: dict, matchers: dict, cache_dir: Path, max_ref_err: float, repeat: int, extract=sift_image
-) -> dict:
-    a, b = extract(pair["a"], cache_dir), extract(pair["b"], cache_dir)
+def run_pair(pair: dict, matchers: dict, database: Path, max_ref_err: float, repeat: int) -> dict:
+    a, b = read_pair(database, pair)
     row = {
         "set": pair["set"],
         "a": str(pair["a"].relative_to(shared_data_dir())),
@@ -310,7 +262,7 @@ def sweep(
     pairs: list[dict],
     unrelated: list[dict],
     guided: GuidedMatcher,
-    cache_dir: Path,
+    database: Path,
     max_ref_err: float,
 ) -> list[dict]:
     """Verified inliers (related) and verified share (unrelated) over a grid of guided options."""
@@ -332,7 +284,7 @@ def sweep(
     }
     for kind, plist in (("related", pairs), ("unrelated", unrelated)):
         for pair in plist:
-            a, b = sift_image(pair["a"], cache_dir), sift_image(pair["b"], cache_dir)
+            a, b = read_pair(database, pair)
             flows = guided.coarse_flows(a, b)
             for combo in ["raw", *combos]:
                 matches = (
@@ -450,7 +402,7 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--features",
         default="sift",
-        choices=sorted(FEATURES),
+        choices=sorted(features.FEATURE_TYPES),
         help="aliked / xfeat: the pipeline's learned "
         "features (ALIKED: with its raw / guided defaults)",
     )
@@ -467,7 +419,12 @@ def main(argv=None) -> None:
         default=5.0,
         help="px: a verified geometry is correct below this median reference error",
     )
-    parser.add_argument("--cache_dir", type=Path, default=Path("/tmp/colmap_guided_bench_sift"))
+    parser.add_argument(
+        "--cache_dir",
+        type=Path,
+        default=Path("/tmp/colmap_guided_bench_features"),
+        help="the COLMAP databases of the extracted features, one per feature type",
+    )
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument(
         "--sweep",
@@ -491,7 +448,7 @@ def main(argv=None) -> None:
 
     pairs = related_pairs(args.pairs_per_set)
     unrelated = unrelated_pairs(args.unrelated)
-    extract = FEATURES[args.features]
+    database = extract(pairs + unrelated, args.features, args.cache_dir)
     # a preset, optionally with name:key=value options
     specs = {n: matcher_specs.parse_spec(n) for n in args.matchers}
     matchers = {
@@ -517,14 +474,12 @@ def main(argv=None) -> None:
         guided = matchers.get("guided") or get_matcher(
             "guided", {"device": args.device, **args.guided_conf}
         )
-        result["sweep"] = sweep(pairs, unrelated, guided, args.cache_dir, args.max_ref_err)
+        result["sweep"] = sweep(pairs, unrelated, guided, database, args.max_ref_err)
         print(sweep_markdown(result["sweep"]))
     else:
         rows, unrelated_rows = [], []
         for pair in pairs:
-            rows.append(
-                run_pair(pair, matchers, args.cache_dir, args.max_ref_err, args.repeat, extract)
-            )
+            rows.append(run_pair(pair, matchers, database, args.max_ref_err, args.repeat))
             logger.info(
                 "%s %s: %s",
                 pair["set"],
@@ -532,9 +487,7 @@ def main(argv=None) -> None:
                 {n: rows[-1][n]["inliers"] for n in matchers},
             )
         for pair in unrelated:
-            unrelated_rows.append(
-                run_pair(pair, matchers, args.cache_dir, args.max_ref_err, 1, extract)
-            )
+            unrelated_rows.append(run_pair(pair, matchers, database, args.max_ref_err, 1))
             logger.info(
                 "unrelated %s: %s",
                 pair["set"],

