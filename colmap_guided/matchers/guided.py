@@ -456,20 +456,24 @@ class GuidedMatcher(Matcher):
             normalize_descriptors(a.descriptors, dev),
             normalize_descriptors(b.descriptors, dev),
         )
-        m = guided_match(
-            torch.tensor(a.keypoints[:, :2], dtype=torch.float32),
-            da,
-            torch.tensor(b.keypoints[:, :2], dtype=torch.float32),
-            db,
-            torch.tensor(flows.flow_ab, dtype=torch.float32),
-            torch.tensor(flows.flow_ba, dtype=torch.float32),
-            conf["window_cells"] * flows.cell_a,
-            conf["window_cells"] * flows.cell_b,
-            conf["ratio"],
-            valid(flows.score_ab, flows.fb_ab, flows.cell_b),
-            valid(flows.score_ba, flows.fb_ba, flows.cell_a),
-            conf["max_pairs"],
-        ).numpy()
+        m = (
+            guided_match(
+                torch.tensor(a.keypoints[:, :2], dtype=torch.float32),
+                da,
+                torch.tensor(b.keypoints[:, :2], dtype=torch.float32),
+                db,
+                torch.tensor(flows.flow_ab, dtype=torch.float32),
+                torch.tensor(flows.flow_ba, dtype=torch.float32),
+                conf["window_cells"] * flows.cell_a,
+                conf["window_cells"] * flows.cell_b,
+                conf["ratio"],
+                valid(flows.score_ab, flows.fb_ab, flows.cell_b),
+                valid(flows.score_ba, flows.fb_ba, flows.cell_a),
+                conf["max_pairs"],
+            )
+            .cpu()
+            .numpy()
+        )
 
         def raw() -> np.ndarray:
             with self.timed("raw"):
