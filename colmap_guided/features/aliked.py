@@ -130,8 +130,10 @@ class Block(nn.Module):
         self.downsample = nn.Conv2d(cin, cout, 1) if residual else None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = self.bn2(self.conv2(F.selu(self.bn1(self.conv1(x)))))
-        return F.selu(y + self.downsample(x)) if self.downsample is not None else F.selu(y)
+        # in place: each SELU's input is a fresh tensor, and full-resolution copies cost time
+        y = self.bn2(self.conv2(F.selu(self.bn1(self.conv1(x)), inplace=True)))
+        y = y + self.downsample(x) if self.downsample is not None else y
+        return F.selu(y, inplace=True)
 
 
 class SDDH(nn.Module):
@@ -242,7 +244,7 @@ class ALIKED(nn.Module):
         x4 = self.block4(F.avg_pool2d(x3, 4))
         size = x1.shape[-2:]
         parts = [
-            F.selu(conv(f))
+            F.selu(conv(f), inplace=True)
             for conv, f in ((self.conv1, x1), (self.conv2, x2), (self.conv3, x3), (self.conv4, x4))
         ]
 
@@ -263,7 +265,11 @@ class ALIKED(nn.Module):
         """DKD (ALIKED §III-D): NMS maxima, the ``max_num`` best, refined by a soft-argmax over
         their (2r+1)^2 window. scores (1, 1, H, W) -> (N, 2) pixel positions (x, y), best first."""
         r = NMS_RADIUS
-        pool = lambda s: F.max_pool2d(s, 2 * r + 1, stride=1, padding=r)  # noqa: E731
+
+        def pool(s):  # (2r+1)^2 max as a row then a column max: the same values, fewer reads
+            s = F.max_pool2d(s, (1, 2 * r + 1), stride=1, padding=(0, r))
+            return F.max_pool2d(s, (2 * r + 1, 1), stride=1, padding=(r, 0))
+
         zeros = torch.zeros_like(scores)
         is_max = scores == pool(scores)
         for _ in range(2):  # SuperPoint's NMS: also keep maxima that only suppressed pixels hid
