@@ -316,7 +316,7 @@ class GuidedMatcher(Matcher):
         "max_fb_cells": None,
         # drop keypoints whose coarse match score (softmax probability) is below this
         "min_score": None,
-        "device": "auto",
+        "device": "auto",  # torch device: auto = CUDA when available, else CPU; or cpu, cuda, ...
         # pairs matched at once by match_database; 'auto':
         # one per CPU core on CPU with 1 torch thread, else 1
         "workers": "auto",
