@@ -502,10 +502,9 @@ class GuidedMatcher(Matcher):
         return m.astype(np.uint32), None
 
     def match_verified(self, a: ImageData, b: ImageData, verification: dict) -> tuple:
-        with self.timed("coarse"):
-            flows = self.coarse_flows(a, b)
-        with self.timed("fine"):
-            return self.flows_verified(a, b, flows, verification)
+        return self.match_guided(
+            a, b, lambda a, b, flows: self.flows_verified(a, b, flows, verification)
+        )
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
         return self.match_verified(a, b, self.verification_conf)[0]
