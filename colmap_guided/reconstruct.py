@@ -11,13 +11,15 @@ report.json, report.html. A killed run started again continues from the database
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
 from . import database as dbio
 from . import export, features, html_report, mapping, match, model_check, report
 from .log import logger
-from .matchers import AUTO, DEFAULT_MATCHER, Matcher, get_matcher, resolve_auto
+from .matchers import Matcher, get_matcher, resolve_auto
+from .pipeline import MatcherConf, PipelineConf
 from .workspace import Workspace
 
 # Everything a run writes in its workspace: --overwrite removes these and nothing else.
@@ -59,7 +61,7 @@ def reconstruct(
     scene_dir: Path,
     image_path: Path | None = None,
     output: Path | None = None,
-    matcher: str = DEFAULT_MATCHER,
+    matcher: str | Matcher | None = None,
     matcher_conf: dict | None = None,
     pairs_path: str | Path | None = None,
     feature_conf: dict | None = None,
@@ -67,17 +69,31 @@ def reconstruct(
     mapping_conf: dict | None = None,
     overwrite: bool = False,
     match_options: dict | None = None,
+    conf: PipelineConf | None = None,
 ) -> dict:
-    """``pairs_path``: a pairs file or auto|exhaustive|retrieval|sequential; ``match_options``:
-    further keyword arguments of ``match.match_database`` (num_neighbors, executor, ray_address)."""
+    """``conf``: the options of every stage (default ``PipelineConf()``); the keyword options
+    given (not None) go over it: ``matcher`` (a ``matchers.PRESETS`` name or auto) and
+    ``matcher_conf``, ``pairs_path`` (a pairs file or auto|exhaustive|retrieval|sequential) and
+    ``match_options`` (num_neighbors, executor, ray_address): ``PairsConf``, and the sections'
+    dicts ``feature_conf``, ``verification_conf``, ``mapping_conf``."""
     image_path, output = resolve_paths(scene_dir, image_path, output)
-    mapping_conf = mapping.check_conf(mapping_conf)  # a wrong option fails now, not after matching
+    conf = (conf or PipelineConf()).over(
+        matcher,
+        matcher_conf,
+        feature_conf,
+        {"pairs": pairs_path, **(match_options or {})},
+        verification_conf,
+        mapping_conf,
+    )
+    mapping_conf = mapping.check_conf(conf.mapping.to_dict())  # fails now, not after matching
     image_names = features.list_images(image_path)
     # auto decided once, here (a rerun continues with the database's features); nothing after this
     # decides it again
-    feature_conf = features.check_conf({"type": AUTO, **(feature_conf or {})})
+    feature_conf = features.check_conf(conf.features.to_dict())
     existing = None if overwrite else features.existing_feature_type(output / "database.db")
-    chosen, feature_type, matcher_conf = resolve_auto(matcher, feature_conf, matcher_conf, existing)
+    chosen, feature_type, matcher_conf = resolve_auto(
+        conf.matcher.name, feature_conf, conf.matcher.options, existing
+    )
     # a missing --aliked_weights file fails now, and (the matcher made here) a missing or broken
     # --weights file, not after the extraction
     feature_conf = features.check_conf({**feature_conf, "type": feature_type})
@@ -102,13 +118,7 @@ def reconstruct(
         )
 
     match_stats = match.match_database(
-        database_path,
-        image_path,
-        pairs_path,
-        matcher,
-        None,
-        verification_conf,
-        **(match_options or {}),
+        database_path, image_path, conf=dataclasses.replace(conf, matcher=MatcherConf(matcher))
     )
     timings["match"] = match_stats.pop("match_time")
     timings["verify"] = match_stats.pop("verify_time")

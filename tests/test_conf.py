@@ -40,10 +40,9 @@ def test_image_check_and_synthetic_scene_options_are_checked(tmp_path):
 
 
 def test_off_is_none_on_the_command_line_and_the_old_spellings_still_work():
-    from colmap_guided.__main__ import build_parser
+    from colmap_guided.__main__ import build_parser, matcher_conf_from_args
     from colmap_guided.conf import none_or
     from colmap_guided.mapping import check_conf as mapping_conf
-    from colmap_guided.match import matcher_conf_from_args
 
     def parsed(*flags):
         return build_parser().parse_args(["reconstruct", "scene", *flags])
@@ -219,3 +218,71 @@ def test_training_flags_are_the_trainer_and_data_options():
     )
     with pytest.raises(SystemExit):
         cli.parse_args(["--out", "o", "--impl", "fast"])
+
+
+def test_pipeline_conf_is_the_stages_defaults_and_strict():
+    """PipelineConf: each section's defaults are its stage's default_conf; an unknown key, in the
+    conf or a section or the chosen matcher's options, is a one-line error naming the nearest."""
+    from colmap_guided import mapping, pipeline
+    from colmap_guided.pipeline import PipelineConf
+
+    conf = PipelineConf()
+    assert conf.features.to_dict() == {**features.default_conf, "type": "auto"}
+    assert conf.mapping.to_dict() == mapping.default_conf
+    assert conf.pairs.to_dict() == {
+        k: v for k, v in pipeline.default_conf.items() if k != "matcher"
+    }
+    assert (conf.matcher.name, conf.matcher.options, conf.verification.options) == ("auto", {}, {})
+    assert PipelineConf.from_dict({}) == conf and PipelineConf.from_dict(None) == conf
+    given = PipelineConf.from_dict(
+        {"matcher": {"name": "raw", "options": {"ratio": None}}, "mapping": {"num_threads": 1}}
+    )
+    assert given.matcher.options == {"ratio": None} and given.mapping.num_threads == 1
+    assert given.mapping.mapper == mapping.default_conf["mapper"]
+    for bad, line in (
+        ({"maping": {}}, "Unknown pipeline option 'maping'; did you mean 'mapping'? known: "),
+        ({"pairs": {"num_neighbours": 3}}, "Unknown pairs option 'num_neighbours'; did you mean "),
+        ({"features": {"camera_mod": "single"}}, "Unknown feature option 'camera_mod'; did you "),
+        ({"verification": {"min_inliers": 3}}, "Unknown verification option 'min_inliers'; did "),
+        ({"matcher": {"name": "raw", "options": {"ratoi": 0.9}}}, "Unknown raw matcher option "),
+    ):
+        with pytest.raises(ValueError) as err:
+            PipelineConf.from_dict(bad)
+        assert str(err.value).startswith(line) and "\n" not in str(err.value)
+    with pytest.raises(ValueError, match="did you mean 'ratio'"):
+        PipelineConf().over(matcher="raw", matcher_conf={"ratoi": 0.9})
+    with pytest.raises(ValueError, match="Unknown matcher 'rwa'; choose one of"):
+        PipelineConf.from_dict({"matcher": {"name": "rwa"}})
+
+
+def test_command_line_flags_are_the_pipeline_conf():
+    """reconstruct's and match's flags: their defaults are PipelineConf's, their help the option's
+    comment in its stage's default_conf."""
+    from colmap_guided import mapping, pipeline
+    from colmap_guided.__main__ import build_parser, conf_from_args
+    from colmap_guided.conf import conf_comments
+    from colmap_guided.matchers.guided import GuidedMatcher
+    from colmap_guided.pipeline import PipelineConf
+
+    parser = build_parser()
+    args = parser.parse_args(["reconstruct", "scene"])
+    assert conf_from_args(args) == PipelineConf()
+    args = parser.parse_args(["match", "--database_path", "d", "--image_path", "i"])
+    assert conf_from_args(args) == PipelineConf()
+    args = parser.parse_args(
+        "reconstruct scene --features sift --seed 3 --threads 1 --pairs sequential"
+        " --num_neighbors 4 --aliked_weights w.pth --matcher raw".split()
+    )
+    conf = conf_from_args(args)
+    assert (conf.features.type, conf.features.aliked) == ("sift", {"weights": "w.pth"})
+    assert (conf.mapping.random_seed, conf.mapping.num_threads) == (3, 1)
+    assert (conf.pairs.pairs, conf.pairs.num_neighbors) == ("sequential", 4)
+    assert conf.matcher.name == "raw"
+    rec = next(a for a in parser._actions if a.dest == "command").choices["reconstruct"]
+    helps = {a.option_strings[0]: a.help for a in rec._actions if a.option_strings}
+    comment = conf_comments(features)["stretch_contrast_below"].replace("%", "%%")
+    assert helps["--stretch_contrast_below"] == f"{comment} (default: 0.5)"
+    assert helps["--seed"] == f"{conf_comments(mapping)['random_seed']} (default: 0)"
+    assert helps["--num_neighbors"] == f"{conf_comments(pipeline)['num_neighbors']} (default: 10)"
+    assert helps["--matcher"] == f"{conf_comments(pipeline)['matcher']} (default: auto)"
+    assert helps["--ratio"] == f"{conf_comments(GuidedMatcher)['ratio']} (default: the matcher's)"

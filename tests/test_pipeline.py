@@ -303,3 +303,24 @@ def test_guided_reconstruction_with_the_shipped_filter(synthetic_scene, tmp_path
     assert max(e[0] for e in errors.values()) < 1.0 and max(e[1] for e in errors.values()) < 0.02, (
         errors
     )
+
+
+def test_match_database_takes_a_pipeline_conf(synthetic_scene, tmp_path):
+    """The matcher, pairs and verification options of a PipelineConf; keywords go over it."""
+    from colmap_guided.pipeline import PipelineConf
+
+    conf = PipelineConf.from_dict(
+        {
+            "matcher": {"name": "raw", "options": {"ratio": 0.7}},
+            "pairs": {"pairs": "sequential", "num_neighbors": 2},
+            "verification": {"min_num_inliers": 20},
+        }
+    )
+    db = tmp_path / "db.db"
+    pycolmap.extract_features(db, synthetic_scene.image_dir)
+    stats = match_database(db, synthetic_scene.image_dir, conf=conf)
+    assert stats["matcher"]["name"] == "raw" and stats["matcher"]["conf"]["ratio"] == 0.7
+    assert stats["pairs"]["mode"] == "sequential" and stats["pairs"]["num_neighbors"] == 2
+    assert stats["num_pairs"] == 13 and stats["verification"]["min_num_inliers"] == 20
+    stats = match_database(db, synthetic_scene.image_dir, "exhaustive", conf=conf)
+    assert stats["num_pairs"] == 28 and stats["num_pairs_matched_now"] == 15

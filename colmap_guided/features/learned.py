@@ -19,7 +19,7 @@ from tqdm import tqdm
 from .. import database as dbio
 from .. import images
 from ..log import logger
-from .cameras import import_new, reader_options
+from .cameras import import_new, reader_options, skip_unread
 
 
 def read_for_network(path: Path, max_size: int) -> tuple[np.ndarray, float, float]:
@@ -75,13 +75,7 @@ def extract_images(
     done = 0
     with dbio.open_database(database_path) as db:
         by_name = dbio.images_by_name(db)
-        for name in new:
-            if name not in by_name:
-                skipped[name] = (
-                    "COLMAP could not read it (unsupported "
-                    "variant of the format); convert it to JPEG"
-                )
-                logger.warning("Skipped %s: %s.", name, skipped[name])
+        skip_unread(new, by_name, skipped)
         wanted = set(image_names)
         todo = [
             image

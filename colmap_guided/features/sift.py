@@ -26,7 +26,7 @@ from .. import database as dbio
 from .. import images
 from ..database import open_database
 from ..log import colmap_quiet, logger
-from .cameras import camera_key, import_new, reader_options
+from .cameras import camera_key, import_new, reader_options, skip_unread
 
 # COLMAP's grey conversion (Rec. 709 luma, rounded to 8 bits): its SIFT keypoints are reproduced
 # exactly.
@@ -320,13 +320,7 @@ def extract(
                 i = j
     with open_database(database_path) as db:
         present = set(dbio.images_with_keypoints(db))
-    for name in todo:
-        if name not in present:
-            skipped[name] = (
-                "COLMAP could not read it (unsupported variant of the format, "
-                "or a size that differs from its camera's); convert it to JPEG"
-            )
-            logger.warning("Skipped %s: %s.", name, skipped[name])
+    skip_unread(todo, present, skipped)
     prepared = sorted(name for name in todo if name in present and prepared.get(name))
     return {
         "num_extracted": sum(name in present for name in todo),

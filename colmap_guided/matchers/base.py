@@ -123,13 +123,13 @@ class Matcher:
     def steps(self) -> dict[str, float]:
         return dict(self.__dict__.get("_steps", {}))
 
-    def match_guided(self, a: ImageData, b: ImageData) -> np.ndarray:
-        """``match`` of a guided matcher: the coarse guidance, then the matching it restricts, each
-        timed."""
+    def match_guided(self, a: ImageData, b: ImageData, fine=None):
+        """``match`` of a guided matcher: the coarse guidance, then the matching it restricts
+        (``fine(a, b, flows)``, default ``match_flows``), each timed."""
         with self.timed("coarse"):
             flows = self.coarse_flows(a, b)
         with self.timed("fine"):
-            return self.match_flows(a, b, flows)
+            return (fine or self.match_flows)(a, b, flows)
 
     def describe(self) -> dict:
         """What the report records about this matcher."""

@@ -316,7 +316,7 @@ class GuidedMatcher(Matcher):
         "max_fb_cells": None,
         # drop keypoints whose coarse match score (softmax probability) is below this
         "min_score": None,
-        "device": "auto",
+        "device": "auto",  # torch device: auto = CUDA when available, else CPU; or cpu, cuda, ...
         # pairs matched at once by match_database; 'auto':
         # one per CPU core on CPU with 1 torch thread, else 1
         "workers": "auto",
@@ -502,10 +502,9 @@ class GuidedMatcher(Matcher):
         return m.astype(np.uint32), None
 
     def match_verified(self, a: ImageData, b: ImageData, verification: dict) -> tuple:
-        with self.timed("coarse"):
-            flows = self.coarse_flows(a, b)
-        with self.timed("fine"):
-            return self.flows_verified(a, b, flows, verification)
+        return self.match_guided(
+            a, b, lambda a, b, flows: self.flows_verified(a, b, flows, verification)
+        )
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
         return self.match_verified(a, b, self.verification_conf)[0]
