@@ -27,6 +27,7 @@ ALIKED_FLAGS = {"weights": "aliked_weights"}
 MAPPING_FLAGS = {"mapper": "mapper", "random_seed": "seed", "num_threads": "threads"}
 # of the matcher's conf (the guided matcher's comments); not given: the chosen matcher's own
 MATCHER_FLAGS = ["ratio", "weights", "device"]
+LOCALIZE_MATCHER_FLAGS = ["weights", "device"]  # localize keeps the matcher's ratio
 
 
 def _add_pipeline_flags(parser: argparse.ArgumentParser, reconstruct: bool) -> None:
@@ -85,6 +86,26 @@ def _add_pipeline_flags(parser: argparse.ArgumentParser, reconstruct: bool) -> N
     )
 
 
+def _add_localize_flags(parser: argparse.ArgumentParser) -> None:
+    """localize's options: its retrieval's k and, as reconstruct's, the matcher (auto: the one
+    reconstruct picks for the workspace database's features), its weights and device."""
+    from . import localize, pipeline
+    from .matchers import AUTO, PRESETS
+    from .matchers.guided import GuidedMatcher
+
+    add_conf_flags(parser, localize, ["num_images"])
+    group = parser.add_argument_group("matching options")
+    add_conf_flags(group, pipeline, ["matcher"], choices={"matcher": [*sorted(PRESETS), AUTO]})
+    add_conf_flags(
+        group,
+        GuidedMatcher,
+        LOCALIZE_MATCHER_FLAGS,
+        types={"weights": str},
+        what="matcher",
+        defaults=dict.fromkeys(LOCALIZE_MATCHER_FLAGS, argparse.SUPPRESS),
+    )
+
+
 def conf_from_args(args: argparse.Namespace) -> PipelineConf:
     """The ``PipelineConf`` of reconstruct's or match's flags, without the matcher options
     (``matcher_conf_from_args``: checked against the matcher once it is chosen)."""
@@ -140,8 +161,6 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .matchers import PRESETS
-
     parser = argparse.ArgumentParser(
         prog="python -m colmap_guided",
         description="Guided feature matching for COLMAP (Darmon et al., 3DV 2020).",
@@ -183,19 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="also write WORKSPACE/sparse_localized/0: the "
         "model with the placed photos added (sparse/0 is kept)",
     )
-    loc.add_argument(
-        "--num_images", type=int, default=10, help="model images matched with each photo (top k)"
-    )
-    loc.add_argument(
-        "--matcher",
-        default="auto",
-        choices=[*sorted(PRESETS), "auto"],
-        help="auto (default): the one reconstruct picks for the workspace database's features",
-    )
-    loc.add_argument(
-        "--weights", type=Path, default=None, help="coarse filter weights (guided matcher)"
-    )
-    loc.add_argument("--device", default=None, help="torch device for matching (cpu, cuda)")
+    _add_localize_flags(loc)
     _add_common(loc)
 
     mat = sub.add_parser(
@@ -345,15 +352,16 @@ def main(argv=None) -> int:
             )
             print(summary_text(result))
         elif args.command == "localize":
-            from .localize import localize, summary_text
+            from . import localize
+            from .matchers.guided import GuidedMatcher
 
-            given = {"weights": str(args.weights) if args.weights else None, "device": args.device}
+            given = conf_from_flags(args, GuidedMatcher, LOCALIZE_MATCHER_FLAGS, "matcher")
             matcher_conf = {k: v for k, v in given.items() if v is not None}
-            conf = {"num_images": args.num_images}
-            out = localize(
+            conf = conf_from_flags(args, localize, ["num_images"])
+            out = localize.localize(
                 args.workspace, args.photos, args.matcher, matcher_conf, conf, add=args.add
             )
-            print(summary_text(out))
+            print(localize.summary_text(out))
         elif args.command == "match":
             from . import database, features, match
             from .matchers import AUTO, resolve_auto
