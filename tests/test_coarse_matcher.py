@@ -124,7 +124,7 @@ def test_cli_writes_png(tmp_path, shared_data):
                 str(out),
                 "--mode",
                 "raw",
-                "--resize-max",
+                "--resize_max",
                 "256",
             ]
         )

@@ -51,7 +51,7 @@ class CoarseMatcher:
     """Coarse matches and flow between images (paper §4.1), with a per-image feature cache."""
 
     default_conf = {
-        "backbone": DEFAULT_BACKBONE,
+        "backbone": DEFAULT_BACKBONE,  # stride-16 features: efficientnet-lite{0,1,2} or resnet101
         "backbone_weights": None,  # path overriding the backbone's ImageNet weights
         "resize_max": 512,  # long side of the network input (grid at most 32x32)
         "mode": "filter",  # 'filter': learned filter (needs weights) | 'raw': correlation only

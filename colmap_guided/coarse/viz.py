@@ -15,6 +15,7 @@ import numpy as np
 
 from colmap_guided.coarse.flow import CoarseResult
 from colmap_guided.coarse.geometry import as_rgb
+from colmap_guided.conf import add_conf_flags, conf_from_flags
 from colmap_guided.log import logger, set_verbosity
 
 
@@ -71,11 +72,12 @@ def main(argv: list[str] | None = None) -> int:
         default="auto",
         help="auto: filter if weights exist, else raw",
     )
-    parser.add_argument("--weights", type=Path, default=None, help="filter weights (.safetensors)")
-    parser.add_argument("--backbone", default=CoarseMatcher.default_conf["backbone"])
-    parser.add_argument("--resize-max", type=int, default=CoarseMatcher.default_conf["resize_max"])
-    parser.add_argument(
-        "--impl", choices=["auto", "dense", "sparse"], default=CoarseMatcher.default_conf["impl"]
+    keys = add_conf_flags(
+        parser,
+        CoarseMatcher,
+        ["weights", "backbone", "resize_max", "impl", "device"],
+        types={"weights": str},
+        choices={"impl": ["auto", "dense", "sparse"]},
     )
     parser.add_argument("--no-lines", action="store_true")
     parser.add_argument("-v", "--verbose", action="store_true")
@@ -86,12 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as err:
         logger.error("%s", err)
         return 2
-    conf = {
-        "backbone": args.backbone,
-        "resize_max": args.resize_max,
-        "weights": args.weights,
-        "impl": args.impl,
-    }
+    conf = conf_from_flags(args, CoarseMatcher, keys)
     if args.mode == "auto":
         try:
             cm = CoarseMatcher({**conf, "mode": "filter"})
