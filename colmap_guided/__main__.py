@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import inspect
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -161,6 +162,8 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .html_report import rewrite_report
+
     parser = argparse.ArgumentParser(
         prog="python -m colmap_guided",
         description="Guided feature matching for COLMAP (Darmon et al., 3DV 2020).",
@@ -273,7 +276,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="LABEL=DATABASE",
         help="also draw the same pairs from this database (repeatable)",
     )
-    rep.add_argument("--num_pairs", type=int, default=3)
+    rep.add_argument(
+        "--num_pairs",
+        type=int,
+        default=inspect.signature(rewrite_report).parameters["num_pairs"].default,
+        help="pairs drawn: those with the most inliers (default: %(default)s)",
+    )
     _add_common(rep)
     return parser
 
