@@ -36,8 +36,7 @@ def _add_pipeline_flags(parser: argparse.ArgumentParser, reconstruct: bool) -> N
     from . import features, mapping, pipeline
     from .executor import EXECUTORS
     from .features import aliked
-    from .matchers import AUTO, PRESETS
-    from .matchers.guided import GuidedMatcher
+    from .matchers import AUTO
 
     if reconstruct:
         group = parser.add_argument_group("feature options")
@@ -67,16 +66,7 @@ def _add_pipeline_flags(parser: argparse.ArgumentParser, reconstruct: bool) -> N
             choices={"mapper": mapping.MAPPERS},
             flags=MAPPING_FLAGS,
         )
-    group = parser.add_argument_group("matching options")
-    add_conf_flags(group, pipeline, ["matcher"], choices={"matcher": [*sorted(PRESETS), AUTO]})
-    add_conf_flags(
-        group,
-        GuidedMatcher,
-        MATCHER_FLAGS,
-        types={"ratio": none_or(float, old_off=at_most_zero), "weights": str},
-        what="matcher",
-        defaults=dict.fromkeys(MATCHER_FLAGS, argparse.SUPPRESS),
-    )
+    group = _add_matcher_flags(parser, MATCHER_FLAGS)
     add_conf_flags(
         group,
         pipeline,
@@ -87,24 +77,33 @@ def _add_pipeline_flags(parser: argparse.ArgumentParser, reconstruct: bool) -> N
     )
 
 
-def _add_localize_flags(parser: argparse.ArgumentParser) -> None:
-    """localize's options: its retrieval's k and, as reconstruct's, the matcher (auto: the one
-    reconstruct picks for the workspace database's features), its weights and device."""
-    from . import localize, pipeline
+def _add_matcher_flags(parser: argparse.ArgumentParser, keys: list[str]):
+    """--matcher and the matcher options ``keys`` (not given: the chosen matcher's own), in a
+    "matching options" group, which it returns."""
+    from . import pipeline
     from .matchers import AUTO, PRESETS
     from .matchers.guided import GuidedMatcher
 
-    add_conf_flags(parser, localize, ["num_images"])
     group = parser.add_argument_group("matching options")
     add_conf_flags(group, pipeline, ["matcher"], choices={"matcher": [*sorted(PRESETS), AUTO]})
     add_conf_flags(
         group,
         GuidedMatcher,
-        LOCALIZE_MATCHER_FLAGS,
-        types={"weights": str},
+        keys,
+        types={"ratio": none_or(float, old_off=at_most_zero), "weights": str},
         what="matcher",
-        defaults=dict.fromkeys(LOCALIZE_MATCHER_FLAGS, argparse.SUPPRESS),
+        defaults=dict.fromkeys(keys, argparse.SUPPRESS),
     )
+    return group
+
+
+def _add_localize_flags(parser: argparse.ArgumentParser) -> None:
+    """localize's options: its retrieval's k and, as reconstruct's, the matcher (auto: the one
+    reconstruct picks for the workspace database's features), its weights and device."""
+    from . import localize
+
+    add_conf_flags(parser, localize, ["num_images"])
+    _add_matcher_flags(parser, LOCALIZE_MATCHER_FLAGS)
 
 
 def conf_from_args(args: argparse.Namespace) -> PipelineConf:
