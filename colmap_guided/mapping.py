@@ -1,13 +1,14 @@
 """Stage 5: mapping the verified database with COLMAP — incremental, global (GLOMAP) or
 hierarchical.
 
-``mapper``: 'auto' (default: global and incremental mapping both run, the larger largest model that
-passes the model check is kept; on ties the one whose poses explain more verified inliers, then
-incremental), 'incremental' (pycolmap.incremental_mapping, COLMAP's `mapper`), 'global'
-(pycolmap.global_mapping: rotation averaging + global positioning, then bundle adjustment) or
-'hierarchical' (pycolmap.hierarchical_mapping: the view graph cut into overlapping clusters mapped
-incrementally and merged; for thousands of photos). Seeded by default; with ``num_threads=1`` a
-rerun on the same database gives the same model (more threads: runs may differ slightly).
+``mapper``: 'auto' (default: incremental mapping, and global mapping too when incremental's model is
+doubtful; the larger largest model that passes the model check is kept, on ties the one whose poses
+explain more verified inliers, then incremental), 'incremental' (pycolmap.incremental_mapping,
+COLMAP's `mapper`), 'global' (pycolmap.global_mapping: rotation averaging + global positioning,
+then bundle adjustment) or 'hierarchical' (pycolmap.hierarchical_mapping: the view graph cut into
+overlapping clusters mapped incrementally and merged; for thousands of photos). Seeded by default;
+with ``num_threads=1`` a rerun on the same database gives the same model (more threads: runs may
+differ slightly).
 
 Models are written to a temporary folder and moved into OUTPUT/sparse/N (largest first) only when
 mapping finished, so a killed run never leaves a half-written model; a rerun maps the (complete)
@@ -39,8 +40,8 @@ MAPPERS = ("auto", "incremental", "global", "hierarchical")
 # incremental 341 / 26, global 330 / 21, auto 349 / 21 (347 / 23 without the pose-support
 # tie-break).
 default_conf = {
-    # auto (global and incremental, the better checked model), incremental (COLMAP's mapper),
-    # global (GLOMAP) or hierarchical (thousands of photos)
+    # auto (incremental, and global too when its model is doubtful: the better checked model),
+    # incremental (COLMAP's mapper), global (GLOMAP) or hierarchical (thousands of photos)
     "mapper": "auto",
     "random_seed": 0,  # seeds every random choice of the mapper; None = unseeded (COLMAP's default)
     "num_threads": -1,  # mapping threads: -1 = all cores; 1 = the same model on every rerun
@@ -152,14 +153,31 @@ def auto_key(largest: pycolmap.Reconstruction | None, database_path: Path | None
     return key + (0 if largest is None else pose_support(largest, database_path),)
 
 
+def placeable_images(database_path: Path, min_inliers: int) -> set[str]:
+    """Photos with at least one verified pair of ``min_inliers`` inliers: those a model could
+    hold."""
+    with dbio.open_database(database_path) as db:
+        names = dbio.image_names(db)
+        counts = dbio.pair_inlier_counts(db)
+    return {names[i] for pair, n in counts.items() if n >= min_inliers for i in pair}
+
+
 def _auto(
     conf: dict, database_path: Path, image_path: Path, out: Path
 ) -> dict[int, pycolmap.Reconstruction]:
-    """Global and incremental mapping; the largest model that passes the model check, on ties the
-    one whose poses explain more verified inliers (computed on ties only: it reads every verified
-    pair), then incremental."""
+    """Incremental mapping, and global mapping only when incremental's model is doubtful (it fails
+    the model check or leaves out a photo that has a verified pair); then the largest model that
+    passes the model check, on ties the one whose poses explain more verified inliers (computed on
+    ties only: it reads every verified pair), then incremental."""
     scored = []
     for mapper in ("incremental", "global"):
+        if scored and scored[0][0][0]:
+            left = placeable_images(database_path, conf["min_num_matches"]) - {
+                scored[0][3].images[i].name for i in scored[0][3].reg_image_ids()
+            }
+            if not left:
+                logger.info("Incremental mapping placed every photo that has a verified pair")
+                break
         (out / mapper).mkdir()
         models = _run({**conf, "mapper": mapper}, database_path, image_path, out / mapper)
         largest = max(models.values(), key=lambda rec: rec.num_reg_images(), default=None)
@@ -170,7 +188,7 @@ def _auto(
             scored[-1][0][1],
             "ok" if scored[-1][0][0] else "failed",
         )
-    if scored[0][0] == scored[1][0] and scored[0][0][1]:
+    if len(scored) == 2 and scored[0][0] == scored[1][0] and scored[0][0][1]:
         for item in scored:
             item[0] += (pose_support(item[3], database_path),)
         logger.info(
@@ -240,10 +258,15 @@ def _run(
 
 
 def run_mapping(
-    database_path: Path, image_path: Path, sparse_path: Path, conf: dict | None = None
+    database_path: Path,
+    image_path: Path,
+    sparse_path: Path,
+    conf: dict | None = None,
+    extend: bool = False,
 ) -> dict[int, pycolmap.Reconstruction]:
     """Map the database with ``conf['mapper']``; models in ``sparse_path``/0, 1, ... largest
-    first."""
+    first. ``extend``: continue ``sparse_path``/0 incrementally with the photos it lacks
+    instead."""
     conf = check_conf(conf)
     sparse_path = Path(sparse_path)
     tmp = sparse_path.with_name(sparse_path.name + ".partial")
@@ -251,9 +274,21 @@ def run_mapping(
     tmp.mkdir(parents=True)
     if conf["random_seed"] is not None:
         pycolmap.set_random_seed(conf["random_seed"])
-    logger.info("%s mapping", conf["mapper"].capitalize())
+    logger.info("%s mapping", "Extending the model by" if extend else conf["mapper"].capitalize())
     with colmap_quiet():
-        models = _run(conf, database_path, image_path, tmp)
+        if extend:
+            models = _prune(
+                conf,
+                pycolmap.incremental_mapping(
+                    str(database_path),
+                    str(image_path),
+                    str(tmp),
+                    _incremental_options(conf),
+                    input_path=str(sparse_path / "0"),
+                ),
+            )
+        else:
+            models = _run(conf, database_path, image_path, tmp)
     # Largest model first, as sparse/0, like COLMAP users expect to find it.
     ordered = sorted(models.values(), key=lambda rec: rec.num_reg_images(), reverse=True)
     shutil.rmtree(tmp, ignore_errors=True)
