@@ -386,6 +386,17 @@ def write_pair_geometry(
         db.write_two_view_geometry(id_a, id_b, geometry)
 
 
+def delete_pairs(db: pycolmap.Database, id_pairs: list[tuple[int, int]]) -> None:
+    """Remove the matches and two-view geometries of ``id_pairs`` (a later match writes them
+    anew)."""
+    with pycolmap.DatabaseTransaction(db):
+        for id_a, id_b in id_pairs:
+            if db.exists_matches(id_a, id_b):
+                db.delete_matches(id_a, id_b)
+            if db.exists_two_view_geometry(id_a, id_b):
+                db.delete_two_view_geometry(id_a, id_b)
+
+
 def clear_matches(db: pycolmap.Database) -> None:
     with pycolmap.DatabaseTransaction(db):
         db.clear_matches()

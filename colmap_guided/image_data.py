@@ -84,6 +84,13 @@ class HeldImages:
             self.most_held = max(self.most_held, len(self.held))
         return self.held[name]
 
+    def skip(self, key: tuple) -> None:
+        """Pass over the next pair ``key`` without its images."""
+        for name in key[2:]:
+            self.uses[name].popleft()
+            if not self.uses[name]:
+                self.held.pop(name, None)
+
     def pair(self, key: tuple) -> tuple:
         """The two images of ``key``, the next pair; those whose last pair it is are dropped."""
         pair = tuple(key[2:])

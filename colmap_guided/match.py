@@ -20,7 +20,7 @@ from . import features, verify
 from .conf import merge_conf
 from .executor import get_executor
 from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey
-from .log import logger
+from .log import colmap_quiet, logger
 from .matchers import AUTO, get_matcher, resolve_auto
 from .matchers.base import Matcher, scoped_torch_threads
 from .pairs import global_descriptors, select_pairs
@@ -46,6 +46,8 @@ def match_database(
     ray_address: str | None = None,
     max_images_held: int = MAX_IMAGES_HELD,
     conf: PipelineConf | None = None,
+    enough: int | None = None,
+    strong_inliers: int = 100,
 ) -> dict:
     """Match the selected pairs and verify them; return statistics for the report.
 
@@ -54,7 +56,8 @@ def match_database(
     mode of ``pairs.PAIR_MODES`` (auto: exhaustive for small sets, retrieval of ``num_neighbors``
     per image above). ``executor``: 'local' (threads) or 'ray' (a private local Ray instance, or
     the cluster at ``ray_address`` / RAY_ADDRESS). ``max_images_held``: images held in memory at
-    once."""
+    once. ``enough``: match the pairs most similar first and defer a pair once both its photos have
+    ``enough`` neighbours verified with ``strong_inliers`` (``BestFirst``); None: every pair."""
     conf = (conf or PipelineConf()).over(
         matcher,
         matcher_conf,
@@ -96,14 +99,18 @@ def match_database(
             dbio.clear_matches(db)
         names = sorted(images)
         start = time.time()
-        # the backbone of retrieval, as in matching
-        with scoped_torch_threads(matcher.torch_threads):
-            selected, mode = select_pairs(
-                pairs.pairs,
-                names,
-                pairs.num_neighbors,
-                lambda ns: _global_descriptors(matcher, image_path, ns),
-            )
+        described: dict[str, np.ndarray] = {}
+
+        def descriptors(ns: list[str]) -> np.ndarray:  # computed once, for retrieval and order
+            missing = [n for n in ns if n not in described]
+            if missing:
+                with scoped_torch_threads(matcher.torch_threads):  # the backbone, as in matching
+                    described.update(
+                        zip(missing, _global_descriptors(matcher, image_path, missing))
+                    )
+            return np.stack([described[n] for n in ns])
+
+        selected, mode = select_pairs(pairs.pairs, names, pairs.num_neighbors, descriptors)
         stats["pairs"] = {
             "mode": mode if mode != "file" else str(pairs.pairs),
             "num_neighbors": pairs.num_neighbors if mode in ("retrieval", "sequential") else None,
@@ -119,19 +126,42 @@ def match_database(
             len(id_pairs) - len(todo),
         )
         start, seconds = time.time(), {"read": 0.0, "write": 0.0}
+        schedule = None
+        if enough is not None and todo:
+            schedule = BestFirst(
+                db, id_pairs, enough, strong_inliers, options, dict(zip(names, descriptors(names)))
+            )
+            todo = schedule.order(todo, len(images) <= max_images_held)
         if todo:
             run = get_executor(pairs.executor, matcher, pairs.ray_address, verification_conf)
             try:
                 with scoped_torch_threads(matcher.torch_threads):
                     stats["memory"], seconds = _match_pairs(
-                        db, image_path, images, pair_order(todo), matcher, run, max_images_held
+                        db,
+                        image_path,
+                        images,
+                        todo if schedule else pair_order(todo),
+                        matcher,
+                        run,
+                        max_images_held,
+                        schedule,
                     )
             finally:
                 run.close()
             stats["executor"] = run.describe()
         stats["match_time"] = time.time() - start
+        stats["selected"] = selected
         stats["num_pairs"] = len(id_pairs)
-        stats["num_pairs_matched_now"] = len(todo)
+        stats["num_pairs_matched_now"] = len(schedule.started) if schedule else len(todo)
+        if schedule is not None:
+            stats["deferred"] = {"enough": enough, "strong_inliers": strong_inliers}
+            stats["num_pairs_deferred"] = len(schedule.deferred)
+            logger.info(
+                "%d pairs deferred: both photos already had %d neighbours with %d+ inliers",
+                len(schedule.deferred),
+                enough,
+                strong_inliers,
+            )
 
         start = time.time()
         verify.verify_pairs(db, images, pair_order(id_pairs), options, max_images_held)
@@ -152,6 +182,21 @@ def match_database(
         stats["num_inlier_matches"],
     )
     return stats
+
+
+def _verified(db, by_id: dict, id_a, id_b, matches, geometry, options) -> tuple:
+    """(id_a, id_b, matches, geometry), the geometry computed now where the matcher gave none."""
+    if geometry is None:
+        with colmap_quiet():
+            geometry = verify.verify_pair(
+                dbio.read_camera(db, by_id[id_a].camera_id),
+                dbio.read_keypoints(db, id_a),
+                dbio.read_camera(db, by_id[id_b].camera_id),
+                dbio.read_keypoints(db, id_b),
+                matches,
+                options,
+            )
+    return id_a, id_b, matches, geometry
 
 
 def _global_descriptors(matcher: Matcher, image_path: Path, names: list[str]) -> np.ndarray:
@@ -203,13 +248,80 @@ def pair_order(todo: list[tuple]) -> list[tuple]:
     return grouped if most_images_held(grouped) < most_images_held(todo) else list(todo)
 
 
+class BestFirst:
+    """Enough is enough, per photo: pairs are taken most similar first (retrieval descriptors), in
+    two passes. The first matches a pair only while both its photos lack ``enough`` neighbours
+    verified with ``strong_inliers`` inliers (counting those in flight), which spreads the work
+    over every photo; the second matches what a photo still lacks, and defers, not matches, a pair
+    once both its photos have enough. Matched pairs are verified as they come, so the counts are
+    known; a rerun counts the pairs already in the database."""
+
+    def __init__(self, db, id_pairs, enough, strong_inliers, options, descriptors: dict):
+        self.enough, self.strong_inliers, self.options = enough, strong_inliers, options
+        self.similarity = {
+            key: float(descriptors[key[2]] @ descriptors[key[3]]) for key in id_pairs
+        }
+        self.strong: Counter = Counter()
+        self.pending: Counter = Counter()
+        inliers = dbio.pair_inlier_counts(db)
+        for key in id_pairs:
+            if inliers.get((min(key[:2]), max(key[:2])), 0) >= strong_inliers:
+                self.strong.update(key[2:])
+        self.started: set = set()
+        self.deferred: list[PairKey] = []
+
+    def order(self, todo: list[PairKey], by_similarity: bool) -> list[PairKey]:
+        """Both passes: most similar first; past ``max_images_held`` images, the memory order of
+        ``pair_order`` with each photo's pairs most similar first."""
+        if by_similarity:
+            ordered = sorted(todo, key=lambda key: -self.similarity[key])
+        else:
+            ordered, first = pair_order(todo), {}
+            for i, key in enumerate(ordered):
+                first.setdefault(key[2], i)
+            ordered.sort(key=lambda key: (first[key[2]], -self.similarity[key]))
+        self.first_pass = len(ordered)
+        return ordered + ordered
+
+    def decide(self, position: int, key: PairKey) -> bool | None:
+        """Match the pair at ``position`` of ``order``: True; pass over it: False; None: wait for
+        pairs in flight, which may settle it."""
+        if key in self.started:
+            return False
+        have = [self.strong[name] for name in key[2:]]
+        coming = [h + self.pending[name] for h, name in zip(have, key[2:])]
+        if position < self.first_pass:
+            return max(coming) < self.enough
+        if min(have) >= self.enough:
+            self.deferred.append(key)
+            return False
+        return None if min(coming) >= self.enough else True
+
+    def start(self, key: PairKey) -> None:
+        self.started.add(key)
+        self.pending.update(key[2:])
+
+    def finish(self, key: PairKey, num_inliers: int) -> None:
+        self.pending.subtract(key[2:])
+        if num_inliers >= self.strong_inliers:
+            self.strong.update(key[2:])
+
+
 def _match_pairs(
-    db, image_path: Path, images: dict, todo: list[PairKey], matcher: Matcher, run, max_held: int
+    db,
+    image_path: Path,
+    images: dict,
+    todo: list[PairKey],
+    matcher: Matcher,
+    run,
+    max_held: int,
+    schedule: BestFirst | None = None,
 ) -> tuple[dict, dict]:
     """Match ``todo`` (id_a, id_b, name_a, name_b) on the executor ``run``; the caller's process is
     the only database writer (one transaction per batch of finished pairs). Images are read (and
     ``matcher.prepare``d: the guided matcher's backbone features) by ``HeldImages``: at most
     ``max_held`` at once.
+    With a ``schedule`` pairs it defers are skipped, and the others verified as they are written.
     Returns the most images held at once and the image reads, and the seconds spent reading and
     writing."""
     # unfinished pairs: the matcher's cache is released after the last
@@ -239,25 +351,42 @@ def _match_pairs(
         return run.put(image)
 
     held = HeldImages(todo, load, max_held, on_drop=matcher.release)
-    with _progress(None, "match", len(todo)) as bar:
+    with _progress(None, "match", schedule.first_pass if schedule else len(todo)) as bar:
 
         def write_done() -> None:
             done = run.wait()
             errors = [value for _, value in done if isinstance(value, BaseException)]
             done = [(key, value) for key, value in done if not isinstance(value, BaseException)]
             start = time.perf_counter()
-            dbio.write_pairs_matches(db, [(key[0], key[1], *result) for key, result in done])
+            batch = [(key[0], key[1], *result) for key, result in done]
+            if schedule is not None:
+                by_id = {image.image_id: image for image in images.values()}
+                batch = [_verified(db, by_id, *item, schedule.options) for item in batch]
+                for (key, _), item in zip(done, batch):
+                    schedule.finish(key, len(item[3].inlier_matches))
+            dbio.write_pairs_matches(db, batch)
             seconds["write"] += time.perf_counter() - start
             bar.update(len(done))
             if errors:  # the finished pairs are written (resumable); the first error stops the run
                 raise errors[0]
             for key, _ in done:
-                for name in key[2:]:
-                    remaining[name] -= 1
-                    if remaining[name] == 0:
-                        matcher.release(name)
+                passed(key)
 
-        for key in todo:
+        def passed(key: PairKey) -> None:
+            for name in key[2:]:
+                remaining[name] -= 1
+                if remaining[name] == 0:
+                    matcher.release(name)
+
+        for position, key in enumerate(todo):
+            while schedule is not None and (need := schedule.decide(position, key)) is None:
+                write_done()
+            if schedule is not None and not need:
+                held.skip(key)
+                passed(key)
+                continue
+            if schedule is not None:
+                schedule.start(key)
             # an image dropped after its last pair: the pair holds it
             run.submit(key, *held.pair(key))
             while run.in_flight >= run.capacity:

@@ -4,9 +4,11 @@
 Its sections are the stages' own ``default_conf`` dicts, nothing declared twice: ``FeatureConf``
 (``features.default_conf``), ``MatcherConf`` (a preset and options over it, checked against its
 matcher's ``default_conf``), ``PairsConf`` (``default_conf`` below: how match_database picks and
-runs pairs), ``VerifyConf`` (options of ``verify.default_conf`` over the matcher's) and
-``MappingConf`` (``mapping.default_conf``). Built from a dict with ``PipelineConf.from_dict``: an
-unknown key is merge_conf's one-line error naming the nearest known one.
+runs pairs), ``VerifyConf`` (options of ``verify.default_conf`` over the matcher's),
+``MappingConf`` (``mapping.default_conf``) and ``EscalationConf`` (``escalate.default_conf``:
+reconstruct's cheap first pass and what undoes it). Built from a dict with
+``PipelineConf.from_dict``: an unknown key is merge_conf's one-line error naming the nearest known
+one.
 
     conf = PipelineConf.from_dict({"matcher": {"name": "raw"}, "mapping": {"num_threads": 1}})
     reconstruct(scene_dir, conf=conf)
@@ -21,7 +23,7 @@ from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
 
-from . import features, mapping, verify
+from . import escalate, features, mapping, verify
 from .conf import merge_conf
 from .matchers import AUTO, DEFAULT_MATCHER, GUIDED, Matcher, preset
 from .pairs import DEFAULT_NUM_NEIGHBORS
@@ -83,6 +85,7 @@ PairsConf = section(
     "PairsConf", sys.modules[__name__], "pairs", [key for key in default_conf if key != "matcher"]
 )
 MappingConf = section("MappingConf", mapping, "mapping")
+EscalationConf = section("EscalationConf", escalate, "escalation")
 
 
 @dataclass
@@ -131,6 +134,7 @@ class PipelineConf:
     pairs: PairsConf = field(default_factory=PairsConf)
     verification: VerifyConf = field(default_factory=VerifyConf)
     mapping: MappingConf = field(default_factory=MappingConf)
+    escalation: EscalationConf = field(default_factory=EscalationConf)
 
     @classmethod
     def from_dict(cls, conf: dict | None = None) -> PipelineConf:
@@ -160,4 +164,5 @@ class PipelineConf:
             self.pairs.over({k: v for k, v in (pairs or {}).items() if v is not None}),
             VerifyConf({**self.verification.options, **(verification or {})}),
             self.mapping.over(mapping),
+            self.escalation,
         )

@@ -16,12 +16,13 @@ import time
 from pathlib import Path
 
 from . import database as dbio
-from . import export, features, html_report, mapping, match, model_check, report
+from . import escalate, export, features, html_report, mapping, match, model_check, pairs, report
 from .log import logger
 from .matchers import Matcher, get_matcher, resolve_auto
 from .pipeline import MatcherConf, PipelineConf
 from .workspace import Workspace
 
+ESCALATION_PAIRS = "escalation_pairs.txt"  # the pairs escalate.py chose, in the last round
 # Everything a run writes in its workspace: --overwrite removes these and nothing else.
 WRITES = (
     "database.db",
@@ -34,6 +35,7 @@ WRITES = (
     "report.json.partial",
     "report.html",
     "report.html.partial",
+    ESCALATION_PAIRS,
 )
 
 
@@ -55,6 +57,62 @@ def resolve_paths(
             else scene_dir.parent / f"{scene_dir.name}_colmap_guided"
         )
     return image_path, Workspace.check(output, "reconstruct", keep=(image_path,))
+
+
+def _registered(models: dict) -> set[str]:
+    """The photos of the largest model."""
+    return {models[0].images[i].name for i in models[0].reg_image_ids()} if models else set()
+
+
+def _escalate(
+    conf: PipelineConf,
+    matcher: Matcher,
+    models: dict,
+    usable: list[str],
+    selected: list[tuple[str, str]],
+    output: Path,
+    image_path: Path,
+    timings: dict,
+) -> tuple[dict, list[dict]]:
+    """``escalate``'s rounds: the photos left out of the model get their deferred and gated pairs
+    matched with the gate off, then the model is extended with them. Returns the models and what
+    each round did."""
+    database_path, rounds, done, full = output / "database.db", [], set(), None
+    for _ in range(conf.escalation.rounds):
+        registered = _registered(models)
+        left = set(usable) - registered
+        todo = escalate.pairs_to_escalate(database_path, left, selected, done)
+        if not todo:
+            break
+        logger.info("Escalation: %d pairs of %d photos left out of the model", len(todo), len(left))
+        start, done = time.time(), done | set(todo)
+        with dbio.open_database(database_path) as db:
+            ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
+            dbio.delete_pairs(db, [(ids[a], ids[b]) for a, b in todo])
+        pairs.write_pairs(output / ESCALATION_PAIRS, todo)
+        full = full or escalate.full_matcher(matcher)
+        match.match_database(
+            database_path,
+            image_path,
+            output / ESCALATION_PAIRS,
+            conf=dataclasses.replace(conf, matcher=MatcherConf(full)),
+        )
+        timings["escalate_match"] = timings.get("escalate_match", 0) + time.time() - start
+        start = time.time()
+        models = mapping.run_mapping(
+            database_path, image_path, output / "sparse", conf.mapping.to_dict(), bool(models)
+        )
+        timings["escalate_map"] = timings.get("escalate_map", 0) + time.time() - start
+        now = _registered(models)
+        rounds.append(
+            {
+                "photos": sorted(left),
+                "pairs": len(todo),
+                "registered": sorted(now - registered),
+            }
+        )
+        logger.info("Escalation registered %d more photo(s)", len(now - registered))
+    return models, rounds
 
 
 def reconstruct(
@@ -118,7 +176,11 @@ def reconstruct(
         )
 
     match_stats = match.match_database(
-        database_path, image_path, conf=dataclasses.replace(conf, matcher=MatcherConf(matcher))
+        database_path,
+        image_path,
+        conf=dataclasses.replace(conf, matcher=MatcherConf(matcher)),
+        enough=conf.escalation.enough,
+        strong_inliers=conf.escalation.strong_inliers,
     )
     timings["match"] = match_stats.pop("match_time")
     timings["verify"] = match_stats.pop("verify_time")
@@ -127,6 +189,9 @@ def reconstruct(
     sparse_path = output / "sparse"
     models = mapping.run_mapping(database_path, image_path, sparse_path, mapping_conf)
     timings["map"] = time.time() - start
+    models, match_stats["escalation"] = _escalate(
+        conf, matcher, models, usable, match_stats.pop("selected"), output, image_path, timings
+    )
 
     stats = report.model_statistics(models, image_names)
     checked = model_check.check_models(models)

@@ -36,6 +36,7 @@ from colmap_guided.evaluation.registration import (
 from colmap_guided.log import set_verbosity
 from colmap_guided.mapping import MAPPERS, load_models, run_mapping
 from colmap_guided.paths import shared_data_dir
+from colmap_guided.pipeline import PipelineConf
 from colmap_guided.reconstruct import reconstruct
 
 DEFAULT_SETS = [
@@ -103,8 +104,8 @@ def main(argv=None):
     # features; unknown options: the matcher raises
     specs = []
     for text in args.matchers:
-        matcher, feature_conf, _ = split_stage_options(text)
-        specs.append((text, matcher_specs.parse_spec(matcher), feature_conf))
+        matcher, feature_conf, _, escalation = split_stage_options(text)
+        specs.append((text, matcher_specs.parse_spec(matcher), feature_conf, escalation))
     rows, results = [], {}
 
     def add(name, seed, label, stats, base_time):
@@ -156,7 +157,7 @@ def main(argv=None):
                         summarize(models, names, reference, t, verified),
                         base_times[seed],
                     )
-            for label, spec, feature_conf in specs:
+            for label, spec, feature_conf, escalation in specs:
                 out = work / method_slug(label)
                 first = {
                     "mapper": args.mappers[0],
@@ -165,6 +166,7 @@ def main(argv=None):
                 }
                 res = reconstruct(
                     image_path.parent,
+                    conf=PipelineConf.from_dict({"escalation": escalation}),
                     image_path=image_path,
                     output=out,
                     matcher=matcher_specs.build(spec),
@@ -177,7 +179,7 @@ def main(argv=None):
                 profile = {
                     "extract": res["timings"]["extract"],
                     **res["database"]["profile"],
-                    "map": res["timings"]["map"],
+                    **{k: v for k, v in res["timings"].items() if k in ("map",) or "escalate" in k},
                 }
                 results.setdefault(name, {}).setdefault("profile", {})[label] = profile
                 print(
@@ -221,6 +223,38 @@ def main(argv=None):
     print("|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(row_markdown(row) for row in rows))
     print("\n".join(peer_ratios(rows, f"{args.peer} + {args.mappers[0]}", args.seeds[0])))
+    print("\n".join(summed(rows)))
+
+
+def summed(rows: list[tuple]) -> list[str]:
+    """Each pipeline over every set (seed rounds averaged): photos registered, on the reference
+    pose where a set has one, wall time, and its ratio to pycolmap's default summed the same way;
+    the largest per-set ratio beside it."""
+    by = {}
+    for name, _, label, stats, total, ratio in rows:
+        entry = by.setdefault(
+            label, {"sets": set(), "n": 0, "reg": 0, "ok": 0, "s": 0.0, "max": 0.0}
+        )
+        entry["sets"].add(name)
+        entry["n"] += 1
+        entry["reg"] += stats["num_registered"]
+        entry["ok"] += stats["correct"] or 0
+        entry["s"] += total
+        entry["max"] = max(entry["max"], ratio)
+    base = by.get("pycolmap default")
+    lines = [
+        "\nSummed over the sets\n",
+        "| pipeline | sets | registered | on the reference pose | total s | ratio to pycolmap | "
+        "largest set ratio |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for label, e in by.items():
+        ratio = e["s"] / base["s"] if base else float("nan")
+        lines.append(
+            f"| {label} | {len(e['sets'])} | {e['reg']} | {e['ok']} | {e['s']:.1f} | "
+            f"{ratio:.2f} | {e['max']:.2f} |"
+        )
+    return lines
 
 
 def peer_ratios(rows: list[tuple], peer: str, seed: int) -> list[str]:

@@ -120,7 +120,7 @@ def run_scene(scene: dict, root: Path, method: str, out: Workspace) -> dict:
         for im in images
         if im["era"] != "modern"
     ]
-    matcher, _, _ = registration.split_stage_options(method)
+    matcher = registration.split_stage_options(method)[0]
     (spec,) = matcher_specs.parse_specs([matcher])
     start = time.time()
     result = loc.localize(workspace, photos, matcher=spec.name, matcher_conf=spec.conf)

@@ -17,6 +17,7 @@ from colmap_guided.evaluation.ground_truth import pose_errors
 from colmap_guided.image_data import HeldImages
 from colmap_guided.match import match_database
 from colmap_guided.matchers import get_matcher
+from colmap_guided.pipeline import PipelineConf
 from colmap_guided.reconstruct import reconstruct
 
 
@@ -45,7 +46,11 @@ def all_matches(database_path: Path) -> dict:
 def raw_run(synthetic_scene, tmp_path_factory):
     before = folder_digest(synthetic_scene.image_dir)
     out = tmp_path_factory.mktemp("raw_run")
-    result = reconstruct(synthetic_scene.image_dir.parent, output=out, matcher="raw")
+    # every pair matched, as the drop-in `match` does, so that the two databases compare
+    every_pair = PipelineConf.from_dict({"escalation": {"enough": None}})
+    result = reconstruct(
+        synthetic_scene.image_dir.parent, output=out, matcher="raw", conf=every_pair
+    )
     return result, before, out
 
 

@@ -276,25 +276,29 @@ def run_pycolmap_default(
     return dict(models), timings
 
 
-def split_stage_options(method: str) -> tuple[str, dict, dict]:
+def split_stage_options(method: str) -> tuple[str, dict, dict, dict]:
     """A method spec's feature-stage options (keys of ``features.default_conf``, e.g.
-    ``guided:type=aliked``) and mapping options (keys of ``mapping.default_conf``, e.g.
-    ``guided:mapper=global``) apart from its matcher spec: (matcher spec, feature conf, mapping
-    conf)."""
+    ``guided:type=aliked``), mapping options (keys of ``mapping.default_conf``, e.g.
+    ``guided:mapper=global``) and escalation options (keys of ``escalate.default_conf``, e.g.
+    ``guided_lightglue:enough=None``) apart from its matcher spec: (matcher spec, feature conf,
+    mapping conf, escalation conf)."""
+    from colmap_guided.escalate import default_conf as escalation_defaults
     from colmap_guided.features import default_conf as feature_defaults
     from colmap_guided.mapping import default_conf as mapping_defaults
 
     if method in PYCOLMAP_METHODS:
-        return method, {}, {}
+        return method, {}, {}, {}
     spec = matcher_specs.parse_spec(method)
-    feature = {k: v for k, v in spec.conf.items() if k in feature_defaults}
-    mapping = {k: v for k, v in spec.conf.items() if k in mapping_defaults}
+    feature, mapping, escalation = (
+        {k: v for k, v in spec.conf.items() if k in defaults}
+        for defaults in (feature_defaults, mapping_defaults, escalation_defaults)
+    )
     rest = ",".join(
         item
         for item in method.partition(":")[2].split(",")
-        if item and item.partition("=")[0].strip() not in {**feature, **mapping}
+        if item and item.partition("=")[0].strip() not in {**feature, **mapping, **escalation}
     )
-    return spec.name + (f":{rest}" if rest else ""), feature, mapping
+    return spec.name + (f":{rest}" if rest else ""), feature, mapping, escalation
 
 
 def database_key(method: str) -> tuple[str, str]:
@@ -303,7 +307,7 @@ def database_key(method: str) -> tuple[str, str]:
     ``raw:type=aliked`` and ``guided:type=aliked`` share their keypoints."""
     if method in PYCOLMAP_METHODS:  # one database, mapped two ways
         return "pycolmap", "pycolmap|pycolmap"
-    matcher, feature, _ = split_stage_options(method)
+    matcher, feature, _, escalation = split_stage_options(method)
     # the features it extracts: 'guided' and 'guided:type=sift' share them
     feature = {
         **feature,
@@ -312,7 +316,8 @@ def database_key(method: str) -> tuple[str, str]:
         ).feature_type,
     }
     features = json.dumps(feature, sort_keys=True)
-    return features, f"{matcher}|{features}"
+    # escalation decides which pairs are matched: part of the database
+    return features, f"{matcher}|{features}|{json.dumps(escalation, sort_keys=True)}"
 
 
 def run_method(
@@ -349,9 +354,10 @@ def run_method(
     else:
         from colmap_guided.database import clear_matches, open_database
         from colmap_guided.mapping import load_models
+        from colmap_guided.pipeline import PipelineConf
         from colmap_guided.reconstruct import reconstruct
 
-        method, own_features, own_mapping = split_stage_options(method)
+        method, own_features, own_mapping, escalation = split_stage_options(method)
         feature_conf = {**(feature_conf or {}), **own_features} or None
         (spec,) = matcher_specs.parse_specs([method], extra_conf)
         mapping_conf = {
@@ -365,6 +371,7 @@ def run_method(
                 clear_matches(opened)
         result = reconstruct(
             scene_dir,
+            conf=PipelineConf.from_dict({"escalation": escalation}),
             output=workspace,
             matcher=spec.name,
             matcher_conf=spec.conf,
@@ -485,7 +492,7 @@ def evaluate_scene(
             reused = {
                 k: v
                 for k, v in source_timings.items()
-                if k != "map" and (k == "extract" or not features_only)
+                if not k.endswith("map") and (k == "extract" or not features_only)
             }
             info["timings"] = {
                 **info["timings"],

