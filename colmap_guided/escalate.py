@@ -10,6 +10,7 @@ rounds or until no new pair verifies.
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 
 from . import database as dbio
@@ -22,6 +23,9 @@ default_conf = {
     # rounds in which photos left out of the model get their deferred and gated pairs matched with
     # the gate off and join the model (0: none)
     "rounds": 2,
+    # pairs a left-out photo gets per round, its most similar first: an unrelated photo (always
+    # left out) costs this many, not all its pairs
+    "pairs_per_photo": 5,
 }
 # the options that turn a matcher's cheap decisions off: its pair gate and cheap pass
 GATES_OFF = {"min_pair_score": None, "cheap_inliers": None}
@@ -34,18 +38,24 @@ def full_matcher(matcher):
 
 
 def pairs_to_escalate(
-    database_path: Path, left: set[str], selected: list[tuple[str, str]], done: set
+    database_path: Path,
+    left: set[str],
+    selected: list[tuple[str, str]],
+    done: set,
+    per_photo: int,
 ) -> list[tuple[str, str]]:
-    """The ``selected`` pairs of the photos ``left`` out of the model that the first pass did not
-    match for real: deferred (no matches) or gated (none kept); ``done``: pairs escalated
-    already."""
+    """The ``selected`` pairs (most similar first) of the photos ``left`` out of the model that the
+    first pass did not match for real, deferred (no matches) or gated (none kept), up to
+    ``per_photo`` for each; ``done``: pairs escalated already."""
     with dbio.open_database(database_path) as db:
         ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
         counts = dbio.pair_match_counts(db)
-    return [
-        (a, b)
-        for a, b in selected
-        if (a in left or b in left)
-        and (a, b) not in done
-        and counts.get((min(ids[a], ids[b]), max(ids[a], ids[b])), 0) == 0
-    ]
+    taken, todo = Counter(), []
+    for a, b in selected:
+        wants = [name for name in (a, b) if name in left and taken[name] < per_photo]
+        if not wants or (a, b) in done:
+            continue
+        if counts.get((min(ids[a], ids[b]), max(ids[a], ids[b])), 0) == 0:
+            taken.update(wants)
+            todo.append((a, b))
+    return todo

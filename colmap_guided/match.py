@@ -150,7 +150,12 @@ def match_database(
                 run.close()
             stats["executor"] = run.describe()
         stats["match_time"] = time.time() - start
-        stats["selected"] = selected
+        # most similar first where the order was computed (escalation takes each photo's first)
+        stats["selected"] = (
+            [key[2:] for key in sorted(id_pairs, key=lambda key: -schedule.similarity[key])]
+            if schedule
+            else selected
+        )
         stats["num_pairs"] = len(id_pairs)
         stats["num_pairs_matched_now"] = len(schedule.started) if schedule else len(todo)
         if schedule is not None:
@@ -251,10 +256,13 @@ def pair_order(todo: list[tuple]) -> list[tuple]:
 class BestFirst:
     """Enough is enough, per photo: pairs are taken most similar first (retrieval descriptors), in
     two passes. The first matches a pair only while both its photos lack ``enough`` neighbours
-    verified with ``strong_inliers`` inliers (counting those in flight), which spreads the work
-    over every photo; the second matches what a photo still lacks, and defers, not matches, a pair
-    once both its photos have enough. Matched pairs are verified as they come, so the counts are
-    known; a rerun counts the pairs already in the database."""
+    verified with ``strong_inliers`` inliers, which spreads the work over every photo; the second
+    matches what a photo still lacks, and defers, not matches, a pair once both its photos have
+    enough. Matched pairs are verified as they come, so the counts are known. Each decision is the
+    one that the results of every pair started before it give (it waits for pairs in flight when
+    they could change it), and pairs are written in the order they started: a run is
+    deterministic, and a rerun after a kill, counting the pairs in the database, decides as the
+    uninterrupted run."""
 
     def __init__(self, db, id_pairs, enough, strong_inliers, options, descriptors: dict):
         self.enough, self.strong_inliers, self.options = enough, strong_inliers, options
@@ -284,18 +292,18 @@ class BestFirst:
         return ordered + ordered
 
     def decide(self, position: int, key: PairKey) -> bool | None:
-        """Match the pair at ``position`` of ``order``: True; pass over it: False; None: wait for
-        pairs in flight, which may settle it."""
+        """Match the pair at ``position`` of ``order``: True; pass over it: False; None: the pairs
+        in flight decide it, wait for them."""
         if key in self.started:
             return False
+        lacks = max if position < self.first_pass else min  # both photos lack / either does
         have = [self.strong[name] for name in key[2:]]
-        coming = [h + self.pending[name] for h, name in zip(have, key[2:])]
-        if position < self.first_pass:
-            return max(coming) < self.enough
-        if min(have) >= self.enough:
+        match = lacks(have) < self.enough
+        if match != (lacks(h + self.pending[n] for h, n in zip(have, key[2:])) < self.enough):
+            return None
+        if not match and position >= self.first_pass:
             self.deferred.append(key)
-            return False
-        return None if min(coming) >= self.enough else True
+        return match
 
     def start(self, key: PairKey) -> None:
         self.started.add(key)
@@ -351,6 +359,7 @@ def _match_pairs(
         return run.put(image)
 
     held = HeldImages(todo, load, max_held, on_drop=matcher.release)
+    started, finished = deque(), {}  # with a schedule: pairs in the order they started
     with _progress(None, "match", schedule.first_pass if schedule else len(todo)) as bar:
 
         def write_done() -> None:
@@ -359,11 +368,14 @@ def _match_pairs(
             done = [(key, value) for key, value in done if not isinstance(value, BaseException)]
             start = time.perf_counter()
             batch = [(key[0], key[1], *result) for key, result in done]
-            if schedule is not None:
+            if schedule is not None:  # verified now, written in the order they started
                 by_id = {image.image_id: image for image in images.values()}
-                batch = [_verified(db, by_id, *item, schedule.options) for item in batch]
-                for (key, _), item in zip(done, batch):
-                    schedule.finish(key, len(item[3].inlier_matches))
+                for key, item in zip([key for key, _ in done], batch):
+                    finished[key] = _verified(db, by_id, *item, schedule.options)
+                    schedule.finish(key, len(finished[key][3].inlier_matches))
+                batch = []
+                while started and started[0] in finished:
+                    batch.append(finished.pop(started.popleft()))
             dbio.write_pairs_matches(db, batch)
             seconds["write"] += time.perf_counter() - start
             bar.update(len(done))
@@ -387,6 +399,7 @@ def _match_pairs(
                 continue
             if schedule is not None:
                 schedule.start(key)
+                started.append(key)
             # an image dropped after its last pair: the pair holds it
             run.submit(key, *held.pair(key))
             while run.in_flight >= run.capacity:

@@ -81,7 +81,9 @@ def _escalate(
     for _ in range(conf.escalation.rounds):
         registered = _registered(models)
         left = set(usable) - registered
-        todo = escalate.pairs_to_escalate(database_path, left, selected, done)
+        todo = escalate.pairs_to_escalate(
+            database_path, left, selected, done, conf.escalation.pairs_per_photo
+        )
         if not todo:
             break
         logger.info("Escalation: %d pairs of %d photos left out of the model", len(todo), len(left))
