@@ -44,7 +44,8 @@ def apply_h(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 def photo_up(cam_from_world_rotations, level_prior: float = 0.01) -> np.ndarray | None:
     """The world's up direction from photos taken upright, or None where their image-up vectors
-    (-y rows of R) disagree (mean shorter than 0.5: scans rotated by 90 degrees).
+    (-y rows of R) disagree (mean shorter than 0.5, or fewer than half of them within 30 degrees
+    of it: scans rotated by 90 degrees).
 
     Start from the mean image-up (COLMAP's model_orientation_aligner, "IMAGE-ORIENTATION"), biased
     by the photos' pitch, and pull it towards the direction perpendicular to the cameras' x axes
@@ -56,6 +57,8 @@ def photo_up(cam_from_world_rotations, level_prior: float = 0.01) -> np.ndarray 
     if np.linalg.norm(mean) < 0.5:
         return None
     upright = ups @ (mean / np.linalg.norm(mean)) > np.cos(np.radians(30))  # rotated scans out
+    if 2 * upright.sum() < len(ups):
+        return None
     xs, mean = R[upright, 0], ups[upright].mean(axis=0)
     up = np.linalg.solve(xs.T @ xs / len(xs) + level_prior * np.eye(3), mean)
     return up / np.linalg.norm(up)

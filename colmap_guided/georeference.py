@@ -304,14 +304,13 @@ class GeoFrame:
     def sim3d(self) -> pycolmap.Sim3d:
         return pycolmap.Sim3d(self.scale, pycolmap.Rotation3d(self.rotation), self.translation)
 
-    def camera(self, image: pycolmap.Image) -> dict:
-        """Where one photo was taken, looking where, as KML's Camera defines it: heading (degrees
-        clockwise from north), tilt (0 looking down, 90 at the horizon), roll (positive: the
-        camera turned counter-clockwise, its right side up)."""
-        pose = image.cam_from_world()
+    def camera(self, pose: pycolmap.Rigid3d) -> dict:
+        """Where a photo (its cam_from_world ``pose``) was taken, looking where, as KML's Camera
+        defines it: heading (degrees clockwise from north), tilt (0 looking down, 90 at the
+        horizon), roll (positive: the camera turned counter-clockwise, its right side up)."""
         world_from_cam = self.rotation @ pose.rotation.matrix().T  # columns: right, down, forward
         right, forward = world_from_cam[:, 0], world_from_cam[:, 2]
-        lat, lon, alt = self.to_geodetic(image.projection_center())
+        lat, lon, alt = self.to_geodetic(pose.inverse().translation)
         # looking straight down or up: the heading is where the top of the photo points
         ahead = forward if np.hypot(*forward[:2]) > 1e-6 else -world_from_cam[:, 1]
         heading = math.degrees(math.atan2(ahead[0], ahead[1])) % 360
@@ -501,7 +500,7 @@ def cameras_table(
             {
                 "name": image.name,
                 "photo": (Path(image_path) / image.name).resolve().as_uri(),
-                **frame.camera(image),
+                **frame.camera(image.cam_from_world()),
                 "fov_deg": round(volume["rightFov"] - volume["leftFov"], 3),
                 "view_volume": volume,
                 "depth_m": round(depth * frame.scale, 3) if depth else None,
@@ -591,6 +590,12 @@ def kml(cameras: list[dict], mode: str, title: str, near: float) -> bytes:
     return ET.tostring(root, encoding="utf-8", xml_declaration=True)
 
 
+def osm_url(place: dict) -> str:
+    """OpenStreetMap at a point ({"latitude": ..., "longitude": ...}), zoomed to the street."""
+    lat, lon = f"{place['latitude']:.6f}", f"{place['longitude']:.6f}"
+    return f"https://www.openstreetmap.org/?mlat={lat}&mlon={lon}#map=19/{lat}/{lon}"
+
+
 # --- the command --------------------------------------------------------------------------------
 
 
@@ -609,6 +614,17 @@ def load(workspace: Path) -> tuple[GeoFrame, dict] | None:
         logger.warning("%s is older than the model; run georeference again.", path)
         return None
     return frame, data
+
+
+def add_places(workspace: Path, entries) -> None:
+    """Each entry of localized.json with a pose gets its camera on the Earth (latitude, longitude,
+    altitude, heading, tilt, roll), where the workspace is georeferenced."""
+    geo = load(workspace)
+    for entry in entries if geo is not None else []:
+        if "qvec_wxyz" in entry:
+            w, x, y, z = entry["qvec_wxyz"]
+            rotation = pycolmap.Rotation3d(np.array([x, y, z, w]))
+            entry.update(geo[0].camera(pycolmap.Rigid3d(rotation, np.asarray(entry["tvec"]))))
 
 
 def georeference(

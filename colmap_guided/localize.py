@@ -16,7 +16,7 @@ the workspace, recorded in its marker (so ``reconstruct --overwrite`` removes it
   keypoints of the model's images they were matched with; image names are absolute paths without the
   leading '/'. A killed run continues from it; photos already in ``localized.json`` are not redone.
 - ``localized.json``: one entry per photo: pose, focal length, inliers, matched model images, a
-  verdict.
+  verdict; in a georeferenced workspace (``georeference``) also latitude, longitude and heading.
 - ``localize_pairs.txt``, ``localize_retrieval.npz``: the pairs matched, the model's retrieval
   descriptors.
 - ``sparse_localized/0`` with ``--add``: a new model version, the model with the placed photos
@@ -36,7 +36,7 @@ import numpy as np
 import pycolmap
 
 from . import database as dbio
-from . import features, images, match, model_check
+from . import features, georeference, images, match, model_check
 from .conf import merge_conf
 from .localized import NOT_PLACED, PLACED, UNCERTAIN
 from .log import colmap_quiet, logger
@@ -450,6 +450,7 @@ def localize(
                 results[str(photo)] = entry
                 write_results(path / RESULTS, results, header)
                 logger.info("%s: %s", photo.name, entry["confidence"])
+    georeference.add_places(path, results.values())
     write_results(path / RESULTS, results, header)
     out = {
         **header,

@@ -34,6 +34,7 @@ WRITES = (
     "report.json.partial",
     "report.html",
     "report.html.partial",
+    "geo",  # georeference's
 )
 
 

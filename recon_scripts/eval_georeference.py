@@ -54,7 +54,7 @@ def main(argv=None) -> None:
     reference = pycolmap.Reconstruction(str(args.reference))
     truth = truth_frame(reference, args.origin, args.yaw)
     by_name = {reference.images[i].name: reference.images[i] for i in reference.reg_image_ids()}
-    true_cams = {name: truth.camera(image) for name, image in by_name.items()}
+    true_cams = {name: truth.camera(image.cam_from_world()) for name, image in by_name.items()}
     with tempfile.TemporaryDirectory() as tmp:
         control = Path(tmp) / "control.csv"
         control.write_text(
