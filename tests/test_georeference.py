@@ -154,7 +154,6 @@ def test_three_controls_place_every_other_camera(workspace, synthetic_scene, tmp
     assert all(c["residual_m"] < 0.3 for c in saved["controls"])
     o = saved["origin"]  # the controls' centroid
     assert abs(o["latitude"] - np.mean([r["latitude"] for r in rows.values()])) < 1e-9
-    assert abs(saved["enu_from_model"]["scale"] * 1.0 - out["enu_from_model"]["scale"]) < 1e-12
     assert digests(workspace / "sparse") == before  # the model is only read
     assert sorted(p.name for p in (workspace / "geo").iterdir()) == [
         "cameras.geojson",
@@ -167,6 +166,33 @@ def test_three_controls_place_every_other_camera(workspace, synthetic_scene, tmp
     ply = (workspace / "geo" / "points.ply").read_bytes()
     count = int(re.search(rb"element vertex (\d+)", ply).group(1))
     assert count == json.loads((workspace / "report.json").read_text())["num_points3D"]
+
+
+def test_five_controls_fix_the_up_and_no_altitude_is_above_the_ground(
+    workspace, synthetic_scene, tmp_path
+):
+    """5 controls with altitudes, not on one line: all 7 degrees of freedom from them. Without
+    altitudes: the same places on the map, heights above the ground (the controls at eye
+    height)."""
+    true = truth(synthetic_scene)
+    names = ("view_000.jpg", "view_002.jpg", "view_004.jpg", "view_005.jpg", "view_007.jpg")
+    rows = {n: true[n] for n in names}
+    out = geo.georeference(workspace, control_csv(tmp_path / "control.csv", rows))
+    assert out["up_from"] == "controls" and out["altitude_mode"] == "absolute"
+    check_placed(out, synthetic_scene, names)
+    flat = control_csv(tmp_path / "flat.csv", rows, header="name,latitude,longitude")
+    flat.write_text(
+        "\n".join(",".join(line.split(",")[:3]) for line in flat.read_text().splitlines()) + "\n"
+    )
+    out = geo.georeference(workspace, flat)
+    assert out["up_from"] == "photos" and out["altitude_mode"] == "relativeToGround"
+    heights = [out["cameras"][n]["altitude"] for n in names]
+    assert abs(np.mean(heights) - geo.default_conf["eye_height"]) < 1e-3
+    for name, cam in out["cameras"].items():
+        enu = geo.geodetic_to_enu(cam["latitude"], cam["longitude"], 0.0, ORIGIN)
+        assert np.linalg.norm(enu[:2] - true[name]["enu"][:2]) < 0.5
+    kml = ET.parse(workspace / "geo" / "cameras.kml").getroot()
+    assert {m.text for m in kml.iter(f"{KML}altitudeMode")} == {"relativeToGround"}
 
 
 def write_gps(path: Path, lat: float, lon: float, alt: float) -> None:
