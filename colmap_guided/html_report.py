@@ -27,7 +27,7 @@ import numpy as np
 import pycolmap
 
 from . import database as dbio
-from . import embed, georeference, images, model_view
+from . import embed, geoframe, images, model_view
 from .localized import with_localized
 from .log import logger
 from .workspace import read_marker
@@ -336,7 +336,7 @@ def _localized_table(report: dict, image_path: Path, thumbnails: bool) -> list[s
 def _lat_lon(place: dict) -> str:
     """ "55.704700, 13.193400" linked to OpenStreetMap at that point."""
     text = f"{place['latitude']:.6f}, {place['longitude']:.6f}"
-    return f"<a href='{html.escape(georeference.osm_url(place))}'>{text}</a>"
+    return f"<a href='{html.escape(geoframe.osm_url(place))}'>{text}</a>"
 
 
 def _geo_table(geo: dict) -> list[str]:
@@ -390,9 +390,7 @@ def render_html(
         rec, names = with_localized(rec, localized)
         model_eras = {rec.images[i].name: "photo" for i in rec.reg_image_ids()}
         eras = {**model_eras, **eras, **dict.fromkeys(names, "localized")}
-    geo = (
-        georeference.load(Path(report["report_path"]).parent) if report.get("report_path") else None
-    )
+    geo = geoframe.load(Path(report["report_path"]).parent) if report.get("report_path") else None
     if rec is not None and geo is not None:  # shown in east-north-up metres
         rec = pycolmap.Reconstruction(rec)
         rec.transform(geo[0].sim3d())

@@ -20,11 +20,12 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from colmap_guided import geoframe
 from colmap_guided import georeference as geo
 from colmap_guided.geometry import photo_up
 
 
-def truth_frame(reference: pycolmap.Reconstruction, origin, yaw_deg: float) -> geo.GeoFrame:
+def truth_frame(reference: pycolmap.Reconstruction, origin, yaw_deg: float) -> geoframe.GeoFrame:
     """The reference on the Earth: its photos' up as the vertical, turned by ``yaw_deg``, scale 1,
     its cameras' centroid at ``origin``."""
     images = [reference.images[i] for i in reference.reg_image_ids()]
@@ -32,7 +33,7 @@ def truth_frame(reference: pycolmap.Reconstruction, origin, yaw_deg: float) -> g
     c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
     R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ geo._level_rotation(up)
     centres = np.array([im.projection_center() for im in images])
-    return geo.GeoFrame(tuple(origin), 1.0, R, -R @ centres.mean(axis=0), True)
+    return geoframe.GeoFrame(tuple(origin), 1.0, R, -R @ centres.mean(axis=0), True)
 
 
 def main(argv=None) -> None:
@@ -61,16 +62,20 @@ def main(argv=None) -> None:
     true_cams = {name: truth.camera(image.cam_from_world()) for name, image in by_name.items()}
 
     def enu(cam):
-        return geo.geodetic_to_enu(cam["latitude"], cam["longitude"], cam["altitude"], truth.origin)
+        return geoframe.geodetic_to_enu(
+            cam["latitude"], cam["longitude"], cam["altitude"], truth.origin
+        )
 
     controls = {n: true_cams[n] for n in args.controls}
     rng = np.random.default_rng(0)
     for name in controls if args.noise else []:  # horizontal error of a position read off a map
         moved = enu(controls[name]) + [*rng.normal(0, args.noise, 2), 0]
-        lat, lon, alt = geo.enu_to_geodetic(moved, truth.origin)
+        lat, lon, alt = geoframe.enu_to_geodetic(moved, truth.origin)
         controls[name] = {"latitude": float(lat), "longitude": float(lon), "altitude": float(alt)}
     if args.off:
-        lat, lon, alt = geo.enu_to_geodetic(enu(true_cams[args.off]) + [100, 0, 0], truth.origin)
+        lat, lon, alt = geoframe.enu_to_geodetic(
+            enu(true_cams[args.off]) + [100, 0, 0], truth.origin
+        )
         controls[args.off] = {
             "latitude": float(lat),
             "longitude": float(lon),

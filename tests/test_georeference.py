@@ -21,6 +21,7 @@ import pytest
 import shapely.geometry
 from PIL import Image
 
+from colmap_guided import geoframe
 from colmap_guided import georeference as geo
 from colmap_guided import localize as loc
 from colmap_guided.__main__ import main
@@ -52,7 +53,7 @@ def truth(synthetic_scene) -> dict[str, dict]:
     for name, (R, t) in synthetic_scene.cam_from_world.items():
         enu = enu_from_scene @ (-R.T @ t) + SHIFT
         forward = enu_from_scene @ R.T @ [0.0, 0.0, 1.0]
-        lat, lon, alt = geo.enu_to_geodetic(enu, ORIGIN)
+        lat, lon, alt = geoframe.enu_to_geodetic(enu, ORIGIN)
         out[name] = {
             "enu": enu,
             "heading": math.degrees(math.atan2(forward[0], forward[1])) % 360,
@@ -88,7 +89,7 @@ def check_placed(out: dict, synthetic_scene, controls) -> None:
     placed = {n: c for n, c in out["cameras"].items() if n not in controls}
     assert len(placed) == 8 - len(controls)
     for name, cam in placed.items():
-        enu = geo.geodetic_to_enu(cam["latitude"], cam["longitude"], cam["altitude"], ORIGIN)
+        enu = geoframe.geodetic_to_enu(cam["latitude"], cam["longitude"], cam["altitude"], ORIGIN)
         assert np.linalg.norm(enu - true[name]["enu"]) < 0.5, (name, enu, true[name]["enu"])
         heading_error = (cam["heading"] - true[name]["heading"] + 180) % 360 - 180
         assert abs(heading_error) < 1.0, (name, cam["heading"], true[name]["heading"])
@@ -101,17 +102,17 @@ def test_geodesy_against_known_lengths():
     p = math.radians(55.7)
     origin = (55.7, 13.2, 0.0)
     step = 0.0005  # a short step: the tangent plane is the arc to a micrometre
-    north = geo.geodetic_to_enu(55.7 + step, 13.2, 0.0, origin)
-    north -= geo.geodetic_to_enu(55.7 - step, 13.2, 0.0, origin)
+    north = geoframe.geodetic_to_enu(55.7 + step, 13.2, 0.0, origin)
+    north -= geoframe.geodetic_to_enu(55.7 - step, 13.2, 0.0, origin)
     meridian = 111132.954 - 559.822 * math.cos(2 * p) + 1.175 * math.cos(4 * p)
     assert abs(north[1] / (2 * step) - meridian) < 0.05 and abs(north[0]) < 1e-6
-    east = geo.geodetic_to_enu(55.7, 13.2 + step, 0.0, origin)
-    east -= geo.geodetic_to_enu(55.7, 13.2 - step, 0.0, origin)
+    east = geoframe.geodetic_to_enu(55.7, 13.2 + step, 0.0, origin)
+    east -= geoframe.geodetic_to_enu(55.7, 13.2 - step, 0.0, origin)
     parallel = 111412.84 * math.cos(p) - 93.5 * math.cos(3 * p) + 0.118 * math.cos(5 * p)
     assert abs(east[0] / (2 * step) - parallel) < 0.05 and abs(east[1]) < 1e-6
-    np.testing.assert_allclose(geo.geodetic_to_ecef(0.0, 0.0, 0.0), [geo.WGS84_A, 0, 0])
+    np.testing.assert_allclose(geoframe.geodetic_to_ecef(0.0, 0.0, 0.0), [geoframe.WGS84_A, 0, 0])
     lat, lon, alt = np.array([55.7, -33.9, 89.9]), np.array([13.2, 151.2, -120.0]), [5, 2000, 0]
-    back = geo.ecef_to_geodetic(geo.geodetic_to_ecef(lat, lon, alt))
+    back = geoframe.ecef_to_geodetic(geoframe.geodetic_to_ecef(lat, lon, alt))
     np.testing.assert_allclose(back[0], lat, atol=1e-11)
     np.testing.assert_allclose(back[1], lon, atol=1e-11)
     np.testing.assert_allclose(back[2], alt, atol=1e-6)
@@ -189,7 +190,7 @@ def test_five_controls_fix_the_up_and_no_altitude_is_above_the_ground(
     heights = [out["cameras"][n]["altitude"] for n in names]
     assert abs(np.mean(heights) - geo.default_conf["eye_height"]) < 1e-3
     for name, cam in out["cameras"].items():
-        enu = geo.geodetic_to_enu(cam["latitude"], cam["longitude"], 0.0, ORIGIN)
+        enu = geoframe.geodetic_to_enu(cam["latitude"], cam["longitude"], 0.0, ORIGIN)
         assert np.linalg.norm(enu[:2] - true[name]["enu"][:2]) < 0.5
     kml = ET.parse(workspace / "geo" / "cameras.kml").getroot()
     assert {m.text for m in kml.iter(f"{KML}altitudeMode")} == {"relativeToGround"}
@@ -243,7 +244,7 @@ def test_a_control_100_m_off_is_named_and_left_out(workspace, synthetic_scene, t
     set_verbosity()
     true = truth(synthetic_scene)
     rows = {n: dict(true[n]) for n in (*CONTROLS, "view_005.jpg")}
-    lat, lon, alt = geo.enu_to_geodetic(true["view_005.jpg"]["enu"] + [100.0, 0, 0], ORIGIN)
+    lat, lon, alt = geoframe.enu_to_geodetic(true["view_005.jpg"]["enu"] + [100.0, 0, 0], ORIGIN)
     rows["view_005.jpg"].update(latitude=float(lat), longitude=float(lon))
     assert (
         main(
@@ -337,8 +338,10 @@ def test_report_and_localize_give_latitude_and_longitude(workspace, synthetic_sc
     entry = loc.localize(workspace, [photo], matcher="raw")["photos"][0]
     assert entry["status"] == "placed"
     cam = out["cameras"]["view_004.jpg"]
-    here = geo.geodetic_to_enu(entry["latitude"], entry["longitude"], entry["altitude"], ORIGIN)
-    there = geo.geodetic_to_enu(cam["latitude"], cam["longitude"], cam["altitude"], ORIGIN)
+    here = geoframe.geodetic_to_enu(
+        entry["latitude"], entry["longitude"], entry["altitude"], ORIGIN
+    )
+    there = geoframe.geodetic_to_enu(cam["latitude"], cam["longitude"], cam["altitude"], ORIGIN)
     assert np.linalg.norm(here - there) < 0.2 and abs(entry["heading"] - cam["heading"]) < 0.5
     saved = json.loads((workspace / "localized.json").read_text(encoding="utf-8"))
     assert saved["photos"][0]["latitude"] == entry["latitude"]
@@ -402,7 +405,7 @@ def test_controls_that_disagree_are_refused(workspace, synthetic_scene, tmp_path
     """3 controls, one 100 m off: no 3 agree, so none can be trusted; the residuals are listed."""
     true = truth(synthetic_scene)
     rows = {n: dict(true[n]) for n in CONTROLS}
-    lat, lon, _ = geo.enu_to_geodetic(true[CONTROLS[1]]["enu"] + [0, 100.0, 0], ORIGIN)
+    lat, lon, _ = geoframe.enu_to_geodetic(true[CONTROLS[1]]["enu"] + [0, 100.0, 0], ORIGIN)
     rows[CONTROLS[1]].update(latitude=float(lat), longitude=float(lon))
     before = digests(workspace / "geo") if (workspace / "geo").exists() else None
     set_verbosity()
