@@ -110,7 +110,7 @@ def read_controls(path: Path, names: list[str]) -> list[Control]:
     header = [c.strip().lower() for c in rows[0][1]] if rows else []
     if header[:3] != ["name", "latitude", "longitude"] or header[3:] not in ([], ["altitude"]):
         raise ValueError(
-            f"{path} line {rows[0][0] if rows else 1}: the header must be "
+            f"{path.name} line {rows[0][0] if rows else 1}: the header must be "
             "name,latitude,longitude or name,latitude,longitude,altitude."
         )
     for line, row in rows[1:]:
@@ -511,15 +511,17 @@ def georeference(
         },
     }
     ws = Workspace.claim(path, "reconstruct", keep=(image_path,))
-    ws.record(*WRITES)
+    for name in WRITES:  # a geo/ folder of the user's own is refused, not replaced
+        ws.take(name)
     partial = ws.path / f"{GEO}.partial"
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir()
-    scale_m = float(np.median([c["depth_m"] for c in cameras if c["depth_m"]] or [10.0]))
+    # for a photo that sees no 3D point: the others' median distance
+    depth = float(np.median([c["depth_m"] for c in cameras if c["depth_m"]] or [10.0]))
     (partial / "cameras.geojson").write_text(
-        json.dumps(geojson(cameras, mode, scale_m), indent=1) + "\n", encoding="utf-8"
+        json.dumps(geojson(cameras, mode, depth), indent=1) + "\n", encoding="utf-8"
     )
-    (partial / "cameras.kml").write_bytes(kml(cameras, mode, report.get("scene", ""), scale_m))
+    (partial / "cameras.kml").write_bytes(kml(cameras, mode, report.get("scene", ""), depth))
     enu_points = pycolmap.Reconstruction(rec)
     enu_points.transform(frame.sim3d())
     enu_points.export_PLY(str(partial / "points.ply"))
