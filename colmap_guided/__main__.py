@@ -1,4 +1,5 @@
-"""Command line: `python -m colmap_guided {reconstruct,localize,match,export,import,report} ...`."""
+"""Command line: `python -m colmap_guided {reconstruct,localize,georeference,match,export,import,
+report} ...`."""
 
 from __future__ import annotations
 
@@ -258,6 +259,29 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_common(imp)
 
+    geo = sub.add_parser(
+        "georeference",
+        help="place the model on the Earth from a few photos' map positions or GPS EXIF: "
+        "each photo's camera as KML PhotoOverlays and GeoJSON",
+    )
+    geo.add_argument(
+        "workspace", type=Path, help="the --output folder of a reconstruct run (holds sparse/0)"
+    )
+    geo.add_argument(
+        "--control",
+        type=Path,
+        default=None,
+        help="CSV with the header name,latitude,longitude[,altitude]: where a few photos were "
+        "taken (WGS84 degrees, metres above sea level); added to the photos' GPS EXIF",
+    )
+    geo.add_argument(
+        "--image_path",
+        type=Path,
+        default=None,
+        help="the photos' folder, if moved since reconstruct (only read)",
+    )
+    _add_common(geo)
+
     sub.add_parser(
         "coarse",
         help="coarse matches of two images drawn to a PNG (see `coarse --help`)",
@@ -369,6 +393,10 @@ def main(argv=None) -> int:
                 args.workspace, args.photos, args.matcher, matcher_conf, conf, add=args.add
             )
             print(localize.summary_text(out))
+        elif args.command == "georeference":
+            from .georeference import georeference, summary_text
+
+            print(summary_text(georeference(args.workspace, args.control, args.image_path)))
         elif args.command == "match":
             from . import database, features, match
             from .matchers import AUTO, resolve_auto

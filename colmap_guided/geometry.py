@@ -40,3 +40,25 @@ def apply_h(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Points (N, 2) mapped by the homography H."""
     p = np.concatenate([pts, np.ones((len(pts), 1))], 1) @ H.T
     return p[:, :2] / p[:, 2:3]
+
+
+def photo_up(cam_from_world_rotations, level_prior: float = 0.01) -> np.ndarray | None:
+    """The world's up direction from photos taken upright, or None where their image-up vectors
+    (-y rows of R) disagree (mean shorter than 0.5, or fewer than half of them within 30 degrees
+    of it: scans rotated by 90 degrees).
+
+    Start from the mean image-up (COLMAP's model_orientation_aligner, "IMAGE-ORIENTATION"), biased
+    by the photos' pitch, and pull it towards the direction perpendicular to the cameras' x axes
+    (level: roll ~0, whatever the pitch): up = (X^T X / n + level_prior I)^-1 mean. Where the x axes
+    are all parallel (photos facing one way) the mean decides along that axis alone."""
+    R = np.asarray(list(cam_from_world_rotations), float).reshape(-1, 3, 3)
+    ups = -R[:, 1]
+    mean = ups.mean(axis=0) if len(ups) else np.zeros(3)
+    if np.linalg.norm(mean) < 0.5:
+        return None
+    upright = ups @ (mean / np.linalg.norm(mean)) > np.cos(np.radians(30))  # rotated scans out
+    if 2 * upright.sum() < len(ups):
+        return None
+    xs, mean = R[upright, 0], ups[upright].mean(axis=0)
+    up = np.linalg.solve(xs.T @ xs / len(xs) + level_prior * np.eye(3), mean)
+    return up / np.linalg.norm(up)

@@ -5,12 +5,13 @@
                           image_path)  # raw vs guided on the same pairs
 
 It shows the registered ratio, the largest model in 3D (points and cameras, ``model_view``), a map
-of where the photos were taken from, the ratio per era, each photo that was not registered with the
-stage where it dropped out and why (``report.explain_unregistered``), the photos placed later by
-``localize`` (localized.json beside report.json), and drawings of the verified matches of a few
-pairs. A panel is ``(title, image_a, image_b, matches)``: images as paths or uint8 RGB arrays,
-``matches`` an (M, 4) array of x_a, y_a, x_b, y_b in COLMAP pixel coordinates (pixel centre = +0.5,
-EXIF rotation not applied, as ``images.read_image``).
+of where the photos were taken from (north up in metres, with each photo's latitude and longitude,
+where ``georeference`` placed the model on the Earth), the ratio per era, each photo that was not
+registered with the stage where it dropped out and why (``report.explain_unregistered``), the
+photos placed later by ``localize`` (localized.json beside report.json), and drawings of the
+verified matches of a few pairs. A panel is ``(title, image_a, image_b, matches)``: images as
+paths or uint8 RGB arrays, ``matches`` an (M, 4) array of x_a, y_a, x_b, y_b in COLMAP pixel
+coordinates (pixel centre = +0.5, EXIF rotation not applied, as ``images.read_image``).
 
     python -m colmap_guided report OUTPUT
         [--compare raw=OTHER_OUTPUT/database.db]   # rewrite the page
@@ -23,9 +24,10 @@ import html
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 
 from . import database as dbio
-from . import embed, images, model_view
+from . import embed, geoframe, images, model_view
 from .localized import with_localized
 from .log import logger
 from .workspace import read_marker
@@ -305,6 +307,7 @@ def _localized_table(report: dict, image_path: Path, thumbnails: bool) -> list[s
         (
             "<table class='why'><tr><th></th><th>photo</th><th>result</th>"
             "<th>inliers</th><th>focal length</th><th>position (model units)</th>"
+            "<th>latitude, longitude</th><th>heading</th>"
             "<th>best-matched model photo</th><th></th></tr>"
         ),
     ]
@@ -320,12 +323,39 @@ def _localized_table(report: dict, image_path: Path, thumbnails: bool) -> list[s
             str(entry.get("num_inliers", "")),
             f"{entry['focal_length']:.0f} px" if entry.get("focal_length") else "",
             ", ".join(f"{c:.2f}" for c in centre) if centre else "",
+            _lat_lon(entry) if "latitude" in entry else "",
+            f"{entry['heading']:.0f}&deg;" if "heading" in entry else "",
             f"{esc(best['image'])} ({best['matches']} matches)" if best else "",
             _img(image_path / best["image"], thumbnails and i < 60) if best else "",
         ]
         out.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
     out.append("</table>")
     return out
+
+
+def _lat_lon(place: dict) -> str:
+    """ "55.704700, 13.193400" linked to OpenStreetMap at that point."""
+    text = f"{place['latitude']:.6f}, {place['longitude']:.6f}"
+    return f"<a href='{html.escape(geoframe.osm_url(place))}'>{text}</a>"
+
+
+def _geo_table(geo: dict) -> list[str]:
+    """Each photo's latitude and longitude (a link to OpenStreetMap there), altitude, heading."""
+    out = [
+        "<p>Each photo's camera on the Earth (georeference: "
+        f"{sum(c['used'] for c in geo['controls'])} control photos, "
+        f"{geo['rms_m']:.2f} m RMS; Google Earth: geo/cameras.kml, QGIS: "
+        "geo/cameras.geojson).</p>",
+        "<table><tr><th>photo</th><th>latitude, longitude</th><th>altitude (m)</th>"
+        "<th>heading (&deg; from north)</th></tr>",
+    ]
+    for name, cam in geo["cameras"].items():
+        out.append(
+            f"<tr><td>{html.escape(name)}</td><td>{_lat_lon(cam)}</td>"
+            f"<td class='num'>{cam['altitude']:.1f}</td>"
+            f"<td class='num'>{cam['heading']:.0f}</td></tr>"
+        )
+    return out + ["</table>"]
 
 
 def _load_model(report: dict):
@@ -360,6 +390,10 @@ def render_html(
         rec, names = with_localized(rec, localized)
         model_eras = {rec.images[i].name: "photo" for i in rec.reg_image_ids()}
         eras = {**model_eras, **eras, **dict.fromkeys(names, "localized")}
+    geo = geoframe.load(Path(report["report_path"]).parent) if report.get("report_path") else None
+    if rec is not None and geo is not None:  # shown in east-north-up metres
+        rec = pycolmap.Reconstruction(rec)
+        rec.transform(geo[0].sim3d())
     out = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
         f"<title>Reconstruction report: {esc(str(report.get('scene', '')))}"
@@ -375,15 +409,19 @@ def render_html(
     ]
     if rec is not None and rec.num_reg_images():
         out.append("<h2>The 3D model</h2>")
-        out.append(model_view.view_html(rec, eras, image_path if thumbnails else None))
+        enu = geo is not None
+        out.append(model_view.view_html(rec, eras, image_path if thumbnails else None, enu=enu))
         out.append("<h2>Where the photos were taken from</h2>")
         out.append(
             "<p>Seen from above: the points of the model, each photo's "
-            "position (dot) and the direction it looks in (arrow).</p>"
+            "position (dot) and the direction it looks in (arrow)"
+            + (f", north up, in metres from {_lat_lon(geo[1]['origin'])}.</p>" if enu else ".</p>")
         )
         out.append(
-            f"<img src='{model_view.photo_map(rec, eras)}' alt='map of the camera positions'>"
+            f"<img src='{model_view.photo_map(rec, eras, enu)}' alt='map of the camera positions'>"
         )
+        if enu:
+            out += _geo_table(geo[1])
     out += [
         "<h2>Registered images</h2>",
         "<table><tr><th>images</th><th>registered</th><th>ratio</th></tr>",

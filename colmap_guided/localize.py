@@ -16,7 +16,7 @@ the workspace, recorded in its marker (so ``reconstruct --overwrite`` removes it
   keypoints of the model's images they were matched with; image names are absolute paths without the
   leading '/'. A killed run continues from it; photos already in ``localized.json`` are not redone.
 - ``localized.json``: one entry per photo: pose, focal length, inliers, matched model images, a
-  verdict.
+  verdict; in a georeferenced workspace (``georeference``) also latitude, longitude and heading.
 - ``localize_pairs.txt``, ``localize_retrieval.npz``: the pairs matched, the model's retrieval
   descriptors.
 - ``sparse_localized/0`` with ``--add``: a new model version, the model with the placed photos
@@ -26,7 +26,6 @@ the workspace, recorded in its marker (so ``reconstruct --overwrite`` removes it
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import time
@@ -36,14 +35,14 @@ import numpy as np
 import pycolmap
 
 from . import database as dbio
-from . import features, images, match, model_check
+from . import features, geoframe, images, match, model_check
 from .conf import merge_conf
 from .localized import NOT_PLACED, PLACED, UNCERTAIN
 from .log import colmap_quiet, logger
 from .matchers import AUTO, get_matcher, resolve_auto
 from .matchers.base import scoped_torch_threads
 from .pairs import write_pairs
-from .workspace import Workspace, read_marker
+from .workspace import Workspace, model_digest, read_marker
 
 DATABASE = "localize.db"
 RESULTS = "localized.json"
@@ -89,15 +88,6 @@ def db_name(path: Path) -> str:
 def _root() -> Path:
     """localize.db's image folder: the file system's root, so that any photo has a name there."""
     return Path(Path.cwd().resolve().anchor)
-
-
-def model_digest(model_dir: Path) -> str:
-    """sha256 over the model's files: results of another model (a reconstruct rerun) are not
-    reused."""
-    digest = hashlib.sha256()
-    for path in sorted(p for p in Path(model_dir).iterdir() if p.is_file()):
-        digest.update(path.name.encode() + hashlib.sha256(path.read_bytes()).digest())
-    return digest.hexdigest()
 
 
 def open_workspace(workspace: Path) -> tuple[Path, dict, Path]:
@@ -450,6 +440,7 @@ def localize(
                 results[str(photo)] = entry
                 write_results(path / RESULTS, results, header)
                 logger.info("%s: %s", photo.name, entry["confidence"])
+    geoframe.add_places(path, results.values())
     write_results(path / RESULTS, results, header)
     out = {
         **header,

@@ -1,7 +1,7 @@
 """The model in report.html: an interactive 3D view of the points and cameras, and a map of the
 photos.
 
-    frame = ground_frame(rec)  # up = the photos' mean up direction, origin, scale
+    frame = ground_frame(rec)  # up = the photos' up direction (or east-north-up), origin, scale
     html = view_html(rec, eras, image_path)  # <canvas> + its data + a small viewer script
     uri = photo_map(rec, eras)  # PNG data URI: camera positions and directions from above
 
@@ -23,6 +23,7 @@ import numpy as np
 import pycolmap
 
 from . import embed
+from .geometry import photo_up
 from .images import read_thumbnail
 
 MAX_POINTS = 30000  # points drawn in the 3D view; a larger model is shown by an even random sample
@@ -41,25 +42,27 @@ def era_colors(eras: dict[str, str], names: list[str]) -> dict[str, str]:
     return {era: ERA_COLORS.get(era) or next(others, "#888888") for era in present}
 
 
-def ground_frame(rec: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray, float]:
+def ground_frame(
+    rec: pycolmap.Reconstruction, enu: bool = False
+) -> tuple[np.ndarray, np.ndarray, float]:
     """(origin, axes (3, 3) rows x, y, up, radius): a frame with z up in which the model is shown.
+    ``enu``: the model is in east-north-up metres (georeferenced): x east, y north, z up.
 
-    Up is the mean up direction of the photos (photos are taken upright; COLMAP's
-    model_orientation_aligner does the same, "IMAGE-ORIENTATION"); when they disagree (scans rotated
-    by 90 degrees) it is the normal of the camera centres' best plane. x is the points' main
-    horizontal direction (PCA); the origin is the median point, the radius the 95th (points) or 90th
-    (cameras) percentile of their distances to it, whichever is larger.
+    Up is the photos' up direction (``geometry.photo_up``: photos are taken upright); when they
+    disagree (scans rotated by 90 degrees) it is the normal of the camera centres' best plane. x is
+    the points' main horizontal direction (PCA); the origin is the median point, the radius the
+    95th (points) or 90th (cameras) percentile of their distances to it, whichever is larger.
     """
     images = [rec.images[i] for i in rec.reg_image_ids()]
     centres = np.array([im.projection_center() for im in images]).reshape(-1, 3)
     xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
-    # image y points down
-    ups = -np.array([im.cam_from_world().rotation.matrix()[1] for im in images]).reshape(-1, 3)
-    up = ups.mean(axis=0) if len(ups) else np.array([0.0, 0.0, 1.0])
-    if np.linalg.norm(up) < 0.5 and len(centres) >= 3:
+    rotations = [im.cam_from_world().rotation.matrix() for im in images]
+    up = np.array([0.0, 0.0, 1.0]) if enu else photo_up(rotations)
+    if up is None and len(centres) >= 3:
+        mean = -np.mean([R[1] for R in rotations], axis=0)  # image y points down
         normal = np.linalg.svd(centres - centres.mean(axis=0))[2][2]
-        up = normal if normal @ up >= 0 else -normal
-    up = up / max(np.linalg.norm(up), 1e-12)
+        up = normal if normal @ mean >= 0 else -normal
+    up = np.array([0.0, 0.0, 1.0]) if up is None else up / max(np.linalg.norm(up), 1e-12)
     origin = (
         np.median(xyz, axis=0)
         if len(xyz)
@@ -69,7 +72,7 @@ def ground_frame(rec: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray, 
     flat = flat - np.outer(flat @ up, up)
     x = (
         np.linalg.svd(flat, full_matrices=False)[2][0]
-        if len(flat) >= 2
+        if len(flat) >= 2 and not enu
         else np.array([1.0, 0.0, 0.0])
     )
     x = x - (x @ up) * up
@@ -122,11 +125,12 @@ def view_data(
     eras: dict[str, str] | None = None,
     image_path: Path | None = None,
     max_points: int = MAX_POINTS,
+    enu: bool = False,
 ) -> dict:
     """What the viewer draws (and what a test reads back): points, cameras, eras and the display
     frame."""
     eras = eras or {}
-    origin, axes, radius = ground_frame(rec)
+    origin, axes, radius = ground_frame(rec, enu)
     ids = np.array(sorted(rec.points3D), np.int64)
     if len(ids) > max_points:  # an even random sample, the same for the same model
         ids = np.sort(np.random.default_rng(0).choice(ids, max_points, replace=False))
@@ -187,10 +191,11 @@ def view_html(
     eras: dict[str, str] | None = None,
     image_path: Path | None = None,
     max_points: int = MAX_POINTS,
+    enu: bool = False,
 ) -> str:
     """The 3D view: a legend, the canvas, its data (JSON) and the viewer script; nothing loaded from
     outside."""
-    data = view_data(rec, eras, image_path, max_points)
+    data = view_data(rec, eras, image_path, max_points, enu)
     legend = "".join(
         f"<i style='background:{color}'></i>{html.escape(era)}"
         for era, color in data["colors_by_era"].items()
@@ -214,16 +219,20 @@ def view_html(
     )
 
 
-def photo_map(rec: pycolmap.Reconstruction, eras: dict[str, str] | None = None) -> str:
+def photo_map(
+    rec: pycolmap.Reconstruction, eras: dict[str, str] | None = None, enu: bool = False
+) -> str:
     """Top-down map (PNG data URI): points in grey-scale of their colour, each camera's position and
-    viewing direction."""
+    viewing direction. ``enu``: the model is in east-north-up metres; the map is drawn north up
+    with metres from the frame's origin on its axes."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     eras = eras or {}
-    origin, axes, radius = ground_frame(rec)
+    origin, axes, radius = ground_frame(rec, enu)
+    origin = np.zeros(3) if enu else origin
     xyz = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
     rgb = np.array([p.color for p in rec.points3D.values()], np.float64).reshape(-1, 3) / 255
     if len(xyz) > 50000:
@@ -280,7 +289,12 @@ def photo_map(rec: pycolmap.Reconstruction, eras: dict[str, str] | None = None) 
     ax.set_xlim(lo[0] - pad, hi[0] + pad)
     ax.set_ylim(lo[1] - pad, hi[1] + pad)
     ax.set_aspect("equal")
-    ax.set_xticks([])
-    ax.set_yticks([])
+    if enu:
+        ax.set_xlabel("east (m)")
+        ax.set_ylabel("north (m)")
+        ax.grid(True, linewidth=0.4, alpha=0.5)
+    else:
+        ax.set_xticks([])
+        ax.set_yticks([])
     ax.legend(loc="upper right", fontsize=8, frameon=True)
     return embed.figure_uri(fig)

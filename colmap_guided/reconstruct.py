@@ -36,6 +36,7 @@ WRITES = (
     "report.html",
     "report.html.partial",
     ESCALATION_PAIRS,
+    "geo",  # georeference's
 )
 
 

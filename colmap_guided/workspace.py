@@ -10,6 +10,7 @@ saying what to pass instead.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -194,3 +195,12 @@ class Workspace:
                 len(entries),
                 self.path,
             )
+
+
+def model_digest(model_dir: Path) -> str:
+    """sha256 over the model's files: results of another model (a reconstruct rerun) are not
+    reused."""
+    digest = hashlib.sha256()
+    for path in sorted(p for p in Path(model_dir).iterdir() if p.is_file()):
+        digest.update(path.name.encode() + hashlib.sha256(path.read_bytes()).digest())
+    return digest.hexdigest()

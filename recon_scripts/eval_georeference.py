@@ -1,0 +1,128 @@
+"""Georeferencing on a real set with a reference model: the reference's camera centres placed on
+the Earth (its own units taken as metres, its photos' up as the vertical, a chosen origin and
+heading) are the truth; 3 of them are the controls, the other photos' position and heading errors
+are measured.
+
+    python recon_scripts/eval_georeference.py WORKSPACE \
+        [--reference ../shared/data/lund_door_gtsfm/colmap_ground_truth] \
+        [--controls DSC_0001.JPG DSC_0006.JPG DSC_0012.JPG] [--noise METRES] [--off DSC_0009.JPG]
+
+WORKSPACE: a `reconstruct` output of the set (georeferenced by this script: WORKSPACE/geo/).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from colmap_guided import geoframe
+from colmap_guided import georeference as geo
+from colmap_guided.geometry import photo_up
+
+
+def truth_frame(reference: pycolmap.Reconstruction, origin, yaw_deg: float) -> geoframe.GeoFrame:
+    """The reference on the Earth: its photos' up as the vertical, turned by ``yaw_deg``, scale 1,
+    its cameras' centroid at ``origin``."""
+    images = [reference.images[i] for i in reference.reg_image_ids()]
+    up = photo_up(im.cam_from_world().rotation.matrix() for im in images)
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ geo._level_rotation(up)
+    centres = np.array([im.projection_center() for im in images])
+    return geoframe.GeoFrame(tuple(origin), 1.0, R, -R @ centres.mean(axis=0), True)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("workspace", type=Path)
+    parser.add_argument(
+        "--reference",
+        type=Path,
+        default=Path("../shared/data/lund_door_gtsfm/colmap_ground_truth"),
+    )
+    parser.add_argument(
+        "--controls", nargs="+", default=["DSC_0001.JPG", "DSC_0006.JPG", "DSC_0012.JPG"]
+    )
+    parser.add_argument(
+        "--origin", type=float, nargs=3, default=[55.7047, 13.1934, 70.0], help="lat lon alt"
+    )
+    parser.add_argument("--yaw", type=float, default=30.0, help="the reference's turn, degrees")
+    parser.add_argument("--off", default=None, help="also this photo as a control, 100 m east off")
+    parser.add_argument(
+        "--noise", type=float, default=0.0, help="metres (sigma) of map-reading error per control"
+    )
+    args = parser.parse_args(argv)
+    reference = pycolmap.Reconstruction(str(args.reference))
+    truth = truth_frame(reference, args.origin, args.yaw)
+    by_name = {reference.images[i].name: reference.images[i] for i in reference.reg_image_ids()}
+    true_cams = {name: truth.camera(image.cam_from_world()) for name, image in by_name.items()}
+
+    def enu(cam):
+        return geoframe.geodetic_to_enu(
+            cam["latitude"], cam["longitude"], cam["altitude"], truth.origin
+        )
+
+    controls = {n: true_cams[n] for n in args.controls}
+    rng = np.random.default_rng(0)
+    for name in controls if args.noise else []:  # horizontal error of a position read off a map
+        moved = enu(controls[name]) + [*rng.normal(0, args.noise, 2), 0]
+        lat, lon, alt = geoframe.enu_to_geodetic(moved, truth.origin)
+        controls[name] = {"latitude": float(lat), "longitude": float(lon), "altitude": float(alt)}
+    if args.off:
+        lat, lon, alt = geoframe.enu_to_geodetic(
+            enu(true_cams[args.off]) + [100, 0, 0], truth.origin
+        )
+        controls[args.off] = {
+            "latitude": float(lat),
+            "longitude": float(lon),
+            "altitude": float(alt),
+        }
+    with tempfile.TemporaryDirectory() as tmp:
+        control = Path(tmp) / "control.csv"
+        control.write_text(
+            "name,latitude,longitude,altitude\n"
+            + "".join(
+                f"{n},{r['latitude']:.9f},{r['longitude']:.9f},{r['altitude']:.3f}\n"
+                for n, r in controls.items()
+            )
+        )
+        out = geo.georeference(args.workspace, control)
+    print(geo.summary_text(out))
+
+    rows = []
+    for name, cam in sorted(out["cameras"].items()):
+        if name in controls or name not in true_cams:
+            continue
+        d = enu(cam) - enu(true_cams[name])
+        dh = (cam["heading"] - true_cams[name]["heading"] + 180) % 360 - 180
+        rows.append((name, np.linalg.norm(d[:2]), d[2], np.linalg.norm(d), dh))
+    print("\n| photo | horizontal (m) | vertical (m) | 3D (m) | heading (deg) |")
+    print("|---|---|---|---|---|")
+    for name, h, v, p, dh in rows:
+        print(f"| {name} | {h:.3f} | {v:+.3f} | {p:.3f} | {dh:+.2f} |")
+    err = np.array([r[1:] for r in rows])
+    print(
+        f"| median | {np.median(err[:, 0]):.3f} | {np.median(np.abs(err[:, 1])):.3f} | "
+        f"{np.median(err[:, 2]):.3f} | {np.median(np.abs(err[:, 3])):.2f} |"
+    )
+    print(
+        f"| max | {err[:, 0].max():.3f} | {np.abs(err[:, 1]).max():.3f} | {err[:, 2].max():.3f} "
+        f"| {np.abs(err[:, 3]).max():.2f} |"
+    )
+    extent = np.ptp(np.array([enu(c) for c in true_cams.values()]), axis=0)
+    print(f"\nThe {len(true_cams)} reference cameras span {extent[0]:.1f} x {extent[1]:.1f} m.")
+    # how far the photos' up (the vertical of the truth and of the fit) is from their mean image-up
+    for label, rec in (("reference", reference), ("reconstruction", None)):
+        rec = rec or pycolmap.Reconstruction(str(Path(args.workspace) / "sparse" / "0"))
+        rotations = [rec.images[i].cam_from_world().rotation.matrix() for i in rec.reg_image_ids()]
+        mean = -np.mean([R[1] for R in rotations], axis=0)
+        angle = math.degrees(math.acos(photo_up(rotations) @ mean / np.linalg.norm(mean)))
+        print(f"{label}: photo_up is {angle:.1f} deg from the mean image-up")
+
+
+if __name__ == "__main__":
+    main()
