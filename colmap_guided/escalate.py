@@ -3,9 +3,9 @@
 The first matching pass is cheap on purpose: pairs are matched most similar first and a pair is
 deferred once both its photos have ``enough`` strongly verified neighbours (``match.BestFirst``),
 and guided LightGlue's pair gate matches nothing where the coarse network sees no overlap. Each of
-those decisions is undone for the photos that mapping leaves out: their deferred and gated pairs are
-matched with the gate off, and the model is extended with them (``reconstruct``), for ``rounds``
-rounds or until no new pair verifies.
+those decisions is undone for the photos that mapping leaves out: their deferred, gated and cheaply
+matched pairs are matched with the full matcher, and the model is extended with them
+(``reconstruct``), for ``rounds`` rounds or until no new pair verifies.
 """
 
 from __future__ import annotations
@@ -43,19 +43,25 @@ def pairs_to_escalate(
     selected: list[tuple[str, str]],
     done: set,
     per_photo: int,
+    cheap_inliers: int | None = None,
 ) -> list[tuple[str, str]]:
     """The ``selected`` pairs (most similar first) of the photos ``left`` out of the model that the
-    first pass did not match for real, deferred (no matches) or gated (none kept), up to
-    ``per_photo`` for each; ``done``: pairs escalated already."""
+    first pass did not match with the full matcher, up to ``per_photo`` for each: deferred (no
+    matches), gated (none kept) or, with a cheap pass that keeps pairs of ``cheap_inliers``
+    verified inliers, those with that many (the full matcher finds more, which a photo that mapping
+    could not place may need); ``done``: pairs escalated already."""
     with dbio.open_database(database_path) as db:
         ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
-        counts = dbio.pair_match_counts(db)
+        counts, inliers = dbio.pair_match_counts(db), dbio.pair_inlier_counts(db)
     taken, todo = Counter(), []
     for a, b in selected:
         wants = [name for name in (a, b) if name in left and taken[name] < per_photo]
         if not wants or (a, b) in done:
             continue
-        if counts.get((min(ids[a], ids[b]), max(ids[a], ids[b])), 0) == 0:
+        key = (min(ids[a], ids[b]), max(ids[a], ids[b]))
+        if counts.get(key, 0) == 0 or (
+            cheap_inliers is not None and inliers.get(key, 0) >= cheap_inliers
+        ):
             taken.update(wants)
             todo.append((a, b))
     return todo

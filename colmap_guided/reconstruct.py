@@ -75,15 +75,20 @@ def _escalate(
     image_path: Path,
     timings: dict,
 ) -> tuple[dict, list[dict]]:
-    """``escalate``'s rounds: the photos left out of the model get their deferred and gated pairs
-    matched with the gate off, then the model is extended with them. Returns the models and what
-    each round did."""
+    """``escalate``'s rounds: the photos left out of the model get their deferred, gated and cheaply
+    matched pairs matched with the full matcher, then the model is extended with them. Returns the
+    models and what each round did."""
     database_path, rounds, done, full = output / "database.db", [], set(), None
     for _ in range(conf.escalation.rounds):
         registered = _registered(models)
         left = set(usable) - registered
         todo = escalate.pairs_to_escalate(
-            database_path, left, selected, done, conf.escalation.pairs_per_photo
+            database_path,
+            left,
+            selected,
+            done,
+            conf.escalation.pairs_per_photo,
+            matcher.conf.get("cheap_inliers"),
         )
         if not todo:
             break
