@@ -34,7 +34,7 @@ LOCALIZE_MATCHER_FLAGS = ["weights", "device"]  # localize keeps the matcher's r
 
 def _add_pipeline_flags(parser: argparse.ArgumentParser, reconstruct: bool) -> None:
     """reconstruct's (all) or match's (matcher and pairs) options of ``pipeline.PipelineConf``."""
-    from . import features, mapping, pipeline
+    from . import escalate, features, mapping, pipeline
     from .executor import EXECUTORS
     from .features import aliked
     from .matchers import AUTO
@@ -67,6 +67,8 @@ def _add_pipeline_flags(parser: argparse.ArgumentParser, reconstruct: bool) -> N
             choices={"mapper": mapping.MAPPERS},
             flags=MAPPING_FLAGS,
         )
+        group = parser.add_argument_group("escalation options (where the learned matcher runs)")
+        add_conf_flags(group, escalate, types={"enough": none_or(int)})
     group = _add_matcher_flags(parser, MATCHER_FLAGS)
     add_conf_flags(
         group,
@@ -110,7 +112,7 @@ def _add_localize_flags(parser: argparse.ArgumentParser) -> None:
 def conf_from_args(args: argparse.Namespace) -> PipelineConf:
     """The ``PipelineConf`` of reconstruct's or match's flags, without the matcher options
     (``matcher_conf_from_args``: checked against the matcher once it is chosen)."""
-    from . import features, mapping, pipeline
+    from . import escalate, features, mapping, pipeline
     from .features import aliked
 
     pairs = [f.name for f in dataclasses.fields(pipeline.PairsConf)]
@@ -122,6 +124,7 @@ def conf_from_args(args: argparse.Namespace) -> PipelineConf:
             "aliked": {k: v for k, v in given.items() if v is not None},
         }
         conf["mapping"] = conf_from_flags(args, mapping, MAPPING_FLAGS, "mapping", MAPPING_FLAGS)
+        conf["escalation"] = conf_from_flags(args, escalate, list(escalate.default_conf))
     return pipeline.PipelineConf.from_dict(conf)
 
 

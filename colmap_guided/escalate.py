@@ -20,8 +20,8 @@ default_conf = {
     # with strong_inliers; the rest wait for escalation (None: every selected pair is matched)
     "enough": 5,
     "strong_inliers": 100,  # inliers that make a verified neighbour count towards enough
-    # rounds in which photos left out of the model get their deferred and gated pairs matched with
-    # the gate off and join the model (0: none)
+    # rounds in which photos left out of the model get their deferred, gated and cheaply matched
+    # pairs matched by the full matcher and join the model (0: none)
     "rounds": 2,
     # pairs a left-out photo gets per round, its most similar first: an unrelated photo (always
     # left out) costs this many, not all its pairs

@@ -89,3 +89,15 @@ def test_a_photo_the_pair_gate_left_out_is_escalated_into_the_model(synthetic_sc
         conf=PipelineConf.from_dict({"mapping": {"num_threads": 1}}),
     )
     assert again["database"]["num_pairs_matched_now"] == 0 and again["num_registered"] == 8
+
+
+def test_escalation_options_are_reconstruct_flags():
+    from colmap_guided.__main__ import build_parser, conf_from_args
+
+    def conf(*flags):
+        return conf_from_args(build_parser().parse_args(["reconstruct", "scene", *flags]))
+
+    assert conf().escalation.enough == 5 and conf().escalation.rounds == 2
+    every = conf("--enough", "none", "--rounds", "0", "--pairs_per_photo", "8")
+    assert (every.escalation.enough, every.escalation.rounds) == (None, 0)
+    assert every.escalation.pairs_per_photo == 8

