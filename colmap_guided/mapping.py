@@ -57,6 +57,7 @@ default_conf = {
     # keep every photo): its pose rests on too little (proxy: 14 of the 21 such photos were off the
     # reference pose).
     "min_image_points": 15,
+    "image_names": None,  # map only these photos (None: all; repeated prints leave some out)
 }
 
 
@@ -79,6 +80,7 @@ def _pipeline_options(options, conf: dict):
     """The options that incremental and global pipelines share, set from ``conf``."""
     for key in ("num_threads", "min_model_size", "min_num_matches"):
         setattr(options, key, conf[key])
+    options.image_names = list(conf["image_names"] or [])
     return options
 
 

@@ -15,8 +15,8 @@ import dataclasses
 import time
 from pathlib import Path
 
+from . import cards, export, features, html_report, mapping, match, model_check, report
 from . import database as dbio
-from . import export, features, html_report, mapping, match, model_check, report
 from .log import logger
 from .matchers import Matcher, get_matcher, resolve_auto
 from .pipeline import MatcherConf, PipelineConf
@@ -34,6 +34,7 @@ WRITES = (
     "report.json.partial",
     "report.html",
     "report.html.partial",
+    cards.PANELS,
 )
 
 
@@ -107,7 +108,11 @@ def reconstruct(
     timings = {}
 
     start = time.time()
+    card_conf = cards.check_conf(feature_conf["cards"])
+    layouts = cards.find_layouts(image_path, image_names, card_conf)
+    image_names, panels = cards.split_collages(image_path, output, image_names, layouts)
     extraction = features.extract_features(database_path, image_path, image_names, feature_conf)
+    masked = cards.mask_keypoints(database_path, layouts)
     timings["extract"] = time.time() - start
     usable = [name for name in image_names if name not in extraction["skipped"]]
     if len(usable) < 2:
@@ -125,7 +130,11 @@ def reconstruct(
 
     start = time.time()
     sparse_path = output / "sparse"
-    models = mapping.run_mapping(database_path, image_path, sparse_path, mapping_conf)
+    prints = cards.repeated_prints(database_path, card_conf)
+    mapped = [name for name in usable if name not in prints] if prints else None
+    models = mapping.run_mapping(
+        database_path, image_path, sparse_path, {**mapping_conf, "image_names": mapped}
+    )
     timings["map"] = time.time() - start
 
     stats = report.model_statistics(models, image_names)
@@ -151,6 +160,7 @@ def reconstruct(
         "eras": report.era_ratios(eras, stats["registered_images"], image_names) if eras else {},
         "database": match_stats,
         "skipped_images": extraction["skipped"],
+        **cards.card_report(layouts, panels, masked, prints, set(stats["registered_images"])),
         "manifest_path": str(Path(scene_dir).resolve() / "manifest.json") if eras else None,
         "exports": export.export_model(models[0], sparse_path / "0") if models else {},
         "timings": timings,
@@ -173,6 +183,7 @@ def reconstruct(
         extraction["skipped"],
         result["options"]["verification"]["min_num_inliers"],
     )
+    result["unregistered"].update(cards.explain_prints(prints, set(stats["registered_images"])))
     result["html_report_path"] = str(output / "report.html")
     try:
         html_report.write_html_report(
