@@ -44,6 +44,9 @@ default_conf = {
     # first, at most the second)
     "paper_tolerance": (10.0, 25.0),
     "min_panel_area": 0.005,  # a picture covers at least this share of the card
+    # keypoints closer than this share of the longer side to a picture's edge go too (their patch
+    # is half paper)
+    "edge_margin": 0.005,
     # a row or column of a collage's gutter: at least this share of it is paper
     "gutter_share": 0.4,
     "gutter_tolerance": 30.0,  # a gutter's pixels: within this Lab distance of the paper
@@ -155,7 +158,7 @@ def _split(
             ]
             if all(_textured(texture, part, 0.15) for part in parts):  # (not paper round an oval)
                 return [p for part in parts for p in _split(gutter, texture, part, conf, depth + 1)]
-    return [_trim(gutter, box, conf)] if depth else [box]
+    return [_trim(gutter, box, conf)]
 
 
 def _trim(paper: np.ndarray, box: Box, conf: dict) -> Box:
@@ -166,8 +169,8 @@ def _trim(paper: np.ndarray, box: Box, conf: dict) -> Box:
     cols = np.flatnonzero(crop.mean(axis=0) < conf["gutter_share"])
     if not len(rows) or not len(cols):
         return box
-    # at most a gutter's width: a light sky along a panel's edge stays in it
-    dx, dy = (round(conf["max_gutter_width"] * n) for n in crop.shape[::-1])
+    # a few pixels at most: the paper the smoothing blurred in, not a light sky along an edge
+    dx, dy = (round(0.015 * n) for n in crop.shape[::-1])
     return (
         x0 + min(int(cols[0]), dx),
         y0 + min(int(rows[0]), dy),
@@ -373,7 +376,7 @@ def split_collages(
     return out, panels
 
 
-def mask_keypoints(database_path: Path, layouts: dict[str, Layout]) -> dict[str, int]:
+def mask_keypoints(database_path: Path, layouts: dict[str, Layout], conf: dict) -> dict[str, int]:
     """Remove the keypoints outside the picture of every single-picture card in the database
     (border, caption band, publisher's mark); {name: keypoints removed}. Run before matching: a
     photo whose keypoints all lie in its picture is left as it is, so a rerun changes nothing."""
@@ -383,13 +386,16 @@ def mask_keypoints(database_path: Path, layouts: dict[str, Layout]) -> dict[str,
         return removed
     with dbio.open_database(database_path) as db:
         by_name = dbio.images_with_keypoints(db, descriptors=True)
+        centre_cameras(db, {n: layout for n, layout in todo.items() if n in by_name})
         kept = {}
         for name, layout in todo.items():
             if name not in by_name:
                 continue
             image_id = by_name[name].image_id
             keypoints = dbio.read_keypoints(db, image_id)
-            inside = in_box(keypoints[:, :2], layout.picture)
+            margin = conf["edge_margin"] * max(layout.size)
+            x0, y0, x1, y1 = layout.picture
+            inside = in_box(keypoints[:, :2], (x0 + margin, y0 + margin, x1 - margin, y1 - margin))
             if not inside.all():
                 descriptors, kind = dbio.read_descriptors(db, image_id)
                 kept[name] = (image_id, keypoints[inside], descriptors[inside], kind)
@@ -412,21 +418,39 @@ def mask_keypoints(database_path: Path, layouts: dict[str, Layout]) -> dict[str,
     return removed
 
 
+def centre_cameras(db, layouts: dict[str, Layout]) -> None:
+    """The camera of each card (its own; a shared one is left alone) gets its principal point at
+    the picture's centre, and without an EXIF focal length COLMAP's prior for the picture's size:
+    the scan's centre is not the photo's (a caption band shifts it), and mapping keeps the
+    principal point fixed."""
+    images_by_name = dbio.images_by_name(db)
+    users: dict[int, int] = {}
+    for image in images_by_name.values():
+        users[image.camera_id] = users.get(image.camera_id, 0) + 1
+    for name, layout in layouts.items():
+        camera_id = images_by_name[name].camera_id
+        if users[camera_id] > 1:
+            continue
+        camera = dbio.read_camera(db, camera_id)
+        x0, y0, x1, y1 = layout.picture
+        if (camera.principal_point_x, camera.principal_point_y) == ((x0 + x1) / 2, (y0 + y1) / 2):
+            continue
+        camera.principal_point_x, camera.principal_point_y = (x0 + x1) / 2, (y0 + y1) / 2
+        if not camera.has_prior_focal_length:
+            camera.focal_length = 1.2 * max(x1 - x0, y1 - y0)  # COLMAP's prior, for the picture
+        db.update_camera(camera)
+
+
 def in_box(xy: np.ndarray, box: Box) -> np.ndarray:
     """Which points (COLMAP's pixel convention: a pixel's centre at +0.5) lie in ``box``."""
     x0, y0, x1, y1 = box
     return (xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)
 
 
-def _same_print(
-    xy_a: np.ndarray, xy_b: np.ndarray, size_a: tuple, size_b: tuple, conf: dict
-) -> dict | None:
-    """Evidence that two pictures are one print (matched points ``xy_a`` ~ ``xy_b``): a similarity
-    transform (scale, turn, shift: a rescan, a crop) explains nearly all, covering much of one
-    picture; None otherwise. Two views of a planar facade from two places need a perspective
-    homography and fail here."""
-    if len(xy_a) < conf["min_print_inliers"]:
-        return None
+def print_fit(xy_a: np.ndarray, xy_b: np.ndarray, size_a: tuple, size_b: tuple, conf: dict) -> dict:
+    """How well one similarity transform (scale, turn, shift: a rescan, a crop) maps the matched
+    points ``xy_a`` onto ``xy_b``: its inliers (within ``max_print_error`` of picture b's
+    diagonal), their share, and the share of the pictures they cover (the larger)."""
     threshold = conf["max_print_error"] * float(np.hypot(*size_b))
     model, inliers = cv2.estimateAffinePartial2D(
         xy_a.astype(np.float32),
@@ -437,58 +461,69 @@ def _same_print(
         confidence=0.999,
     )
     if model is None:
-        return None
+        return {"inliers": 0, "inlier_ratio": 0.0, "cover": 0.0}
     inliers = inliers.ravel().astype(bool)
-    ratio = float(inliers.mean())
-    if ratio < conf["min_print_inlier_ratio"]:
-        return None
     cover = max(
         cv2.contourArea(cv2.convexHull(xy[inliers].astype(np.float32))) / (size[0] * size[1])
+        if inliers.sum() >= 3
+        else 0.0
         for xy, size in ((xy_a, size_a), (xy_b, size_b))
     )
-    if cover < conf["min_print_cover"]:
-        return None
     return {
         "inliers": int(inliers.sum()),
-        "inlier_ratio": round(ratio, 3),
-        "cover": round(cover, 3),
+        "inlier_ratio": round(float(inliers.mean()), 3),
+        "cover": round(float(cover), 3),
     }
 
 
-def repeated_prints(database_path: Path, conf: dict) -> dict[str, dict]:
-    """{photo: {"same_picture_as": representative, evidence}} for every verified pair that is one
-    print twice (``_same_print``), grouped: each group keeps as representative its photo with the
-    most verified inliers to the others; the rest share its viewpoint, so they are no independent
-    evidence and are left out of mapping."""
-    if not conf["enabled"]:
-        return {}
+def is_same_print(fit: dict, conf: dict) -> bool:
+    """One print twice: the similarity explains nearly all verified inliers over much of a
+    picture. Two views of a planar facade from two places need a perspective homography and
+    fail."""
+    return (
+        fit["inliers"] >= conf["min_print_inliers"]
+        and fit["inlier_ratio"] >= conf["min_print_inlier_ratio"]
+        and fit["cover"] >= conf["min_print_cover"]
+    )
+
+
+def print_fits(database_path: Path, conf: dict) -> tuple[list[tuple[str, str, dict]], dict]:
+    """(``print_fit`` of every verified pair with at least ``min_print_inliers`` inliers, as
+    (name a, name b, fit); {name: verified inliers with all others})."""
+    fits, support = [], {}
     with dbio.open_database(database_path) as db:
         names = dbio.image_names(db)
         inliers = dbio.read_verified_inliers(db)
-        cameras = {
-            image.image_id: db.read_camera(image.camera_id) for image in db.read_all_images()
-        }
+        sizes = {}
+        for image in db.read_all_images():
+            camera = db.read_camera(image.camera_id)
+            sizes[image.image_id] = (camera.width, camera.height)
         keypoints: dict[int, np.ndarray] = {}
-        pairs = []
         for (id_a, id_b), matches in inliers.items():
+            for image_id in (id_a, id_b):
+                support[names[image_id]] = support.get(names[image_id], 0) + len(matches)
             if len(matches) < conf["min_print_inliers"]:
                 continue
             for image_id in (id_a, id_b):
                 if image_id not in keypoints:
                     keypoints[image_id] = dbio.read_keypoints(db, image_id)[:, :2]
-            size_a = (cameras[id_a].width, cameras[id_a].height)
-            size_b = (cameras[id_b].width, cameras[id_b].height)
-            evidence = _same_print(
-                keypoints[id_a][matches[:, 0]], keypoints[id_b][matches[:, 1]], size_a, size_b, conf
-            )
-            if evidence is not None:
-                pairs.append((names[id_a], names[id_b], evidence))
+            xy_a, xy_b = keypoints[id_a][matches[:, 0]], keypoints[id_b][matches[:, 1]]
+            fit = print_fit(xy_a, xy_b, sizes[id_a], sizes[id_b], conf)
+            fits.append((names[id_a], names[id_b], fit))
+    return fits, support
+
+
+def repeated_prints(database_path: Path, conf: dict) -> dict[str, dict]:
+    """{photo: {"same_picture_as": representative, fit}} for every verified pair that is one
+    print twice (``is_same_print``), grouped: each group keeps as representative its photo with
+    the most verified inliers to the others; the rest share its viewpoint, so they are no
+    independent evidence and are left out of mapping."""
+    if not conf["enabled"]:
+        return {}
+    fits, support = print_fits(database_path, conf)
+    pairs = [(a, b, fit) for a, b, fit in fits if is_same_print(fit, conf)]
     if not pairs:
         return {}
-    support: dict[str, int] = {}
-    for (id_a, id_b), matches in inliers.items():
-        for image_id in (id_a, id_b):
-            support[names[image_id]] = support.get(names[image_id], 0) + len(matches)
     # groups: connected components of the same-print pairs
     group = {name: name for pair in pairs for name in pair[:2]}
 

@@ -112,7 +112,7 @@ def reconstruct(
     layouts = cards.find_layouts(image_path, image_names, card_conf)
     image_names, panels = cards.split_collages(image_path, output, image_names, layouts)
     extraction = features.extract_features(database_path, image_path, image_names, feature_conf)
-    masked = cards.mask_keypoints(database_path, layouts)
+    masked = cards.mask_keypoints(database_path, layouts, card_conf)
     timings["extract"] = time.time() - start
     usable = [name for name in image_names if name not in extraction["skipped"]]
     if len(usable) < 2:
