@@ -356,7 +356,7 @@ def _cards_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
         if thumbnails:
             try:
                 thumb, sx, sy = images.read_thumbnail(image_path / name, 240)
-                thumb = np.ascontiguousarray(thumb)
+                thumb = thumb.copy()  # (drawn on)
                 boxes = [card["picture"]] + [p["box"] for p in card.get("panels", [])]
                 for k, (x0, y0, x1, y1) in enumerate(boxes):
                     colour = (0, 170, 0) if k == 0 else (255, 140, 0)

@@ -184,6 +184,8 @@ def reconstruct(
         result["options"]["verification"]["min_num_inliers"],
     )
     result["unregistered"].update(cards.explain_prints(prints, set(stats["registered_images"])))
+    if not models:
+        result["no_model"] = report.explain_no_model(database_path, mapping_conf, prints)
     result["html_report_path"] = str(output / "report.html")
     try:
         html_report.write_html_report(

@@ -202,3 +202,23 @@ def test_ordinary_photos_keep_every_pixel(shared_data):
             shared_data / folder / "images", photos, cards.check_conf(None)
         )
         assert layouts == {}, folder
+
+
+@pytest.mark.slow
+def test_real_repeated_prints_are_grouped_and_ordinary_pairs_are_not(shared_data, tmp_path):
+    essen = shared_data / "postcards_cmahnke" / "boerse-essen"
+    if not essen.is_dir():
+        pytest.skip(f"{essen} not found")
+    result = reconstruct(essen, output=tmp_path / "essen", matcher="raw")
+    pairs = {
+        (Path(name).name, Path(e["same_picture_as"]).name)
+        for name, e in result["repeated_prints"].items()
+    }
+    # each panel of one print with the same panel of the other
+    assert {tuple(sorted(pair)) for pair in pairs} == {
+        (f"boerse-essen-2_p{k}.jpg", f"boerse-essen-3_p{k}.jpg") for k in range(1, 5)
+    }
+    for scene in ("sacre_coeur_hloc", "lund_door_gtsfm"):
+        result = reconstruct(shared_data / scene, output=tmp_path / scene, matcher="raw")
+        assert result["database"]["num_verified_pairs"] > 10
+        assert result["repeated_prints"] == {}, scene
