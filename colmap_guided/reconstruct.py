@@ -135,6 +135,11 @@ def reconstruct(
     models = mapping.run_mapping(
         database_path, image_path, sparse_path, {**mapping_conf, "image_names": mapped}
     )
+    weak_start = not models and match_stats["num_verified_pairs"] > 0
+    if weak_start:
+        models = mapping.map_weak_start(
+            database_path, image_path, sparse_path, {**mapping_conf, "image_names": mapped}
+        )
     timings["map"] = time.time() - start
 
     stats = report.model_statistics(models, image_names)
@@ -157,6 +162,7 @@ def reconstruct(
         },
         "model": stats,
         "model_check": checked,
+        "weak_start": mapping.WEAK_START if weak_start else None,
         "eras": report.era_ratios(eras, stats["registered_images"], image_names) if eras else {},
         "database": match_stats,
         "skipped_images": extraction["skipped"],
