@@ -13,7 +13,9 @@ share one viewpoint: they are not two views.
   keeps every pixel);
 - ``split_collages``: each panel of a collage card cropped into the workspace
   (``WORKSPACE/panels/<card>_p<k>.jpg``) and mapped as a photo of its own, in place of the card;
-- ``mask_keypoints``: keypoints off the border and caption band of single-picture cards;
+- ``mask_keypoints``: keypoints off the border and caption band of single-picture cards, whose
+  camera is centred on the picture (a caption band shifts it off the scan's centre); a caption
+  printed over the photo itself stays;
 - ``repeated_prints``: verified pairs whose inliers a similarity transform explains nearly all,
   covering much of one picture: one print of the group is mapped, the others are reported as
   the same picture.
@@ -53,7 +55,7 @@ default_conf = {
     "max_gutter_width": 0.05,  # a gutter is at most this share of the split side
     "min_part": 0.12,  # each side of a gutter is at least this share of the split side
     # a repeated print: a similarity transform explains at least this share of the pair's
-    # verified inliers, within max_print_error of the smaller picture's diagonal ...
+    # verified inliers, within max_print_error of the second picture's diagonal ...
     "min_print_inlier_ratio": 0.9,
     "max_print_error": 0.004,
     "min_print_inliers": 50,
@@ -101,13 +103,13 @@ def paper_colour(lab: np.ndarray, conf: dict) -> tuple[np.ndarray, float] | None
     spread = float(np.median(np.linalg.norm(ring - colour, axis=1)))
     if spread > conf["max_ring_spread"]:
         return None
+    low, high = conf["paper_tolerance"]
+    tolerance = float(np.clip(3 * spread, low, high))
     # paper on every side: a photo with a uniform sky and a dark foreground is not a card
-    near = max(10.0, 3 * spread)
-    paper = sorted(np.mean(np.linalg.norm(s - colour, axis=1) < near) for s in sides)
+    paper = sorted(np.mean(np.linalg.norm(s - colour, axis=1) < tolerance) for s in sides)
     if paper[0] < 0.5 or paper[1] < 0.6:  # (one side may carry a caption or a scanner's shadow)
         return None
-    low, high = conf["paper_tolerance"]
-    return colour, float(np.clip(3 * spread, low, high))
+    return colour, tolerance
 
 
 def _runs(flags: np.ndarray) -> list[tuple[int, int]]:
@@ -230,7 +232,7 @@ def _is_picture(own: np.ndarray) -> bool:
     box) fills its convex hull, or the bands along the box's sides (a coat of arms or a lettering
     does neither)."""
     h, w = own.shape
-    if not 0.25 <= w / h <= 4:
+    if not _upright((0, 0, w, h)):
         return False
     hull = cv2.contourArea(cv2.convexHull(cv2.findNonZero(own.astype(np.uint8))))
     dy, dx = max(1, round(0.08 * h)), max(1, round(0.08 * w))

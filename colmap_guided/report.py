@@ -227,9 +227,10 @@ def explain_no_model(database_path: Path, mapping_conf: dict, left_out=()) -> di
     need, start = mapping_conf["min_model_size"], mapping_conf["init_min_num_inliers"]
     if not pairs:
         why = (
-            f"No two photos share {mapping_conf['min_num_matches']} verified matches: nothing "
-            "links them. Try --camera_mode single if the photos come from one camera, or add "
-            "photos taken between the existing ones."
+            f"No two photos share {mapping_conf['min_num_matches']} verified matches"
+            + (" (apart from repeated prints of one picture, mapped once)" if left_out else "")
+            + ": nothing links them. Try --camera_mode single if the photos come from one "
+            "camera, or add photos taken between the existing ones."
         )
     elif largest < need:
         why = (
