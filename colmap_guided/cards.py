@@ -402,18 +402,10 @@ def mask_keypoints(database_path: Path, layouts: dict[str, Layout], conf: dict) 
             inside = in_box(keypoints[:, :2], (x0 + margin, y0 + margin, x1 - margin, y1 - margin))
             if not inside.all():
                 descriptors, kind = dbio.read_descriptors(db, image_id)
-                kept[name] = (image_id, keypoints[inside], descriptors[inside], kind)
+                kept[image_id] = (keypoints[inside], descriptors[inside], kind)
                 removed[name] = int((~inside).sum())
     if kept:
-        # COLMAP's database writes keypoints and descriptors once: the old rows go first
-        with dbio.sqlite_connection(database_path) as connection:
-            for image_id, *_ in kept.values():
-                connection.execute("DELETE FROM keypoints WHERE image_id = ?", (image_id,))
-                connection.execute("DELETE FROM descriptors WHERE image_id = ?", (image_id,))
-            connection.commit()
-        with dbio.open_database(database_path) as db, dbio.transaction(db):
-            for image_id, keypoints, descriptors, kind in kept.values():
-                dbio.write_features(db, image_id, keypoints, descriptors, kind)
+        dbio.replace_features(database_path, kept)
         logger.info(
             "Removed %d keypoints on the borders and captions of %d card(s).",
             sum(removed.values()),
@@ -442,7 +434,7 @@ def centre_cameras(db, layouts: dict[str, Layout]) -> None:
         camera.principal_point_x, camera.principal_point_y = (x0 + x1) / 2, (y0 + y1) / 2
         if not camera.has_prior_focal_length:
             camera.focal_length = 1.2 * max(x1 - x0, y1 - y0)  # COLMAP's prior, for the picture
-        db.update_camera(camera)
+        dbio.update_camera(db, camera)
 
 
 def in_box(xy: np.ndarray, box: Box) -> np.ndarray:
@@ -499,8 +491,8 @@ def print_fits(database_path: Path, conf: dict) -> tuple[list[tuple[str, str, di
         names = dbio.image_names(db)
         inliers = dbio.read_verified_inliers(db)
         sizes = {}
-        for image in db.read_all_images():
-            camera = db.read_camera(image.camera_id)
+        for image in dbio.images_by_name(db).values():
+            camera = dbio.read_camera(db, image.camera_id)
             sizes[image.image_id] = (camera.width, camera.height)
         keypoints: dict[int, np.ndarray] = {}
         for (id_a, id_b), matches in inliers.items():
