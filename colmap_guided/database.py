@@ -133,6 +133,10 @@ def write_camera(db: pycolmap.Database, camera: pycolmap.Camera) -> int:
     return db.write_camera(camera)
 
 
+def update_camera(db: pycolmap.Database, camera: pycolmap.Camera) -> None:
+    db.update_camera(camera)
+
+
 def add_image(db: pycolmap.Database, name: str, camera: pycolmap.Camera) -> int:
     """A camera's image with its rig (one per camera, shared) and frame, as COLMAP's feature
     extractor writes them."""
@@ -235,6 +239,20 @@ def write_features(
                 )
             ),
         )
+
+
+def replace_features(path: Path, features: dict[int, tuple[np.ndarray, np.ndarray, str]]) -> None:
+    """Replace the keypoints and descriptors of images {image_id: (keypoints, descriptors, kind)}
+    (COLMAP writes an image's rows once: the old ones are deleted first). Before matching only:
+    matches index the keypoints."""
+    with sqlite_connection(path) as connection:
+        for image_id in features:
+            connection.execute("DELETE FROM keypoints WHERE image_id = ?", (image_id,))
+            connection.execute("DELETE FROM descriptors WHERE image_id = ?", (image_id,))
+        connection.commit()
+    with open_database(path) as db, transaction(db):
+        for image_id, (keypoints, descriptors, kind) in features.items():
+            write_features(db, image_id, keypoints, descriptors, kind)
 
 
 def check_image_folder(db: pycolmap.Database, image_path: Path) -> None:

@@ -23,6 +23,7 @@ import datetime
 import html
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pycolmap
 
@@ -41,8 +42,6 @@ CSS = embed.asset("report.css")  # the page's style sheet, the 3D view's include
 
 def _thumbnail(image, max_side: int) -> tuple[np.ndarray, float, float]:
     if isinstance(image, np.ndarray):
-        import cv2
-
         h, w = image.shape[:2]
         s = min(1.0, max_side / max(h, w))
         size = (max(1, round(w * s)), max(1, round(h * s)))
@@ -370,6 +369,60 @@ def _load_model(report: dict):
     return pycolmap.Reconstruction(str(path))
 
 
+def _cards_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
+    """Scanned cards: the picture kept (green) and the panels cut out (orange, numbered), and the
+    repeated prints."""
+    cards, prints = report.get("cards") or {}, report.get("repeated_prints") or {}
+    if not cards and not prints:
+        return []
+    esc = html.escape
+    out = [
+        "<h2>Scanned cards</h2><p>Keypoints are kept only on the picture (green): not on the "
+        "card's border, caption or publisher's mark. The pictures of a collage card (orange) "
+        "are mapped as photos of their own.</p><table>",
+    ]
+    for name, card in cards.items():
+        figure = ""
+        if thumbnails:
+            try:
+                thumb, sx, sy = images.read_thumbnail(image_path / name, 240)
+                thumb = thumb.copy()  # (drawn on)
+                boxes = [card["picture"]] + [p["box"] for p in card.get("panels", [])]
+                for k, (x0, y0, x1, y1) in enumerate(boxes):
+                    colour = (0, 170, 0) if k == 0 else (255, 140, 0)
+                    corners = (int(x0 * sx), int(y0 * sy)), (int(x1 * sx) - 1, int(y1 * sy) - 1)
+                    cv2.rectangle(thumb, *corners, colour, 2)
+                    if k:
+                        cv2.putText(
+                            thumb,
+                            str(k),
+                            corners[0][:1] + (corners[0][1] + 14,),
+                            cv2.FONT_HERSHEY_SIMPLEX,
+                            0.5,
+                            colour,
+                            2,
+                        )
+                figure = f"<img src='{embed.encode_jpeg(thumb, 80)}' alt='{esc(name)}'>"
+            except Exception:  # noqa: BLE001 - a photo moved away since the run
+                figure = ""
+        if card.get("panels"):
+            what = f"{len(card['panels'])} pictures: " + ", ".join(
+                f"{k} {esc(p['name'].rsplit('/', 1)[-1])} "
+                + ("(placed)" if p["registered"] else "(not placed)")
+                for k, p in enumerate(card["panels"], 1)
+            )
+        else:
+            what = f"{card.get('keypoints_masked', 0)} keypoints removed outside the picture"
+        out.append(f"<tr><td>{figure}</td><td>{esc(name)}</td><td>{what}</td></tr>")
+    for name, evidence in prints.items():
+        out.append(
+            f"<tr><td>{_img(image_path / name, thumbnails)}</td><td>{esc(name)}</td><td>same "
+            f"picture as {esc(evidence['same_picture_as'])}: mapped once</td></tr>"
+        )
+    out.append("</table>")
+    return out
+
+
 def render_html(
     report: dict, panels: list[Panel] | None = None, thumbnails: bool = True, reconstruction=None
 ) -> str:
@@ -449,6 +502,7 @@ def render_html(
         )
     out += _why_table(report, image_path, thumbnails)
     out += _localized_table(report, image_path, thumbnails)
+    out += _cards_table(report, image_path, thumbnails)
 
     out.append("<h2>Matches of a few pairs</h2>")
     if panels:

@@ -52,12 +52,14 @@ default_conf = {
     # Incremental (and hierarchical) thresholds for thin view graphs; COLMAP's defaults in brackets.
     # inliers of the initial pair [100]: a ring of ~50-inlier pairs can start a model
     "init_min_num_inliers": 50,
+    "init_min_tri_angle": 16.0,  # degrees of parallax the initial pair needs [16]
     # 2D-3D inliers to register a photo [30]: a ring's next photo sees ~25 points
     "abs_pose_min_num_inliers": 15,
     # A photo that observes fewer 3D points than this in the final model is taken out of it (None =
     # keep every photo): its pose rests on too little (proxy: 14 of the 21 such photos were off the
     # reference pose).
     "min_image_points": 15,
+    "image_names": None,  # map only these photos (None: all; repeated prints leave some out)
 }
 
 
@@ -80,12 +82,14 @@ def _pipeline_options(options, conf: dict):
     """The options that incremental and global pipelines share, set from ``conf``."""
     for key in ("num_threads", "min_model_size", "min_num_matches"):
         setattr(options, key, conf[key])
+    options.image_names = list(conf["image_names"] or [])
     return options
 
 
 def _incremental_options(conf: dict) -> pycolmap.IncrementalPipelineOptions:
     options = _pipeline_options(pycolmap.IncrementalPipelineOptions(), conf)
     options.mapper.init_min_num_inliers = conf["init_min_num_inliers"]
+    options.mapper.init_min_tri_angle = conf["init_min_tri_angle"]
     options.mapper.abs_pose_min_num_inliers = conf["abs_pose_min_num_inliers"]
     for seeded in (options, options.mapper, options.triangulation):
         seeded.random_seed = _colmap_seed(conf)
@@ -300,6 +304,28 @@ def run_mapping(
         shutil.rmtree(sparse_path)
     tmp.rename(sparse_path)
     return dict(enumerate(ordered))
+
+
+# A second try's initial pair when the first made no model although pairs verified: a few prints
+# linked by a few dozen inliers, taken from nearby places.
+WEAK_START = {"init_min_num_inliers": 15, "init_min_tri_angle": 4.0}
+
+
+def map_weak_start(
+    database_path: Path, image_path: Path, sparse_path: Path, conf: dict
+) -> dict[int, pycolmap.Reconstruction]:
+    """``run_mapping`` with ``WEAK_START``'s thresholds; of its models only those that pass the
+    model check are kept (``sparse_path`` rewritten with them)."""
+    models = run_mapping(database_path, image_path, sparse_path, {**conf, **WEAK_START})
+    kept = [rec for rec in models.values() if not model_check.check_model(rec)]
+    if len(kept) < len(models):
+        shutil.rmtree(sparse_path)
+        for index, rec in enumerate(kept):
+            (sparse_path / str(index)).mkdir(parents=True)
+            rec.write(str(sparse_path / str(index)))
+        sparse_path.mkdir(exist_ok=True)
+    logger.info("A weaker initial pair (%s): %d model(s) kept.", WEAK_START, len(kept))
+    return dict(enumerate(kept))
 
 
 def load_models(sparse_path: Path) -> dict[int, pycolmap.Reconstruction]:

@@ -15,8 +15,19 @@ import dataclasses
 import time
 from pathlib import Path
 
+from . import (
+    cards,
+    escalate,
+    export,
+    features,
+    html_report,
+    mapping,
+    match,
+    model_check,
+    pairs,
+    report,
+)
 from . import database as dbio
-from . import escalate, export, features, html_report, mapping, match, model_check, pairs, report
 from .log import logger
 from .matchers import Matcher, get_matcher, resolve_auto
 from .pipeline import MatcherConf, PipelineConf
@@ -37,6 +48,7 @@ WRITES = (
     "report.html.partial",
     ESCALATION_PAIRS,
     "geo",  # georeference's
+    cards.PANELS,
 )
 
 
@@ -69,6 +81,7 @@ def _escalate(
     conf: PipelineConf,
     matcher: Matcher,
     models: dict,
+    mapping_conf: dict,
     usable: list[str],
     selected: list[tuple[str, str]],
     output: Path,
@@ -76,8 +89,8 @@ def _escalate(
     timings: dict,
 ) -> tuple[dict, list[dict]]:
     """``escalate``'s rounds: the photos left out of the model get their deferred, gated and cheaply
-    matched pairs matched with the full matcher, then the model is extended with them. Returns the
-    models and what each round did."""
+    matched pairs matched with the full matcher, then the model (of the ``usable`` photos, mapped
+    with ``mapping_conf``) is extended with them. Returns the models and what each round did."""
     database_path, rounds, done, full = output / "database.db", [], set(), None
     for _ in range(conf.escalation.rounds):
         registered = _registered(models)
@@ -108,7 +121,7 @@ def _escalate(
         timings["escalate_match"] = timings.get("escalate_match", 0) + time.time() - start
         start = time.time()
         models = mapping.run_mapping(
-            database_path, image_path, output / "sparse", conf.mapping.to_dict(), bool(models)
+            database_path, image_path, output / "sparse", mapping_conf, bool(models)
         )
         timings["escalate_map"] = timings.get("escalate_map", 0) + time.time() - start
         now = _registered(models)
@@ -173,7 +186,11 @@ def reconstruct(
     timings = {}
 
     start = time.time()
+    card_conf = cards.check_conf(feature_conf["cards"])
+    layouts = cards.find_layouts(image_path, image_names, card_conf)
+    image_names, panels = cards.split_collages(image_path, output, image_names, layouts)
     extraction = features.extract_features(database_path, image_path, image_names, feature_conf)
+    masked = cards.mask_keypoints(database_path, layouts, card_conf)
     timings["extract"] = time.time() - start
     usable = [name for name in image_names if name not in extraction["skipped"]]
     if len(usable) < 2:
@@ -195,10 +212,27 @@ def reconstruct(
 
     start = time.time()
     sparse_path = output / "sparse"
-    models = mapping.run_mapping(database_path, image_path, sparse_path, mapping_conf)
+    prints = cards.repeated_prints(database_path, card_conf)
+    mapped = [name for name in usable if name not in prints] if prints else None
+    models = mapping.run_mapping(
+        database_path, image_path, sparse_path, {**mapping_conf, "image_names": mapped}
+    )
+    weak_start = not models and match_stats["num_verified_pairs"] > 0
+    if weak_start:
+        models = mapping.map_weak_start(
+            database_path, image_path, sparse_path, {**mapping_conf, "image_names": mapped}
+        )
     timings["map"] = time.time() - start
     models, match_stats["escalation"] = _escalate(
-        conf, matcher, models, usable, match_stats.pop("selected"), output, image_path, timings
+        conf,
+        matcher,
+        models,
+        {**mapping_conf, "image_names": mapped},
+        mapped or usable,
+        match_stats.pop("selected"),
+        output,
+        image_path,
+        timings,
     )
 
     stats = report.model_statistics(models, image_names)
@@ -221,9 +255,11 @@ def reconstruct(
         },
         "model": stats,
         "model_check": checked,
+        "weak_start": mapping.WEAK_START if weak_start else None,
         "eras": report.era_ratios(eras, stats["registered_images"], image_names) if eras else {},
         "database": match_stats,
         "skipped_images": extraction["skipped"],
+        **cards.card_report(layouts, panels, masked, prints, set(stats["registered_images"])),
         "manifest_path": str(Path(scene_dir).resolve() / "manifest.json") if eras else None,
         "exports": export.export_model(models[0], sparse_path / "0") if models else {},
         "timings": timings,
@@ -246,6 +282,9 @@ def reconstruct(
         extraction["skipped"],
         result["options"]["verification"]["min_num_inliers"],
     )
+    result["unregistered"].update(cards.explain_prints(prints, set(stats["registered_images"])))
+    if not models:
+        result["no_model"] = report.explain_no_model(database_path, mapping_conf, prints)
     result["html_report_path"] = str(output / "report.html")
     try:
         html_report.write_html_report(

@@ -198,6 +198,63 @@ def explain_unregistered(
     return {name: out[name] for name in todo}
 
 
+def explain_no_model(database_path: Path, mapping_conf: dict, left_out=()) -> dict:
+    """When mapping made no model: which photos are linked to which (verified pairs, strongest
+    first) and why no model could start, in plain words. ``left_out``: photos not mapped
+    (repeated prints)."""
+    from . import database as dbio
+
+    with dbio.open_database(database_path) as db:
+        names = dbio.image_names(db)
+        counts = dbio.pair_inlier_counts(db)
+    pairs = sorted(
+        (
+            (n, names[a], names[b])
+            for (a, b), n in counts.items()
+            if n >= mapping_conf["min_num_matches"]
+            and names[a] not in left_out
+            and names[b] not in left_out
+        ),
+        reverse=True,
+    )
+    group = {name: {name} for _, a, b in pairs for name in (a, b)}
+    for _, a, b in pairs:
+        if group[a] is not group[b]:
+            merged = group[a] | group[b]
+            for name in merged:
+                group[name] = merged
+    largest = max((len(g) for g in group.values()), default=0)
+    need, start = mapping_conf["min_model_size"], mapping_conf["init_min_num_inliers"]
+    if not pairs:
+        why = (
+            f"No two photos share {mapping_conf['min_num_matches']} verified matches"
+            + (" (apart from repeated prints of one picture, mapped once)" if left_out else "")
+            + ": nothing links them. Try --camera_mode single if the photos come from one "
+            "camera, or add photos taken between the existing ones."
+        )
+    elif largest < need:
+        why = (
+            f"The largest group of linked photos holds {largest}; a model needs at least {need} "
+            "(mapping's min_model_size). Add a photo of the same view, or lower min_model_size."
+        )
+    elif pairs[0][0] < start:
+        why = (
+            f"A model starts from a pair with at least {start} verified matches "
+            f"(init_min_num_inliers); the strongest, {pairs[0][1]} ~ {pairs[0][2]}, has "
+            f"{pairs[0][0]}."
+        )
+    else:
+        why = (
+            "Linked pairs exist, but mapping could not start a model it trusts from any of them: "
+            "their photos were taken from nearly the same place (too little parallax to place "
+            "points in depth), or the model failed the model check."
+        )
+    return {
+        "why": why,
+        "linked": [{"photos": [a, b], "verified_matches": n} for n, a, b in pairs[:50]],
+    }
+
+
 def write_report(path: Path, report: dict) -> None:
     tmp = Path(path).with_suffix(".json.partial")
     tmp.write_text(json.dumps(report, indent=2, default=str), encoding="utf-8")
@@ -249,11 +306,11 @@ def summary_text(report: dict) -> str:
             if "num_pairs" in db
             else ""
         )
-        lines.append(
-            f"No model was made{verified}: mapping found no starting pair it "
-            "could trust. Try --camera_mode single if the photos come from "
-            "one camera, or add photos taken between the existing ones."
+        why = (report.get("no_model") or {}).get("why") or (
+            "mapping found no starting pair it could trust. Try --camera_mode single if the "
+            "photos come from one camera, or add photos taken between the existing ones."
         )
+        lines.append(f"No model was made{verified}: {why[:1].lower() + why[1:]}")
         lines.append(f"Report: {report['report_path']}")
     if (report.get("exports") or {}).get("ply"):
         lines.append(f"Points for MeshLab/CloudCompare: {report['exports']['ply']}")

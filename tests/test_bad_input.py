@@ -465,6 +465,7 @@ def test_no_model_is_said_plainly_with_what_to_try(tmp_path, capfd):
     assert code == 0
     report = json.loads((tmp_path / "out" / "report.json").read_text(encoding="utf-8"))
     assert report["model"]["num_models"] == 0 and report["num_registered"] == 0
+    assert report["no_model"]["linked"] == [] and "nothing links them" in report["no_model"]["why"]
     assert not (tmp_path / "out" / "sparse" / "0").exists()
     assert "No model was made" in out and "--camera_mode single" in out
     assert "sparse/0" not in out

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pycolmap
 
+from .. import cards, images
 from .. import database as dbio
-from .. import images
 from ..conf import merge_conf
 from ..database import open_database
 from ..log import logger
@@ -53,6 +53,7 @@ default_conf = {
     "type": "sift",
     "aliked": {},  # ALIKED options (aliked.default_conf)
     "xfeat": {},  # XFeat options (xfeat.default_conf)
+    "cards": {},  # scanned cards' borders, captions and collage panels (cards.default_conf)
     "image_checks": None,  # options of images.check_images (None: its defaults)
     # SIFT on a contrast-stretched grey copy of photos whose 1-99 % grey range is below this
     # fraction of 0-255 (faded prints: COLMAP's SIFT peak threshold is absolute); None = off
@@ -120,6 +121,7 @@ def check_conf(conf: dict | None) -> dict:
     options)."""
     conf = merge_conf(default_conf, conf, "feature")
     images.check_conf(conf["image_checks"])  # a typo there fails before any photo is read
+    cards.check_conf(conf["cards"])
     if conf["camera_mode"] not in CAMERA_MODES:
         raise ValueError(
             f"Unknown camera_mode {conf['camera_mode']!r}; choose one of {sorted(CAMERA_MODES)}."

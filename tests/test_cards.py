@@ -1,0 +1,224 @@
+"""Scanned cards (colmap_guided/cards.py): the picture inside the card, collage cards split into
+their panels, repeated prints mapped once; on real postcards (where ../shared is present) and on
+cards made of rendered views with exact poses."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+
+from colmap_guided import cards
+from colmap_guided import database as dbio
+from colmap_guided.evaluation.ground_truth import pose_errors
+from colmap_guided.reconstruct import reconstruct
+
+PAPER = (236, 240, 244)  # a white card, in RGB
+# views of the synthetic scene used as prints: two on a collage card, one on a captioned card,
+# one printed twice (the second a crop, rescaled)
+COLLAGE, CAPTIONED, REPRINTED = ("view_000.jpg", "view_001.jpg"), "view_002.jpg", "view_003.jpg"
+GUTTER, BORDER, CAPTION = 24, 40, 70
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    return cv2.imread(str(path))[:, :, ::-1].copy()
+
+
+def write_rgb(path: Path, rgb: np.ndarray) -> None:
+    cv2.imwrite(str(path), rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95])
+
+
+def collage_card(views: list[np.ndarray]) -> tuple[np.ndarray, list[tuple]]:
+    """The views side by side on white paper, a gutter between them; and where each lies."""
+    h = max(v.shape[0] for v in views)
+    w = sum(v.shape[1] for v in views) + GUTTER * (len(views) - 1)
+    card = np.empty((h + 2 * BORDER, w + 2 * BORDER, 3), np.uint8)
+    card[:] = PAPER
+    x, boxes = BORDER, []
+    for view in views:
+        card[BORDER : BORDER + view.shape[0], x : x + view.shape[1]] = view
+        boxes.append((x, BORDER, x + view.shape[1], BORDER + view.shape[0]))
+        x += view.shape[1] + GUTTER
+    return card, boxes
+
+
+def captioned_card(view: np.ndarray) -> tuple[np.ndarray, tuple]:
+    """The view on a white card with a caption band of printed text under it."""
+    h, w = view.shape[:2]
+    card = np.empty((h + 2 * BORDER + CAPTION, w + 2 * BORDER, 3), np.uint8)
+    card[:] = PAPER
+    card[BORDER : BORDER + h, BORDER : BORDER + w] = view
+    for line, text in enumerate(("Gruss aus der Altstadt - Rathaus und Markt", "Verlag 1931")):
+        y = BORDER + h + 28 + 30 * line
+        cv2.putText(card, text, (BORDER + 10, y), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (40, 30, 30), 2)
+    return card, (BORDER, BORDER, BORDER + w, BORDER + h)
+
+
+@pytest.fixture(scope="module")
+def card_scene(synthetic_scene, tmp_path_factory):
+    """A folder of photos as an archive holds them: the scene's views, two of them only on one
+    collage card, one only on a captioned card, one also as a cropped, rescaled second print."""
+    root = tmp_path_factory.mktemp("cards")
+    folder = root / "images"
+    folder.mkdir()
+    source = synthetic_scene.image_dir
+    for name in synthetic_scene.names:
+        if name not in (*COLLAGE, CAPTIONED):
+            shutil.copy(source / name, folder / name)
+    collage, collage_boxes = collage_card([read_rgb(source / n) for n in COLLAGE])
+    write_rgb(folder / "collage.jpg", collage)
+    captioned, picture = captioned_card(read_rgb(source / CAPTIONED))
+    write_rgb(folder / "captioned.jpg", captioned)
+    view = read_rgb(source / REPRINTED)
+    h, w = view.shape[:2]
+    crop = view[h // 10 : h - h // 20, w // 8 : w - w // 10]
+    write_rgb(folder / "reprint.jpg", cv2.resize(crop, None, fx=0.9, fy=0.9))
+    return root, collage_boxes, picture
+
+
+def test_layouts_of_rendered_cards(card_scene):
+    root, collage_boxes, picture = card_scene
+    collage = cards.find_layout(root / "images" / "collage.jpg")
+    assert len(collage.panels) == 2
+    for found, true in zip(collage.panels, collage_boxes):
+        assert np.abs(np.subtract(found, true)).max() <= 3, (found, true)
+    captioned = cards.find_layout(root / "images" / "captioned.jpg")
+    assert not captioned.panels and captioned.border
+    assert np.abs(np.subtract(captioned.picture, picture)).max() <= 3
+    # an ordinary photo keeps every pixel
+    assert cards.find_layout(root / "images" / "view_004.jpg").whole
+
+
+@pytest.fixture(scope="module")
+def card_run(card_scene):
+    root, _, _ = card_scene
+    before = {p.name: p.read_bytes() for p in (root / "images").iterdir()}
+    result = reconstruct(root, output=root / "out", matcher="raw")
+    return result, before
+
+
+def panel_names(result: dict) -> list[str]:
+    return [panel["name"] for panel in result["cards"]["collage.jpg"]["panels"]]
+
+
+def test_collage_panels_register_on_their_true_poses(card_scene, card_run, synthetic_scene):
+    root, _, _ = card_scene
+    result, before = card_run
+    names = panel_names(result)
+    assert [Path(n).name for n in names] == ["collage_p1.jpg", "collage_p2.jpg"]
+    # cropped into the workspace only; the photos are untouched
+    assert all((root / "out" / cards.PANELS / Path(n).name).is_file() for n in names)
+    assert {p.name: p.read_bytes() for p in (root / "images").iterdir()} == before
+    assert all(panel["registered"] for panel in result["cards"]["collage.jpg"]["panels"])
+    # the model aligned to the truth (the panels and the captioned card under their views' names)
+    model = pycolmap.Reconstruction(str(root / "out" / "sparse" / "0"))
+    true_name = {**dict(zip(names, COLLAGE)), "captioned.jpg": CAPTIONED}
+    for image in model.images.values():
+        image.name = true_name.get(image.name, image.name)
+    errors = pose_errors(model, synthetic_scene)
+    assert max(errors[name][0] for name in COLLAGE) < 1.0, errors
+    assert max(errors[name][1] for name in COLLAGE) < 0.02, errors
+    saved = json.loads((root / "out" / "report.json").read_text())
+    assert saved["cards"]["collage.jpg"]["panels"][0]["name"] == names[0]
+    assert "collage_p2.jpg" in (root / "out" / "report.html").read_text()
+
+
+def test_captioned_card_registers_with_no_inlier_off_its_picture(card_scene, card_run):
+    root, _, picture = card_scene
+    result, _ = card_run
+    assert "captioned.jpg" in result["model"]["registered_images"]
+    assert result["cards"]["captioned.jpg"]["keypoints_masked"] > 0
+    with dbio.open_database(root / "out" / "database.db") as db:
+        image_id = dbio.read_image(db, "captioned.jpg").image_id
+        xy = dbio.read_keypoints(db, image_id)[:, :2]
+        used = [
+            xy[inliers[:, 0 if a == image_id else 1]]
+            for (a, b), inliers in dbio.read_verified_inliers(db).items()
+            if image_id in (a, b)
+        ]
+    used = np.concatenate(used)
+    assert len(used) > 50
+    assert cards.in_box(used, picture).all()
+
+
+def test_a_reprint_is_grouped_and_mapped_once(card_run):
+    result, _ = card_run
+    prints = result["repeated_prints"]
+    assert set(prints) | {e["same_picture_as"] for e in prints.values()} == {
+        REPRINTED,
+        "reprint.jpg",
+    }
+    ((copy, evidence),) = prints.items()
+    assert evidence["inlier_ratio"] >= 0.9
+    assert result["unregistered"][copy]["stage"] == "repeated print"
+    # every other photo is mapped
+    others = set(result["model"]["registered_images"]) | {copy}
+    assert len(others) == result["num_images"]
+
+
+# pictures on each card of postcards_cmahnke, counted by eye; every other card holds one
+COLLAGES = {
+    "boerse-essen/images/boerse-essen-2.jpg": 4,
+    "boerse-essen/images/boerse-essen-3.jpg": 4,
+    "boettcherstrasse/images/boettcherstrasse-2.jpg": 3,  # (and a coat of arms)
+    "wilhelmshaven/images/wilhelmshaven-1.jpg": 9,
+    "wilhelmshaven/images/wilhelmshaven-2.jpg": 9,
+}
+
+
+def test_panel_counts_on_real_postcards(shared_data):
+    root = shared_data / "postcards_cmahnke"
+    if not root.is_dir():
+        pytest.skip(f"{root} not found")
+    found = {
+        path.relative_to(root).as_posix(): cards.find_layout(path)
+        for path in sorted(root.glob("*/images/*.jpg"))
+    }
+    assert len(found) == 19
+    assert {name: len(layout.panels) for name, layout in found.items() if layout.panels} == (
+        COLLAGES
+    )
+    for name, layout in found.items():
+        x0, y0, x1, y1 = layout.picture
+        # the picture is most of the card (never a caption band or a corner)
+        assert (x1 - x0) * (y1 - y0) > 0.75 * layout.size[0] * layout.size[1], name
+
+
+def test_ordinary_photos_keep_every_pixel(shared_data):
+    names = {
+        folder: sorted(p.name for p in (shared_data / folder / "images").iterdir())
+        for folder in ("sacre_coeur_hloc", "lund_door_gtsfm")
+        if (shared_data / folder / "images").is_dir()
+    }
+    if not names:
+        pytest.skip("no ordinary photo sets in the shared data")
+    for folder, photos in names.items():
+        layouts = cards.find_layouts(
+            shared_data / folder / "images", photos, cards.check_conf(None)
+        )
+        assert layouts == {}, folder
+
+
+@pytest.mark.slow
+def test_real_repeated_prints_are_grouped_and_ordinary_pairs_are_not(shared_data, tmp_path):
+    essen = shared_data / "postcards_cmahnke" / "boerse-essen"
+    if not essen.is_dir():
+        pytest.skip(f"{essen} not found")
+    result = reconstruct(essen, output=tmp_path / "essen", matcher="raw")
+    pairs = {
+        (Path(name).name, Path(e["same_picture_as"]).name)
+        for name, e in result["repeated_prints"].items()
+    }
+    # each panel of one print with the same panel of the other
+    assert {tuple(sorted(pair)) for pair in pairs} == {
+        (f"boerse-essen-2_p{k}.jpg", f"boerse-essen-3_p{k}.jpg") for k in range(1, 5)
+    }
+    for scene in ("sacre_coeur_hloc", "lund_door_gtsfm"):
+        result = reconstruct(shared_data / scene, output=tmp_path / scene, matcher="raw")
+        assert result["database"]["num_verified_pairs"] > 10
+        assert result["repeated_prints"] == {}, scene
