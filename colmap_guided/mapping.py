@@ -176,9 +176,10 @@ def _auto(
     scored = []
     for mapper in ("incremental", "global"):
         if scored and scored[0][0][0]:
-            left = placeable_images(database_path, conf["min_num_matches"]) - {
-                scored[0][3].images[i].name for i in scored[0][3].reg_image_ids()
-            }
+            placeable = placeable_images(database_path, conf["min_num_matches"])
+            if conf["image_names"]:  # only these are mapped
+                placeable &= set(conf["image_names"])
+            left = placeable - {scored[0][3].images[i].name for i in scored[0][3].reg_image_ids()}
             if not left:
                 logger.info("Incremental mapping placed every photo that has a verified pair")
                 break
