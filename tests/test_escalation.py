@@ -67,13 +67,17 @@ def test_a_photo_the_pair_gate_left_out_is_escalated_into_the_model(synthetic_sc
     0.65): mapping leaves it out, escalation matches its 5 most similar pairs with the gate off and
     extends the model, which then holds every photo on its true pose."""
     out = tmp_path / "ws"
-    result = reconstruct(
-        synthetic_scene.image_dir.parent,
-        output=out,
-        matcher="guided_lightglue",
-        matcher_conf={"min_pair_score": 0.66},
-        conf=PipelineConf.from_dict({"mapping": {"num_threads": 1}}),
-    )
+
+    def run() -> dict:
+        return reconstruct(
+            synthetic_scene.image_dir.parent,
+            output=out,
+            matcher="guided_lightglue",
+            matcher_conf={"min_pair_score": 0.66},
+            conf=PipelineConf.from_dict({"mapping": {"num_threads": 1}}),
+        )
+
+    result = run()
     (first, *_) = result["database"]["escalation"]
     assert first["photos"] == ["view_007.jpg"] and first["registered"] == ["view_007.jpg"]
     assert first["pairs"] == 5 and (out / "escalation_pairs.txt").is_file()
@@ -81,13 +85,7 @@ def test_a_photo_the_pair_gate_left_out_is_escalated_into_the_model(synthetic_sc
     errors = pose_errors(pycolmap.Reconstruction(str(out / "sparse" / "0")), synthetic_scene)
     assert max(e[0] for e in errors.values()) < 1.0, errors
     # a rerun starts from the database as it was left: nothing matched again, nothing escalated
-    again = reconstruct(
-        synthetic_scene.image_dir.parent,
-        output=out,
-        matcher="guided_lightglue",
-        matcher_conf={"min_pair_score": 0.66},
-        conf=PipelineConf.from_dict({"mapping": {"num_threads": 1}}),
-    )
+    again = run()
     assert again["database"]["num_pairs_matched_now"] == 0 and again["num_registered"] == 8
 
 
