@@ -52,6 +52,13 @@ def test_pairs_are_matched_best_first_until_each_photo_has_enough(synthetic_scen
     short = {name for name in synthetic_scene.names if strong[name] < 2}
     assert all(sum(name in pair for pair in matched) == 7 for name in short), (strong, matched)
     assert len(short) <= 2
+    # the decisions do not depend on which pairs in flight finish first (raw: two pair workers)
+    twin = tmp_path / "twin.db"
+    pycolmap.extract_features(twin, synthetic_scene.image_dir)
+    match_database(
+        twin, synthetic_scene.image_dir, "exhaustive", "raw", enough=2, strong_inliers=50
+    )
+    assert strong_neighbours(twin, 50)[2] == matched
     again = match_database(db, synthetic_scene.image_dir, "exhaustive", "raw")
     assert again["num_pairs_matched_now"] == stats["num_pairs_deferred"]
     full = tmp_path / "full.db"
