@@ -6,7 +6,6 @@ latitudes and longitudes, and bad input is one line with nothing written."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import re
@@ -26,6 +25,7 @@ from colmap_guided import georeference as geo
 from colmap_guided import localize as loc
 from colmap_guided.__main__ import main
 from colmap_guided.geometry import photo_up
+from colmap_guided.images import folder_digests
 from colmap_guided.log import set_verbosity
 from colmap_guided.reconstruct import reconstruct
 
@@ -35,14 +35,6 @@ SHIFT = np.array([40.0, -25.0, 3.0])  # metres east, north, up of the scene's or
 CONTROLS = ("view_000.jpg", "view_003.jpg", "view_007.jpg")
 KML = "{http://www.opengis.net/kml/2.2}"
 OUR_ERROR = re.compile(r"^\[[\d:]+ colmap_guided ERROR\] (.+)$", re.MULTILINE)
-
-
-def digests(folder: Path) -> dict[str, str]:
-    return {
-        p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(Path(folder).rglob("*"))
-        if p.is_file()
-    }
 
 
 def truth(synthetic_scene) -> dict[str, dict]:
@@ -145,7 +137,7 @@ def test_photo_up_is_not_biased_by_pitch():
 
 
 def test_three_controls_place_every_other_camera(workspace, synthetic_scene, tmp_path):
-    before = digests(workspace / "sparse")
+    before = folder_digests(workspace / "sparse")
     rows = {n: truth(synthetic_scene)[n] for n in CONTROLS}
     out = geo.georeference(workspace, control_csv(tmp_path / "control.csv", rows))
     check_placed(out, synthetic_scene, CONTROLS)
@@ -155,7 +147,7 @@ def test_three_controls_place_every_other_camera(workspace, synthetic_scene, tmp
     assert all(c["residual_m"] < 0.3 for c in saved["controls"])
     o = saved["origin"]  # the controls' centroid
     assert abs(o["latitude"] - np.mean([r["latitude"] for r in rows.values()])) < 1e-9
-    assert digests(workspace / "sparse") == before  # the model is only read
+    assert folder_digests(workspace / "sparse") == before  # the model is only read
     assert sorted(p.name for p in (workspace / "geo").iterdir()) == [
         "cameras.geojson",
         "cameras.kml",
@@ -383,9 +375,9 @@ def test_bad_input_is_one_line_and_nothing_is_written(case, workspace, tmp_path,
     text, message = BAD[case]
     (tmp_path / "control.csv").write_text(text, encoding="utf-8")
     before = {
-        "geo": digests(workspace / "geo") if (workspace / "geo").exists() else None,
+        "geo": folder_digests(workspace / "geo") if (workspace / "geo").exists() else None,
         "files": sorted(p.name for p in workspace.iterdir()),
-        "sparse": digests(workspace / "sparse"),
+        "sparse": folder_digests(workspace / "sparse"),
     }
     set_verbosity()
     assert main(["georeference", str(workspace), "--control", str(tmp_path / "control.csv")]) == 2
@@ -394,9 +386,9 @@ def test_bad_input_is_one_line_and_nothing_is_written(case, workspace, tmp_path,
     assert len(errors) == 1 and len(err.strip().splitlines()) == 1, err
     assert re.search(message, errors[0]), errors[0]
     after = {
-        "geo": digests(workspace / "geo") if (workspace / "geo").exists() else None,
+        "geo": folder_digests(workspace / "geo") if (workspace / "geo").exists() else None,
         "files": sorted(p.name for p in workspace.iterdir()),
-        "sparse": digests(workspace / "sparse"),
+        "sparse": folder_digests(workspace / "sparse"),
     }
     assert after == before
 
@@ -407,10 +399,10 @@ def test_controls_that_disagree_are_refused(workspace, synthetic_scene, tmp_path
     rows = {n: dict(true[n]) for n in CONTROLS}
     lat, lon, _ = geoframe.enu_to_geodetic(true[CONTROLS[1]]["enu"] + [0, 100.0, 0], ORIGIN)
     rows[CONTROLS[1]].update(latitude=float(lat), longitude=float(lon))
-    before = digests(workspace / "geo") if (workspace / "geo").exists() else None
+    before = folder_digests(workspace / "geo") if (workspace / "geo").exists() else None
     set_verbosity()
     path = control_csv(tmp_path / "control.csv", rows)
     assert main(["georeference", str(workspace), "--control", str(path)]) == 2
     (error,) = OUR_ERROR.findall(capsys.readouterr().err)
     assert error.startswith("Only 2 of the 3 controls agree within") and "view_003.jpg" in error
-    assert (digests(workspace / "geo") if (workspace / "geo").exists() else None) == before
+    assert (folder_digests(workspace / "geo") if (workspace / "geo").exists() else None) == before
