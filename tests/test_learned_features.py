@@ -525,7 +525,7 @@ def test_guided_lightglue_cheap_pass_keeps_what_verifies_with_margin(
             dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir)
             for n in synthetic_scene.names[:2]
         )
-    guided = get_matcher("guided_lightglue", {"device": "cpu"})
+    guided = get_matcher("guided_lightglue", {"device": "cpu", "cheap_inliers": 100})
     flows = guided.coarse_flows(a, b)
     cheap, geometry = guided.flows_verified(a, b, flows, guided.verification_conf)
     assert geometry is not None and len(geometry.inlier_matches) >= 100
