@@ -266,8 +266,8 @@ class GuidedLightGlueMatcher(Matcher):
         "min_pair_score": 0.05,
         # Cheap first: mutual nearest neighbours of the descriptors (Lowe's ratio 0.9) inside the
         # window; a pair they verify with at least this many inliers keeps them and skips LightGlue
-        # (None: LightGlue on every pair). At 100, two photos of one development scene went off their
-        # pose; at 200 none (docs/RESULTS.md, speed).
+        # (None: LightGlue on every pair). At 100, two photos of one development scene went off
+        # their pose; at 200 none (docs/RESULTS.md, speed).
         "cheap_inliers": 200,
         "weights": None,  # coarse filter weights, as the guided matcher's; None = the shipped ones
         "coarse": {},  # further CoarseMatcher options, as the guided matcher's
