@@ -360,6 +360,7 @@ def _match_pairs(
 
     held = HeldImages(todo, load, max_held, on_drop=matcher.release)
     started, finished = deque(), {}  # with a schedule: pairs in the order they started
+    by_id = {image.image_id: image for image in images.values()}
     with _progress(None, "match", schedule.first_pass if schedule else len(todo)) as bar:
 
         def write_done() -> None:
@@ -369,7 +370,6 @@ def _match_pairs(
             start = time.perf_counter()
             batch = [(key[0], key[1], *result) for key, result in done]
             if schedule is not None:  # verified now, written in the order they started
-                by_id = {image.image_id: image for image in images.values()}
                 for key, item in zip([key for key, _ in done], batch):
                     finished[key] = _verified(db, by_id, *item, schedule.options)
                     schedule.finish(key, len(finished[key][3].inlier_matches))
