@@ -1,7 +1,7 @@
 """Escalation: the learned matcher's full work only where it changes the outcome.
 
 The first matching pass is cheap on purpose: pairs are matched most similar first and a pair is
-deferred once both its photos have ``enough`` strongly verified neighbours (``match.BestFirst``),
+deferred once both its photos have ``enough`` strongly verified neighbours (``BestFirst``),
 and guided LightGlue's pair gate matches nothing where the coarse network sees no overlap. Each of
 those decisions is undone for the photos that mapping leaves out: their deferred, gated and cheaply
 matched pairs are matched with the full matcher, and the model is extended with them
@@ -14,6 +14,7 @@ from collections import Counter
 from pathlib import Path
 
 from . import database as dbio
+from .image_data import PairKey, pair_order
 
 default_conf = {
     # each photo's pairs are matched most similar first until it has this many neighbours verified
@@ -65,3 +66,65 @@ def pairs_to_escalate(
             taken.update(wants)
             todo.append((a, b))
     return todo
+
+
+class BestFirst:
+    """Enough is enough, per photo: pairs are taken most similar first (retrieval descriptors), in
+    two passes. The first matches a pair only while both its photos lack ``enough`` neighbours
+    verified with ``strong_inliers`` inliers, which spreads the work over every photo; the second
+    matches what a photo still lacks, and defers, not matches, a pair once both its photos have
+    enough. Matched pairs are verified as they come, so the counts are known. Each decision is the
+    one that the results of every pair started before it give (it waits for pairs in flight when
+    they could change it), and pairs are written in the order they started: a run is
+    deterministic, and a rerun after a kill, counting the pairs in the database, decides as the
+    uninterrupted run."""
+
+    def __init__(self, db, id_pairs, enough, strong_inliers, options, descriptors: dict):
+        self.enough, self.strong_inliers, self.options = enough, strong_inliers, options
+        self.similarity = {
+            key: float(descriptors[key[2]] @ descriptors[key[3]]) for key in id_pairs
+        }
+        self.strong: Counter = Counter()
+        self.pending: Counter = Counter()
+        inliers = dbio.pair_inlier_counts(db)
+        for key in id_pairs:
+            if inliers.get((min(key[:2]), max(key[:2])), 0) >= strong_inliers:
+                self.strong.update(key[2:])
+        self.started: set = set()
+        self.deferred: list[PairKey] = []
+
+    def order(self, todo: list[PairKey], by_similarity: bool) -> list[PairKey]:
+        """Both passes: most similar first; past ``max_images_held`` images, the memory order of
+        ``pair_order`` with each photo's pairs most similar first."""
+        if by_similarity:
+            ordered = sorted(todo, key=lambda key: -self.similarity[key])
+        else:
+            ordered, first = pair_order(todo), {}
+            for i, key in enumerate(ordered):
+                first.setdefault(key[2], i)
+            ordered.sort(key=lambda key: (first[key[2]], -self.similarity[key]))
+        self.first_pass = len(ordered)
+        return ordered + ordered
+
+    def decide(self, position: int, key: PairKey) -> bool | None:
+        """Match the pair at ``position`` of ``order``: True; pass over it: False; None: the pairs
+        in flight decide it, wait for them."""
+        if key in self.started:
+            return False
+        lacks = max if position < self.first_pass else min  # both photos lack / either does
+        have = [self.strong[name] for name in key[2:]]
+        match = lacks(have) < self.enough
+        if match != (lacks(h + self.pending[n] for h, n in zip(have, key[2:])) < self.enough):
+            return None
+        if not match and position >= self.first_pass:
+            self.deferred.append(key)
+        return match
+
+    def start(self, key: PairKey) -> None:
+        self.started.add(key)
+        self.pending.update(key[2:])
+
+    def finish(self, key: PairKey, num_inliers: int) -> None:
+        self.pending.subtract(key[2:])
+        if num_inliers >= self.strong_inliers:
+            self.strong.update(key[2:])

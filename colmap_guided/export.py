@@ -28,6 +28,7 @@ are then verified with COLMAP's two-view estimator, as ``match`` does.
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 import h5py
@@ -37,7 +38,7 @@ from tqdm import tqdm
 
 from . import database as dbio
 from . import verify
-from .log import logger
+from .log import add_verbosity_flags, logger
 from .pairs import write_pairs
 from .workspace import Workspace
 
@@ -434,3 +435,63 @@ def _match_groups(fm: h5py.File, by_key: dict[str, list[str]]):
                     "are not in the database; import the features first."
                 )
             yield a, b, grp
+
+
+def add_parser(sub) -> None:
+    """The ``export`` and ``import`` commands."""
+    exp = sub.add_parser(
+        "export",
+        help="keypoints and matches of a database as hloc "
+        "h5 files (features.h5, matches.h5, pairs.txt)",
+    )
+    exp.add_argument("--database_path", type=Path, required=True)
+    exp.add_argument(
+        "--output",
+        type=Path,
+        required=True,
+        help="folder for features.h5, matches.h5 and pairs.txt",
+    )
+    exp.add_argument(
+        "--inliers_only",
+        action="store_true",
+        help="export the verified matches instead of all putative matches",
+    )
+    exp.add_argument(
+        "--overwrite", action="store_true", help="replace existing h5 files in --output"
+    )
+    add_verbosity_flags(exp)
+    exp.set_defaults(run=run_export)
+    imp = sub.add_parser(
+        "import",
+        help="hloc h5 keypoints and matches into a COLMAP "
+        "database (created if needed), then verify",
+    )
+    imp.add_argument("--database_path", type=Path, required=True)
+    imp.add_argument("--features", type=Path, required=True, help="features.h5 (hloc layout)")
+    imp.add_argument("--matches", type=Path, default=None, help="matches.h5 (hloc layout)")
+    imp.add_argument(
+        "--image_path",
+        type=Path,
+        default=None,
+        help="photos folder: sizes for files without image_size",
+    )
+    add_verbosity_flags(imp)
+    imp.set_defaults(run=run_import)
+
+
+def run_export(args: argparse.Namespace) -> None:
+    out = export_h5(
+        args.database_path, args.output, inliers_only=args.inliers_only, overwrite=args.overwrite
+    )
+    print(
+        f"{out['num_images']} images, {out['num_pairs']} pairs -> "
+        f"{out['features']}, {out['matches']}, {out['pairs']}"
+    )
+
+
+def run_import(args: argparse.Namespace) -> None:
+    out = import_h5(args.database_path, args.features, args.matches, args.image_path)
+    print(
+        f"{out['num_images_added']} images and {out['num_pairs_added']} "
+        f"pairs imported into {args.database_path}"
+    )

@@ -33,6 +33,7 @@ report.html is written again: a map in metres, north up, each photo's latitude a
 
 from __future__ import annotations
 
+import argparse
 import csv
 import dataclasses
 import difflib
@@ -50,7 +51,7 @@ import pycolmap
 from .conf import merge_conf
 from .geoframe import GEO, RESULT, GeoFrame, enu_to_geodetic, geodetic_to_enu
 from .geometry import photo_up
-from .log import logger
+from .log import add_verbosity_flags, logger
 from .workspace import Workspace, model_digest
 
 WRITES = (GEO, f"{GEO}.partial", f"{GEO}.old")
@@ -568,3 +569,33 @@ def summary_text(out: dict) -> str:
         f"{out['geo_path']}/cameras.geojson   points: {out['geo_path']}/points.ply"
     )
     return "\n".join(lines)
+
+
+def add_parser(sub) -> None:
+    parser = sub.add_parser(
+        "georeference",
+        help="place the model on the Earth from a few photos' map positions or GPS EXIF: "
+        "each photo's camera as KML PhotoOverlays and GeoJSON",
+    )
+    parser.add_argument(
+        "workspace", type=Path, help="the --output folder of a reconstruct run (holds sparse/0)"
+    )
+    parser.add_argument(
+        "--control",
+        type=Path,
+        default=None,
+        help="CSV with the header name,latitude,longitude[,altitude]: where a few photos were "
+        "taken (WGS84 degrees, metres above sea level); added to the photos' GPS EXIF",
+    )
+    parser.add_argument(
+        "--image_path",
+        type=Path,
+        default=None,
+        help="the photos' folder, if moved since reconstruct (only read)",
+    )
+    add_verbosity_flags(parser)
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> None:
+    print(summary_text(georeference(args.workspace, args.control, args.image_path)))

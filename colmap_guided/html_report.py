@@ -19,8 +19,10 @@ coordinates (pixel centre = +0.5, EXIF rotation not applied, as ``images.read_im
 
 from __future__ import annotations
 
+import argparse
 import datetime
 import html
+import inspect
 from pathlib import Path
 
 import cv2
@@ -30,7 +32,7 @@ import pycolmap
 from . import database as dbio
 from . import embed, geoframe, images, model_view
 from .localized import with_localized
-from .log import logger
+from .log import add_verbosity_flags, logger
 from .workspace import read_marker
 
 MAX_LINES = 150  # match lines drawn per pair (an even subset beyond)
@@ -590,3 +592,41 @@ def rewrite_report(
             )
     panels = match_panels(databases, Path(result["image_path"]), num_pairs)
     return write_html_report(output / "report.html", result, panels)
+
+
+def add_parser(sub) -> None:
+    parser = sub.add_parser(
+        "report",
+        help="write OUTPUT/report.html again from report.json, e.g. with raw vs guided matches",
+    )
+    parser.add_argument(
+        "output", type=Path, help="workspace of a reconstruct run (holds report.json)"
+    )
+    parser.add_argument(
+        "--compare",
+        action="append",
+        default=[],
+        metavar="LABEL=DATABASE",
+        help="also draw the same pairs from this database (repeatable)",
+    )
+    parser.add_argument(
+        "--num_pairs",
+        type=int,
+        default=inspect.signature(rewrite_report).parameters["num_pairs"].default,
+        help="pairs drawn: those with the most inliers (default: %(default)s)",
+    )
+    add_verbosity_flags(parser)
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> None:
+    compare = {}
+    for item in args.compare:
+        label, sep, path = item.partition("=")
+        if not sep or not label or not path:
+            raise ValueError(
+                f"--compare {item!r}: write LABEL=PATH/database.db, "
+                "e.g. --compare raw=out_raw/database.db"
+            )
+        compare[label] = Path(path)
+    print(rewrite_report(args.output, compare, args.num_pairs))

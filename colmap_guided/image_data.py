@@ -100,3 +100,41 @@ class HeldImages:
             if not self.uses[name]:
                 self.held.pop(name, None)
         return values
+
+
+def most_images_held(todo: list[tuple]) -> int:
+    """Images held at once when pairs (.., .., name_a, name_b) are matched in this order, each image
+    from its first pair to its last."""
+    last = {name: i for i, key in enumerate(todo) for name in key[2:]}
+    held, most = set(), 0
+    for i, key in enumerate(todo):
+        held.update(key[2:])
+        most = max(most, len(held))
+        held.difference_update(name for name in key[2:] if last[name] == i)
+    return most
+
+
+def pair_order(todo: list[tuple]) -> list[tuple]:
+    """``todo`` (.., .., name_a, name_b) in the order that holds fewer images at once: as given
+    (name order, where a folder per scene keeps a scene together) or grouped along a Cuthill-McKee
+    order of the images (breadth first through the pair graph, fewest pairs first), which keeps
+    together an archive whose file names say nothing (retrieval pairs of 437 photos under random
+    names: 78 images held at once instead of 340)."""
+    neighbours: dict[str, set] = defaultdict(set)
+    for key in todo:
+        neighbours[key[2]].add(key[3])
+        neighbours[key[3]].add(key[2])
+    position: dict[str, int] = {}
+    for seed in sorted(neighbours, key=lambda n: (len(neighbours[n]), n)):
+        if seed in position:
+            continue
+        queue = deque([seed])
+        position[seed] = len(position)
+        while queue:
+            for other in sorted(
+                neighbours[queue.popleft()] - position.keys(), key=lambda n: (len(neighbours[n]), n)
+            ):
+                position[other] = len(position)
+                queue.append(other)
+    grouped = sorted(todo, key=lambda key: sorted((position[key[2]], position[key[3]])))
+    return grouped if most_images_held(grouped) < most_images_held(todo) else list(todo)

@@ -33,6 +33,17 @@ if not any(isinstance(h, _CurrentStderrHandler) for h in logger.handlers):
     logger.propagate = False
 
 
+def add_verbosity_flags(parser) -> None:
+    """--verbose and --quiet, for ``set_verbosity``."""
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument(
+        "--verbose", "-v", action="store_true", help="debug messages and COLMAP's own log"
+    )
+    group.add_argument(
+        "--quiet", "-q", action="store_true", help="only warnings and the final summary"
+    )
+
+
 def set_verbosity(verbose: bool = False, quiet: bool = False) -> None:
     """--verbose shows debug messages and pycolmap's own log; --quiet only warnings."""
     logger.setLevel(logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO)

@@ -8,8 +8,9 @@ pycolmap.incremental_mapping run on the database afterwards unchanged. Pairs alr
 
 from __future__ import annotations
 
+import argparse
 import time
-from collections import Counter, defaultdict, deque
+from collections import Counter, deque
 from pathlib import Path
 
 import numpy as np
@@ -17,13 +18,14 @@ from tqdm import tqdm
 
 from . import database as dbio
 from . import features, verify
+from .cli import add_pipeline_flags, conf_from_args
 from .conf import merge_conf
+from .escalate import BestFirst
 from .executor import get_executor
-from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey
-from .log import colmap_quiet, logger
-from .matchers import AUTO, get_matcher, resolve_auto
+from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey, pair_order
+from .log import add_verbosity_flags, colmap_quiet, logger
 from .matchers.base import Matcher, scoped_torch_threads
-from .pairs import global_descriptors, select_pairs
+from .pairs import global_descriptors, pair_mode, retrieves, select_pairs
 from .pipeline import PipelineConf
 
 
@@ -69,16 +71,37 @@ def match_database(
         },
         verification=verification_conf,
     )
-    matcher, matcher_conf, pairs = conf.matcher.name, conf.matcher.options, conf.pairs
     if max_images_held < 2:
         raise ValueError(
             f"max_images_held must be at least 2 (the two images of a pair), got {max_images_held}."
         )
-    if matcher == AUTO:
-        with dbio.open_database(database_path) as db:
-            feature_type = features.database_feature_type(db)
-        matcher, _, matcher_conf = resolve_auto(AUTO, AUTO, matcher_conf, feature_type)
-    matcher = matcher if isinstance(matcher, Matcher) else get_matcher(matcher, matcher_conf)
+    with dbio.open_database(database_path) as db:
+        feature_type = features.database_feature_type(db)
+    return match_pairs(
+        database_path,
+        image_path,
+        conf.matcher.resolve(feature_type).build(),
+        conf,
+        overwrite,
+        max_images_held,
+        enough,
+        strong_inliers,
+    )
+
+
+def match_pairs(
+    database_path: Path,
+    image_path: Path,
+    matcher: Matcher,
+    conf: PipelineConf,
+    overwrite: bool = False,
+    max_images_held: int = MAX_IMAGES_HELD,
+    enough: int | None = None,
+    strong_inliers: int = 100,
+) -> dict:
+    """``match_database`` with the matcher made: its pairs (``conf.pairs``) and verification
+    (``conf.verification`` over the matcher's) as they are, nothing decided again."""
+    pairs = conf.pairs
     verification_conf = {**matcher.verification_conf, **conf.verification.options}
     options = verify.two_view_options(verification_conf)
     stats = {
@@ -99,17 +122,13 @@ def match_database(
             dbio.clear_matches(db)
         names = sorted(images)
         start = time.time()
-        described: dict[str, np.ndarray] = {}
-
-        def descriptors(ns: list[str]) -> np.ndarray:  # computed once, for retrieval and order
-            missing = [n for n in ns if n not in described]
-            if missing:
-                with scoped_torch_threads(matcher.torch_threads):  # the backbone, as in matching
-                    described.update(
-                        zip(missing, _global_descriptors(matcher, image_path, missing))
-                    )
-            return np.stack([described[n] for n in ns])
-
+        mode = pair_mode(pairs.pairs, len(names), pairs.num_neighbors)
+        # computed once: for retrieval, and for best-first order below
+        descriptors = (
+            _global_descriptors(matcher, image_path, names)
+            if retrieves(mode, len(names), pairs.num_neighbors)
+            else None
+        )
         selected, mode = select_pairs(pairs.pairs, names, pairs.num_neighbors, descriptors)
         stats["pairs"] = {
             "mode": mode if mode != "file" else str(pairs.pairs),
@@ -128,8 +147,10 @@ def match_database(
         start, seconds = time.time(), {"read": 0.0, "write": 0.0}
         schedule = None
         if enough is not None and todo:
+            if descriptors is None:
+                descriptors = _global_descriptors(matcher, image_path, names)
             schedule = BestFirst(
-                db, id_pairs, enough, strong_inliers, options, dict(zip(names, descriptors(names)))
+                db, id_pairs, enough, strong_inliers, options, dict(zip(names, descriptors))
             )
             todo = schedule.order(todo, len(images) <= max_images_held)
         if todo:
@@ -206,113 +227,14 @@ def _verified(db, by_id: dict, id_a, id_b, matches, geometry, options) -> tuple:
 
 def _global_descriptors(matcher: Matcher, image_path: Path, names: list[str]) -> np.ndarray:
     """Retrieval descriptors from the matcher's own backbone (``retrieval_backbone``; else an
-    ImageNet backbone)."""
+    ImageNet backbone), under the matcher's torch threads as in matching."""
     coarse = matcher.retrieval_backbone()
     if coarse is None:
         from .coarse import CoarseMatcher
 
         coarse = CoarseMatcher({"mode": "raw", "device": str(matcher.device), "num_threads": None})
-    return global_descriptors(coarse, {name: Path(image_path) / name for name in names})
-
-
-def most_images_held(todo: list[tuple]) -> int:
-    """Images held at once when pairs (.., .., name_a, name_b) are matched in this order, each image
-    from its first pair to its last."""
-    last = {name: i for i, key in enumerate(todo) for name in key[2:]}
-    held, most = set(), 0
-    for i, key in enumerate(todo):
-        held.update(key[2:])
-        most = max(most, len(held))
-        held.difference_update(name for name in key[2:] if last[name] == i)
-    return most
-
-
-def pair_order(todo: list[tuple]) -> list[tuple]:
-    """``todo`` (.., .., name_a, name_b) in the order that holds fewer images at once: as given
-    (name order, where a folder per scene keeps a scene together) or grouped along a Cuthill-McKee
-    order of the images (breadth first through the pair graph, fewest pairs first), which keeps
-    together an archive whose file names say nothing (retrieval pairs of 437 photos under random
-    names: 78 images held at once instead of 340)."""
-    neighbours: dict[str, set] = defaultdict(set)
-    for key in todo:
-        neighbours[key[2]].add(key[3])
-        neighbours[key[3]].add(key[2])
-    position: dict[str, int] = {}
-    for seed in sorted(neighbours, key=lambda n: (len(neighbours[n]), n)):
-        if seed in position:
-            continue
-        queue = deque([seed])
-        position[seed] = len(position)
-        while queue:
-            for other in sorted(
-                neighbours[queue.popleft()] - position.keys(), key=lambda n: (len(neighbours[n]), n)
-            ):
-                position[other] = len(position)
-                queue.append(other)
-    grouped = sorted(todo, key=lambda key: sorted((position[key[2]], position[key[3]])))
-    return grouped if most_images_held(grouped) < most_images_held(todo) else list(todo)
-
-
-class BestFirst:
-    """Enough is enough, per photo: pairs are taken most similar first (retrieval descriptors), in
-    two passes. The first matches a pair only while both its photos lack ``enough`` neighbours
-    verified with ``strong_inliers`` inliers, which spreads the work over every photo; the second
-    matches what a photo still lacks, and defers, not matches, a pair once both its photos have
-    enough. Matched pairs are verified as they come, so the counts are known. Each decision is the
-    one that the results of every pair started before it give (it waits for pairs in flight when
-    they could change it), and pairs are written in the order they started: a run is
-    deterministic, and a rerun after a kill, counting the pairs in the database, decides as the
-    uninterrupted run."""
-
-    def __init__(self, db, id_pairs, enough, strong_inliers, options, descriptors: dict):
-        self.enough, self.strong_inliers, self.options = enough, strong_inliers, options
-        self.similarity = {
-            key: float(descriptors[key[2]] @ descriptors[key[3]]) for key in id_pairs
-        }
-        self.strong: Counter = Counter()
-        self.pending: Counter = Counter()
-        inliers = dbio.pair_inlier_counts(db)
-        for key in id_pairs:
-            if inliers.get((min(key[:2]), max(key[:2])), 0) >= strong_inliers:
-                self.strong.update(key[2:])
-        self.started: set = set()
-        self.deferred: list[PairKey] = []
-
-    def order(self, todo: list[PairKey], by_similarity: bool) -> list[PairKey]:
-        """Both passes: most similar first; past ``max_images_held`` images, the memory order of
-        ``pair_order`` with each photo's pairs most similar first."""
-        if by_similarity:
-            ordered = sorted(todo, key=lambda key: -self.similarity[key])
-        else:
-            ordered, first = pair_order(todo), {}
-            for i, key in enumerate(ordered):
-                first.setdefault(key[2], i)
-            ordered.sort(key=lambda key: (first[key[2]], -self.similarity[key]))
-        self.first_pass = len(ordered)
-        return ordered + ordered
-
-    def decide(self, position: int, key: PairKey) -> bool | None:
-        """Match the pair at ``position`` of ``order``: True; pass over it: False; None: the pairs
-        in flight decide it, wait for them."""
-        if key in self.started:
-            return False
-        lacks = max if position < self.first_pass else min  # both photos lack / either does
-        have = [self.strong[name] for name in key[2:]]
-        match = lacks(have) < self.enough
-        if match != (lacks(h + self.pending[n] for h, n in zip(have, key[2:])) < self.enough):
-            return None
-        if not match and position >= self.first_pass:
-            self.deferred.append(key)
-        return match
-
-    def start(self, key: PairKey) -> None:
-        self.started.add(key)
-        self.pending.update(key[2:])
-
-    def finish(self, key: PairKey, num_inliers: int) -> None:
-        self.pending.subtract(key[2:])
-        if num_inliers >= self.strong_inliers:
-            self.strong.update(key[2:])
+    with scoped_torch_threads(matcher.torch_threads):
+        return global_descriptors(coarse, {name: Path(image_path) / name for name in names})
 
 
 def _match_pairs(
@@ -414,3 +336,29 @@ def _match_pairs(
         "max_images_held": max_held,
     }
     return memory, seconds
+
+
+def add_parser(sub) -> None:
+    parser = sub.add_parser(
+        "match", help="drop-in replacement of COLMAP's exhaustive_matcher on an existing database"
+    )
+    parser.add_argument("--database_path", type=Path, required=True)
+    parser.add_argument("--image_path", type=Path, required=True)
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="delete existing matches and two-view geometries first",
+    )
+    add_pipeline_flags(parser, reconstruct=False)
+    add_verbosity_flags(parser)
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> None:
+    stats = match_database(
+        args.database_path, args.image_path, overwrite=args.overwrite, conf=conf_from_args(args)
+    )
+    print(
+        f"{stats['num_verified_pairs']}/{stats['num_pairs']} pairs verified, "
+        f"{stats['num_inlier_matches']} inlier matches in {args.database_path}"
+    )

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 from itertools import combinations
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -64,15 +63,9 @@ def retrieval_pairs(
     return [(names[i], names[j]) for i, j in sorted(keys)]
 
 
-def select_pairs(
-    pairs: str | Path | None,
-    names: list[str],
-    num_neighbors: int = DEFAULT_NUM_NEIGHBORS,
-    descriptors: Callable[[list[str]], np.ndarray] | None = None,
-) -> tuple[list[tuple[str, str]], str]:
-    """The pairs to match and the mode used. ``pairs``: a mode of ``PAIR_MODES`` or a pairs file
-    (None = auto); ``descriptors(names)`` returns the global descriptors (N, D) that retrieval
-    needs."""
+def pair_mode(pairs: str | Path | None, num_images: int, num_neighbors: int) -> str:
+    """The mode of ``pairs`` (a mode of ``PAIR_MODES``, None = auto, or a pairs file: 'file'), auto
+    decided by the number of images; a missing file or a count below 1 is a one-line error."""
     mode = "auto" if pairs is None else str(pairs)
     if mode not in PAIR_MODES:
         if not Path(mode).is_file():
@@ -80,18 +73,37 @@ def select_pairs(
                 f"--pairs {mode}: no such pairs file; pass "
                 f"a file or one of {', '.join(PAIR_MODES)}."
             )
-        return read_pairs(Path(mode), names), "file"
+        return "file"
     if num_neighbors < 1:
         raise ValueError(f"--num_neighbors must be at least 1, got {num_neighbors}.")
     if mode == "auto":
-        mode = "exhaustive" if len(names) <= AUTO_EXHAUSTIVE_MAX else "retrieval"
-    if mode == "exhaustive" or (mode == "retrieval" and num_neighbors >= len(names) - 1):
-        return exhaustive_pairs(names), mode
+        mode = "exhaustive" if num_images <= AUTO_EXHAUSTIVE_MAX else "retrieval"
+    return mode
+
+
+def retrieves(mode: str, num_images: int, num_neighbors: int) -> bool:
+    """Whether ``mode``'s pairs need retrieval descriptors (not when every image is a neighbour)."""
+    return mode == "retrieval" and num_neighbors < num_images - 1
+
+
+def select_pairs(
+    pairs: str | Path | None,
+    names: list[str],
+    num_neighbors: int = DEFAULT_NUM_NEIGHBORS,
+    descriptors: np.ndarray | None = None,
+) -> tuple[list[tuple[str, str]], str]:
+    """The pairs to match and the mode used (``pair_mode``). ``descriptors``: the global
+    descriptors (N, D) of ``names`` that retrieval needs (``retrieves``)."""
+    mode = pair_mode(pairs, len(names), num_neighbors)
+    if mode == "file":
+        return read_pairs(Path(pairs), names), mode
     if mode == "sequential":
         return sequential_pairs(names, num_neighbors), mode
+    if not retrieves(mode, len(names), num_neighbors):
+        return exhaustive_pairs(names), mode
     if descriptors is None:
         raise ValueError("Retrieval pairs need global image descriptors.")
-    return retrieval_pairs(names, descriptors(names), num_neighbors), mode
+    return retrieval_pairs(names, descriptors, num_neighbors), mode
 
 
 def _split_line(line: str, known: set[str]) -> tuple[str, str] | None:

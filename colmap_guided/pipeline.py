@@ -25,7 +25,16 @@ from typing import Any
 
 from . import escalate, features, mapping, verify
 from .conf import merge_conf
-from .matchers import AUTO, DEFAULT_MATCHER, GUIDED, Matcher, preset
+from .matchers import (
+    AUTO,
+    DEFAULT_MATCHER,
+    GUIDED,
+    Matcher,
+    check_options,
+    get_matcher,
+    preset,
+    resolve_auto,
+)
 from .pairs import DEFAULT_NUM_NEIGHBORS
 
 # The options of matching besides the matcher's own and verification's: MatcherConf's name and
@@ -100,14 +109,24 @@ class MatcherConf:
     def __post_init__(self):
         if isinstance(self.name, Matcher):
             return
-        names = sorted(set(GUIDED.values())) if self.name == AUTO else [self.name]
-        known = {key: None for name in names for key in preset(name)[0].default_conf}
-        what = "auto" if self.name == AUTO else preset(self.name)[0].name
-        merge_conf(known, self.options, f"{what} matcher")
+        if self.name != AUTO:
+            check_options(self.name, self.options)
+            return
+        known = {key: None for name in set(GUIDED.values()) for key in preset(name)[0].default_conf}
+        merge_conf(known, self.options, "auto matcher")
 
     @classmethod
     def from_dict(cls, conf: dict | None = None) -> MatcherConf:
         return cls(**merge_conf({"name": cls.name, "options": {}}, conf, "matcher conf"))
+
+    def resolve(self, feature_type: str) -> MatcherConf:
+        """The matcher of ``feature_type`` features (``matchers.resolve_auto``), its
+        ``feature_defaults`` under the options given."""
+        choice = resolve_auto(self.name, feature_type, self.options)
+        return MatcherConf(choice.matcher, choice.matcher_conf)
+
+    def build(self) -> Matcher:
+        return self.name if isinstance(self.name, Matcher) else get_matcher(self.name, self.options)
 
 
 @dataclass
@@ -142,6 +161,23 @@ class PipelineConf:
         sections = {f.name: f.default_factory for f in dataclasses.fields(cls)}
         conf = merge_conf(dict.fromkeys(sections), conf, "pipeline")
         return cls(**{name: sections[name].from_dict(conf[name]) for name in sections})
+
+    def resolve(self, database_type: str | None = None) -> PipelineConf:
+        """The one place where ``auto`` is decided and every option checked, before anything runs:
+        the features (``database_type``: those of the database a rerun continues), the matcher of
+        them with its options checked and its ``feature_defaults`` under them, mapping's options.
+        The stages take the sections of the returned conf as they are."""
+        feature_conf = self.features.to_dict()
+        chosen, feature_type, options = resolve_auto(
+            self.matcher.name, feature_conf, self.matcher.options, database_type
+        )
+        return dataclasses.replace(
+            self,
+            # a missing --aliked_weights file fails now, not after matching
+            features=FeatureConf(**features.check_conf({**feature_conf, "type": feature_type})),
+            matcher=MatcherConf(chosen, options),
+            mapping=MappingConf(**mapping.check_conf(self.mapping.to_dict())),
+        )
 
     def over(
         self,

@@ -11,6 +11,7 @@ report.json, report.html. A killed run started again continues from the database
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import time
 from pathlib import Path
@@ -28,9 +29,10 @@ from . import (
     report,
 )
 from . import database as dbio
-from .log import logger
-from .matchers import Matcher, get_matcher, resolve_auto
-from .pipeline import MatcherConf, PipelineConf
+from .cli import add_pipeline_flags, conf_from_args
+from .log import add_verbosity_flags, logger
+from .matchers import Matcher
+from .pipeline import PipelineConf
 from .workspace import Workspace
 
 ESCALATION_PAIRS = "escalation_pairs.txt"  # the pairs escalate.py chose, in the last round
@@ -112,12 +114,9 @@ def _escalate(
             dbio.delete_pairs(db, [(ids[a], ids[b]) for a, b in todo])
         pairs.write_pairs(output / ESCALATION_PAIRS, todo)
         full = full or escalate.full_matcher(matcher)
-        match.match_database(
-            database_path,
-            image_path,
-            output / ESCALATION_PAIRS,
-            conf=dataclasses.replace(conf, matcher=MatcherConf(full)),
-        )
+        escalated = conf.pairs.over({"pairs": str(output / ESCALATION_PAIRS)})
+        escalated = dataclasses.replace(conf, pairs=escalated)
+        match.match_pairs(database_path, image_path, full, escalated)
         timings["escalate_match"] = timings.get("escalate_match", 0) + time.time() - start
         start = time.time()
         models = mapping.run_mapping(
@@ -164,20 +163,14 @@ def reconstruct(
         verification_conf,
         mapping_conf,
     )
-    mapping_conf = mapping.check_conf(conf.mapping.to_dict())  # fails now, not after matching
-    image_names = features.list_images(image_path)
-    # auto decided once, here (a rerun continues with the database's features); nothing after this
-    # decides it again
-    feature_conf = features.check_conf(conf.features.to_dict())
+    # decided once, here, before anything runs (a rerun continues with the database's features)
     existing = None if overwrite else features.existing_feature_type(output / "database.db")
-    chosen, feature_type, matcher_conf = resolve_auto(
-        conf.matcher.name, feature_conf, conf.matcher.options, existing
-    )
-    # a missing --aliked_weights file fails now, and (the matcher made here) a missing or broken
-    # --weights file, not after the extraction
-    feature_conf = features.check_conf({**feature_conf, "type": feature_type})
-    matcher = chosen if isinstance(chosen, Matcher) else get_matcher(chosen, matcher_conf)
-    features.check_matcher_features(matcher, feature_type)
+    conf = conf.resolve(existing)
+    feature_conf, mapping_conf = conf.features.to_dict(), conf.mapping.to_dict()
+    image_names = features.list_images(image_path)
+    # made now: a missing or broken --weights file fails before the extraction
+    matcher = conf.matcher.build()
+    features.check_matcher_features(matcher, feature_conf["type"])
     Workspace.claim(output, "reconstruct", keep=(image_path,), overwrite=overwrite).record(*WRITES)
     database_path = output / "database.db"
     if database_path.exists():
@@ -189,7 +182,7 @@ def reconstruct(
     card_conf = cards.check_conf(feature_conf["cards"])
     layouts = cards.find_layouts(image_path, image_names, card_conf)
     image_names, panels = cards.split_collages(image_path, output, image_names, layouts)
-    extraction = features.extract_features(database_path, image_path, image_names, feature_conf)
+    extraction = features.extract(database_path, image_path, image_names, feature_conf)
     masked = cards.mask_keypoints(database_path, layouts, card_conf)
     timings["extract"] = time.time() - start
     usable = [name for name in image_names if name not in extraction["skipped"]]
@@ -200,10 +193,11 @@ def reconstruct(
             "add photos and run again."
         )
 
-    match_stats = match.match_database(
+    match_stats = match.match_pairs(
         database_path,
         image_path,
-        conf=dataclasses.replace(conf, matcher=MatcherConf(matcher)),
+        matcher,
+        conf,
         enough=conf.escalation.enough,
         strong_inliers=conf.escalation.strong_inliers,
     )
@@ -299,3 +293,38 @@ def reconstruct(
         result.pop("html_report_path")
     report.write_report(output / "report.json", result)
     return result
+
+
+def add_parser(sub) -> None:
+    parser = sub.add_parser(
+        "reconstruct",
+        help="SIFT, guided matching, verification, mapping and a report for one scene",
+    )
+    parser.add_argument(
+        "scene_dir", type=Path, help="folder with images/ (or the photos themselves)"
+    )
+    parser.add_argument(
+        "--image_path", type=Path, default=None, help="photos folder (default SCENE_DIR/images)"
+    )
+    parser.add_argument(
+        "--output", type=Path, default=None, help="workspace (default SCENE_DIR/colmap_guided)"
+    )
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="remove what earlier runs wrote in the workspace (nothing else) and start fresh",
+    )
+    add_pipeline_flags(parser, reconstruct=True)
+    add_verbosity_flags(parser)
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> None:
+    result = reconstruct(
+        args.scene_dir,
+        image_path=args.image_path,
+        output=args.output,
+        overwrite=args.overwrite,
+        conf=conf_from_args(args),
+    )
+    print(report.summary_text(result))

@@ -507,7 +507,8 @@ def test_a_matcher_that_cannot_match_the_features_fails_before_any_work(syntheti
 
 def test_an_option_the_matcher_does_not_take_names_a_matcher_that_does(tmp_path):
     """A ValueError in the library; the command line exits with it as a usage error (status 1)."""
-    from colmap_guided.__main__ import build_parser, matcher_conf_from_args
+    from colmap_guided.__main__ import build_parser
+    from colmap_guided.cli import matcher_conf_from_args
 
     line = "--weights does not apply to the raw matcher; pass --matcher guided "
     args = build_parser().parse_args(["match", "--database_path", "d", "--image_path", "i"])

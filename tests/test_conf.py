@@ -40,7 +40,8 @@ def test_image_check_and_synthetic_scene_options_are_checked(tmp_path):
 
 
 def test_off_is_none_on_the_command_line_and_the_old_spellings_still_work():
-    from colmap_guided.__main__ import build_parser, matcher_conf_from_args
+    from colmap_guided.__main__ import build_parser
+    from colmap_guided.cli import matcher_conf_from_args
     from colmap_guided.conf import none_or
     from colmap_guided.mapping import check_conf as mapping_conf
 
@@ -259,7 +260,8 @@ def test_command_line_flags_are_the_pipeline_conf():
     """reconstruct's and match's flags: their defaults are PipelineConf's, their help the option's
     comment in its stage's default_conf."""
     from colmap_guided import mapping, pipeline
-    from colmap_guided.__main__ import build_parser, conf_from_args
+    from colmap_guided.__main__ import build_parser
+    from colmap_guided.cli import conf_from_args
     from colmap_guided.conf import conf_comments
     from colmap_guided.matchers.guided import GuidedMatcher
     from colmap_guided.pipeline import PipelineConf

@@ -97,7 +97,8 @@ def test_a_photo_the_pair_gate_left_out_is_escalated_into_the_model(synthetic_sc
 
 
 def test_escalation_options_are_reconstruct_flags():
-    from colmap_guided.__main__ import build_parser, conf_from_args
+    from colmap_guided.__main__ import build_parser
+    from colmap_guided.cli import conf_from_args
 
     def conf(*flags):
         return conf_from_args(build_parser().parse_args(["reconstruct", "scene", *flags]))

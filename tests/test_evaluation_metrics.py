@@ -192,7 +192,8 @@ def test_one_preset_name_means_the_same_matcher_on_the_command_line_in_python_an
     """matchers.PRESETS is the one set of named confs: get_matcher, the CLI's --matcher and the
     benchmark specs resolve a name to the same matcher and options, and every default benchmark row
     is a preset."""
-    from colmap_guided.__main__ import build_parser, matcher_conf_from_args
+    from colmap_guided.__main__ import build_parser
+    from colmap_guided.cli import matcher_conf_from_args
     from colmap_guided.matchers import PRESETS, get_matcher, resolve_auto
 
     assert set(matcher_specs.DEFAULT_TWO_VIEW_SPECS) <= set(PRESETS)

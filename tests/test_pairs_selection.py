@@ -54,12 +54,12 @@ def test_auto_is_exhaustive_for_small_sets_and_retrieval_above(tmp_path):
     assert select_pairs(None, small) == (exhaustive_pairs(small), "exhaustive")
     large = [f"{i:03d}.jpg" for i in range(AUTO_EXHAUSTIVE_MAX + 1)]
     desc = np.eye(len(large), dtype=np.float32)
-    pairs, mode = select_pairs("auto", large, 3, lambda names: desc)
+    pairs, mode = select_pairs("auto", large, 3, desc)
     assert mode == "retrieval" and len(pairs) <= 3 * len(large)
     with pytest.raises(FileNotFoundError, match="no such pairs file; pass a file or one of auto"):
         select_pairs(str(tmp_path / "missing.txt"), large)
     with pytest.raises(ValueError, match="--num_neighbors must be at least 1"):
-        select_pairs("retrieval", large, 0, lambda names: desc)
+        select_pairs("retrieval", large, 0, desc)
 
 
 def test_retrieval_separates_three_real_places(shared_data):

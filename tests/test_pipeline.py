@@ -166,7 +166,7 @@ def test_verification_memory_is_bounded_and_the_geometries_do_not_change(
 def test_pairs_are_ordered_to_hold_few_images_when_names_say_nothing():
     """A walk of 60 photos (each paired with the next 2) under shuffled names: name order holds most
     of the photos until the end, the Cuthill-McKee grouping a handful; the same pairs either way."""
-    from colmap_guided.match import most_images_held, pair_order
+    from colmap_guided.image_data import most_images_held, pair_order
 
     names = [f"{i:03d}.jpg" for i in np.random.default_rng(0).permutation(60)]
     todo = sorted(

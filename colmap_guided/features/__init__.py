@@ -163,9 +163,20 @@ def extract_features(
     run (see ``sift.extract``).
     """
     conf = check_conf(conf)
-    if conf["type"] == AUTO:  # reconstruct passes the type it chose; decided the same way here
+    if conf["type"] == AUTO:  # as reconstruct decides it
         kind = resolve_auto(AUTO, conf, None, existing_feature_type(database_path)).feature_type
         conf = check_conf({**conf, "type": kind})
+    return extract(database_path, image_path, image_names, conf, check)
+
+
+def extract(
+    database_path: Path,
+    image_path: Path,
+    image_names: list[str] | None,
+    conf: dict,
+    check: bool = True,
+) -> dict:
+    """``extract_features`` of a conf checked, its type decided (``PipelineConf.resolve``)."""
     image_path, database_path = Path(image_path), Path(database_path)
     image_names = image_names if image_names is not None else list_images(image_path)
     if database_path.exists():

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+from colmap_guided.conf import merge_conf
 from colmap_guided.log import logger
 from colmap_guided.matchers.base import ImageData, Matcher
 from colmap_guided.matchers.colmap import ColmapGuidedMatcher
@@ -143,6 +144,25 @@ def resolve_auto(
     return Choice(matcher, feature_type, {**defaults, **(matcher_conf or {})})
 
 
+class OptionError(ValueError):
+    """A matcher option given to a matcher that does not take it: a usage error."""
+
+
+def check_options(name: str, options: dict) -> None:
+    """Options that preset ``name``'s matcher does not take: merge_conf's error (a typo: the
+    nearest key), or an ``OptionError`` naming a matcher that takes the first of them."""
+    known = preset(name)[0].default_conf
+    unknown = sorted(set(options) - set(known))
+    users = [n for n in sorted(PRESETS) if unknown and unknown[0] in preset(n)[0].default_conf]
+    if not users:
+        merge_conf(known, options, f"{preset(name)[0].name} matcher")
+        return
+    raise OptionError(
+        f"--{unknown[0]} does not apply to the {name} matcher; pass --matcher {users[0]} (or "
+        "another that takes it)"
+    )
+
+
 def get_matcher(name: str, conf: dict | None = None) -> Matcher:
     """The matcher of preset ``name`` with ``conf`` over the preset's options (unknown keys are an
     error)."""
@@ -161,6 +181,8 @@ __all__ = [
     "Choice",
     "ImageData",
     "Matcher",
+    "OptionError",
+    "check_options",
     "get_matcher",
     "installed_learned",
     "preset",
