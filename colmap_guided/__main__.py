@@ -11,7 +11,15 @@ from .log import logger, set_verbosity
 from .matchers import OptionError
 
 # the modules whose ``add_parser`` adds a command (export: export and import), in --help's order
-COMMANDS = ("reconstruct", "localize.command", "match", "export", "georeference", "html_report")
+COMMANDS = (
+    "reconstruct",
+    "localize.command",
+    "match",
+    "export",
+    "georeference",
+    "coarse.viz",
+    "html_report",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -22,11 +30,6 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     for name in COMMANDS:
         importlib.import_module(f"{__package__}.{name}").add_parser(sub)
-    sub.add_parser(
-        "coarse",
-        help="coarse matches of two images drawn to a PNG (see `coarse --help`)",
-        add_help=False,
-    )
     return parser
 
 

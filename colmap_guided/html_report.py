@@ -31,7 +31,7 @@ import pycolmap
 
 from . import database as dbio
 from . import embed, geoframe, images, model_view
-from .localized import with_localized
+from .localize.results import with_localized
 from .log import add_verbosity_flags, logger
 from .workspace import read_marker
 

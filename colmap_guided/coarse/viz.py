@@ -52,6 +52,15 @@ def draw_coarse_matches(
     return canvas
 
 
+def add_parser(sub) -> None:
+    """``coarse`` in the package's command list; its own parser (``main``) reads its arguments."""
+    sub.add_parser(
+        "coarse",
+        help="coarse matches of two images drawn to a PNG (see `coarse --help`)",
+        add_help=False,
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     import torch
 

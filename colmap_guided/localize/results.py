@@ -1,0 +1,172 @@
+"""What ``localize`` reads and writes in a workspace: its files, the photos' names in localize.db,
+localized.json with each photo's verdict, and for the report the model with the cameras of the
+photos it placed."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from .. import database as dbio
+from .. import features
+from ..log import logger
+from ..workspace import read_marker
+
+DATABASE = "localize.db"
+RESULTS = "localized.json"
+PAIRS = "localize_pairs.txt"
+RETRIEVAL = "localize_retrieval.npz"
+ADDED = "sparse_localized"
+WRITES = (
+    DATABASE,
+    f"{DATABASE}-wal",
+    f"{DATABASE}-shm",
+    f"{DATABASE}-journal",
+    PAIRS,
+    RESULTS,
+    f"{RESULTS}.partial",
+    RETRIEVAL,
+    f"{RETRIEVAL}.partial.npz",
+    ADDED,
+    f"{ADDED}.partial",
+)
+
+PLACED, UNCERTAIN, NOT_PLACED = "placed", "uncertain", "not placed"
+
+
+def db_name(path: Path) -> str:
+    """A photo's name in localize.db: its absolute path without the anchor (the database's image
+    folder)."""
+    path = Path(path).resolve()
+    return path.relative_to(path.anchor).as_posix()
+
+
+def image_root() -> Path:
+    """localize.db's image folder: the file system's root, so that any photo has a name there."""
+    return Path(Path.cwd().resolve().anchor)
+
+
+def open_workspace(workspace: Path) -> tuple[Path, dict, Path]:
+    """(workspace, report.json, sparse/0) of a finished ``reconstruct`` run; one-line errors
+    otherwise."""
+    path = Path(workspace).expanduser().resolve()
+    if not path.is_dir():
+        raise FileNotFoundError(
+            f"No workspace at {path}: pass the --output folder of a `reconstruct` run."
+        )
+    marker = read_marker(path)
+    if marker is None or marker["kind"] != "reconstruct":
+        raise ValueError(
+            f"{path} is not a workspace written by "
+            "`reconstruct`: pass the --output folder of a run."
+        )
+    if not (path / "report.json").is_file():
+        raise FileNotFoundError(
+            f"No report.json in {path}: run `python -m colmap_guided reconstruct` to the end first."
+        )
+    report = json.loads((path / "report.json").read_text(encoding="utf-8"))
+    model_dir = path / "sparse" / "0"
+    if not any((model_dir / f"images.{ext}").is_file() for ext in ("bin", "txt")):
+        raise ValueError(
+            f"{path} holds no model (sparse/0): reconstruct made none to localize photos in."
+        )
+    return path, report, model_dir
+
+
+def list_photos(photos: list[Path]) -> tuple[list[Path], dict[str, str]]:
+    """(photo files, {given path: why it is left out}); a folder stands for the photos in it."""
+    found, bad = [], {}
+    for given in photos:
+        path = Path(given).expanduser()
+        if path.is_dir():
+            try:
+                found += [(path / name).resolve() for name in features.list_images(path)]
+            except FileNotFoundError as err:
+                bad[str(given)] = str(err)
+        elif path.is_file():
+            found.append(path.resolve())
+        else:
+            bad[str(given)] = "no such file"
+    return list(dict.fromkeys(found)), bad
+
+
+def load_results(path: Path, digest: str) -> dict:
+    """localized.json's entries by photo, when they were made against this model (else none)."""
+    try:
+        saved = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    if saved.get("model_sha256") != digest:
+        if saved.get("photos"):
+            logger.info(
+                "The model changed since %s was written: its %d photo(s) are localized again.",
+                path.name,
+                len(saved["photos"]),
+            )
+        return {}
+    return {entry["photo"]: entry for entry in saved.get("photos", [])}
+
+
+def write_results(path: Path, results: dict, header: dict) -> None:
+    tmp = path.with_name(path.name + ".partial")
+    tmp.write_text(
+        json.dumps({**header, "photos": list(results.values())}, indent=1) + "\n", encoding="utf-8"
+    )
+    os.replace(tmp, path)
+
+
+def copy_model_images(src: Path, dst: Path, names: dict[str, str]) -> None:
+    """Model images' cameras, keypoints and descriptors from database.db into localize.db
+    ({model name: db name}); same keypoint order, so a keypoint's index is its point2D index in the
+    model."""
+    with dbio.open_database(dst, must_exist=False) as out:
+        todo = {m: n for m, n in names.items() if dbio.read_image(out, n) is None}
+        if not todo:
+            return
+        with dbio.open_database(src) as db:
+            for model_name, name in todo.items():
+                image = dbio.read_image(db, model_name)
+                if image is None:
+                    raise ValueError(
+                        f"{model_name} of the model is not in database.db: "
+                        "run reconstruct again (--overwrite)."
+                    )
+                camera = dbio.read_camera(db, image.camera_id)
+                keypoints = dbio.read_keypoints(db, image.image_id)
+                descriptors, kind = dbio.read_descriptors(db, image.image_id)
+                with dbio.transaction(out):
+                    camera.camera_id = dbio.write_camera(out, camera)
+                    image_id = dbio.add_image(out, name, camera)
+                    dbio.write_features(out, image_id, keypoints, descriptors, kind)
+
+
+def with_localized(
+    rec: pycolmap.Reconstruction, entries: list[dict]
+) -> tuple[pycolmap.Reconstruction, list[str]]:
+    """A copy of ``rec`` with the cameras of the placed and uncertain photos of localized.json
+    (named by their path, no points), for the report's 3D view and map; and their names."""
+    shown = pycolmap.Reconstruction(rec)
+    names = []
+    for entry in entries:
+        if entry.get("status") not in (PLACED, UNCERTAIN) or "qvec_wxyz" not in entry:
+            continue
+        cam = entry["camera"]
+        camera = pycolmap.Camera(
+            model=cam["model"], width=cam["width"], height=cam["height"], params=cam["params"]
+        )
+        camera.camera_id = max([*shown.cameras, *shown.rigs], default=0) + 1
+        image_id = max([*shown.images, *shown.frames], default=0) + 1
+        w, x, y, z = entry["qvec_wxyz"]
+        pose = pycolmap.Rigid3d(
+            pycolmap.Rotation3d(np.array([x, y, z, w])), np.asarray(entry["tvec"], float)
+        )
+        shown.add_camera_with_trivial_rig(camera)
+        shown.add_image_with_trivial_frame(
+            pycolmap.Image(name=entry["photo"], camera_id=camera.camera_id, image_id=image_id), pose
+        )
+        names.append(entry["photo"])
+    return shown, names
