@@ -101,7 +101,6 @@ def match_pairs(
 ) -> dict:
     """``match_database`` with the matcher made: its pairs (``conf.pairs``) and verification
     (``conf.verification`` over the matcher's) as they are, nothing decided again."""
-    pairs = conf.pairs
     verification_conf = {**matcher.verification_conf, **conf.verification.options}
     options = verify.two_view_options(verification_conf)
     stats = {
@@ -121,26 +120,13 @@ def match_pairs(
         if overwrite:
             dbio.clear_matches(db)
         names = sorted(images)
-        start = time.time()
-        mode = pair_mode(pairs.pairs, len(names), pairs.num_neighbors)
-        # computed once: for retrieval, and for best-first order below
-        descriptors = (
-            _global_descriptors(matcher, image_path, names)
-            if retrieves(mode, len(names), pairs.num_neighbors)
-            else None
-        )
-        selected, mode = select_pairs(pairs.pairs, names, pairs.num_neighbors, descriptors)
-        stats["pairs"] = {
-            "mode": mode if mode != "file" else str(pairs.pairs),
-            "num_neighbors": pairs.num_neighbors if mode in ("retrieval", "sequential") else None,
-            "time": time.time() - start,
-        }
+        selected, stats["pairs"], descriptors = _select(image_path, names, matcher, conf.pairs)
         id_pairs = [(images[a].image_id, images[b].image_id, a, b) for a, b in selected]
         todo = [p for p in id_pairs if not dbio.pair_has_matches(db, p[0], p[1])]
         logger.info(
             "Matching %d %s pairs with the %s matcher (%d already matched)",
             len(todo),
-            mode,
+            stats["pairs"]["mode"],
             matcher.name,
             len(id_pairs) - len(todo),
         )
@@ -154,7 +140,9 @@ def match_pairs(
             )
             todo = schedule.order(todo, len(images) <= max_images_held)
         if todo:
-            run = get_executor(pairs.executor, matcher, pairs.ray_address, verification_conf)
+            run = get_executor(
+                conf.pairs.executor, matcher, conf.pairs.ray_address, verification_conf
+            )
             try:
                 with scoped_torch_threads(matcher.torch_threads):
                     stats["memory"], seconds = _match_pairs(
@@ -208,6 +196,25 @@ def match_pairs(
         stats["num_inlier_matches"],
     )
     return stats
+
+
+def _select(image_path: Path, names: list[str], matcher: Matcher, pairs) -> tuple:
+    """The pairs to match (``pairs``: ``PairsConf``), their record for the report, and the
+    retrieval descriptors of ``names`` where retrieval computed them."""
+    start = time.time()
+    mode = pair_mode(pairs.pairs, len(names), pairs.num_neighbors)
+    descriptors = (
+        _global_descriptors(matcher, image_path, names)
+        if retrieves(mode, len(names), pairs.num_neighbors)
+        else None
+    )
+    selected, mode = select_pairs(pairs.pairs, names, pairs.num_neighbors, descriptors)
+    record = {
+        "mode": mode if mode != "file" else str(pairs.pairs),
+        "num_neighbors": pairs.num_neighbors if mode in ("retrieval", "sequential") else None,
+        "time": time.time() - start,
+    }
+    return selected, record, descriptors
 
 
 def _verified(db, by_id: dict, id_a, id_b, matches, geometry, options) -> tuple:

@@ -166,33 +166,17 @@ def reconstruct(
     # decided once, here, before anything runs (a rerun continues with the database's features)
     existing = None if overwrite else features.existing_feature_type(output / "database.db")
     conf = conf.resolve(existing)
-    feature_conf, mapping_conf = conf.features.to_dict(), conf.mapping.to_dict()
     image_names = features.list_images(image_path)
     # made now: a missing or broken --weights file fails before the extraction
     matcher = conf.matcher.build()
-    features.check_matcher_features(matcher, feature_conf["type"])
+    features.check_matcher_features(matcher, conf.features.type)
     Workspace.claim(output, "reconstruct", keep=(image_path,), overwrite=overwrite).record(*WRITES)
     database_path = output / "database.db"
     if database_path.exists():
         with dbio.open_database(database_path) as db:
             dbio.check_image_folder(db, image_path)
     timings = {}
-
-    start = time.time()
-    card_conf = cards.check_conf(feature_conf["cards"])
-    layouts = cards.find_layouts(image_path, image_names, card_conf)
-    image_names, panels = cards.split_collages(image_path, output, image_names, layouts)
-    extraction = features.extract(database_path, image_path, image_names, feature_conf)
-    masked = cards.mask_keypoints(database_path, layouts, card_conf)
-    timings["extract"] = time.time() - start
-    usable = [name for name in image_names if name not in extraction["skipped"]]
-    if len(usable) < 2:
-        raise ValueError(
-            f"Only {len(usable)} usable image(s) in {image_path} ({len(extraction['skipped'])} "
-            "skipped): a reconstruction needs at least 2 overlapping photos of the landmark; "
-            "add photos and run again."
-        )
-
+    photos = _extract(database_path, image_path, output, image_names, conf.features, timings)
     match_stats = match.match_pairs(
         database_path,
         image_path,
@@ -203,37 +187,87 @@ def reconstruct(
     )
     timings["match"] = match_stats.pop("match_time")
     timings["verify"] = match_stats.pop("verify_time")
+    models = _map(database_path, image_path, output, photos, conf, matcher, match_stats, timings)
+    result = _result(scene_dir, image_path, output, photos, conf, match_stats, models, timings)
+    _write_reports(output, image_path, result, models)
+    return result
 
-    start = time.time()
-    sparse_path = output / "sparse"
-    prints = cards.repeated_prints(database_path, card_conf)
-    mapped = [name for name in usable if name not in prints] if prints else None
-    models = mapping.run_mapping(
-        database_path, image_path, sparse_path, {**mapping_conf, "image_names": mapped}
-    )
-    weak_start = not models and match_stats["num_verified_pairs"] > 0
-    if weak_start:
-        models = mapping.map_weak_start(
-            database_path, image_path, sparse_path, {**mapping_conf, "image_names": mapped}
+
+@dataclasses.dataclass
+class Photos:
+    """What extraction made of the photos: their names (collage panels in place of their cards),
+    those skipped with why, and the scanned cards' layouts, panels and masked keypoints."""
+
+    names: list[str]
+    skipped: dict
+    card_conf: dict
+    layouts: dict
+    panels: dict
+    masked: dict
+    prints: dict = dataclasses.field(default_factory=dict)  # repeated prints, found after matching
+
+    @property
+    def usable(self) -> list[str]:
+        return [name for name in self.names if name not in self.skipped]
+
+
+def _extract(database_path, image_path, output, image_names, feature_conf, timings) -> Photos:
+    """Cards' layouts and collage panels, then features; at least 2 usable photos."""
+    start, feature_conf = time.time(), feature_conf.to_dict()
+    card_conf = cards.check_conf(feature_conf["cards"])
+    layouts = cards.find_layouts(image_path, image_names, card_conf)
+    image_names, panels = cards.split_collages(image_path, output, image_names, layouts)
+    extraction = features.extract(database_path, image_path, image_names, feature_conf)
+    masked = cards.mask_keypoints(database_path, layouts, card_conf)
+    timings["extract"] = time.time() - start
+    photos = Photos(image_names, extraction["skipped"], card_conf, layouts, panels, masked)
+    if len(photos.usable) < 2:
+        raise ValueError(
+            f"Only {len(photos.usable)} usable image(s) in {image_path} ({len(photos.skipped)} "
+            "skipped): a reconstruction needs at least 2 overlapping photos of the landmark; "
+            "add photos and run again."
         )
+    return photos
+
+
+def _map(database_path, image_path, output, photos, conf, matcher, match_stats, timings) -> dict:
+    """Mapping of the photos but repeated prints' copies, a weaker start where no model starts,
+    then escalation's rounds; the rounds go to ``match_stats``."""
+    start, sparse_path = time.time(), output / "sparse"
+    photos.prints = cards.repeated_prints(database_path, photos.card_conf)
+    prints = photos.prints
+    mapped = [name for name in photos.usable if name not in prints] if prints else None
+    mapping_conf = {**conf.mapping.to_dict(), "image_names": mapped}
+    models = mapping.run_mapping(database_path, image_path, sparse_path, mapping_conf)
+    # recorded for the report; escalation may make a model later
+    match_stats["weak_start"] = not models and match_stats["num_verified_pairs"] > 0
+    if match_stats["weak_start"]:
+        models = mapping.map_weak_start(database_path, image_path, sparse_path, mapping_conf)
     timings["map"] = time.time() - start
     models, match_stats["escalation"] = _escalate(
         conf,
         matcher,
         models,
-        {**mapping_conf, "image_names": mapped},
-        mapped or usable,
+        mapping_conf,
+        mapped or photos.usable,
         match_stats.pop("selected"),
         output,
         image_path,
         timings,
     )
+    return models
 
-    stats = report.model_statistics(models, image_names)
+
+def _result(scene_dir, image_path, output, photos, conf, match_stats, models, timings) -> dict:
+    """report.json's content."""
+    stats = report.model_statistics(models, photos.names)
+    registered = set(stats["registered_images"])
     checked = model_check.check_models(models)
     for problem in checked["problems"]:
         logger.warning("Model check: %s", problem)
     eras = report.read_manifest(Path(scene_dir) / "manifest.json")
+    database_path, sparse_path = output / "database.db", output / "sparse"
+    weak_start, prints = match_stats.pop("weak_start"), photos.prints
     result = {
         "scene": Path(scene_dir).resolve().name,
         "image_path": str(image_path),
@@ -242,49 +276,48 @@ def reconstruct(
         "report_path": str(output / "report.json"),
         "matcher": match_stats.pop("matcher"),
         "options": {
-            "features": feature_conf,
+            "features": conf.features.to_dict(),
             "verification": match_stats.pop("verification"),
-            "mapping": mapping_conf,
+            "mapping": conf.mapping.to_dict(),
             "pairs": match_stats.pop("pairs"),
         },
         "model": stats,
         "model_check": checked,
         "weak_start": mapping.WEAK_START if weak_start else None,
-        "eras": report.era_ratios(eras, stats["registered_images"], image_names) if eras else {},
+        "eras": report.era_ratios(eras, stats["registered_images"], photos.names) if eras else {},
         "database": match_stats,
-        "skipped_images": extraction["skipped"],
-        **cards.card_report(layouts, panels, masked, prints, set(stats["registered_images"])),
+        "skipped_images": photos.skipped,
+        **cards.card_report(
+            photos.layouts, photos.panels, photos.masked, photos.prints, registered
+        ),
         "manifest_path": str(Path(scene_dir).resolve() / "manifest.json") if eras else None,
         "exports": export.export_model(models[0], sparse_path / "0") if models else {},
         "timings": timings,
-        **{
-            k: stats[k]
-            for k in (
-                "num_images",
-                "num_registered",
-                "registered_ratio",
-                "num_points3D",
-                "mean_track_length",
-                "mean_reprojection_error",
-            )
-        },
+        **{key: stats[key] for key in report.SUMMARY_KEYS},
     }
     result["unregistered"] = report.explain_unregistered(
         database_path,
         models,
-        image_names,
-        extraction["skipped"],
+        photos.names,
+        photos.skipped,
         result["options"]["verification"]["min_num_inliers"],
     )
-    result["unregistered"].update(cards.explain_prints(prints, set(stats["registered_images"])))
+    result["unregistered"].update(cards.explain_prints(prints, registered))
     if not models:
-        result["no_model"] = report.explain_no_model(database_path, mapping_conf, prints)
+        result["no_model"] = report.explain_no_model(database_path, conf.mapping.to_dict(), prints)
+    return result
+
+
+def _write_reports(output: Path, image_path: Path, result: dict, models: dict) -> None:
+    """report.html, then report.json (the run's last file)."""
     result["html_report_path"] = str(output / "report.html")
     try:
         html_report.write_html_report(
             output / "report.html",
             result,
-            html_report.match_panels({result["matcher"]["name"]: database_path}, image_path),
+            html_report.match_panels(
+                {result["matcher"]["name"]: output / "database.db"}, image_path
+            ),
             models.get(0),
         )
     except Exception as err:  # noqa: BLE001
@@ -292,7 +325,6 @@ def reconstruct(
         logger.warning("Could not write the HTML report (%s); report.json is complete.", err)
         result.pop("html_report_path")
     report.write_report(output / "report.json", result)
-    return result
 
 
 def add_parser(sub) -> None:

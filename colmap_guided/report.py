@@ -13,6 +13,16 @@ from pathlib import Path
 
 import pycolmap
 
+# model_statistics' figures that report.json also gives at its top level
+SUMMARY_KEYS = (
+    "num_images",
+    "num_registered",
+    "registered_ratio",
+    "num_points3D",
+    "mean_track_length",
+    "mean_reprojection_error",
+)
+
 
 def model_statistics(models: dict[int, pycolmap.Reconstruction], image_names: list[str]) -> dict:
     """Statistics of the largest model; images registered in another model count as not
