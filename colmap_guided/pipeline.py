@@ -167,7 +167,8 @@ class PipelineConf:
         the features (``database_type``: those of the database a rerun continues), the matcher of
         them with its options checked and its ``feature_defaults`` under them, mapping's options.
         The stages take the sections of the returned conf as they are."""
-        feature_conf = self.features.to_dict()
+        # checked first: a bad option is the run's one line, before the choice is logged
+        feature_conf = features.check_conf(self.features.to_dict())
         chosen, feature_type, options = resolve_auto(
             self.matcher.name, feature_conf, self.matcher.options, database_type
         )
