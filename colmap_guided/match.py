@@ -120,13 +120,13 @@ def match_pairs(
         if overwrite:
             dbio.clear_matches(db)
         names = sorted(images)
-        selected, stats["pairs"], descriptors = _select(image_path, names, matcher, conf.pairs)
+        selected, mode, stats["pairs"], descriptors = _select(image_path, names, matcher, conf)
         id_pairs = [(images[a].image_id, images[b].image_id, a, b) for a, b in selected]
         todo = [p for p in id_pairs if not dbio.pair_has_matches(db, p[0], p[1])]
         logger.info(
             "Matching %d %s pairs with the %s matcher (%d already matched)",
             len(todo),
-            stats["pairs"]["mode"],
+            mode,
             matcher.name,
             len(id_pairs) - len(todo),
         )
@@ -198,10 +198,10 @@ def match_pairs(
     return stats
 
 
-def _select(image_path: Path, names: list[str], matcher: Matcher, pairs) -> tuple:
-    """The pairs to match (``pairs``: ``PairsConf``), their record for the report, and the
-    retrieval descriptors of ``names`` where retrieval computed them."""
-    start = time.time()
+def _select(image_path: Path, names: list[str], matcher: Matcher, conf: PipelineConf) -> tuple:
+    """The pairs to match (``conf.pairs``), their mode and record for the report, and
+    the retrieval descriptors of ``names`` where retrieval computed them."""
+    start, pairs = time.time(), conf.pairs
     mode = pair_mode(pairs.pairs, len(names), pairs.num_neighbors)
     descriptors = (
         _global_descriptors(matcher, image_path, names)
@@ -214,7 +214,7 @@ def _select(image_path: Path, names: list[str], matcher: Matcher, pairs) -> tupl
         "num_neighbors": pairs.num_neighbors if mode in ("retrieval", "sequential") else None,
         "time": time.time() - start,
     }
-    return selected, record, descriptors
+    return selected, mode, record, descriptors
 
 
 def _verified(db, by_id: dict, id_a, id_b, matches, geometry, options) -> tuple:
