@@ -1,7 +1,7 @@
 """Benchmark of guided learned features (paper §4.4, Table 3): SIFT vs ALIKED, raw vs guided, in one
 run.
 
-    python recon_scripts/benchmark_aliked.py [--sets sacre_coeur_hloc phototourism_superglue]
+    python -m recon_scripts.benchmark_aliked [--sets sacre_coeur_hloc phototourism_superglue]
         [--configs sift:guided aliked:raw ...]
 
 Features are extracted once per set and type (time per image, same run), then every config matches a
@@ -25,10 +25,10 @@ from pathlib import Path
 import colmap_guided  # noqa: F401  (before pycolmap: see colmap_guided/__init__.py)
 from colmap_guided import database as dbio
 from colmap_guided import features
-from colmap_guided.evaluation import matcher_specs
 from colmap_guided.log import set_verbosity
 from colmap_guided.paths import shared_data_dir
 from colmap_guided.reconstruct import reconstruct
+from recon_scripts.evaluation import matcher_specs
 
 DEFAULT_CONFIGS = ["sift:guided", "aliked:raw", "aliked:guided"]
 

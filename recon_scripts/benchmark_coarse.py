@@ -1,7 +1,7 @@
 """Speed of the coarse network's neighbourhood-consensus filter, and pycolmap's exhaustive
 SIFT matching of real pairs measured in the same run as the reference.
 
-    python recon_scripts/benchmark_coarse.py [--grids 25 32] [--sift-images 10] [--workers 1 2]
+    python -m recon_scripts.benchmark_coarse [--grids 25 32] [--sift-images 10] [--workers 1 2]
         [--repeats 3]
 
 Prints a Markdown table of ms per pair at square grids (25x25 and 32x32 by default) for

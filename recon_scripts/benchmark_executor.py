@@ -1,6 +1,6 @@
 """Benchmark: the match stage on the local executor (threads) vs Ray, in one run.
 
-    python recon_scripts/benchmark_executor.py [--set sacre_coeur_hloc] [--pairs exhaustive]
+    python -m recon_scripts.benchmark_executor [--set sacre_coeur_hloc] [--pairs exhaustive]
         [--rounds 2] [--ray_address HOST:PORT]
 
 One SIFT extraction; each round matches the same pairs from scratch with ``--executor local`` and

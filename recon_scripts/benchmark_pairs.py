@@ -1,7 +1,7 @@
 """Benchmark: pair selection (exhaustive vs retrieval at several k, optionally sequential) end to
 end.
 
-    python recon_scripts/benchmark_pairs.py [--sets sacre_coeur_hloc opensfm_lund ...] [--k 5 10]
+    python -m recon_scripts.benchmark_pairs [--sets sacre_coeur_hloc opensfm_lund ...] [--k 5 10]
         [--matcher guided]
 
 One SIFT extraction per set; for each pair selection the matches are cleared, matched, verified and

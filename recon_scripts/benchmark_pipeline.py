@@ -1,7 +1,7 @@
 """Benchmark: pycolmap's default pipeline vs `reconstruct` (matcher x mapper x seed) on the same
 images, in one run.
 
-    python recon_scripts/benchmark_pipeline.py [--sets sacre_coeur_hloc opensfm_lund ...]
+    python -m recon_scripts.benchmark_pipeline [--sets sacre_coeur_hloc opensfm_lund ...]
         [--matchers raw guided guided:raw_matches=none]
         [--mappers incremental global] [--seeds 0 1]
 
@@ -25,19 +25,19 @@ from pathlib import Path
 
 from colmap_guided import features, model_check, report
 from colmap_guided.database import num_verified_pairs, open_database
-from colmap_guided.evaluation import matcher_specs
-from colmap_guided.evaluation.reference import load_colmap_model, reference_model_dir
-from colmap_guided.evaluation.registration import (
-    method_slug,
-    run_pycolmap_default,
-    score_registration,
-    split_stage_options,
-)
 from colmap_guided.log import set_verbosity
 from colmap_guided.mapping import MAPPERS, load_models, run_mapping
 from colmap_guided.paths import shared_data_dir
 from colmap_guided.pipeline import PipelineConf
 from colmap_guided.reconstruct import reconstruct
+from recon_scripts.evaluation import matcher_specs
+from recon_scripts.evaluation.reference import load_colmap_model, reference_model_dir
+from recon_scripts.evaluation.registration import (
+    method_slug,
+    run_pycolmap_default,
+    score_registration,
+    split_stage_options,
+)
 
 DEFAULT_SETS = [
     "sacre_coeur_hloc",

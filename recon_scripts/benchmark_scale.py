@@ -1,12 +1,12 @@
 """Scale benchmark: time per stage, pairs, registered images and peak memory vs N photos.
 
-    python recon_scripts/benchmark_scale.py pool      # the photo pool (once, ~5 min)
-    python recon_scripts/benchmark_scale.py run --n 1000 --pairs retrieval
-    python recon_scripts/benchmark_scale.py run --n 50 200 --pairs retrieval exhaustive
-    python recon_scripts/benchmark_scale.py map --n 50 200 1000
+    python -m recon_scripts.benchmark_scale pool      # the photo pool (once, ~5 min)
+    python -m recon_scripts.benchmark_scale run --n 1000 --pairs retrieval
+    python -m recon_scripts.benchmark_scale run --n 50 200 --pairs retrieval exhaustive
+    python -m recon_scripts.benchmark_scale map --n 50 200 1000
         --mappers global hierarchical incremental
-    python recon_scripts/benchmark_scale.py ray --n 200 --num_pairs 160
-    python recon_scripts/benchmark_scale.py report    # Markdown tables + scale.png
+    python -m recon_scripts.benchmark_scale ray --n 200 --num_pairs 160
+    python -m recon_scripts.benchmark_scale report    # Markdown tables + scale.png
 
 Photos: the 437 photos of the 20 training scenes of ../shared/data/train pooled (long side <=
 1024 px; symlinked, never copied) and 563 photos of 24 landmarks rendered by

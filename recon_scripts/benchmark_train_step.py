@@ -5,7 +5,7 @@ windows (the former CPU recipe) and dense on whole grids (the GPU recipe; slow o
 --dense_whole steps only). Uses the frozen-feature cache of the default training data
 (built on first use).
 
-    python recon_scripts/benchmark_train_step.py [--steps 6] [--dense_whole 1] [--resolution 512]
+    python -m recon_scripts.benchmark_train_step [--steps 6] [--dense_whole 1] [--resolution 512]
 """
 
 from __future__ import annotations

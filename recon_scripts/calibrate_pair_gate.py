@@ -1,7 +1,7 @@
 """Which pairs are worth the fine matcher: the coarse network's pair-level evidence against the fine
 matcher's verdict.
 
-    python recon_scripts/calibrate_pair_gate.py --output outputs/pair_gate
+    python -m recon_scripts.calibrate_pair_gate --output outputs/pair_gate
         [--sources sacre_coeur_hloc ...]
         [--max_images 8] [--matcher guided_lightglue]
 
@@ -28,10 +28,10 @@ import numpy as np
 
 from colmap_guided import database as dbio
 from colmap_guided import features, verify
-from colmap_guided.evaluation import matcher_specs, proxy
 from colmap_guided.log import colmap_quiet, set_verbosity
 from colmap_guided.matchers import get_matcher
 from colmap_guided.workspace import Workspace
+from recon_scripts.evaluation import matcher_specs, proxy
 
 DEV_SOURCES = (
     "sacre_coeur_hloc",

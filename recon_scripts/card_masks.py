@@ -1,7 +1,7 @@
 """Verified inliers on the parts of scanned cards that are not their picture, with and without the
 card anatomy (colmap_guided/cards.py), and what each run places.
 
-    python recon_scripts/card_masks.py [--data DIR] [--out DIR] [--landmarks laboe,boerse-essen]
+    python -m recon_scripts.card_masks [--data DIR] [--out DIR] [--landmarks laboe,boerse-essen]
         [--features aliked] [--matcher auto]
 
 Per landmark of postcards_cmahnke (DIR/<landmark>/images): reconstruct with ``cards.enabled``
@@ -23,9 +23,9 @@ import numpy as np
 
 from colmap_guided import cards
 from colmap_guided import database as dbio
-from colmap_guided.evaluation.tables import markdown_table
 from colmap_guided.paths import shared_data_dir
 from colmap_guided.reconstruct import reconstruct
+from recon_scripts.evaluation.tables import markdown_table
 
 
 def off_picture(database_path: Path, layouts: dict, panels: dict) -> tuple:

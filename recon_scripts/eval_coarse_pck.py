@@ -11,7 +11,7 @@ Methods: raw correlation (no filter, mutual-NN-free argmax), the untrained filte
 seed 0), and every trained filter given with --weights. Optionally --archival PRESET also measures
 every method with image B degraded by that archival preset (an old photo matched to a modern one).
 
-    python recon_scripts/eval_coarse_pck.py \
+    python -m recon_scripts.eval_coarse_pck \
         --weights outputs/train_epipolar_lite0/coarse_filter.safetensors \
         --out outputs/coarse_pck [--pairs_per_scene 25] [--resize_max 512] [--impl sparse] \
         [--archival damaged_scan]

@@ -3,7 +3,7 @@ the Earth (its own units taken as metres, its photos' up as the vertical, a chos
 heading) are the truth; 3 of them are the controls, the other photos' position and heading errors
 are measured.
 
-    python recon_scripts/eval_georeference.py WORKSPACE \
+    python -m recon_scripts.eval_georeference WORKSPACE \
         [--reference ../shared/data/lund_door_gtsfm/colmap_ground_truth] \
         [--controls DSC_0001.JPG DSC_0006.JPG DSC_0012.JPG] [--noise METRES] [--off DSC_0009.JPG]
 

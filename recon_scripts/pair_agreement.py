@@ -1,7 +1,7 @@
 """Per pair of the historical proxy: how right are the guided and the raw verified inliers, and does
 their agreement tell?
 
-    python recon_scripts/pair_agreement.py --results outputs/eval_s7_agree
+    python -m recon_scripts.pair_agreement --results outputs/eval_s7_agree
         [--proxy_dir outputs/historical_proxy_s5]
         [--reference sacre_coeur_hloc=outputs/refs/sacre_coeur_hloc/sparse/0] [--json pairs.json]
 

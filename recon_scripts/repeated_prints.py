@@ -1,7 +1,7 @@
 """Which verified pairs of a database the card anatomy calls one print twice, and how close the
 other pairs come: the similarity fit (cards.print_fit) of every pair with enough inliers.
 
-    python recon_scripts/repeated_prints.py DATABASE [DATABASE ...] [--top 5]
+    python -m recon_scripts.repeated_prints DATABASE [DATABASE ...] [--top 5]
 
 Per database: the pairs grouped as repeated prints (cards.is_same_print), then the ``--top`` other
 pairs with the highest share of inliers one similarity explains (the margin to the threshold).

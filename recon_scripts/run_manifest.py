@@ -2,13 +2,13 @@
 images).
 
     # LTLL (not downloadable here): scan a local copy, then run
-    python recon_scripts/run_manifest.py --manifest datasets/ltll_manifest.json --root /data/LTLL
+    python -m recon_scripts.run_manifest --manifest datasets/ltll_manifest.json --root /data/LTLL
         --scan
     # the photo sets of ../shared/data (all modern), offline
-    python recon_scripts/run_manifest.py --manifest datasets/shared_manifest.json
+    python -m recon_scripts.run_manifest --manifest datasets/shared_manifest.json
         --scenes sacre_coeur_hloc --subsets all
     # regenerate datasets/shared_manifest.json from ../shared/data
-    python recon_scripts/run_manifest.py --write_shared_manifest datasets/shared_manifest.json
+    python -m recon_scripts.run_manifest --write_shared_manifest datasets/shared_manifest.json
 
 --scan lists ROOT/SCENE/{historical|old|...,modern|new|...}/... (or
 ROOT/{historical,modern}/SCENE/...) and writes the filled manifest to --scanned_manifest (the
@@ -25,12 +25,12 @@ import argparse
 import sys
 from pathlib import Path
 
-from colmap_guided.evaluation import manifest as mf
-from colmap_guided.evaluation import registration
 from colmap_guided.features import list_images
 from colmap_guided.log import logger, set_verbosity
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
 from colmap_guided.workspace import Workspace
+from recon_scripts.evaluation import manifest as mf
+from recon_scripts.evaluation import registration
 
 
 def shared_manifest(data_dir: Path | None = None) -> dict:

@@ -1,6 +1,5 @@
 """Historical proxy, manifests (scan / layout) and the registration benchmark on one tiny scene."""
 
-import importlib.util
 import json
 
 import cv2
@@ -9,17 +8,17 @@ import pycolmap
 import pytest
 
 from colmap_guided.database import open_database, pair_inlier_counts, read_keypoints
-from colmap_guided.evaluation import manifest as mf
-from colmap_guided.evaluation import proxy, registration
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
 from colmap_guided.workspace import MARKER
-
-
-def load_script(name):
-    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "recon_scripts" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from recon_scripts import (
+    eval_registration,
+    mapper_choice,
+    pair_agreement,
+    run_manifest,
+    summarize_registration,
+)
+from recon_scripts.evaluation import manifest as mf
+from recon_scripts.evaluation import proxy, registration
 
 
 @pytest.fixture(scope="module")
@@ -156,7 +155,7 @@ def test_manifests_in_the_repository_are_valid(shared_data):
         and ltll["scenes"] == []
     )
     shared = mf.load_manifest(REPO_ROOT / "datasets" / "shared_manifest.json")
-    regenerated = load_script("run_manifest").shared_manifest()
+    regenerated = run_manifest.shared_manifest()
     assert [s["name"] for s in shared["scenes"]] == [s["name"] for s in regenerated["scenes"]]
     for scene in shared["scenes"]:
         assert all(im["era"] == "modern" for im in scene["images"])
@@ -214,7 +213,7 @@ def test_eval_registration_on_a_tiny_proxy_scene(tiny_proxy, tmp_path, capsys):
         str(out),
         "-q",
     ]
-    assert load_script("eval_registration").main(argv) == 0
+    assert eval_registration.main(argv) == 0
     text = capsys.readouterr().out
     assert (
         "| strecha_entry_P10 | all | 2/2/2 |" in text
@@ -252,7 +251,7 @@ def test_run_manifest_scans_and_lays_out_a_local_copy(tmp_path, capsys):
         str(out),
         "-q",
     ]
-    assert load_script("run_manifest").main(argv) == 0
+    assert run_manifest.main(argv) == 0
     scanned = json.loads((out / "manifest_scanned.json").read_text())
     assert scanned["root"] == str(root.resolve()) and len(scanned["scenes"][0]["images"]) == 4
     assert sorted(p.name for p in out.iterdir()) == [
@@ -263,7 +262,7 @@ def test_run_manifest_scans_and_lays_out_a_local_copy(tmp_path, capsys):
     ]
     # without a local copy the LTLL manifest has nothing to run, and says so
     assert (
-        load_script("run_manifest").main(
+        run_manifest.main(
             [
                 "--manifest",
                 str(REPO_ROOT / "datasets" / "ltll_manifest.json"),
@@ -296,7 +295,7 @@ def test_eval_registration_all_methods_on_a_tiny_proxy_scene(tiny_proxy, tmp_pat
         str(out),
         "-q",
     ]
-    assert load_script("eval_registration").main(argv) == 0
+    assert eval_registration.main(argv) == 0
     data = json.loads((out / "results.json").read_text())
     assert [(s["scene"], s["subset"]) for s in data["scenes"]] == [
         (n, sub)
@@ -355,7 +354,7 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
         str(out),
         "-q",
     ]
-    assert load_script("eval_registration").main(argv) == 0
+    assert eval_registration.main(argv) == 0
     methods = json.loads((out / "results.json").read_text())["scenes"][0]["methods"]
     raw, raw_global, guided = (methods[m] for m in ("raw", "raw:mapper=global", "guided"))
     assert "reused" not in raw
@@ -379,7 +378,7 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
         assert pair_inlier_counts(a) == pair_inlier_counts(b) and len(pair_inlier_counts(a)) >= 1
     # --remap maps each finished database again (a change of the mapping stage) and keeps the stage
     # times
-    assert load_script("eval_registration").main(argv + ["--resume", "--remap"]) == 0
+    assert eval_registration.main(argv + ["--resume", "--remap"]) == 0
     again = json.loads((out / "results.json").read_text())["scenes"][0]["methods"]
     assert (
         again["guided"]["reused"]["database"].endswith("(--remap)")
@@ -392,10 +391,7 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
     # (here: mapping it twice)
     poses = []
     for _ in range(2):
-        assert (
-            load_script("eval_registration").main(argv + ["--resume", "--remap", "--threads", "1"])
-            == 0
-        )
+        assert eval_registration.main(argv + ["--resume", "--remap", "--threads", "1"]) == 0
         model = pycolmap.Reconstruction(str(runs / "guided" / "sparse" / "0"))
         poses.append(
             {im.name: im.cam_from_world().matrix() for im in model.images.values() if im.has_pose}
@@ -404,7 +400,7 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
     assert all(np.array_equal(poses[0][n], poses[1][n]) for n in poses[0])
     # the summary: one table per LTLL protocol (rows = methods, columns = scenes) and the time per
     # stage
-    load_script("summarize_registration").main([str(out / "results.json")])
+    summarize_registration.main([str(out / "results.json")])
     text = capsys.readouterr().out
     assert "**Protocol: historical + modern photos + distractors**" in text and "**Time**" in text
     row = next(line for line in text.splitlines() if line.startswith("| raw:mapper=global |"))
@@ -421,14 +417,14 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
     )
     # one results file's runs of a method under their own label (the same method before and after a
     # change)
-    load_script("summarize_registration").main(
+    summarize_registration.main(
         [str(out / "results.json"), "--label", f"{out / 'results.json'}:raw=raw (this run)"]
     )
     assert "| raw (this run) |" in capsys.readouterr().out
     # mapper_choice maps the run's database again with each mapper: its `auto` pick is the
     # pipeline's own model
     assert (
-        load_script("mapper_choice").main(
+        mapper_choice.main(
             [
                 str(out / "results.json"),
                 "--method",
@@ -463,7 +459,7 @@ def test_reference_check_accepts_true_correspondences_of_resized_cropped_photos_
     """Two photos of a synthetic scene, resized (x0.5) and cropped as the proxy makes its prints:
     the projections of the same 3D points are all within the 6 px of the reference epipolar lines,
     the same keypoints paired at random mostly are not."""
-    script = load_script("pair_agreement")  # recon_scripts/pair_agreement.py
+    script = pair_agreement
     options = pycolmap.SyntheticDatasetOptions()
     (
         options.num_rigs,

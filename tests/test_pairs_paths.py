@@ -58,7 +58,7 @@ def test_workspace_is_never_inside_the_photo_folder(tmp_path):
 
 def test_caches_live_outside_the_package_and_the_repository(monkeypatch, tmp_path):
     from colmap_guided import paths
-    from colmap_guided.evaluation import two_view
+    from recon_scripts.evaluation import two_view
 
     monkeypatch.delenv("COLMAP_GUIDED_CACHE", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
