@@ -9,14 +9,7 @@ import pytest
 
 from colmap_guided.database import open_database, pair_inlier_counts, read_keypoints
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
-from colmap_guided.workspace import MARKER
-from recon_scripts import (
-    eval_registration,
-    mapper_choice,
-    pair_agreement,
-    run_manifest,
-    summarize_registration,
-)
+from recon_scripts import eval_registration, mapper_choice, summarize_registration
 from recon_scripts.evaluation import manifest as mf
 from recon_scripts.evaluation import proxy, registration
 
@@ -155,8 +148,6 @@ def test_manifests_in_the_repository_are_valid(shared_data):
         and ltll["scenes"] == []
     )
     shared = mf.load_manifest(REPO_ROOT / "datasets" / "shared_manifest.json")
-    regenerated = run_manifest.shared_manifest()
-    assert [s["name"] for s in shared["scenes"]] == [s["name"] for s in regenerated["scenes"]]
     for scene in shared["scenes"]:
         assert all(im["era"] == "modern" for im in scene["images"])
         assert all(
@@ -232,47 +223,6 @@ def test_eval_registration_on_a_tiny_proxy_scene(tiny_proxy, tmp_path, capsys):
         and rec["wrong"] == []
     )
     assert (out / "registered.png").is_file() and (out / "results.md").is_file()
-
-
-def test_run_manifest_scans_and_lays_out_a_local_copy(tmp_path, capsys):
-    root = tmp_path / "LTLL"
-    for era in ("historical", "modern"):
-        for i in range(2):
-            _fake_image(root / "some_landmark" / era / f"{i}.jpg")
-    out = tmp_path / "out"
-    argv = [
-        "--manifest",
-        str(REPO_ROOT / "datasets" / "ltll_manifest.json"),
-        "--root",
-        str(root),
-        "--scan",
-        "--layout_only",
-        "--output",
-        str(out),
-        "-q",
-    ]
-    assert run_manifest.main(argv) == 0
-    scanned = json.loads((out / "manifest_scanned.json").read_text())
-    assert scanned["root"] == str(root.resolve()) and len(scanned["scenes"][0]["images"]) == 4
-    assert sorted(p.name for p in out.iterdir()) == [
-        MARKER,
-        "manifest_scanned.json",
-        "some_landmark__all",
-        "some_landmark__historical",
-    ]
-    # without a local copy the LTLL manifest has nothing to run, and says so
-    assert (
-        run_manifest.main(
-            [
-                "--manifest",
-                str(REPO_ROOT / "datasets" / "ltll_manifest.json"),
-                "--output",
-                str(out),
-                "-q",
-            ]
-        )
-        == 2
-    )
 
 
 @pytest.mark.slow
@@ -451,44 +401,3 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
     assert (
         oracle == sum(max(m["correct"] for m in run["models"].values()) for run in choice) >= right
     )
-
-
-def test_reference_check_accepts_true_correspondences_of_resized_cropped_photos_not_shuffled_ones(
-    tmp_path,
-):
-    """Two photos of a synthetic scene, resized (x0.5) and cropped as the proxy makes its prints:
-    the projections of the same 3D points are all within the 6 px of the reference epipolar lines,
-    the same keypoints paired at random mostly are not."""
-    script = pair_agreement
-    options = pycolmap.SyntheticDatasetOptions()
-    (
-        options.num_rigs,
-        options.num_cameras_per_rig,
-        options.num_frames_per_rig,
-        options.num_points3D,
-    ) = 1, 1, 2, 200
-    pycolmap.set_random_seed(0)
-    with pycolmap.Database.open(str(tmp_path / "db.db")) as db:
-        ref = pycolmap.synthesize_dataset(options, db)
-    a, b = (ref.images[i] for i in sorted(ref.reg_image_ids()))
-    entries = [
-        {"ref_name": im.name, "scale": 0.5, "crop_offset": off}
-        for im, off in ((a, [10, 20]), (b, [0, 5]))
-    ]
-    in_b = {p.point3D_id: k for k, p in enumerate(b.points2D) if p.has_point3D()}
-    pairs = np.array(
-        [
-            (k, in_b[p.point3D_id])
-            for k, p in enumerate(a.points2D)
-            if p.has_point3D() and p.point3D_id in in_b
-        ]
-    )
-    kp = [
-        np.array([p.xy for p in im.points2D]) * 0.5 - np.asarray(e["crop_offset"], float)
-        for im, e in zip((a, b), entries)
-    ]
-    F = script.reference_fundamental(ref, *entries)
-    assert len(pairs) > 50 and script.share_right(F, kp[0], kp[1], pairs) == 1.0
-    shuffled = np.c_[pairs[:, 0], np.random.default_rng(0).permutation(pairs[:, 1])]
-    assert script.share_right(F, kp[0], kp[1], shuffled) < 0.3
-    assert script.share_right(F, kp[0], kp[1], pairs[:0]) is None
