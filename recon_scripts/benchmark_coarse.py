@@ -21,7 +21,6 @@ the guided match stage with 1 and 2 pair workers, same run, and the guided parts
 
 from __future__ import annotations
 
-import argparse
 import shutil
 import sys
 import tempfile
@@ -37,6 +36,7 @@ from colmap_guided.coarse.matcher import PRECISIONS
 from colmap_guided.coarse.model import correlation, soft_mutual_nn
 from colmap_guided.images import read_image
 from colmap_guided.paths import shared_data_dir
+from recon_scripts import script_parser
 
 
 def conv4d_naive(x, weight, bias=None, groups=1):
@@ -205,7 +205,7 @@ def print_match_stage(r: dict, n_images: int, workers: list[int], set_name: str)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--grids", type=int, nargs="+", default=[25, 32])
     parser.add_argument(
         "--supports",

@@ -24,7 +24,6 @@ Markdown tables go to stdout, everything to --json. Features are the pipeline's 
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
 import time
@@ -43,6 +42,7 @@ from colmap_guided.matchers import get_matcher, resolve_auto
 from colmap_guided.matchers.base import ImageData
 from colmap_guided.matchers.guided import GuidedMatcher
 from colmap_guided.paths import shared_data_dir
+from recon_scripts import script_parser
 from recon_scripts.evaluation import matcher_specs
 
 BASELINES = ["raw", "guided", "guided_epipolar", "guided_homography", "guided_colmap"]
@@ -387,9 +387,7 @@ def markdown(rows: list[dict], unrelated_rows: list[dict], names: list[str]) -> 
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = script_parser(__doc__)
     parser.add_argument("--pairs_per_set", type=int, default=3)
     parser.add_argument("--unrelated", type=int, default=24, help="number of unrelated-image pairs")
     parser.add_argument(

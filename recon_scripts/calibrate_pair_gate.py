@@ -18,7 +18,6 @@ the gate's threshold is chosen here.
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
 import time
@@ -31,6 +30,7 @@ from colmap_guided import features, verify
 from colmap_guided.log import colmap_quiet, set_verbosity
 from colmap_guided.matchers import get_matcher
 from colmap_guided.workspace import Workspace
+from recon_scripts import script_parser
 from recon_scripts.evaluation import matcher_specs, proxy
 
 DEV_SOURCES = (
@@ -156,9 +156,7 @@ def budget_table(rows: list[dict], thresholds, min_inliers: int) -> list[str]:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = script_parser(__doc__)
     parser.add_argument(
         "--output", type=Path, required=True, help="proxy scenes, databases and pairs.json go here"
     )

@@ -15,7 +15,6 @@ picture.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from colmap_guided import cards
 from colmap_guided import database as dbio
 from colmap_guided.paths import shared_data_dir
 from colmap_guided.reconstruct import reconstruct
+from recon_scripts import script_parser
 from recon_scripts.evaluation.tables import markdown_table
 
 
@@ -56,7 +56,7 @@ def off_picture(database_path: Path, layouts: dict, panels: dict) -> tuple:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--data", type=Path, default=shared_data_dir() / "postcards_cmahnke")
     parser.add_argument("--out", type=Path, default=Path("card_masks_runs"))
     parser.add_argument("--landmarks", default=None, help="comma-separated (default: all)")

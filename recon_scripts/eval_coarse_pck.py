@@ -19,7 +19,6 @@ every method with image B degraded by that archival preset (an old photo matched
 
 from __future__ import annotations
 
-import argparse
 import json
 import tempfile
 import time
@@ -36,6 +35,7 @@ from colmap_guided.coarse.weights import save_filter_weights
 from colmap_guided.images import read_image
 from colmap_guided.log import logger, set_verbosity
 from colmap_guided.train.scenes import VAL_SCENES, load_scene
+from recon_scripts import script_parser
 
 THRESHOLDS = (8, 16, 32)
 
@@ -172,7 +172,7 @@ def markdown(results: dict, conf: dict) -> str:
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = script_parser(__doc__)
     p.add_argument(
         "--weights", nargs="*", type=Path, default=[], help="trained filter .safetensors files"
     )

@@ -12,7 +12,6 @@ WORKSPACE: a `reconstruct` output of the set (georeferenced by this script: WORK
 
 from __future__ import annotations
 
-import argparse
 import math
 import tempfile
 from pathlib import Path
@@ -23,6 +22,7 @@ import pycolmap
 from colmap_guided import geoframe
 from colmap_guided import georeference as geo
 from colmap_guided.geometry import photo_up
+from recon_scripts import script_parser
 
 
 def truth_frame(reference: pycolmap.Reconstruction, origin, yaw_deg: float) -> geoframe.GeoFrame:
@@ -37,7 +37,7 @@ def truth_frame(reference: pycolmap.Reconstruction, origin, yaw_deg: float) -> g
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("workspace", type=Path)
     parser.add_argument(
         "--reference",

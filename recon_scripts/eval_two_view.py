@@ -19,13 +19,13 @@ variant whose matcher is not in the registry, or cannot run, stops the script wi
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 from colmap_guided.conf import at_most_zero, none_or
 from colmap_guided.log import set_verbosity
 from colmap_guided.paths import REPO_ROOT
+from recon_scripts import script_parser
 from recon_scripts.evaluation import matcher_specs, tables, two_view
 from recon_scripts.evaluation.reference import TWO_VIEW_SCENES
 
@@ -157,11 +157,7 @@ def plot_wxbs(result: dict, path: Path) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=" ".join(__doc__.split("\n\n")[0].split()),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
-    )
+    parser = script_parser(__doc__)
     parser.add_argument(
         "--scenes",
         nargs="+",

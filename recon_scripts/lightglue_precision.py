@@ -11,7 +11,6 @@ Prints Markdown.
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import tempfile
 import time
@@ -24,12 +23,11 @@ from colmap_guided import features
 from colmap_guided.matchers import get_matcher
 from colmap_guided.matchers.lightglue import native_bf16
 from colmap_guided.paths import shared_data_dir
+from recon_scripts import script_parser
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = script_parser(__doc__)
     parser.add_argument("--set", default="sacre_coeur_hloc")
     parser.add_argument("--pairs", type=int, default=4)
     args = parser.parse_args(argv)

@@ -12,23 +12,19 @@ OUTPUT/proxy_manifest.json
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 from colmap_guided.conf import at_most_zero, none_or
 from colmap_guided.paths import REPO_ROOT
+from recon_scripts import script_parser
 from recon_scripts.evaluation import proxy
 
 DEFAULT_OUTPUT = REPO_ROOT / "outputs" / "historical_proxy"
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=" ".join(__doc__.split("\n\n")[0].split()),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
-    )
+    parser = script_parser(__doc__)
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
     parser.add_argument(
         "--split",

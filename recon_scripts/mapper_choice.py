@@ -21,7 +21,6 @@ these models can do with this database.
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import sys
@@ -32,6 +31,7 @@ import pycolmap
 
 from colmap_guided import mapping
 from colmap_guided.log import colmap_quiet
+from recon_scripts import script_parser
 from recon_scripts.evaluation import registration
 from recon_scripts.evaluation.matcher_specs import parse_spec
 from recon_scripts.evaluation.tables import markdown_table, write_json
@@ -74,11 +74,7 @@ def choose(models: dict[str, dict], rule: str) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=" ".join(__doc__.split("\n\n")[0].split()),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
-    )
+    parser = script_parser(__doc__)
     parser.add_argument(
         "results", type=Path, help="results.json of an eval_registration run of METHOD"
     )

@@ -19,13 +19,14 @@ browser is installed.
 
 from __future__ import annotations
 
-import argparse
 import shutil
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 from urllib.parse import quote
+
+from recon_scripts import script_parser
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 
@@ -137,7 +138,7 @@ def small_png(path: Path, max_bytes: int = 300_000) -> Path:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
+    parser = script_parser(__doc__)
     parser.add_argument("html", type=Path, nargs="?", help="a report.html (not with --demo)")
     parser.add_argument(
         "--demo",

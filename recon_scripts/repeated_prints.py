@@ -9,14 +9,14 @@ pairs with the highest share of inliers one similarity explains (the margin to t
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from colmap_guided import cards
+from recon_scripts import script_parser
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("databases", nargs="+", type=Path)
     parser.add_argument("--top", type=int, default=5)
     args = parser.parse_args()

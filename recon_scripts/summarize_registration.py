@@ -16,7 +16,6 @@ from the runs' folders.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -25,6 +24,7 @@ import numpy as np
 import pycolmap
 
 from colmap_guided.mapping import load_models
+from recon_scripts import script_parser
 from recon_scripts.evaluation import registration
 from recon_scripts.evaluation.tables import markdown_table
 
@@ -66,11 +66,7 @@ def era_checks(record: dict, scene: dict) -> tuple[int | None, int | None]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=" ".join(__doc__.split("\n\n")[0].split()),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
-    )
+    parser = script_parser(__doc__)
     parser.add_argument("results", nargs="+", type=Path)
     parser.add_argument(
         "--reference",
