@@ -88,13 +88,11 @@ def test_an_installed_package_finds_shared_data_only_through_the_environment(tmp
         for k, v in os.environ.items()
         if k not in ("COLMAP_GUIDED_SHARED", "COLMAP_GUIDED_DATA")
     }
-    code = (
-        "import sys\nsys.path.insert(0, sys.argv[1])\n"  # the copy, before the checkout on the path
-        "from colmap_guided import paths\nprint(paths.shared_data_dir())"
-    )
+    code = "from colmap_guided import paths\nprint(paths.shared_data_dir())"
+    env["PYTHONPATH"] = str(site)  # the copy, before the checkout on the path
 
     def data_dir(**extra) -> Path:
-        run = [sys.executable, "-c", code, str(site)]
+        run = [sys.executable, "-c", code]
         out = subprocess.run(
             run, env={**env, **extra}, cwd=tmp_path, capture_output=True, text=True, check=True
         )
