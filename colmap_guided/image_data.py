@@ -40,8 +40,8 @@ PairKey = tuple[int, int, str, str]
 
 # Images whose keypoints, descriptors and backbone features the match stage holds at once (about
 # 2 MB each with 8k SIFT and the guided backbone): past it, the image needed latest is dropped and
-# read again at its next pair, so memory stays flat in N (recon_scripts/benchmark_scale.py measures
-# how often that happens).
+# read again at its next pair, so memory stays flat in N (recon_scripts' `scale` preset measures how
+# often that happens).
 MAX_IMAGES_HELD = 128
 
 

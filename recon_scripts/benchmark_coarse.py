@@ -1,12 +1,12 @@
 """Speed of the coarse network's neighbourhood-consensus filter, and pycolmap's exhaustive
 SIFT matching of real pairs measured in the same run as the reference.
 
-    python recon_scripts/benchmark_coarse.py [--grids 25 32] [--sift-images 10] [--workers 1 2]
+    python -m recon_scripts.benchmark_coarse [--grids 25 32] [--sift-images 10] [--workers 1 2]
         [--repeats 3]
 
 Prints a Markdown table of ms per pair at square grids (25x25 and 32x32 by default) for
-- naive: the paper's/NCNet's 4D convolution as a loop of conv3d (reference from
-  tests/test_coarse_conv4d.py),
+- naive: the paper's/NCNet's 4D convolution as a loop of conv3d (``conv4d_naive``, the tests'
+  reference too),
 - dense: ``NeighConsensus.forward`` (batched conv3d, both image orders in one 2-group pass),
 - sparse k, radius: ``CoarseNet.match_sparse`` (filter on ``sparse_support``; correlation, mutual
   steps and argmax included), and raw mode (correlation + argmax, no filter),
@@ -21,8 +21,6 @@ the guided match stage with 1 and 2 pair workers, same run, and the guided parts
 
 from __future__ import annotations
 
-import argparse
-import importlib.util
 import shutil
 import sys
 import tempfile
@@ -37,17 +35,27 @@ from colmap_guided.coarse import DEFAULT_WEIGHTS, CoarseMatcher, CoarseNet, save
 from colmap_guided.coarse.matcher import PRECISIONS
 from colmap_guided.coarse.model import correlation, soft_mutual_nn
 from colmap_guided.images import read_image
-from colmap_guided.paths import REPO_ROOT, shared_data_dir
+from colmap_guided.paths import shared_data_dir
+from recon_scripts import script_parser
 
 
-def naive_reference():
-    """``conv4d_naive`` from the tests (the naive loop lives there only)."""
-    spec = importlib.util.spec_from_file_location(
-        "test_coarse_conv4d", REPO_ROOT / "tests" / "test_coarse_conv4d.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.conv4d_naive
+def conv4d_naive(x, weight, bias=None, groups=1):
+    """The paper's/NCNet's 4D convolution as a Python loop of 3D convolutions, one per output
+    I-slice and kernel I-offset: the reference of this benchmark and of tests/test_coarse_conv4d."""
+    n, _, ni, nj, nk, nl = x.shape
+    ki = weight.shape[2]
+    out = x.new_zeros(n, weight.shape[0], ni, nj, nk, nl)
+    for i in range(ni):
+        for a in range(ki):
+            src = i + a - ki // 2
+            if 0 <= src < ni:
+                out[:, :, i] += torch.nn.functional.conv3d(
+                    x[:, :, src],
+                    weight[:, :, a],
+                    padding=tuple(k // 2 for k in weight.shape[3:]),
+                    groups=groups,
+                )
+    return out if bias is None else out + bias.view(1, -1, 1, 1, 1, 1)
 
 
 def timed(fn, repeats: int, sync=lambda: None, warmup: bool = True) -> tuple[float, float]:
@@ -197,7 +205,7 @@ def print_match_stage(r: dict, n_images: int, workers: list[int], set_name: str)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--grids", type=int, nargs="+", default=[25, 32])
     parser.add_argument(
         "--supports",
@@ -252,7 +260,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         save_filter_weights(CoarseNet({"pretrained": False}), weights, resize_max=512)
     raw = CoarseNet({"filter": False}).eval()
-    naive = None if args.no_naive else naive_reference()
+    naive = None if args.no_naive else conv4d_naive
     images = shared_data_dir() / "lightglue_assets" / "images"
     pair = [images / "sacre_coeur1.jpg", images / "sacre_coeur2.jpg"]
 

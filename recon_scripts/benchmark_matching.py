@@ -11,10 +11,10 @@ model), and the wall time of raw vs guided (coarse extraction of both images + c
 eq. 1) on the same pair. On pairs of unrelated images (different scenes) it reports the share that
 verifies per matcher: guided matching must not manufacture geometry more often than raw matching.
 
-    python recon_scripts/benchmark_matching.py [--pairs_per_set 3] [--unrelated 24]
+    python -m recon_scripts.benchmark_matching [--pairs_per_set 3] [--unrelated 24]
         [--json out.json]
-    python recon_scripts/benchmark_matching.py --sweep   # guided options grid on the same pairs
-    python recon_scripts/benchmark_matching.py --features aliked
+    python -m recon_scripts.benchmark_matching --sweep   # guided options grid on the same pairs
+    python -m recon_scripts.benchmark_matching --features aliked
         --matchers raw guided lightglue guided_lightglue
 
 Markdown tables go to stdout, everything to --json. Features are the pipeline's own
@@ -24,7 +24,6 @@ Markdown tables go to stdout, everything to --json. Features are the pipeline's 
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
 import time
@@ -38,12 +37,13 @@ import torch
 
 from colmap_guided import database as dbio
 from colmap_guided import features, verify
-from colmap_guided.evaluation import matcher_specs
 from colmap_guided.log import logger
 from colmap_guided.matchers import get_matcher, resolve_auto
 from colmap_guided.matchers.base import ImageData
 from colmap_guided.matchers.guided import GuidedMatcher
 from colmap_guided.paths import shared_data_dir
+from recon_scripts import script_parser
+from recon_scripts.evaluation import matcher_specs
 
 BASELINES = ["raw", "guided", "guided_epipolar", "guided_homography", "guided_colmap"]
 WXBS_RELATED = ["WGABS", "WGALBS", "WGLBS", "WLABS"]  # appearance / illumination changes
@@ -387,9 +387,7 @@ def markdown(rows: list[dict], unrelated_rows: list[dict], names: list[str]) -> 
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = script_parser(__doc__)
     parser.add_argument("--pairs_per_set", type=int, default=3)
     parser.add_argument("--unrelated", type=int, default=24, help="number of unrelated-image pairs")
     parser.add_argument(

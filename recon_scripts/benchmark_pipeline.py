@@ -1,229 +1,176 @@
-"""Benchmark: pycolmap's default pipeline vs `reconstruct` (matcher x mapper x seed) on the same
-images, in one run.
+"""pycolmap's default pipeline vs `reconstruct` (matcher x mapper x seed) on the same images.
 
-    python recon_scripts/benchmark_pipeline.py [--sets sacre_coeur_hloc opensfm_lund ...]
-        [--matchers raw guided guided:raw_matches=none]
-        [--mappers incremental global] [--seeds 0 1]
+    python -m recon_scripts pipeline [sets="sacre_coeur_hloc opensfm_lund ..."]
+        [matchers="raw guided guided:raw_matches=none"]
+        [mappers="incremental global"] [seeds="0 1"]
 
 Per set and seed round: pycolmap's default pipeline (extract_features + match_exhaustive +
 incremental_mapping, default options, unseeded: its own run-to-run spread), the same database mapped
-by each --mapper (seeded), and each matcher's `reconstruct`: matched once, then mapped by each
+by each mapper (seeded), and each matcher's `reconstruct`: matched once, then mapped by each
 mapper with each seed (matching and verification are deterministic, so the database is shared).
 Prints registered images (largest model), images whose pose agrees with the set's reference model
 (where it has one: lund_door_gtsfm), the model check, 3D points and the time ratio to the default
-pipeline of the same round (extract + match + verify + that mapping). Writes JSON.
+pipeline of the same round (extract + match + verify + that mapping). Matcher specs: e.g. guided
+guided:raw_matches=none raw guided:type=aliked (feature options go to extraction).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import shutil
-import tempfile
 import time
-from pathlib import Path
 
 from colmap_guided import features, model_check, report
 from colmap_guided.database import num_verified_pairs, open_database
-from colmap_guided.evaluation import matcher_specs
-from colmap_guided.evaluation.reference import load_colmap_model, reference_model_dir
-from colmap_guided.evaluation.registration import (
-    method_slug,
+from colmap_guided.mapping import load_models, run_mapping
+from colmap_guided.pipeline import PipelineConf
+from colmap_guided.reconstruct import reconstruct
+from recon_scripts.bench import Benchmark
+from recon_scripts.evaluation import matcher_specs
+from recon_scripts.evaluation.reference import load_colmap_model, reference_model_dir
+from recon_scripts.evaluation.registration import (
     run_pycolmap_default,
     score_registration,
     split_stage_options,
 )
-from colmap_guided.log import set_verbosity
-from colmap_guided.mapping import MAPPERS, load_models, run_mapping
-from colmap_guided.paths import shared_data_dir
-from colmap_guided.pipeline import PipelineConf
-from colmap_guided.reconstruct import reconstruct
 
-DEFAULT_SETS = [
-    "sacre_coeur_hloc",
-    "sceaux_castle",
-    "opensfm_lund",
-    "phototourism_superglue",
-    "gtsfm_1dsfm_sample",
-    "lund_door_gtsfm",
-    "opensfm_berlin",
-]
+DEFAULT = "pycolmap default"
 
 
-def summarize(
-    models: dict, image_names: list[str], reference, timings: dict, verified: int
-) -> dict:
+def summarize_model(models, image_names, reference, timings, verified) -> dict:
     stats = report.model_statistics(models, image_names)
     largest = max(models.values(), key=lambda rec: rec.num_reg_images(), default=None)
-    score = (
-        score_registration(largest, [{"name": n, "era": "modern"} for n in image_names], reference)
-        if reference
-        else {}
-    )
-    checked = model_check.check_models(models)
+    modern = [{"name": n, "era": "modern"} for n in image_names]
+    score = score_registration(largest, modern, reference) if reference else {}
     return {
         "timings": timings,
         "num_verified_pairs": verified,
         "correct": score.get("correct"),
         "wrong": score.get("wrong"),
-        "model_check": checked,
+        "model_check": model_check.check_models(models),
         **stats,
     }
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--sets", nargs="+", default=DEFAULT_SETS)
-    parser.add_argument(
-        "--matchers",
-        nargs="+",
-        default=["guided"],
-        help="matcher specs, e.g. guided guided:raw_matches=none "
-        "raw guided:type=aliked (feature options go to extraction)",
-    )
-    parser.add_argument("--mappers", nargs="+", default=["incremental", "global"], choices=MAPPERS)
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0])
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=-1,
-        help="mapping threads (1: each seeded run repeats exactly)",
-    )
-    parser.add_argument("--camera_mode", default="auto")
-    parser.add_argument(
-        "--peer",
-        default="lightglue",
-        help="the matcher spec of --matchers the others' times are also divided by",
-    )
-    parser.add_argument("--output", type=Path, default=Path("outputs/benchmark_pipeline.json"))
-    args = parser.parse_args(argv)
-    set_verbosity(quiet=True)
-    # (label, matcher spec, feature options): 'guided:type=aliked' = guided matching of ALIKED
-    # features; unknown options: the matcher raises
-    specs = []
-    for text in args.matchers:
-        matcher, feature_conf, _, escalation = split_stage_options(text)
-        specs.append((text, matcher_specs.parse_spec(matcher), feature_conf, escalation))
-    rows, results = [], {}
+class PipelineBenchmark(Benchmark):
+    name = "pipeline"
+    default_conf = {
+        "sets": [
+            *("sacre_coeur_hloc", "sceaux_castle", "opensfm_lund", "phototourism_superglue"),
+            *("gtsfm_1dsfm_sample", "lund_door_gtsfm", "opensfm_berlin"),
+        ],
+        "matchers": ["guided"],
+        "mappers": ["incremental", "global"],
+        "seeds": [0],
+        "threads": -1,  # mapping threads (1: each seeded run repeats exactly)
+        "camera_mode": "auto",
+        "peer": "lightglue",  # the matcher spec the others' times are also divided by
+    }
 
-    def add(name, seed, label, stats, base_time):
-        total = sum(stats["timings"].values())
-        rows.append((name, seed, label, stats, total, total / base_time))
-        results.setdefault(name, {}).setdefault(str(seed), {})[label] = stats
-        print(row_markdown(rows[-1]), flush=True)  # as it comes: a run stopped early keeps its rows
-        args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(json.dumps(results, indent=2, default=str))
+    def configs(self):
+        c = self.conf
+        mapping = {
+            "mappers": c["mappers"],
+            "threads": c["threads"],
+            "camera_mode": c["camera_mode"],
+        }
+        configs = {f"{DEFAULT} seed={s}": {"seeds": [s], **mapping} for s in c["seeds"]}
+        return configs | {m: {"matcher": m, "seeds": c["seeds"], **mapping} for m in c["matchers"]}
 
-    with tempfile.TemporaryDirectory() as tmp:
-        for name in args.sets:
-            image_path = shared_data_dir() / name / "images"
-            names = features.list_images(image_path)
-            ref_dir = reference_model_dir(name)
-            reference = load_colmap_model(ref_dir) if ref_dir else None
-            work = Path(tmp) / name
-            base_times = {}
-            for seed in args.seeds:
-                models, timings = run_pycolmap_default(
-                    image_path, work / f"default_{seed}", args.camera_mode
-                )
-                with open_database(work / f"default_{seed}" / "database.db") as database:
-                    verified = num_verified_pairs(database)
-                base_times[seed] = sum(timings.values())
-                add(
-                    name,
-                    seed,
-                    "pycolmap default",
-                    summarize(models, names, reference, timings, verified),
-                    base_times[seed],
-                )
-                for mapper in args.mappers:  # pycolmap's database, our mapping
-                    start = time.time()
-                    models = run_mapping(
-                        work / f"default_{seed}" / "database.db",
-                        image_path,
-                        work / f"default_{seed}" / mapper,
-                        {"mapper": mapper, "random_seed": seed, "num_threads": args.threads},
-                    )
-                    t = {
-                        **{k: v for k, v in timings.items() if k != "map"},
-                        "map": time.time() - start,
-                    }
-                    add(
-                        name,
-                        seed,
-                        f"pycolmap matching + {mapper}",
-                        summarize(models, names, reference, t, verified),
-                        base_times[seed],
-                    )
-            for label, spec, feature_conf, escalation in specs:
-                out = work / method_slug(label)
-                first = {
-                    "mapper": args.mappers[0],
-                    "random_seed": args.seeds[0],
-                    "num_threads": args.threads,
-                }
-                res = reconstruct(
-                    image_path.parent,
-                    conf=PipelineConf.from_dict({"escalation": escalation}),
-                    image_path=image_path,
-                    output=out,
-                    matcher=matcher_specs.build(spec),
-                    feature_conf={"camera_mode": args.camera_mode, **feature_conf},
-                    mapping_conf=first,
-                )
-                verified = res["database"]["num_verified_pairs"]
-                # Where the run's time went: stages, and within matching the read / coarse / fine /
-                # write steps.
-                profile = {
-                    "extract": res["timings"]["extract"],
-                    **res["database"]["profile"],
-                    **{k: v for k, v in res["timings"].items() if k in ("map",) or "escalate" in k},
-                }
-                results.setdefault(name, {}).setdefault("profile", {})[label] = profile
-                print(
-                    f"{name} {label}, {res['database']['num_pairs']} pairs: "
-                    + ", ".join(f"{k} {v:.1f} s" for k, v in profile.items()),
-                    flush=True,
-                )
-                for seed in args.seeds:
-                    for mapper in args.mappers:
-                        if (mapper, seed) == (args.mappers[0], args.seeds[0]):
-                            models, timings = load_models(out / "sparse"), res["timings"]
-                        else:
-                            start = time.time()
-                            models = run_mapping(
-                                out / "database.db",
-                                image_path,
-                                out / f"sparse_{mapper}_{seed}",
-                                {
-                                    "mapper": mapper,
-                                    "random_seed": seed,
-                                    "num_threads": args.threads,
-                                },
-                            )
-                            timings = {**res["timings"], "map": time.time() - start}
-                        add(
-                            name,
-                            seed,
-                            f"{label} + {mapper}",
-                            summarize(models, names, reference, timings, verified),
-                            base_times[seed],
-                        )
-            shutil.rmtree(work, ignore_errors=True)
-    print(
-        f"\nPipeline benchmark, camera_mode={args.camera_mode}, mapping threads {args.threads} "
-        "(time ratio = total wall time / pycolmap default's, same set and seed round)\n"
-    )
-    print(
-        "| set | seed | pipeline | verified pairs | registered | "
-        "correct (reference) | model check | 3D points | total s | time ratio |"
-    )
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    print("\n".join(row_markdown(row) for row in rows))
-    print("\n".join(peer_ratios(rows, f"{args.peer} + {args.mappers[0]}", args.seeds[0])))
-    print("\n".join(summed(rows)))
+    def prepare(self, name, image_path, work):
+        ref_dir = reference_model_dir(name)
+        return {
+            "names": features.list_images(image_path),
+            "reference": load_colmap_model(ref_dir) if ref_dir else None,
+        }
+
+    def map(self, db, image_path, out, mapper, seed, threads):
+        start = time.time()
+        conf = {"mapper": mapper, "random_seed": seed, "num_threads": threads}
+        return run_mapping(db, image_path, out, conf), time.time() - start
+
+    def run_config(self, name, image_path, prepared, label, config, out):
+        """{"rows": [[seed, pipeline, stats]], "profile": where a matcher's time went}."""
+        names, reference = prepared["names"], prepared["reference"]
+        rows = []
+
+        def add(seed, pipeline, models, timings, verified):
+            stats = summarize_model(models, names, reference, timings, verified)
+            rows.append([seed, pipeline, stats])
+
+        if "matcher" not in config:
+            (seed,) = config["seeds"]
+            models, timings = run_pycolmap_default(image_path, out, config["camera_mode"])
+            with open_database(out / "database.db") as database:
+                verified = num_verified_pairs(database)
+            add(seed, DEFAULT, models, timings, verified)
+            for mapper in config["mappers"]:  # pycolmap's database, our mapping
+                db = out / "database.db"
+                models, t = self.map(db, image_path, out / mapper, mapper, seed, config["threads"])
+                add(seed, f"pycolmap matching + {mapper}", models, {**timings, "map": t}, verified)
+            return {"rows": rows}
+        matcher, feature_conf, _, escalation = split_stage_options(config["matcher"])
+        first = (config["mappers"][0], config["seeds"][0])
+        res = reconstruct(
+            image_path.parent,
+            conf=PipelineConf.from_dict({"escalation": escalation}),
+            image_path=image_path,
+            output=out,
+            matcher=matcher_specs.build(matcher_specs.parse_spec(matcher)),
+            feature_conf={"camera_mode": config["camera_mode"], **feature_conf},
+            mapping_conf=dict(zip(("mapper", "random_seed"), first), num_threads=config["threads"]),
+        )
+        verified = res["database"]["num_verified_pairs"]
+        # Where the run's time went: stages, and within matching read / coarse / fine / write.
+        profile = {
+            "extract": res["timings"]["extract"],
+            **res["database"]["profile"],
+            **{k: v for k, v in res["timings"].items() if k in ("map",) or "escalate" in k},
+        }
+        print(
+            f"{name} {label}, {res['database']['num_pairs']} pairs: "
+            + ", ".join(f"{k} {v:.1f} s" for k, v in profile.items()),
+            flush=True,
+        )
+        for seed in config["seeds"]:
+            for mapper in config["mappers"]:
+                if (mapper, seed) == first:
+                    models, timings = load_models(out / "sparse"), res["timings"]
+                else:
+                    sparse = out / f"sparse_{mapper}_{seed}"
+                    db, threads = out / "database.db", config["threads"]
+                    models, t = self.map(db, image_path, sparse, mapper, seed, threads)
+                    timings = {**res["timings"], "map": t}
+                add(seed, f"{label} + {mapper}", models, timings, verified)
+        return {"rows": rows, "profile": profile}
+
+    def table_rows(self, results) -> list[tuple]:
+        """(set, seed, pipeline, stats, total s, ratio to pycolmap default of that set and seed)"""
+        rows = []
+        for name, by_label in results.items():
+            flat = [row for result in by_label.values() for row in result["rows"]]
+            base = {seed: sum(s["timings"].values()) for seed, p, s in flat if p == DEFAULT}
+            for seed, pipeline, stats in flat:
+                total = sum(stats["timings"].values())
+                rows.append((name, seed, pipeline, stats, total, total / base[seed]))
+        return rows
+
+    def progress(self, results, name, label):
+        mine = [(seed, pipeline) for seed, pipeline, _ in results[name][label]["rows"]]
+        rows = self.table_rows({name: results[name]})
+        return "\n".join(row_markdown(row) for row in rows if (row[1], row[2]) in mine)
+
+    def summarize(self, results):
+        c, rows = self.conf, self.table_rows(results)
+        lines = [
+            f"Pipeline benchmark, camera_mode={c['camera_mode']}, mapping threads {c['threads']} "
+            "(time ratio = total wall time / pycolmap default's, same set and seed round)\n",
+            "| set | seed | pipeline | verified pairs | registered | "
+            "correct (reference) | model check | 3D points | total s | time ratio |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+            *map(row_markdown, rows),
+            *peer_ratios(rows, f"{c['peer']} + {c['mappers'][0]}", c["seeds"][0]),
+            *summed(rows),
+        ]
+        return "\n".join(lines)
 
 
 def summed(rows: list[tuple]) -> list[str]:
@@ -232,16 +179,13 @@ def summed(rows: list[tuple]) -> list[str]:
     the largest per-set ratio beside it."""
     by = {}
     for name, _, label, stats, total, ratio in rows:
-        entry = by.setdefault(
-            label, {"sets": set(), "n": 0, "reg": 0, "ok": 0, "s": 0.0, "max": 0.0}
-        )
+        entry = by.setdefault(label, {"sets": set(), "reg": 0, "ok": 0, "s": 0.0, "max": 0.0})
         entry["sets"].add(name)
-        entry["n"] += 1
         entry["reg"] += stats["num_registered"]
         entry["ok"] += stats["correct"] or 0
         entry["s"] += total
         entry["max"] = max(entry["max"], ratio)
-    base = by.get("pycolmap default")
+    base = by.get(DEFAULT)
     lines = [
         "\nSummed over the sets\n",
         "| pipeline | sets | registered | on the reference pose | total s | ratio to pycolmap | "
@@ -283,17 +227,10 @@ def peer_ratios(rows: list[tuple], peer: str, seed: int) -> list[str]:
 def row_markdown(row: tuple) -> str:
     name, seed, label, stats, total, ratio = row
     correct = "–" if stats["correct"] is None else f"{stats['correct']}"
-    check = (
-        "ok"
-        if stats["model_check"]["ok"]
-        else f"{len(stats['model_check']['problems'])} problem(s)"
-    )
+    checked = stats["model_check"]
+    check = "ok" if checked["ok"] else f"{len(checked['problems'])} problem(s)"
     return (
         f"| {name} | {seed} | {label} | {stats['num_verified_pairs']} | "
         f"{stats['num_registered']}/{stats['num_images']} | {correct} | "
         f"{check} | {stats['num_points3D']} | {total:.1f} | {ratio:.2f} |"
     )
-
-
-if __name__ == "__main__":
-    main()

@@ -1,12 +1,10 @@
-"""Scale benchmark: time per stage, pairs, registered images and peak memory vs N photos.
+"""Scale: time per stage, pairs, registered images and peak memory vs N photos.
 
-    python recon_scripts/benchmark_scale.py pool      # the photo pool (once, ~5 min)
-    python recon_scripts/benchmark_scale.py run --n 1000 --pairs retrieval
-    python recon_scripts/benchmark_scale.py run --n 50 200 --pairs retrieval exhaustive
-    python recon_scripts/benchmark_scale.py map --n 50 200 1000
-        --mappers global hierarchical incremental
-    python recon_scripts/benchmark_scale.py ray --n 200 --num_pairs 160
-    python recon_scripts/benchmark_scale.py report    # Markdown tables + scale.png
+    python -m recon_scripts scale sets=[]    # the photo pool only (once, ~5 min)
+    python -m recon_scripts scale sets=1000 pairs=retrieval
+    python -m recon_scripts scale sets="50 200" pairs="retrieval exhaustive"
+    python -m recon_scripts scale sets="50 200 1000" mappers="global hierarchical incremental"
+    python -m recon_scripts scale_executors sets=200 num_pairs=160
 
 Photos: the 437 photos of the 20 training scenes of ../shared/data/train pooled (long side <=
 1024 px; symlinked, never copied) and 563 photos of 24 landmarks rendered by
@@ -18,9 +16,10 @@ is a prefix of the larger ones.
 Every stage (extract, match = select + match, verify, map) runs in a fresh process under ``nice``,
 with one torch/BLAS thread per worker: its wall and CPU time, peak RSS (``ru_maxrss``), load average
 before and after and, for the match stage, the RSS every second and the most images held at once are
-written to OUT/n<N>/<pairs>/<stage>.json. A stage with its JSON is skipped: a killed benchmark
-resumes. Everything is under OUT (default outputs/benchmark_scale, git-ignored); nothing is written
-next to the photos.
+written to WORK/n<N>/<pairs>/<stage>.json. A stage with its JSON is skipped: a killed benchmark
+resumes, and a run with other mappers maps the databases already matched. Everything is under WORK
+(default outputs/benchmark_scale, git-ignored); nothing is written next to the photos. The summary:
+Markdown tables (printed, WORK/report.md) and WORK/scale.png.
 """
 
 from __future__ import annotations
@@ -38,8 +37,8 @@ import threading
 import time
 from pathlib import Path
 
-import colmap_guided  # noqa: F401  (zlib before pycolmap)
 from colmap_guided.paths import shared_data_dir
+from recon_scripts.bench import Benchmark
 
 SYNTHETIC = {"scenes": 24, "views": 24, "width": 1024, "height": 768, "seed": 1000}
 POOL_SIZE = 1000
@@ -268,7 +267,8 @@ def run_stage(
         "-n",
         "5",
         sys.executable,
-        __file__,
+        "-m",
+        __name__ if __name__ != "__main__" else "recon_scripts.benchmark_scale",
         "_stage",
         stage,
         "--run_dir",
@@ -283,6 +283,10 @@ def run_stage(
         "OMP_NUM_THREADS": "1",
         "MKL_NUM_THREADS": "1",
         "OPENBLAS_NUM_THREADS": "1",
+        # the stage imports recon_scripts from this checkout, wherever it was started
+        "PYTHONPATH": os.pathsep.join(
+            filter(None, [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH")])
+        ),
     }
     print(
         f"[{time.strftime('%H:%M:%S', time.gmtime())}] "
@@ -306,57 +310,64 @@ def run_stage(
     return r
 
 
-def run_main(args) -> None:
-    out = args.out
-    for n in args.n:
-        images = photo_set(out, n)
-        base = out / f"n{n}"
-        if run_stage("extract", base, images, base / "extract.json", args.timeout) is None:
-            continue
-        for mode in args.pairs:
-            run_dir = base / mode
-            if not (run_dir / "database.db").exists():
-                run_dir.mkdir(parents=True, exist_ok=True)
-                shutil.copy(base / "database.db", run_dir / "database.partial.db")
-                (run_dir / "database.partial.db").rename(run_dir / "database.db")
-            if (
-                run_stage(
-                    "match",
-                    run_dir,
-                    images,
-                    run_dir / "match.json",
-                    args.timeout,
-                    pairs=mode,
-                    k=args.k,
-                )
-                is None
-            ):
-                continue
-            for mapper in args.mappers:
-                run_stage(
-                    "map",
-                    run_dir,
-                    images,
-                    run_dir / f"map_{mapper}.json",
-                    args.map_timeout,
-                    mapper=mapper,
-                )
+class ScaleBenchmark(Benchmark):
+    name = "scale"
+    default_conf = {
+        "sets": [50, 200, 1000],  # N photos, each set a prefix of the next
+        "work": "outputs/benchmark_scale",
+        "pairs": ["retrieval"],  # and/or exhaustive
+        "k": 10,  # retrieval: neighbours per photo
+        "mappers": ["global"],
+        "timeout": 3 * 3600,  # seconds per extract / match stage
+        "map_timeout": 1800,  # seconds per mapping
+    }
+    resume = True
 
+    def run(self) -> dict:
+        self.out = Path(self.conf["work"]).resolve()
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.conf["work"] = str(self.out)
+        make_pool(self.out)
+        return super().run()
 
-def map_main(args) -> None:
-    for n in args.n:
-        for mode in args.pairs:
-            run_dir = args.out / f"n{n}" / mode
-            if (run_dir / "match.json").exists():
-                for mapper in args.mappers:
-                    run_stage(
-                        "map",
-                        run_dir,
-                        args.out / f"n{n}" / "images",
-                        run_dir / f"map_{mapper}.json",
-                        args.map_timeout,
-                        mapper=mapper,
-                    )
+    def folder(self, n) -> str:
+        return f"n{n}"
+
+    def images(self, n, work):
+        return photo_set(self.out, n)
+
+    def configs(self):
+        c = self.conf
+        return {mode: {"mode": mode, "k": c["k"], "mappers": c["mappers"]} for mode in c["pairs"]}
+
+    def prepare(self, n, images, work):
+        return {
+            "extract": run_stage(
+                "extract", work, images, work / "extract.json", self.conf["timeout"]
+            )
+        }
+
+    def run_config(self, n, images, prepared, label, config, out):
+        if prepared["extract"] is None:
+            return {"failed": "extract"}
+        if not (out / "database.db").exists():
+            shutil.copy(out.parent / "database.db", out / "database.partial.db")
+            (out / "database.partial.db").rename(out / "database.db")
+        timeout, k = self.conf["timeout"], config["k"]
+        if run_stage("match", out, images, out / "match.json", timeout, pairs=label, k=k) is None:
+            return {"failed": "match"}
+        for mapper in config["mappers"]:
+            result = out / f"map_{mapper}.json"
+            run_stage("map", out, images, result, self.conf["map_timeout"], mapper=mapper)
+        return {
+            "stages": sorted(p.stem for p in out.glob("*.json") if p.stem not in ("conf", "result"))
+        }
+
+    def progress(self, results, n, label):
+        return f"N={n} {label}: {results[n][label]}"
+
+    def summarize(self, results):
+        return report(self.out, self.conf["sets"], self.conf["k"])
 
 
 # -- executors: throughput per worker -------------------------------------------------------------
@@ -431,28 +442,55 @@ def _stop_nodes(procs: list, root: Path) -> None:
             proc.kill()
 
 
-def ray_main(args) -> None:
-    """Same pairs matched from scratch by: local threads (1, 2), a private Ray instance (1, 2 CPUs),
-    and two Ray nodes of one CPU each; pairs/s and the ratio per added worker. One process, one
-    run."""
+class ScaleExecutors(ScaleBenchmark):
+    """Matching throughput per worker: threads (1, 2), a private Ray (1, 2 CPUs), 2 Ray nodes.
+
+    The same retrieval pairs of a set that `scale` matched, matched from scratch by each
+    configuration: pairs/s and the ratio per added worker, and whether the matches are the same.
+    """
+
+    name = "scale_executors"
+    default_conf = {
+        "sets": [200],  # N of a set that `scale` matched with retrieval pairs
+        "work": "outputs/benchmark_scale",
+        "num_pairs": 160,  # pairs matched per configuration
+        "rounds": 1,
+        "port": 6391,
+    }
+    resume = False
+
+    def configs(self):
+        c = self.conf
+        return {"executors": {k: c[k] for k in ("num_pairs", "rounds", "port")}}
+
+    def prepare(self, n, images, work):
+        return {}
+
+    def progress(self, results, n, label):
+        return f"N={n}: {len(results[n][label]['rows'])} configurations"
+
+    def summarize(self, results):
+        return "\n".join(
+            executors_table([r for res in results.values() for r in res["executors"]["rows"]])
+        )
+
+    def run_config(self, n, images, prepared, label, config, work):
+        return {"rows": match_executors(work, images, **config)}
+
+
+def match_executors(work: Path, images: Path, num_pairs: int, rounds: int, port: int) -> list:
     import ray
 
     from colmap_guided import database as dbio
-    from colmap_guided.log import set_verbosity
     from colmap_guided.match import match_database
     from colmap_guided.matchers import get_matcher
     from colmap_guided.pairs import read_pairs, write_pairs
 
-    set_verbosity(quiet=True)
-    n = args.n[0]
-    images = photo_set(args.out, n)
-    base = args.out / f"n{n}" / "database.db"
-    work = args.out / "executors"
-    work.mkdir(exist_ok=True)
+    base = work.parent / "database.db"
     pairs_file = work / "pairs.txt"
     # the first retrieval pairs of the N-photo set (the match stage's selection)
     if not pairs_file.exists():
-        src = args.out / f"n{n}" / "retrieval" / "database.db"
+        src = work.parent / "retrieval" / "database.db"
         import pycolmap
 
         with dbio.open_database(src) as db:
@@ -461,7 +499,7 @@ def ray_main(args) -> None:
                 tuple(sorted((names[a], names[b])))
                 for a, b in map(pycolmap.pair_id_to_image_pair, db.read_all_matches()[0])
             )
-        write_pairs(pairs_file, pairs[: args.num_pairs])
+        write_pairs(pairs_file, pairs[:num_pairs])
     root = Path(tempfile.mkdtemp(prefix="rayb", dir="/tmp"))
     saved = {k: os.environ.get(k) for k in ("HOME", "RAY_TMPDIR", "RAY_worker_niceness")}
     # Same session (one scheduler autogroup) and the same niceness for every configuration: Ray's
@@ -502,7 +540,7 @@ def ray_main(args) -> None:
 
     procs = []
     try:
-        for r in range(args.rounds):
+        for r in range(rounds):
             one(f"local_1_r{r}", "local", 1)
             one(f"local_2_r{r}", "local", 2)
             for cpus in (1, 2):
@@ -517,7 +555,7 @@ def ray_main(args) -> None:
                 print(f"  private Ray ({cpus} CPU) up in {time.time() - t:.1f} s", flush=True)
                 one(f"ray_private_{cpus}_r{r}", "ray", 1)
                 ray.shutdown()
-            address, procs = _ray_nodes(root, args.port)
+            address, procs = _ray_nodes(root, port)
             for attempt in range(30):
                 try:
                     ray.init(address=address, log_to_driver=False, configure_logging=False)
@@ -550,7 +588,7 @@ def ray_main(args) -> None:
         for k, v in saved.items():
             os.environ.pop(k, None) if v is None else os.environ.__setitem__(k, v)
         shutil.rmtree(root, ignore_errors=True)
-    (work / "executors.json").write_text(json.dumps(rows, indent=1))
+    return rows
 
 
 # -- report ---------------------------------------------------------------------------------------
@@ -560,9 +598,8 @@ def _json(path: Path) -> dict | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
-def report_main(args) -> None:
-    """Markdown tables (stdout and OUT/report.md) and OUT/scale.png from the stage JSONs."""
-    out = args.out
+def report(out: Path, ns: list[int], k: int) -> str:
+    """Markdown tables (returned and OUT/report.md) and OUT/scale.png from the stage JSONs."""
     pool = json.loads((out / "pool.json").read_text())
     lines = []
     p = lines.append
@@ -585,7 +622,7 @@ def report_main(args) -> None:
     )
     p("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     per_pair, rows = {}, {}
-    for n in args.n:
+    for n in ns:
         ex = _json(out / f"n{n}" / "extract.json")
         for mode in ("retrieval", "exhaustive"):
             m = _json(out / f"n{n}" / mode / "match.json")
@@ -628,7 +665,7 @@ def report_main(args) -> None:
             ]
             p(
                 f"| {n} ({composition(n)}) | {mode}"
-                + (f" k={args.k}" if mode == "retrieval" else "")
+                + (f" k={k}" if mode == "retrieval" else "")
                 + f" | {m['num_pairs']} ({m['num_pairs'] / (n * (n - 1) / 2):.1%}) "
                 f"| {m['num_verified_pairs']} ({kept}) | {ex['wall']:.0f} | {m['select_time']:.0f} "
                 f"| {m['match_time']:.0f} | {m['verify_time']:.0f} | {g['wall']:.0f} | "
@@ -656,11 +693,11 @@ def report_main(args) -> None:
             "projected CPU h |"
         )
         p("|---|---|---|---|")
-        for n in args.n:
+        for n in ns:
             pairs = n * (n - 1) // 2
             p(f"| {n} | {pairs} | {pairs * wall_pp / 3600:.1f} | {pairs * cpu_pp / 3600:.1f} |")
     mapping = []
-    for n in args.n:
+    for n in ns:
         for mode in ("retrieval", "exhaustive"):
             for mapper in ("incremental", "global", "hierarchical"):
                 r = _json(out / f"n{n}" / mode / f"map_{mapper}.json")
@@ -681,33 +718,41 @@ def report_main(args) -> None:
                 f"{r['images_in_verified_pairs']} | {r['peak_rss_mb']} | "
                 f"{r['load_before'].split('/')[0]}–{r['load_after'].split('/')[0]} |"
             )
-    executors = _json(out / "executors" / "executors.json") or []
+    executors = [
+        row
+        for path in sorted(out.glob("n*/executors/result.json"))
+        for row in json.loads(path.read_text())["rows"]
+    ]
     if executors:
-        base = {}
-        for r in executors:
-            base.setdefault(
-                ("local" if r["executor"] == "local" else "ray", r["config"].split("_r")[-1]), r
-            ) if r["workers"] == 1 else None
-        p("")
-        p(
-            "| configuration | workers | pairs | match s | pairs/s | "
-            "per worker vs 1 worker | same matches | load 1-min |"
-        )
-        p("|---|---|---|---|---|---|---|---|")
-        for r in executors:
-            b = base.get(
-                ("local" if r["executor"] == "local" else "ray", r["config"].split("_r")[-1])
-            )
-            ratio = r["pairs_per_s"] / (r["workers"] * b["pairs_per_s"]) if b else float("nan")
-            p(
-                f"| {r['config']} | {r['workers']} | {r['pairs']} | {r['match_time']:.0f} | "
-                f"{r['pairs_per_s']:.2f} | {ratio:.2f} | {r['same_matches_as_local_1']} | "
-                f"{r['load_before'].split('/')[0]}–{r['load_after'].split('/')[0]} |"
-            )
+        lines += ["", *executors_table(executors)]
     text = "\n".join(lines)
-    print(text)
     (out / "report.md").write_text(text + "\n")
     _plot(out / "scale.png", rows, executors, per_pair)
+    return text
+
+
+def executors_table(executors: list[dict]) -> list[str]:
+    """Pairs/s per configuration and per worker against the same kind's 1-worker run."""
+    base = {}
+    for r in executors:
+        if r["workers"] == 1:
+            base.setdefault(
+                ("local" if r["executor"] == "local" else "ray", r["config"].split("_r")[-1]), r
+            )
+    lines = [
+        "| configuration | workers | pairs | match s | pairs/s | "
+        "per worker vs 1 worker | same matches | load 1-min |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in executors:
+        b = base.get(("local" if r["executor"] == "local" else "ray", r["config"].split("_r")[-1]))
+        ratio = r["pairs_per_s"] / (r["workers"] * b["pairs_per_s"]) if b else float("nan")
+        lines.append(
+            f"| {r['config']} | {r['workers']} | {r['pairs']} | {r['match_time']:.0f} | "
+            f"{r['pairs_per_s']:.2f} | {ratio:.2f} | {r['same_matches_as_local_1']} | "
+            f"{r['load_before'].split('/')[0]}–{r['load_after'].split('/')[0]} |"
+        )
+    return lines
 
 
 def _plot(path: Path, rows: dict, executors: list, per_pair: dict) -> None:
@@ -808,46 +853,16 @@ def _plot(path: Path, rows: dict, executors: list, per_pair: dict) -> None:
     fig.savefig(path, dpi=110)
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="cmd", required=True)
-    for name in ("pool", "run", "map", "ray", "report"):
-        p = sub.add_parser(name)
-        p.add_argument("--out", type=Path, default=Path("outputs/benchmark_scale"))
-        p.add_argument("--n", type=int, nargs="+", default=[50, 200, 1000])
-        p.add_argument(
-            "--pairs", nargs="+", default=["retrieval"], choices=["retrieval", "exhaustive"]
-        )
-        p.add_argument("--k", type=int, default=10, help="retrieval: neighbours per photo")
-        p.add_argument("--mappers", nargs="+", default=["global"])
-        p.add_argument(
-            "--timeout", type=float, default=3 * 3600, help="seconds per extract / match stage"
-        )
-        p.add_argument("--map_timeout", type=float, default=1800, help="seconds per mapping")
-        p.add_argument(
-            "--num_pairs", type=int, default=160, help="ray: pairs matched per configuration"
-        )
-        p.add_argument("--rounds", type=int, default=1)
-        p.add_argument("--port", type=int, default=6391)
-    s = sub.add_parser("_stage")
+def stage_cli(argv=None) -> None:
+    """One stage in this process (what run_stage starts)."""
+    s = argparse.ArgumentParser(description="one stage of the scale benchmark")
+    s.add_argument("cmd", choices=["_stage"])
     s.add_argument("stage", choices=["extract", "match", "map"])
     for a in ("--run_dir", "--images", "--result", "--pairs", "--mapper"):
         s.add_argument(a)
     s.add_argument("--k", type=int, default=10)
-    args = parser.parse_args(argv)
-    if args.cmd == "_stage":
-        return stage_main(args)
-    args.out = args.out.resolve()
-    args.out.mkdir(parents=True, exist_ok=True)
-    make_pool(args.out)
-    {
-        "pool": lambda a: None,
-        "run": run_main,
-        "map": map_main,
-        "ray": ray_main,
-        "report": report_main,
-    }[args.cmd](args)
+    stage_main(s.parse_args(argv))
 
 
 if __name__ == "__main__":
-    main()
+    stage_cli()

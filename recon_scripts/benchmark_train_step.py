@@ -5,12 +5,11 @@ windows (the former CPU recipe) and dense on whole grids (the GPU recipe; slow o
 --dense_whole steps only). Uses the frozen-feature cache of the default training data
 (built on first use).
 
-    python recon_scripts/benchmark_train_step.py [--steps 6] [--dense_whole 1] [--resolution 512]
+    python -m recon_scripts.benchmark_train_step [--steps 6] [--dense_whole 1] [--resolution 512]
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import tempfile
 import time
@@ -19,10 +18,11 @@ import numpy as np
 import torch
 
 from colmap_guided.train.trainer import Trainer
+from recon_scripts import script_parser
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = script_parser(__doc__)
     p.add_argument(
         "--steps", type=int, default=6, help="iterations of the sparse and the windowed dense path"
     )

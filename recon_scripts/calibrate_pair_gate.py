@@ -1,7 +1,7 @@
 """Which pairs are worth the fine matcher: the coarse network's pair-level evidence against the fine
 matcher's verdict.
 
-    python recon_scripts/calibrate_pair_gate.py --output outputs/pair_gate
+    python -m recon_scripts.calibrate_pair_gate --output outputs/pair_gate
         [--sources sacre_coeur_hloc ...]
         [--max_images 8] [--matcher guided_lightglue]
 
@@ -18,7 +18,6 @@ the gate's threshold is chosen here.
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
 import time
@@ -28,10 +27,11 @@ import numpy as np
 
 from colmap_guided import database as dbio
 from colmap_guided import features, verify
-from colmap_guided.evaluation import matcher_specs, proxy
 from colmap_guided.log import colmap_quiet, set_verbosity
 from colmap_guided.matchers import get_matcher
 from colmap_guided.workspace import Workspace
+from recon_scripts import script_parser
+from recon_scripts.evaluation import matcher_specs, proxy
 
 DEV_SOURCES = (
     "sacre_coeur_hloc",
@@ -156,9 +156,7 @@ def budget_table(rows: list[dict], thresholds, min_inliers: int) -> list[str]:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = script_parser(__doc__)
     parser.add_argument(
         "--output", type=Path, required=True, help="proxy scenes, databases and pairs.json go here"
     )

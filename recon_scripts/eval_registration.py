@@ -1,10 +1,10 @@
 """Registration benchmark (paper Fig. 5a): registered ratio per scene, historical-only and all
 images.
 
-    python recon_scripts/eval_registration.py [--max_scenes 2] [--methods pycolmap raw guided]
-    python recon_scripts/eval_registration.py --manifest datasets/ltll_manifest.json
+    python -m recon_scripts.eval_registration [--max_scenes 2] [--methods pycolmap raw guided]
+    python -m recon_scripts.eval_registration --manifest datasets/ltll_manifest.json
         --root /data/LTLL --scan
-    python recon_scripts/eval_registration.py --manifest datasets/shared_manifest.json
+    python -m recon_scripts.eval_registration --manifest datasets/shared_manifest.json
         --scenes lund_door_gtsfm --subsets all
 
 Default manifest: the offline historical proxy (OUTPUT_PROXY/proxy_manifest.json, built first with
@@ -23,26 +23,22 @@ OUTPUT/wxbs_appearance.*.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
-from colmap_guided.evaluation import manifest as mf
-from colmap_guided.evaluation import matcher_specs, proxy, registration, tables, two_view
 from colmap_guided.log import logger, set_verbosity
 from colmap_guided.paths import REPO_ROOT
 from colmap_guided.workspace import Workspace
+from recon_scripts import script_parser
+from recon_scripts.evaluation import manifest as mf
+from recon_scripts.evaluation import matcher_specs, proxy, registration, tables, two_view
 
 DEFAULT_PROXY = REPO_ROOT / "outputs" / "historical_proxy"
 WXBS_APPEARANCE = ("WGABS", "WLABS", "WGALBS")
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=" ".join(__doc__.split("\n\n")[0].split()),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
-    )
+    parser = script_parser(__doc__)
     parser.add_argument(
         "--manifest",
         type=Path,

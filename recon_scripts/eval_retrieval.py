@@ -1,6 +1,6 @@
 """Retrieval pair selection against exhaustive matching: recall of the co-visible pairs vs k.
 
-    python recon_scripts/eval_retrieval.py [--k 3 5 10 20] [--out outputs/eval_retrieval]
+    python -m recon_scripts.eval_retrieval [--k 3 5 10 20] [--out outputs/eval_retrieval]
 
 The training scenes of ../shared/data/train carry COLMAP pseudo ground truth made by pycolmap's
 exhaustive pipeline: a pair "verified by exhaustive matching" is one whose images share at least
@@ -13,7 +13,6 @@ set.
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from itertools import combinations
@@ -29,6 +28,7 @@ from colmap_guided.coarse import CoarseMatcher
 from colmap_guided.features import list_images
 from colmap_guided.pairs import global_descriptors, retrieval_pairs
 from colmap_guided.paths import shared_data_dir
+from recon_scripts import script_parser
 
 
 def covisible_pairs(model_path: Path, min_shared: int) -> tuple[set[tuple[str, str]], list[str]]:
@@ -44,7 +44,7 @@ def covisible_pairs(model_path: Path, min_shared: int) -> tuple[set[tuple[str, s
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--k", type=int, nargs="+", default=[3, 5, 10, 20])
     parser.add_argument(
         "--min_shared",

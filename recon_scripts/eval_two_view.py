@@ -1,9 +1,9 @@
 """Two-view geometry benchmark (paper Table 2 protocol) + WxBS, for every matcher variant of the
 registry.
 
-    python recon_scripts/eval_two_view.py [--max_pairs 10] [--wxbs_max_pairs 33]
+    python -m recon_scripts.eval_two_view [--max_pairs 10] [--wxbs_max_pairs 33]
         [--output outputs/eval_two_view]
-    python recon_scripts/eval_two_view.py --matchers raw guided_ratio0.9 --max_pairs 3 --no_wxbs
+    python -m recon_scripts.eval_two_view --matchers raw guided_ratio0.9 --max_pairs 3 --no_wxbs
 
 Pose: pairs of lund_door_gtsfm (reference COLMAP model), train/strecha_castle,
 train/strecha_entry_P10 (Strecha reference cameras) and train/instantngp_fox (instant-ngp cameras) —
@@ -13,21 +13,21 @@ angular error at 5/10/20°. WxBS: F by MAGSAC++, share of hand-labelled correspo
 3/5/10 px.
 
 Writes OUTPUT/two_view.{md,json,png} and OUTPUT/wxbs.{md,json,png}; prints the Markdown tables.
-Matcher variants: ``name[:key=value,...]`` (see colmap_guided/evaluation/matcher_specs.py); a
+Matcher variants: ``name[:key=value,...]`` (see recon_scripts/evaluation/matcher_specs.py); a
 variant whose matcher is not in the registry, or cannot run, stops the script with its error.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 from colmap_guided.conf import at_most_zero, none_or
-from colmap_guided.evaluation import matcher_specs, tables, two_view
-from colmap_guided.evaluation.reference import TWO_VIEW_SCENES
 from colmap_guided.log import set_verbosity
 from colmap_guided.paths import REPO_ROOT
+from recon_scripts import script_parser
+from recon_scripts.evaluation import matcher_specs, tables, two_view
+from recon_scripts.evaluation.reference import TWO_VIEW_SCENES
 
 
 def pose_table(result: dict) -> str:
@@ -157,11 +157,7 @@ def plot_wxbs(result: dict, path: Path) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=" ".join(__doc__.split("\n\n")[0].split()),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
-    )
+    parser = script_parser(__doc__)
     parser.add_argument(
         "--scenes",
         nargs="+",

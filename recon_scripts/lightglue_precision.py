@@ -1,6 +1,6 @@
 """LightGlue's layers in lower precision against float32, on the same pairs: matches kept and time.
 
-    python recon_scripts/lightglue_precision.py [--set sacre_coeur_hloc] [--pairs 4]
+    python -m recon_scripts.lightglue_precision [--set sacre_coeur_hloc] [--pairs 4]
 
 Per pair of the set's first photos (ALIKED extracted as the pipeline does, in a temporary database):
 LightGlue in float32 (the reference, timed before and after the others), with its linear layers
@@ -11,7 +11,6 @@ Prints Markdown.
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import tempfile
 import time
@@ -24,12 +23,11 @@ from colmap_guided import features
 from colmap_guided.matchers import get_matcher
 from colmap_guided.matchers.lightglue import native_bf16
 from colmap_guided.paths import shared_data_dir
+from recon_scripts import script_parser
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = script_parser(__doc__)
     parser.add_argument("--set", default="sacre_coeur_hloc")
     parser.add_argument("--pairs", type=int, default=4)
     args = parser.parse_args(argv)

@@ -1,34 +1,30 @@
 """Build the offline historical proxy: sets of ../shared/data with half of each degraded +
 distractors.
 
-    python recon_scripts/make_historical_proxy.py [--output outputs/historical_proxy]
+    python -m recon_scripts.make_historical_proxy [--output outputs/historical_proxy]
         [--split dev|test] [--sources KEY ...]
 
 Writes OUTPUT/<scene>/images + OUTPUT/<scene>/manifest.json per source set and
 OUTPUT/proxy_manifest.json (the datasets/ltll_manifest.json schema), never anything inside
-../shared. Deterministic for a --seed. Then: python recon_scripts/eval_registration.py --manifest
+../shared. Deterministic for a --seed. Then: python -m recon_scripts.eval_registration --manifest
 OUTPUT/proxy_manifest.json
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 from colmap_guided.conf import at_most_zero, none_or
-from colmap_guided.evaluation import proxy
 from colmap_guided.paths import REPO_ROOT
+from recon_scripts import script_parser
+from recon_scripts.evaluation import proxy
 
 DEFAULT_OUTPUT = REPO_ROOT / "outputs" / "historical_proxy"
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=" ".join(__doc__.split("\n\n")[0].split()),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
-    )
+    parser = script_parser(__doc__)
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
     parser.add_argument(
         "--split",

@@ -2,7 +2,7 @@
 by each mapper, scored against the reference, and what each way of choosing among those models would
 place on the pose.
 
-    python recon_scripts/mapper_choice.py RESULTS/results.json --method guided
+    python -m recon_scripts.mapper_choice RESULTS/results.json --method guided
         [--baseline PYCOLMAP_RESULTS/results.json]
         [--reference sacre_coeur_hloc=MODEL_DIR]
             [--variant colmap_thresholds:abs_pose_min_num_inliers=30,init_min_num_inliers=100]
@@ -21,7 +21,6 @@ these models can do with this database.
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import sys
@@ -31,13 +30,12 @@ from pathlib import Path
 import pycolmap
 
 from colmap_guided import mapping
-from colmap_guided.evaluation import registration
-from colmap_guided.evaluation.matcher_specs import parse_spec
-from colmap_guided.evaluation.tables import markdown_table, write_json
 from colmap_guided.log import colmap_quiet
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from summarize_registration import rescore  # noqa: E402
+from recon_scripts import script_parser
+from recon_scripts.evaluation import registration
+from recon_scripts.evaluation.matcher_specs import parse_spec
+from recon_scripts.evaluation.tables import markdown_table, write_json
+from recon_scripts.summarize_registration import rescore
 
 
 def map_and_score(
@@ -76,11 +74,7 @@ def choose(models: dict[str, dict], rule: str) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=" ".join(__doc__.split("\n\n")[0].split()),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
-    )
+    parser = script_parser(__doc__)
     parser.add_argument(
         "results", type=Path, help="results.json of an eval_registration run of METHOD"
     )

@@ -1,9 +1,9 @@
 """Render OUTPUT/report.html in headless Chromium and save a screenshot PNG (checks the page really
 renders).
 
-    python recon_scripts/render_report_screenshot.py OUTPUT/report.html [--out shot.png]
+    python -m recon_scripts.render_report_screenshot OUTPUT/report.html [--out shot.png]
         [--size 1200,1600]
-    python recon_scripts/render_report_screenshot.py --demo /tmp/demo_scene --photo view_007.jpg
+    python -m recon_scripts.render_report_screenshot --demo /tmp/demo_scene --photo view_007.jpg
         --size 1400,1600 --out docs/report_demo.png
 
 ``--demo DIR`` first makes the README's demo: the synthetic scene (12 views), a manifest that marks
@@ -19,13 +19,14 @@ browser is installed.
 
 from __future__ import annotations
 
-import argparse
 import shutil
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 from urllib.parse import quote
+
+from recon_scripts import script_parser
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 
@@ -137,7 +138,7 @@ def small_png(path: Path, max_bytes: int = 300_000) -> Path:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
+    parser = script_parser(__doc__)
     parser.add_argument("html", type=Path, nargs="?", help="a report.html (not with --demo)")
     parser.add_argument(
         "--demo",

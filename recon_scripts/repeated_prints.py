@@ -1,7 +1,7 @@
 """Which verified pairs of a database the card anatomy calls one print twice, and how close the
 other pairs come: the similarity fit (cards.print_fit) of every pair with enough inliers.
 
-    python recon_scripts/repeated_prints.py DATABASE [DATABASE ...] [--top 5]
+    python -m recon_scripts.repeated_prints DATABASE [DATABASE ...] [--top 5]
 
 Per database: the pairs grouped as repeated prints (cards.is_same_print), then the ``--top`` other
 pairs with the highest share of inliers one similarity explains (the margin to the threshold).
@@ -9,14 +9,14 @@ pairs with the highest share of inliers one similarity explains (the margin to t
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from colmap_guided import cards
+from recon_scripts import script_parser
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = script_parser(__doc__)
     parser.add_argument("databases", nargs="+", type=Path)
     parser.add_argument("--top", type=int, default=5)
     args = parser.parse_args()

@@ -1,7 +1,7 @@
 """Tables of eval_registration runs over seeds, one per LTLL protocol, methods of several runs side
 by side.
 
-    python recon_scripts/summarize_registration.py OUT_A/results.json [OUT_B/results.json ...]
+    python -m recon_scripts.summarize_registration OUT_A/results.json [OUT_B/results.json ...]
         [--reference SCENE=MODEL_DIR ...]
 
 One table per protocol, a row per method and a column per scene: historical photos on the reference
@@ -16,7 +16,6 @@ from the runs' folders.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -24,9 +23,10 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from colmap_guided.evaluation import registration
-from colmap_guided.evaluation.tables import markdown_table
 from colmap_guided.mapping import load_models
+from recon_scripts import script_parser
+from recon_scripts.evaluation import registration
+from recon_scripts.evaluation.tables import markdown_table
 
 
 def _span(values: list) -> str:
@@ -66,11 +66,7 @@ def era_checks(record: dict, scene: dict) -> tuple[int | None, int | None]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=" ".join(__doc__.split("\n\n")[0].split()),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog=__doc__,
-    )
+    parser = script_parser(__doc__)
     parser.add_argument("results", nargs="+", type=Path)
     parser.add_argument(
         "--reference",

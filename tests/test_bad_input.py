@@ -179,11 +179,10 @@ def test_every_reader_reads_exif_rotated_photos_in_colmaps_frame(tmp_path, monke
     keypoints are, by every path that opens photos: archival CLI, historical proxy,
     benchmark_matching's features (the coarse matcher: tests/test_coarse_matcher.py). OpenCV's
     imread would rotate it."""
-    import importlib.util
-
     from colmap_guided import archival
-    from colmap_guided.evaluation import proxy
     from colmap_guided.paths import REPO_ROOT
+    from recon_scripts import benchmark_matching as bench
+    from recon_scripts.evaluation import proxy
 
     photos = tmp_path / "data" / "rotated_set" / "images"
     photos.mkdir(parents=True)
@@ -211,11 +210,6 @@ def test_every_reader_reads_exif_rotated_photos_in_colmaps_frame(tmp_path, monke
         assert images.image_size(scene / "images" / entry["name"]) == stored, entry
 
     monkeypatch.setenv("COLMAP_GUIDED_DATA", str(tmp_path / "data"))
-    spec = importlib.util.spec_from_file_location(
-        "benchmark_matching", REPO_ROOT / "recon_scripts" / "benchmark_matching.py"
-    )
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
     pair = {"a": photos / "p0.jpg", "b": photos / "p1.jpg"}
     _, sift = bench.read_pair(bench.extract([pair], "sift", tmp_path / "bench_cache"), pair)
     assert (sift.width, sift.height) == stored and len(sift.keypoints) > 20
@@ -224,7 +218,7 @@ def test_every_reader_reads_exif_rotated_photos_in_colmaps_frame(tmp_path, monke
     # scripts.
     sources = [
         *(REPO_ROOT / "colmap_guided").rglob("*.py"),
-        *(REPO_ROOT / "recon_scripts").glob("*.py"),
+        *(REPO_ROOT / "recon_scripts").rglob("*.py"),
     ]
     assert [p.name for p in sources if "cv2.imread(" in p.read_text(encoding="utf-8")] == []
 

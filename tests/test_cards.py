@@ -15,8 +15,8 @@ import pytest
 
 from colmap_guided import cards
 from colmap_guided import database as dbio
-from colmap_guided.evaluation.ground_truth import pose_errors
 from colmap_guided.reconstruct import reconstruct
+from recon_scripts.evaluation.ground_truth import pose_errors
 
 PAPER = (236, 240, 244)  # a white card, in RGB
 # views of the synthetic scene used as prints: two on a collage card, one on a captioned card,

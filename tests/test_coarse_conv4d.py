@@ -10,6 +10,7 @@ from colmap_guided.coarse.conv4d import SparseNeighbourhood, conv4d, kernel_offs
 from colmap_guided.coarse.model import correlation
 from colmap_guided.images import read_image
 from colmap_guided.paths import shared_data_dir
+from recon_scripts.benchmark_coarse import conv4d_naive
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -24,25 +25,6 @@ def real_corr(shared_data):
         for n in ("sacre_coeur1.jpg", "sacre_coeur2.jpg")
     )
     return correlation(fa[None], fb[None])[0]
-
-
-def conv4d_naive(x, weight, bias=None, groups=1):
-    """Reference: the paper's/NCNet's 4D convolution as a Python loop of 3D convolutions, one per
-    output I-slice and kernel I-offset."""
-    n, _, ni, nj, nk, nl = x.shape
-    ki = weight.shape[2]
-    out = x.new_zeros(n, weight.shape[0], ni, nj, nk, nl)
-    for i in range(ni):
-        for a in range(ki):
-            src = i + a - ki // 2
-            if 0 <= src < ni:
-                out[:, :, i] += F.conv3d(
-                    x[:, :, src],
-                    weight[:, :, a],
-                    padding=tuple(k // 2 for k in weight.shape[3:]),
-                    groups=groups,
-                )
-    return out if bias is None else out + bias.view(1, -1, 1, 1, 1, 1)
 
 
 def all_coords(shape):

@@ -8,11 +8,11 @@ import pycolmap
 import pytest
 
 from colmap_guided import database as dbio
-from colmap_guided.evaluation.ground_truth import pose_errors
 from colmap_guided.match import match_database
 from colmap_guided.matchers import lightglue
 from colmap_guided.pipeline import PipelineConf
 from colmap_guided.reconstruct import reconstruct
+from recon_scripts.evaluation.ground_truth import pose_errors
 
 
 def strong_neighbours(database_path, strong_inliers: int) -> tuple[Counter, dict, dict, dict]:

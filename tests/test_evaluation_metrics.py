@@ -5,8 +5,8 @@ import pycolmap
 import pytest
 
 from colmap_guided import geometry
-from colmap_guided.evaluation import matcher_specs, metrics
-from colmap_guided.evaluation.registration import compare_poses
+from recon_scripts.evaluation import matcher_specs, metrics
+from recon_scripts.evaluation.registration import compare_poses
 
 
 def random_rotation(rng, max_deg=180.0):

@@ -1,6 +1,5 @@
 """Historical proxy, manifests (scan / layout) and the registration benchmark on one tiny scene."""
 
-import importlib.util
 import json
 
 import cv2
@@ -9,17 +8,10 @@ import pycolmap
 import pytest
 
 from colmap_guided.database import open_database, pair_inlier_counts, read_keypoints
-from colmap_guided.evaluation import manifest as mf
-from colmap_guided.evaluation import proxy, registration
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
-from colmap_guided.workspace import MARKER
-
-
-def load_script(name):
-    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "recon_scripts" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from recon_scripts import eval_registration, mapper_choice, summarize_registration
+from recon_scripts.evaluation import manifest as mf
+from recon_scripts.evaluation import proxy, registration
 
 
 @pytest.fixture(scope="module")
@@ -156,8 +148,6 @@ def test_manifests_in_the_repository_are_valid(shared_data):
         and ltll["scenes"] == []
     )
     shared = mf.load_manifest(REPO_ROOT / "datasets" / "shared_manifest.json")
-    regenerated = load_script("run_manifest").shared_manifest()
-    assert [s["name"] for s in shared["scenes"]] == [s["name"] for s in regenerated["scenes"]]
     for scene in shared["scenes"]:
         assert all(im["era"] == "modern" for im in scene["images"])
         assert all(
@@ -214,7 +204,7 @@ def test_eval_registration_on_a_tiny_proxy_scene(tiny_proxy, tmp_path, capsys):
         str(out),
         "-q",
     ]
-    assert load_script("eval_registration").main(argv) == 0
+    assert eval_registration.main(argv) == 0
     text = capsys.readouterr().out
     assert (
         "| strecha_entry_P10 | all | 2/2/2 |" in text
@@ -233,47 +223,6 @@ def test_eval_registration_on_a_tiny_proxy_scene(tiny_proxy, tmp_path, capsys):
         and rec["wrong"] == []
     )
     assert (out / "registered.png").is_file() and (out / "results.md").is_file()
-
-
-def test_run_manifest_scans_and_lays_out_a_local_copy(tmp_path, capsys):
-    root = tmp_path / "LTLL"
-    for era in ("historical", "modern"):
-        for i in range(2):
-            _fake_image(root / "some_landmark" / era / f"{i}.jpg")
-    out = tmp_path / "out"
-    argv = [
-        "--manifest",
-        str(REPO_ROOT / "datasets" / "ltll_manifest.json"),
-        "--root",
-        str(root),
-        "--scan",
-        "--layout_only",
-        "--output",
-        str(out),
-        "-q",
-    ]
-    assert load_script("run_manifest").main(argv) == 0
-    scanned = json.loads((out / "manifest_scanned.json").read_text())
-    assert scanned["root"] == str(root.resolve()) and len(scanned["scenes"][0]["images"]) == 4
-    assert sorted(p.name for p in out.iterdir()) == [
-        MARKER,
-        "manifest_scanned.json",
-        "some_landmark__all",
-        "some_landmark__historical",
-    ]
-    # without a local copy the LTLL manifest has nothing to run, and says so
-    assert (
-        load_script("run_manifest").main(
-            [
-                "--manifest",
-                str(REPO_ROOT / "datasets" / "ltll_manifest.json"),
-                "--output",
-                str(out),
-                "-q",
-            ]
-        )
-        == 2
-    )
 
 
 @pytest.mark.slow
@@ -296,7 +245,7 @@ def test_eval_registration_all_methods_on_a_tiny_proxy_scene(tiny_proxy, tmp_pat
         str(out),
         "-q",
     ]
-    assert load_script("eval_registration").main(argv) == 0
+    assert eval_registration.main(argv) == 0
     data = json.loads((out / "results.json").read_text())
     assert [(s["scene"], s["subset"]) for s in data["scenes"]] == [
         (n, sub)
@@ -355,7 +304,7 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
         str(out),
         "-q",
     ]
-    assert load_script("eval_registration").main(argv) == 0
+    assert eval_registration.main(argv) == 0
     methods = json.loads((out / "results.json").read_text())["scenes"][0]["methods"]
     raw, raw_global, guided = (methods[m] for m in ("raw", "raw:mapper=global", "guided"))
     assert "reused" not in raw
@@ -379,7 +328,7 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
         assert pair_inlier_counts(a) == pair_inlier_counts(b) and len(pair_inlier_counts(a)) >= 1
     # --remap maps each finished database again (a change of the mapping stage) and keeps the stage
     # times
-    assert load_script("eval_registration").main(argv + ["--resume", "--remap"]) == 0
+    assert eval_registration.main(argv + ["--resume", "--remap"]) == 0
     again = json.loads((out / "results.json").read_text())["scenes"][0]["methods"]
     assert (
         again["guided"]["reused"]["database"].endswith("(--remap)")
@@ -392,10 +341,7 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
     # (here: mapping it twice)
     poses = []
     for _ in range(2):
-        assert (
-            load_script("eval_registration").main(argv + ["--resume", "--remap", "--threads", "1"])
-            == 0
-        )
+        assert eval_registration.main(argv + ["--resume", "--remap", "--threads", "1"]) == 0
         model = pycolmap.Reconstruction(str(runs / "guided" / "sparse" / "0"))
         poses.append(
             {im.name: im.cam_from_world().matrix() for im in model.images.values() if im.has_pose}
@@ -404,7 +350,7 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
     assert all(np.array_equal(poses[0][n], poses[1][n]) for n in poses[0])
     # the summary: one table per LTLL protocol (rows = methods, columns = scenes) and the time per
     # stage
-    load_script("summarize_registration").main([str(out / "results.json")])
+    summarize_registration.main([str(out / "results.json")])
     text = capsys.readouterr().out
     assert "**Protocol: historical + modern photos + distractors**" in text and "**Time**" in text
     row = next(line for line in text.splitlines() if line.startswith("| raw:mapper=global |"))
@@ -421,14 +367,14 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
     )
     # one results file's runs of a method under their own label (the same method before and after a
     # change)
-    load_script("summarize_registration").main(
+    summarize_registration.main(
         [str(out / "results.json"), "--label", f"{out / 'results.json'}:raw=raw (this run)"]
     )
     assert "| raw (this run) |" in capsys.readouterr().out
     # mapper_choice maps the run's database again with each mapper: its `auto` pick is the
     # pipeline's own model
     assert (
-        load_script("mapper_choice").main(
+        mapper_choice.main(
             [
                 str(out / "results.json"),
                 "--method",
@@ -455,44 +401,3 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
     assert (
         oracle == sum(max(m["correct"] for m in run["models"].values()) for run in choice) >= right
     )
-
-
-def test_reference_check_accepts_true_correspondences_of_resized_cropped_photos_not_shuffled_ones(
-    tmp_path,
-):
-    """Two photos of a synthetic scene, resized (x0.5) and cropped as the proxy makes its prints:
-    the projections of the same 3D points are all within the 6 px of the reference epipolar lines,
-    the same keypoints paired at random mostly are not."""
-    script = load_script("pair_agreement")  # recon_scripts/pair_agreement.py
-    options = pycolmap.SyntheticDatasetOptions()
-    (
-        options.num_rigs,
-        options.num_cameras_per_rig,
-        options.num_frames_per_rig,
-        options.num_points3D,
-    ) = 1, 1, 2, 200
-    pycolmap.set_random_seed(0)
-    with pycolmap.Database.open(str(tmp_path / "db.db")) as db:
-        ref = pycolmap.synthesize_dataset(options, db)
-    a, b = (ref.images[i] for i in sorted(ref.reg_image_ids()))
-    entries = [
-        {"ref_name": im.name, "scale": 0.5, "crop_offset": off}
-        for im, off in ((a, [10, 20]), (b, [0, 5]))
-    ]
-    in_b = {p.point3D_id: k for k, p in enumerate(b.points2D) if p.has_point3D()}
-    pairs = np.array(
-        [
-            (k, in_b[p.point3D_id])
-            for k, p in enumerate(a.points2D)
-            if p.has_point3D() and p.point3D_id in in_b
-        ]
-    )
-    kp = [
-        np.array([p.xy for p in im.points2D]) * 0.5 - np.asarray(e["crop_offset"], float)
-        for im, e in zip((a, b), entries)
-    ]
-    F = script.reference_fundamental(ref, *entries)
-    assert len(pairs) > 50 and script.share_right(F, kp[0], kp[1], pairs) == 1.0
-    shuffled = np.c_[pairs[:, 0], np.random.default_rng(0).permutation(pairs[:, 1])]
-    assert script.share_right(F, kp[0], kp[1], shuffled) < 0.3
-    assert script.share_right(F, kp[0], kp[1], pairs[:0]) is None

@@ -1,6 +1,5 @@
 """Two-view protocol on real pairs with reference cameras, and WxBS scoring (fast: a few pairs)."""
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -8,9 +7,10 @@ import sys
 import numpy as np
 import pytest
 
-from colmap_guided.evaluation import metrics, two_view
-from colmap_guided.evaluation.reference import load_reference
 from colmap_guided.paths import REPO_ROOT
+from recon_scripts import eval_two_view
+from recon_scripts.evaluation import metrics, two_view
+from recon_scripts.evaluation.reference import load_reference
 
 
 @pytest.mark.parametrize("key", ["train/strecha_entry_P10", "train/instantngp_fox"])
@@ -43,13 +43,6 @@ def test_strecha_castle_frames_are_not_mixed(shared_data):
 @pytest.fixture(scope="module")
 def sift_cache(tmp_path_factory):
     return tmp_path_factory.mktemp("sift_cache")
-
-
-def load_script(name):
-    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "recon_scripts" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_pose_protocol_on_real_pairs(shared_data, sift_cache):
@@ -109,7 +102,7 @@ def test_eval_two_view_script_in_process(shared_data, sift_cache, tmp_path, caps
         str(out),
         "-q",
     ]
-    script = load_script("eval_two_view")
+    script = eval_two_view
     with pytest.raises(ValueError, match="no_such_matcher"):
         script.main([*argv, "--matchers", "raw:ratio=0.8", "no_such_matcher"])
     assert not out.exists()
@@ -137,7 +130,8 @@ def test_eval_two_view_script(shared_data, tmp_path):
     out = tmp_path / "out"
     cmd = [
         sys.executable,
-        str(REPO_ROOT / "recon_scripts" / "eval_two_view.py"),
+        "-m",
+        "recon_scripts.eval_two_view",
         "--scenes",
         "train/strecha_entry_P10",
         "--max_pairs",
@@ -152,7 +146,7 @@ def test_eval_two_view_script(shared_data, tmp_path):
         str(out),
         "-q",
     ]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=REPO_ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "| raw:ratio=0.8 |" in proc.stdout and "AUC@5°" in proc.stdout
     for name in (

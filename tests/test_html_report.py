@@ -9,7 +9,6 @@ import io
 import json
 import re
 import shutil
-import sys
 from pathlib import Path
 
 import cv2
@@ -282,8 +281,7 @@ def test_model_is_exported_for_other_tools(run_with_strangers):
 
 
 def test_model_view_draws_in_headless_chromium(run_with_strangers, tmp_path):
-    sys.path.insert(0, str(REPO / "recon_scripts"))
-    from render_report_screenshot import find_chromium, screenshot
+    from recon_scripts.render_report_screenshot import find_chromium, screenshot
 
     if find_chromium() is None:
         pytest.skip("Chromium is not installed (Debian: apt-get install chromium)")
@@ -307,8 +305,7 @@ def test_model_view_draws_in_headless_chromium(run_with_strangers, tmp_path):
 
 @pytest.mark.slow
 def test_page_renders_in_headless_chromium(tmp_path):
-    sys.path.insert(0, str(REPO / "recon_scripts"))
-    from render_report_screenshot import find_chromium, screenshot
+    from recon_scripts.render_report_screenshot import find_chromium, screenshot
 
     if find_chromium() is None:
         pytest.skip("Chromium is not installed (Debian: apt-get install chromium)")

@@ -20,11 +20,11 @@ from PIL import Image
 from colmap_guided import database as dbio
 from colmap_guided import localize as loc
 from colmap_guided.__main__ import main
-from colmap_guided.evaluation.registration import compare_poses, model_poses
 from colmap_guided.log import set_verbosity
 from colmap_guided.reconstruct import reconstruct
 from colmap_guided.synthetic import render_scene
 from colmap_guided.workspace import read_marker
+from recon_scripts.evaluation.registration import compare_poses, model_poses
 
 HELD_OUT = ("view_002.jpg", "view_005.jpg")
 OUR_ERROR = re.compile(r"^\[[\d:]+ colmap_guided ERROR\] (.+)$", re.MULTILINE)

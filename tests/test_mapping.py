@@ -8,9 +8,9 @@ import numpy as np
 import pycolmap
 import pytest
 
-from colmap_guided.evaluation.ground_truth import pose_errors
 from colmap_guided.mapping import MAPPERS, check_conf, run_mapping
 from colmap_guided.model_check import check_models
+from recon_scripts.evaluation.ground_truth import pose_errors
 
 NUM_FRAMES = 12
 

@@ -88,7 +88,7 @@ def test_guided_never_verifies_a_wrong_geometry_on_day_night_pairs(matchers, pai
     inliers; raw: none). With the pipeline's verification of guided pairs (min_inliers 25) a
     verified geometry must agree with the hand-labelled correspondences (median symmetric epipolar /
     transfer error < 5 px)."""
-    from colmap_guided.evaluation.metrics import geometry_errors
+    from recon_scripts.evaluation.metrics import geometry_errors
 
     _, guided = matchers
     folder = shared_data_dir() / "wxbs_v1.1" / pair

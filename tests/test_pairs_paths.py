@@ -58,7 +58,7 @@ def test_workspace_is_never_inside_the_photo_folder(tmp_path):
 
 def test_caches_live_outside_the_package_and_the_repository(monkeypatch, tmp_path):
     from colmap_guided import paths
-    from colmap_guided.evaluation import two_view
+    from recon_scripts.evaluation import two_view
 
     monkeypatch.delenv("COLMAP_GUIDED_CACHE", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
@@ -88,13 +88,11 @@ def test_an_installed_package_finds_shared_data_only_through_the_environment(tmp
         for k, v in os.environ.items()
         if k not in ("COLMAP_GUIDED_SHARED", "COLMAP_GUIDED_DATA")
     }
-    code = (
-        "import sys\nsys.path.insert(0, sys.argv[1])\n"  # the copy, before the checkout on the path
-        "from colmap_guided import paths\nprint(paths.shared_data_dir())"
-    )
+    code = "from colmap_guided import paths\nprint(paths.shared_data_dir())"
+    env["PYTHONPATH"] = str(site)  # the copy, before the checkout on the path
 
     def data_dir(**extra) -> Path:
-        run = [sys.executable, "-c", code, str(site)]
+        run = [sys.executable, "-c", code]
         out = subprocess.run(
             run, env={**env, **extra}, cwd=tmp_path, capture_output=True, text=True, check=True
         )

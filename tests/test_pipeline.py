@@ -13,12 +13,12 @@ import pytest
 
 from colmap_guided import database as dbio
 from colmap_guided import verify
-from colmap_guided.evaluation.ground_truth import pose_errors
 from colmap_guided.image_data import HeldImages
 from colmap_guided.match import match_database
 from colmap_guided.matchers import get_matcher
 from colmap_guided.pipeline import PipelineConf
 from colmap_guided.reconstruct import reconstruct
+from recon_scripts.evaluation.ground_truth import pose_errors
 
 
 def folder_digest(folder: Path) -> dict:

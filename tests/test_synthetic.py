@@ -9,7 +9,6 @@ import pycolmap
 import pytest
 
 from colmap_guided import synthetic
-from colmap_guided.evaluation.ground_truth import pose_errors
 from colmap_guided.synthetic import (
     Polygon,
     load_scene,
@@ -18,6 +17,7 @@ from colmap_guided.synthetic import (
     render_scene,
     transfer_points,
 )
+from recon_scripts.evaluation.ground_truth import pose_errors
 
 
 @pytest.fixture(scope="module")

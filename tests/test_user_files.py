@@ -14,11 +14,11 @@ import pytest
 
 from colmap_guided import archival
 from colmap_guided.__main__ import main
-from colmap_guided.evaluation import proxy
 from colmap_guided.log import set_verbosity
 from colmap_guided.synthetic import render_scene
 from colmap_guided.train.trainer import Trainer
 from colmap_guided.workspace import MARKER, OutputRefused, read_marker
+from recon_scripts.evaluation import proxy
 
 OUR_ERROR = re.compile(r"^\[[\d:]+ colmap_guided ERROR\] (.+)$", re.M)
 PLACES = ("scene folder", "its parent", "image folder", "folder of the user's files", "a file")

@@ -1,4 +1,4 @@
-"""The matcher interface: everything the pipeline (match.py, executor.py, evaluation/) asks of a
+"""The matcher interface: everything the pipeline (match.py, executor.py) and recon_scripts ask of a
 matcher.
 
 A new matcher subclasses ``Matcher``, sets ``name`` and ``default_conf`` (one comment line per

@@ -270,7 +270,7 @@ class GuidedMatcher(Matcher):
         # 'auto' | 'filter' (weights required) | 'raw' (correlation only, untrained)
         "mode": "auto",
         "coarse": {},  # further CoarseMatcher options (backbone, resize_max, impl, cache_path, ...)
-        # Defaults measured with recon_scripts/benchmark_matching.py --sweep, shipped filter, 20
+        # Defaults measured with recon_scripts.benchmark_matching --sweep, shipped filter, 20
         # same-scene pairs (15 with reference correspondences: lund_door, WxBS) and 24 pairs of
         # unrelated photos
         # raw: 8/20 verified, 4 correct / 0 wrong, 0/24 unrelated. Guided without ratio test:

@@ -9,7 +9,7 @@ descriptor matching.
 
 Modules: ``textures`` (procedural textures), ``render`` (exact rendering of textured polygons),
 ``scene`` (layout, cameras, ``render_scene``, ``load_scene``, ``transfer_points``). Pose errors of a
-reconstruction against the ground truth: ``colmap_guided.evaluation.ground_truth.pose_errors``.
+reconstruction against the ground truth: ``recon_scripts.evaluation.ground_truth.pose_errors``.
 
 Output of :func:`render_scene`::
 

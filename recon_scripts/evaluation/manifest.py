@@ -240,9 +240,9 @@ def select_scenes(manifest: dict, names=None, max_scenes: int | None = None) -> 
 def add_manifest_flags(
     parser: argparse.ArgumentParser, output: Path, methods: list[str], methods_help: str
 ) -> None:
-    """The flags of the scripts that run the scenes of a manifest (recon_scripts/run_manifest.py,
-    eval_registration.py): the local copy, which scenes and subsets, the methods and their
-    devices, where the results go (``output`` by default)."""
+    """The flags of eval_registration, which runs the scenes of a manifest: the local copy, which
+    scenes and subsets, the methods and their devices, where the results go (``output`` by
+    default)."""
     parser.add_argument(
         "--root",
         type=Path,
