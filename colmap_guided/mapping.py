@@ -60,6 +60,9 @@ default_conf = {
     # reference pose).
     "min_image_points": 15,
     "image_names": None,  # map only these photos (None: all; repeated prints leave some out)
+    # bundle adjustment also refines each camera's principal point (a cropped print's is off
+    # centre); COLMAP's default: fixed at the image centre
+    "refine_principal_point": False,
 }
 
 
@@ -91,6 +94,7 @@ def _incremental_options(conf: dict) -> pycolmap.IncrementalPipelineOptions:
     options.mapper.init_min_num_inliers = conf["init_min_num_inliers"]
     options.mapper.init_min_tri_angle = conf["init_min_tri_angle"]
     options.mapper.abs_pose_min_num_inliers = conf["abs_pose_min_num_inliers"]
+    options.ba_refine_principal_point = conf["refine_principal_point"]
     for seeded in (options, options.mapper, options.triangulation):
         seeded.random_seed = _colmap_seed(conf)
     return options
@@ -99,6 +103,7 @@ def _incremental_options(conf: dict) -> pycolmap.IncrementalPipelineOptions:
 def _global_options(conf: dict) -> pycolmap.GlobalPipelineOptions:
     options = _pipeline_options(pycolmap.GlobalPipelineOptions(), conf)
     mapper = options.mapper
+    mapper.bundle_adjustment.refine_principal_point = conf["refine_principal_point"]
     for seeded in (
         options,
         mapper,

@@ -1,6 +1,7 @@
 """Mapping (incremental / global / hierarchical, seeded, thin view graphs) and the model check."""
 
 import json
+import shutil
 import subprocess
 import sys
 
@@ -264,3 +265,23 @@ def test_pose_support_counts_the_inliers_a_model_explains_and_drops_for_a_wrong_
     )
     frame.rig_from_world = turn * frame.rig_from_world
     assert own >= 100 and pose_support(rec, thin_chain) <= total - 0.95 * own
+
+
+@pytest.mark.parametrize("mapper", ["incremental", "global"])
+def test_a_refined_principal_point_moves_back_towards_the_truth(thin_chain, tmp_path, mapper):
+    """The camera's principal point is put 30 px off the one the photos were made with: mapping
+    keeps it there unless ``refine_principal_point`` lets bundle adjustment move it back."""
+    db_path = tmp_path / "database.db"
+    shutil.copy(thin_chain, db_path)
+    with pycolmap.Database.open(str(db_path)) as db:
+        camera = db.read_all_cameras()[0]
+        truth = camera.principal_point_x
+        camera.principal_point_x = truth + 30
+        db.update_camera(camera)
+    errors = {}
+    for refine in (False, True):
+        conf = {"mapper": mapper, "num_threads": 1, "refine_principal_point": refine}
+        models = run_mapping(db_path, tmp_path, tmp_path / f"sparse{refine}", conf)
+        assert models[0].num_reg_images() == NUM_FRAMES
+        errors[refine] = abs(models[0].cameras[camera.camera_id].principal_point_x - truth)
+    assert errors[False] == pytest.approx(30) and errors[True] < 15, errors
