@@ -30,15 +30,9 @@ from .geometry import essential_from_pose
 from .log import colmap_quiet, logger
 
 MAPPERS = ("auto", "incremental", "global", "hierarchical")
-# The default mapper, auto (module docstring). Measured (`python -m recon_scripts pipeline`, 2
-# seeds): global >= incremental on every shared set (sacre_coeur guided 10/10 vs 3/10, opensfm_lund
-# 29/29 vs 14-24/29), but it drops a photo whose only strong pair is planar (synthetic scene: 7/8,
-# incremental 8/8), and on a short, nearly straight walk (strecha_entry_P10, 4 photos) it registers
-# all of them on wrong poses where incremental is right: hence auto, and incremental when both place
-# as many photos. Historical proxy, 10 scenes x 3 seeds x 2 protocols, one thread (docs/RESULTS.md,
-# recon_scripts.mapper_choice): photos on the reference pose / off it, guided SIFT databases:
-# incremental 341 / 26, global 330 / 21, auto 349 / 21 (347 / 23 without the pose-support
-# tie-break).
+# The default mapper, auto: global places more photos on most sets but drops planar pairs and
+# misplaces short straight walks, so it runs only where incremental's model is doubtful
+# (docs/RESULTS.md).
 default_conf = {
     # auto (incremental, and global too when its model is doubtful: the better checked model),
     # incremental (COLMAP's mapper), global (GLOMAP) or hierarchical (thousands of photos)

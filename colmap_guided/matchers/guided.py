@@ -270,27 +270,15 @@ class GuidedMatcher(Matcher):
         # 'auto' | 'filter' (weights required) | 'raw' (correlation only, untrained)
         "mode": "auto",
         "coarse": {},  # further CoarseMatcher options (backbone, resize_max, impl, cache_path, ...)
-        # Defaults measured with recon_scripts.benchmark_matching --sweep, shipped filter, 20
-        # same-scene pairs (15 with reference correspondences: lund_door, WxBS) and 24 pairs of
-        # unrelated photos
-        # raw: 8/20 verified, 4 correct / 0 wrong, 0/24 unrelated. Guided without ratio test:
-        # 24/24 unrelated verify (27-59 inliers), so a ratio test among the candidates is required;
-        # 0.95: 23/24, 0.9: 4/24 (15-16 inliers), 0.8: 0/24 with 1.34x raw's verified inliers
-        # (median), 5 correct / 3 wrong geometries (WxBS day/night pairs, 15-20 inliers; the correct
-        # ones have 30-8569). W = 2 cells left 1 of the 3 and verified 2 fewer related pairs;
-        # forward-backward <= 2 cells removed none. Guided matches follow a smooth flow, so a wrong
-        # flow gathers more chance inliers than unguided matches: guided pairs need
-        # ``min_inliers`` = 25 to verify (COLMAP's 15 for raw), which removes the 3 wrong geometries
-        # and keeps every correct one.
+        # Window, ratio and min_inliers chosen on same-scene and unrelated pairs: without a ratio
+        # test unrelated photos verify, and a wrong flow gathers chance inliers (docs/RESULTS.md).
         # W of eq. 1 in coarse cells (1 cell = 16 px at the network input scale, as the paper)
         "window_cells": 1.0,
         "ratio": 0.8,  # Lowe's ratio among the candidates, both directions; None = off
         # two-view verification of guided pairs: at least this many inliers (COLMAP: 15)
         "min_inliers": 25,
         # Lowe's ratio of the raw matches below (mutual NN over all keypoints), whatever ``ratio``
-        # is; None = off. Without a window a looser ratio verifies unrelated photos (historical
-        # proxy, museum facade, SIFT: of its 18 pairs with a distractor, 0 verified at 0.8, 1 at
-        # 0.9, 17 at 0.95; docs/RESULTS.md).
+        # is; None = off. Without a window a looser ratio verifies unrelated photos.
         "raw_ratio": 0.8,
         # Raw matches (mutual NN + ratio) beside the guided ones, for pairs where the coarse flow is
         # wrong:
@@ -307,10 +295,8 @@ class GuidedMatcher(Matcher):
         # many inliers (they are kept as they are); None: raw matching on every pair
         "raw_below": None,
         # 'verified', both sides pass: share of each side's inliers within the RANSAC threshold of
-        # the other's epipolar geometry, both ways, below which the pair keeps its raw matches.
-        # Historical proxy, 10 scenes x 3 seeds x 2 protocols (docs/RESULTS.md): runs with fewer
-        # photos on the reference pose than pycolmap's default pipeline 9 at 0.6, 6 at 0.8, 3 at
-        # 0.9; photos off the pose 34 / 19 / 23.
+        # the other's epipolar geometry, both ways, below which the pair keeps its raw matches
+        # (chosen on the development split, docs/RESULTS.md).
         "min_agreement": 0.9,
         # drop keypoints whose coarse forward-backward error exceeds this many cells
         "max_fb_cells": None,

@@ -135,11 +135,8 @@ class LightGlueMatcher(Matcher):
         "filter_threshold": 0.1,  # LightGlue's match score threshold (its default)
         "depth_confidence": 0.95,  # LightGlue's early stopping (its default); -1 = off
         "width_confidence": 0.99,  # LightGlue's point pruning (its default); -1 = off
-        # Two-view verification: at least this many inliers (COLMAP: 15). LightGlue finds 15-51
-        # inliers between unrelated photos: phototourism_superglue 30 of its 60 different-landmark
-        # pairs verified with 15 (up to 38 inliers; its same-landmark pairs: 65-670), the historical
-        # proxy's distractors 62 pairs (15-51); 60 leaves none and drops 15 of the proxy's 551
-        # same-landmark pairs (docs/RESULTS.md).
+        # Two-view verification: at least this many inliers (COLMAP: 15); LightGlue finds up to 51
+        # between unrelated photos (docs/RESULTS.md).
         "min_inliers": 60,
         # Off CUDA, cross-attention fused per direction (same matches); False: the package's own
         "fused_attention": True,
@@ -244,15 +241,10 @@ class GuidedLightGlueMatcher(Matcher):
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
         # Keypoints per photo that enter LightGlue, the best first (None = all; its cost grows with
         # their square); a pair left with fewer than min_inliers matches in the window is matched
-        # again on every keypoint. Historical proxy, development split: 1,024 placed 291 / 9 | 112 /
-        # 32 photos against all's 300 / 0 | 124 / 22 (docs/RESULTS.md), so all by default; the
-        # guided_lightglue_fast preset keeps 1,024.
+        # again on every keypoint. A budget placed fewer photos: guided_lightglue_fast keeps 1,024.
         "max_keypoints": None,
-        # Historical proxy, 10 scenes x 3 seeds, LightGlue's matches filtered with 3 cells
-        # (docs/RESULTS.md): photos on the reference pose / off it 300 / 0 with all photos
-        # (LightGlue 294 / 6), 124 / 22 with historical photos only (123 / 27).
-        # phototourism_superglue, where the coarse flow is wrong across Piazza San Marco pairs:
-        # 18 of its 18 same-landmark pairs keep >= 25 inliers at 3 cells, 14 at 1 cell.
+        # W of eq. 1 around LightGlue's matches, in coarse cells: 3 keeps the same-landmark pairs
+        # where the coarse flow errs (docs/RESULTS.md).
         "window_cells": 3.0,
         # Keypoints whose coarse match does not lead back within this many cells (the
         # forward-backward error of the coarse flow: outside the covisible region) do not enter
@@ -260,14 +252,11 @@ class GuidedLightGlueMatcher(Matcher):
         # all. None: every keypoint enters.
         "prune_fb_cells": None,
         # Pairs whose coarse image-level score (paper eq. 3) is below this are matched with none,
-        # without LightGlue (a rerun does not redo them); None: every pair is matched. Development
-        # pairs (calibrate_pair_gate.py, docs/RESULTS.md): the 43 that verify score 0.082-0.999,
-        # 43 of the 63 unrelated ones below 0.05.
+        # without LightGlue (a rerun does not redo them; escalation does); None: every pair.
         "min_pair_score": 0.05,
         # Cheap first: mutual nearest neighbours of the descriptors (Lowe's ratio 0.9) inside the
         # window; a pair they verify with at least this many inliers keeps them and skips LightGlue
-        # (None: LightGlue on every pair). At 100, two photos of one development scene went off
-        # their pose; at 200 none (docs/RESULTS.md, speed).
+        # (None: LightGlue on every pair); at 100 two development photos went off their pose.
         "cheap_inliers": 200,
         "weights": None,  # coarse filter weights, as the guided matcher's; None = the shipped ones
         "coarse": {},  # further CoarseMatcher options, as the guided matcher's

@@ -113,9 +113,7 @@ def mutual_nn_match(
 
 
 # Lowe's ratio of the raw and guided matchers on ALIKED: 0.9 verified more related pairs than
-# SIFT's 0.8 and no unrelated one (recon_scripts' `aliked` preset, sacre_coeur_hloc raw 43 vs 34
-# pairs, phototourism_superglue raw 3/13 vs 0/13 registered, 0 of its 60 different-landmark pairs
-# verified either way).
+# SIFT's 0.8 and no unrelated one (docs/RESULTS.md).
 ALIKED_RATIO = 0.9
 
 
