@@ -44,6 +44,8 @@ def map_again(database: Path, image_path: Path, refine: bool) -> pycolmap.Recons
 
 
 def cell(score: dict) -> str:
+    if not score["registered"]:
+        return "no model"
     ok = "model check ok" if score["check_ok"] else "model check fails"
     pose = f"{score['correct']} ✓ {score['wrong']} ✗ · " if score["correct"] is not None else ""
     return f"{pose}{score['registered']} registered · {ok}"
