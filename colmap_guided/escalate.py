@@ -45,12 +45,13 @@ def pairs_to_escalate(
     done: set,
     per_photo: int,
     cheap_inliers: int | None = None,
-) -> list[tuple[str, str]]:
+) -> list[PairKey]:
     """The ``selected`` pairs (most similar first) of the photos ``left`` out of the model that the
     first pass did not match with the full matcher, up to ``per_photo`` for each: deferred (no
     matches), gated (none kept) or, with a cheap pass that keeps pairs of ``cheap_inliers``
     verified inliers, those with that many (the full matcher finds more, which a photo that mapping
-    could not place may need); ``done``: pairs escalated already."""
+    could not place may need); ``done``: pairs (name_a, name_b) escalated already. Returns
+    (id_a, id_b, name_a, name_b)."""
     with dbio.open_database(database_path) as db:
         ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
         counts, inliers = dbio.pair_match_counts(db), dbio.pair_inlier_counts(db)
@@ -64,7 +65,7 @@ def pairs_to_escalate(
             cheap_inliers is not None and inliers.get(key, 0) >= cheap_inliers
         ):
             taken.update(wants)
-            todo.append((a, b))
+            todo.append((ids[a], ids[b], a, b))
     return todo
 
 

@@ -108,11 +108,10 @@ def _escalate(
         if not todo:
             break
         logger.info("Escalation: %d pairs of %d photos left out of the model", len(todo), len(left))
-        start, done = time.time(), done | set(todo)
+        start, done = time.time(), done | {key[2:] for key in todo}
         with dbio.open_database(database_path) as db:
-            ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
-            dbio.delete_pairs(db, [(ids[a], ids[b]) for a, b in todo])
-        pairs.write_pairs(output / ESCALATION_PAIRS, todo)
+            dbio.delete_pairs(db, [key[:2] for key in todo])
+        pairs.write_pairs(output / ESCALATION_PAIRS, [key[2:] for key in todo])
         full = full or escalate.full_matcher(matcher)
         escalated = conf.pairs.over({"pairs": str(output / ESCALATION_PAIRS)})
         escalated = dataclasses.replace(conf, pairs=escalated)
