@@ -120,9 +120,9 @@ class MatcherConf:
         return cls(**merge_conf({"name": cls.name, "options": {}}, conf, "matcher conf"))
 
     def resolve(self, feature_type: str) -> MatcherConf:
-        """The matcher of ``feature_type`` features (``matchers.resolve_auto``), its
-        ``feature_defaults`` under the options given."""
-        choice = resolve_auto(self.name, feature_type, self.options)
+        """The matcher of a database that holds ``feature_type`` features
+        (``matchers.resolve_auto``), its ``feature_defaults`` under the options given."""
+        choice = resolve_auto(self.name, AUTO, self.options, feature_type)
         return MatcherConf(choice.matcher, choice.matcher_conf)
 
     def build(self) -> Matcher:

@@ -12,8 +12,8 @@ import pycolmap
 from .. import database as dbio
 from .. import features, geoframe, images, match
 from ..log import logger
-from ..matchers import AUTO, get_matcher, resolve_auto
 from ..pairs import write_pairs
+from ..pipeline import MatcherConf
 from ..workspace import Workspace, model_digest
 from .add import add_to_model
 from .pose import correspondences, estimate_pose, pose_json, retrieve, verdict, verified_pairs
@@ -88,8 +88,7 @@ def _matcher(path: Path, matcher: str, matcher_conf: dict | None) -> tuple:
     workspace database's features."""
     with dbio.open_database(path / "database.db") as db:
         feature_type = features.database_feature_type(db)
-    name, _, matcher_conf = resolve_auto(matcher, AUTO, matcher_conf, feature_type)
-    chosen = get_matcher(name, matcher_conf)
+    chosen = MatcherConf(matcher, matcher_conf or {}).resolve(feature_type).build()
     features.check_matcher_features(chosen, feature_type)
     return chosen, feature_type
 
