@@ -3,9 +3,10 @@
 The paper trains on MegaDepth (modern internet photos) and evaluates on LTLL (historical photos of
 landmarks, §5). No historical multi-view collection is available offline, so training images are
 degraded with effects typical of old prints and scans: grayscale, sepia toning, faded contrast,
-blur, film grain, JPEG artefacts, vignetting, scratches and dust, and an optional crop. The named
-looks range from realistic prints (``realistic_*``) to harshly damaged ones (``damaged_scan``,
-``old_postcard``).
+blur, film grain, JPEG artefacts, vignetting, scratches and dust, a printer's halftone screen, and
+an optional crop. The named looks range from realistic prints (``realistic_*``) to harshly damaged
+ones (``damaged_scan``, ``old_postcard``) and printed postcards (``postcard_*``), which ``postcard``
+mounts on a card with a border and a caption (``collage``: several pictures on one card).
 
 Every effect takes and returns an RGB float32 image in [0, 1] and draws its randomness only from the
 ``numpy.random.Generator`` it is given, so a result is fully determined by (image, seed, strength).
@@ -15,6 +16,7 @@ API
         random subset of effects (or the listed ones), random parameters scaled by ``strength``.
     apply_preset(image, name, seed=0)   named, reproducible looks: see ``PRESETS``.
     EFFECTS                             name -> function(img, rng, strength) for single effects.
+    postcard(picture, rng), mount(...), collage(pictures, ...)   a print on a card.
 
 Input: uint8 (H, W, 3) RGB or (H, W) gray. Output: uint8 (H', W', 3) RGB (H' = H unless cropped).
 A crop keeps COLMAP's pixel convention: a point (x, y) of the input is (x - x0, y - y0) in the
@@ -188,6 +190,29 @@ def _apply_masks(img: np.ndarray, mask_bright: np.ndarray, mask_dark: np.ndarray
     return out * (1.0 - mask_dark[..., None])
 
 
+def halftone(img: np.ndarray, rng: np.random.Generator, strength: float = 1.0) -> np.ndarray:
+    """A printed card's screen: each ink a grid of dots whose size follows its tone (one screen
+    for gray, one per channel at its own angle for colour), softened by the scanner."""
+    h, w = img.shape[:2]
+    period = max(2.5, max(h, w) / rng.uniform(180, 260))  # dot pitch in pixels
+    y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+    gray = float(np.abs(img - img.mean(axis=2, keepdims=True)).max()) < 1e-3
+    angles = [45.0] if gray else [15.0, 75.0, 0.0]
+    out = np.empty_like(img)
+    for c in range(3):
+        theta = np.deg2rad(angles[min(c, len(angles) - 1)] + rng.uniform(-5, 5))
+        u = (x * np.cos(theta) + y * np.sin(theta)) * (2 * np.pi / period)
+        v = (-x * np.sin(theta) + y * np.cos(theta)) * (2 * np.pi / period)
+        screen = 0.5 + 0.25 * (np.cos(u) + np.cos(v))
+        out[..., c] = (img[..., c] > screen).astype(np.float32)
+        if gray:
+            out[..., 1:] = out[..., :1]
+            break
+    out = cv2.GaussianBlur(out, (0, 0), 0.35 * period)
+    amount = min(1.0, 0.7 * strength)
+    return (1 - amount) * img + amount * out
+
+
 EFFECTS: dict[str, Callable[[np.ndarray, np.random.Generator, float], np.ndarray]] = {
     "grayscale": grayscale,
     "sepia": sepia,
@@ -198,9 +223,21 @@ EFFECTS: dict[str, Callable[[np.ndarray, np.random.Generator, float], np.ndarray
     "vignette": vignette,
     "scratches": scratches,
     "dust": dust,
+    "halftone": halftone,
 }
 # Physical order of a degradation chain: toning of the print, ageing, optics, then the scan.
-_ORDER = ["grayscale", "sepia", "fade", "vignette", "blur", "grain", "scratches", "dust", "jpeg"]
+_ORDER = [
+    "grayscale",
+    "sepia",
+    "fade",
+    "vignette",
+    "halftone",
+    "blur",
+    "grain",
+    "scratches",
+    "dust",
+    "jpeg",
+]
 # Probability of each effect when ``degrade`` picks a random subset (colour: gray xor sepia xor
 # none); dust has none: it is part of scratches there, so the training augmentation draws as before.
 _PROB = {"fade": 0.6, "vignette": 0.5, "blur": 0.5, "grain": 0.6, "scratches": 0.3, "jpeg": 0.5}
@@ -222,7 +259,62 @@ PRESETS: dict[str, dict] = {
         "strength": 0.5,
     },
     "realistic_colour": {"effects": ["fade", "blur", "grain", "dust"], "strength": 0.5},
+    # Printed picture postcards (mounted on a card with ``postcard``): halftone-screened prints.
+    "postcard_bw": {"effects": ["grayscale", "fade", "halftone", "dust", "jpeg"], "strength": 0.7},
+    "postcard_sepia": {"effects": ["sepia", "fade", "halftone", "blur", "dust"], "strength": 0.7},
+    "postcard_colour": {"effects": ["fade", "halftone", "blur", "jpeg"], "strength": 0.7},
 }
+
+# Card stock (RGB): white, cream, ivory; printed ink; captions as publishers printed them.
+PAPERS = ((236, 240, 244), (238, 230, 208), (242, 236, 220))
+INK = (40, 30, 30)
+CAPTIONS = (
+    ("Gruss aus der Altstadt - Rathaus und Markt", "Verlag 1931"),
+    ("Partie am Schloss",),
+    ("Blick auf die Kirche", "Kunstverlag - Nachdruck verboten"),
+    ("Souvenir - Vue generale",),
+)
+
+
+def mount(
+    picture: np.ndarray, paper=PAPERS[0], border: int = 40, caption=(), band: int = 70
+) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """The picture on a card: a paper border around it and, under it, a band of printed caption
+    lines; returns the card and the picture's box (x0, y0, x1, y1) on it."""
+    h, w = picture.shape[:2]
+    card = np.empty((h + 2 * border + (band if caption else 0), w + 2 * border, 3), np.uint8)
+    card[:] = paper
+    card[border : border + h, border : border + w] = picture
+    for line, text in enumerate(caption):
+        y = border + h + 28 + 30 * line
+        cv2.putText(card, text, (border + 10, y), cv2.FONT_HERSHEY_SIMPLEX, 0.8, INK, 2)
+    return card, (border, border, border + w, border + h)
+
+
+def collage(
+    pictures: list[np.ndarray], paper=PAPERS[0], border: int = 40, gutter: int = 24
+) -> tuple[np.ndarray, list[tuple[int, int, int, int]]]:
+    """Several pictures side by side on one card, a gutter of paper between them; returns the card
+    and each picture's box, left to right."""
+    h = max(p.shape[0] for p in pictures)
+    w = sum(p.shape[1] for p in pictures) + gutter * (len(pictures) - 1)
+    card = np.empty((h + 2 * border, w + 2 * border, 3), np.uint8)
+    card[:] = paper
+    x, boxes = border, []
+    for p in pictures:
+        card[border : border + p.shape[0], x : x + p.shape[1]] = p
+        boxes.append((x, border, x + p.shape[1], border + p.shape[0]))
+        x += p.shape[1] + gutter
+    return card, boxes
+
+
+def postcard(picture: np.ndarray, rng: np.random.Generator | int | None = None) -> np.ndarray:
+    """A picture mounted as a publisher would: card stock, border and caption drawn from ``rng``."""
+    rng = _as_rng(rng)
+    paper = PAPERS[int(rng.integers(len(PAPERS)))]
+    border = int(round(max(picture.shape[:2]) * rng.uniform(0.03, 0.07)))
+    caption = CAPTIONS[int(rng.integers(len(CAPTIONS)))]
+    return mount(picture, paper, border, caption)[0]
 
 
 def random_crop(

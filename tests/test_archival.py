@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from colmap_guided import archival
+from colmap_guided import archival, cards
 from colmap_guided.paths import shared_data_dir
 
 
@@ -117,3 +117,29 @@ def test_random_subset_varies_with_seed(photo):
     assert any(gray) and not all(gray)  # both black-and-white and colour looks occur
     means = [o.astype(np.float32).mean() for o in outs]
     assert np.std(means) > 1.0  # different seeds give visibly different looks
+
+
+def test_halftone_prints_dots_of_the_same_tone(photo):
+    f = photo.astype(np.float32)
+    dots = archival.degrade(photo, 2, effects=["halftone"]).astype(np.float32)
+    assert abs(dots.mean() - f.mean()) < 12  # the screen keeps the tone
+    assert np.abs(dots - f).mean() > 5  # ... in dots
+    gray = archival.degrade(photo, 2, effects=["grayscale", "halftone"])
+    assert _colourfulness(gray) < 0.6  # one screen for a gray print
+
+
+def test_postcards_and_collages_are_what_the_card_finder_reads(photo, tmp_path):
+    """The simulated cards: the picture box, and a collage's panels, found where they were put."""
+    card, box = archival.mount(photo, archival.PAPERS[1], 30, ("Partie am Schloss",))
+    cv2.imwrite(str(tmp_path / "card.jpg"), card[..., ::-1])
+    found = cards.find_layout(tmp_path / "card.jpg")
+    assert found.border and not found.panels
+    assert np.abs(np.subtract(found.picture, box)).max() <= 3
+    printed = archival.postcard(archival.apply_preset(photo, "postcard_sepia", 1), 1)
+    assert printed.shape[0] > photo.shape[0] and printed.shape[1] > photo.shape[1]
+    flipped = np.ascontiguousarray(photo[:, ::-1])
+    card, boxes = archival.collage([photo, flipped], archival.PAPERS[0], 30, 20)
+    cv2.imwrite(str(tmp_path / "collage.jpg"), card[..., ::-1])
+    found = cards.find_layout(tmp_path / "collage.jpg")
+    assert len(found.panels) == 2
+    assert np.abs(np.subtract(found.panels, boxes)).max() <= 3

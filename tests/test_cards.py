@@ -13,7 +13,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from colmap_guided import cards
+from colmap_guided import archival, cards
 from colmap_guided import database as dbio
 from colmap_guided.reconstruct import reconstruct
 from recon_scripts.evaluation.ground_truth import pose_errors
@@ -22,7 +22,8 @@ PAPER = (236, 240, 244)  # a white card, in RGB
 # views of the synthetic scene used as prints: two on a collage card, one on a captioned card,
 # one printed twice (the second a crop, rescaled)
 COLLAGE, CAPTIONED, REPRINTED = ("view_000.jpg", "view_001.jpg"), "view_002.jpg", "view_003.jpg"
-GUTTER, BORDER, CAPTION = 24, 40, 70
+GUTTER, BORDER = 24, 40
+CAPTION_LINES = ("Gruss aus der Altstadt - Rathaus und Markt", "Verlag 1931")
 
 
 def read_rgb(path: Path) -> np.ndarray:
@@ -31,32 +32,6 @@ def read_rgb(path: Path) -> np.ndarray:
 
 def write_rgb(path: Path, rgb: np.ndarray) -> None:
     cv2.imwrite(str(path), rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 95])
-
-
-def collage_card(views: list[np.ndarray]) -> tuple[np.ndarray, list[tuple]]:
-    """The views side by side on white paper, a gutter between them; and where each lies."""
-    h = max(v.shape[0] for v in views)
-    w = sum(v.shape[1] for v in views) + GUTTER * (len(views) - 1)
-    card = np.empty((h + 2 * BORDER, w + 2 * BORDER, 3), np.uint8)
-    card[:] = PAPER
-    x, boxes = BORDER, []
-    for view in views:
-        card[BORDER : BORDER + view.shape[0], x : x + view.shape[1]] = view
-        boxes.append((x, BORDER, x + view.shape[1], BORDER + view.shape[0]))
-        x += view.shape[1] + GUTTER
-    return card, boxes
-
-
-def captioned_card(view: np.ndarray) -> tuple[np.ndarray, tuple]:
-    """The view on a white card with a caption band of printed text under it."""
-    h, w = view.shape[:2]
-    card = np.empty((h + 2 * BORDER + CAPTION, w + 2 * BORDER, 3), np.uint8)
-    card[:] = PAPER
-    card[BORDER : BORDER + h, BORDER : BORDER + w] = view
-    for line, text in enumerate(("Gruss aus der Altstadt - Rathaus und Markt", "Verlag 1931")):
-        y = BORDER + h + 28 + 30 * line
-        cv2.putText(card, text, (BORDER + 10, y), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (40, 30, 30), 2)
-    return card, (BORDER, BORDER, BORDER + w, BORDER + h)
 
 
 @pytest.fixture(scope="module")
@@ -70,9 +45,10 @@ def card_scene(synthetic_scene, tmp_path_factory):
     for name in synthetic_scene.names:
         if name not in (*COLLAGE, CAPTIONED):
             shutil.copy(source / name, folder / name)
-    collage, collage_boxes = collage_card([read_rgb(source / n) for n in COLLAGE])
+    views = [read_rgb(source / n) for n in COLLAGE]
+    collage, collage_boxes = archival.collage(views, PAPER, BORDER, GUTTER)
     write_rgb(folder / "collage.jpg", collage)
-    captioned, picture = captioned_card(read_rgb(source / CAPTIONED))
+    captioned, picture = archival.mount(read_rgb(source / CAPTIONED), PAPER, BORDER, CAPTION_LINES)
     write_rgb(folder / "captioned.jpg", captioned)
     view = read_rgb(source / REPRINTED)
     h, w = view.shape[:2]

@@ -7,6 +7,7 @@ import numpy as np
 import pycolmap
 import pytest
 
+from colmap_guided import cards
 from colmap_guided.database import open_database, pair_inlier_counts, read_keypoints
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
 from recon_scripts import eval_registration, mapper_choice, summarize_registration
@@ -20,7 +21,12 @@ def tiny_proxy(tmp_path_factory):
         pytest.skip("real photo sets not found")
     out = tmp_path_factory.mktemp("proxy")
     path = proxy.build_proxy(
-        out, sources=["train/strecha_entry_P10"], n_distractors=2, max_size=480, max_images=4
+        out,
+        sources=["train/strecha_entry_P10"],
+        looks=("damaged", "realistic"),
+        n_distractors=2,
+        max_size=480,
+        max_images=4,
     )
     return path
 
@@ -55,6 +61,7 @@ def test_proxy_scene_layout_and_determinism(tiny_proxy, tmp_path):
     again = proxy.build_proxy(
         tmp_path / "again",
         sources=["train/strecha_entry_P10"],
+        looks=("damaged", "realistic"),
         n_distractors=2,
         max_size=480,
         max_images=4,
@@ -62,6 +69,57 @@ def test_proxy_scene_layout_and_determinism(tiny_proxy, tmp_path):
     for im in one["images"]:
         a = (tiny_proxy.parent / "strecha_entry_P10" / "images" / im["name"]).read_bytes()
         assert a == (again.parent / "strecha_entry_P10" / "images" / im["name"]).read_bytes()
+
+
+def test_postcard_look_has_cards_a_collage_and_a_reprint(shared_data, tmp_path):
+    """The postcard look: every historical photo on a card the card finder sees as one; two on a
+    collage card it cuts into the panels the manifest names; one printed twice, one pose."""
+    scene = proxy.build_scene(
+        "train/strecha_entry_P10", tmp_path, look="postcard", max_size=640, max_images=6
+    )
+    one = json.loads((scene / "manifest.json").read_text())
+    historical = [im for im in one["images"] if im["era"] == "historical"]
+    (collage,) = [im for im in historical if "panels" in im]
+    (reprint,) = [im for im in historical if "same_picture_as" in im]
+    first = next(im for im in historical if im["name"] == reprint["same_picture_as"])
+    assert reprint["ref_name"] == first["ref_name"] and reprint["preset"] != first["preset"]
+    layout = cards.find_layout(scene / "images" / collage["name"])
+    assert [cards.panel_name(collage["name"], k) for k in (1, 2)] == [
+        p["name"] for p in collage["panels"]
+    ]
+    assert len(layout.panels) == 2
+    for im in historical:
+        if im is not collage:
+            found = cards.find_layout(scene / "images" / im["name"])
+            assert found.border and not found.panels, im["name"]
+    assert registration.era_counts(one["images"])["historical"] == len(historical) + 1
+
+
+def test_score_registration_of_panels_and_prints(shared_data):
+    """A panel scores under its own name wherever the run cut it; a print grouped with a mapped
+    print of its picture takes that pose; a collage registered whole counts off the pose."""
+    ref = pycolmap.Reconstruction(str(shared_data / "lund_door_gtsfm" / "colmap_ground_truth"))
+    a, b, c, d = sorted(im.name for im in ref.images.values())[:4]
+    run = pycolmap.Reconstruction(ref)
+    names = {a: "../../ws/panels/card_p1.jpg", b: "../../ws/panels/card_p2.jpg", c: "card.jpg"}
+    for image in run.images.values():
+        image.name = names.get(image.name, image.name)
+    images = [
+        {
+            "name": "card.jpg",
+            "era": "historical",
+            "panels": [
+                {"name": "card_p1.jpg", "era": "historical", "ref_name": a},
+                {"name": "card_p2.jpg", "era": "historical", "ref_name": b},
+            ],
+        },
+        {"name": d, "era": "historical"},
+        {"name": "copy.jpg", "era": "historical", "ref_name": d, "same_picture_as": d},
+    ]
+    s = registration.score_registration(run, images, ref, {"copy.jpg": d})
+    assert s["num_images"] == 4 and s["correct"] == 4 and s["wrong"] == ["card.jpg"]
+    s = registration.score_registration(run, images, ref)
+    assert s["num_registered"] == 3 and s["correct"] == 3
 
 
 def test_proxy_never_writes_into_shared_data():

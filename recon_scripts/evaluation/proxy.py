@@ -5,8 +5,11 @@ No historical multi-view collection (LTLL) is available offline, so each source 
 - a deterministic half of its images (seeded permutation) is degraded with
   ``colmap_guided.archival`` (named presets in turn, plus a random crop keeping >= 90 % of each
   side): era ``historical``. Two looks, each a scene of its own: ``damaged`` (OUT/<scene>: B&W
-  print, sepia print, faded colour, damaged scan, old postcard) and ``realistic``
-  (OUT/<scene>_realistic: prints kept well, with moderate fading, soft focus, fine grain and dust);
+  print, sepia print, faded colour, damaged scan, old postcard), ``realistic``
+  (OUT/<scene>_realistic: prints kept well, with moderate fading, soft focus, fine grain and dust)
+  and ``postcard`` (OUT/<scene>_postcard: halftone prints on cards with a border and a caption; two
+  of them side by side on one collage card, whose entry lists its ``panels``, and one printed a
+  second time, ``same_picture_as`` the first);
 - the other half is kept as is: era ``modern``;
 - a few images of OTHER, unrelated scenes are added (half of them degraded too): era ``distractor``;
   they must never register.
@@ -31,6 +34,7 @@ import cv2
 import numpy as np
 
 from colmap_guided import archival
+from colmap_guided.cards import panel_name
 from colmap_guided.features import list_images
 from colmap_guided.images import read_image
 from colmap_guided.log import logger
@@ -69,8 +73,15 @@ SAME_LANDMARK = (
 SPLITS = {"dev": DEFAULT_SOURCES, "test": ("sceaux_castle", "opensfm_berlin")}
 HISTORICAL_PRESETS = ("bw_print", "sepia_print", "faded_colour", "damaged_scan", "old_postcard")
 REALISTIC_PRESETS = ("realistic_bw", "realistic_sepia", "realistic_colour")
-# Each look is a proxy scene of its own: <scene> (damaged prints) and <scene>_realistic.
-LOOKS = {"damaged": ("", HISTORICAL_PRESETS), "realistic": ("_realistic", REALISTIC_PRESETS)}
+POSTCARD_PRESETS = ("postcard_bw", "postcard_sepia", "postcard_colour")
+# Each look is a proxy scene of its own: <scene> (damaged prints), <scene>_realistic and
+# <scene>_postcard (printed cards with borders and captions, two pictures on one collage card, one
+# picture printed twice).
+LOOKS = {
+    "damaged": ("", HISTORICAL_PRESETS),
+    "realistic": ("_realistic", REALISTIC_PRESETS),
+    "postcard": ("_postcard", POSTCARD_PRESETS),
+}
 
 
 def _seed(*parts) -> int:
@@ -106,6 +117,44 @@ def _degrade(
         crop=crop,
         return_offset=True,
     )
+
+
+def _reprint(folder: Path, clean: np.ndarray, first: dict, preset: str) -> dict:
+    """A second print of ``first``'s picture (``clean``: before its look): another look, cropped
+    tighter, scanned smaller, on a card of its own; one viewpoint with ``first``, one pose."""
+    out_name = f"{Path(first['name']).stem}_reprint.jpg"
+    rgb = cv2.resize(clean, None, fx=0.85, fy=0.85, interpolation=cv2.INTER_AREA)
+    rgb, offset = _degrade(rgb, preset, _seed("reprint", out_name), 0.2)
+    _write_jpg(folder / "images" / out_name, archival.postcard(rgb, _seed("card", out_name)))
+    return {
+        **first,
+        "name": out_name,
+        "scale": 0.85 * first["scale"],
+        "preset": preset,
+        "crop_offset": list(offset),
+        "same_picture_as": first["name"],
+    }
+
+
+def _collage(folder: Path, pictures: list[tuple[np.ndarray, dict]], width: int, seed: int) -> dict:
+    """One collage card of ``pictures`` side by side, ``width`` pixels wide: an entry whose
+    ``panels`` are the pictures, named as the pipeline names the panels it cuts."""
+    height = min(rgb.shape[0] for rgb, _ in pictures)
+    scaled = [
+        cv2.resize(rgb, (round(rgb.shape[1] * height / rgb.shape[0]), height))
+        for rgb, _ in pictures
+    ]
+    rng = np.random.default_rng(seed)
+    border, gutter = round(0.03 * width), round(0.02 * width)
+    fit = (width - 2 * border - gutter * (len(scaled) - 1)) / sum(p.shape[1] for p in scaled)
+    scaled = [cv2.resize(p, None, fx=fit, fy=fit, interpolation=cv2.INTER_AREA) for p in scaled]
+    card, _ = archival.collage(
+        scaled, archival.PAPERS[int(rng.integers(len(archival.PAPERS)))], border, gutter
+    )
+    name = "collage_" + "_".join(Path(e["name"]).stem for _, e in pictures) + ".jpg"
+    _write_jpg(folder / "images" / name, card)
+    panels = [{**e, "name": panel_name(name, i)} for i, (_, e) in enumerate(pictures, 1)]
+    return {"name": name, "era": "historical", "panels": panels}
 
 
 def _claim(out_dir: Path, data_dir: Path | None = None) -> Workspace:
@@ -195,6 +244,9 @@ def build_scene(
     workspace.record(f"{scene}/images", f"{scene}/manifest.json")
     entries = []
     k = 0
+    # postcards: the first two historical photos share one collage card, the third is printed twice
+    cards = sorted(hist) if look == "postcard" and len(hist) >= 3 else []
+    collage = []
     for name in names:
         rgb, scale = _resize(read_image(src / name), max_size)
         out_name = str(Path(name).with_suffix(".jpg").as_posix())
@@ -207,12 +259,22 @@ def build_scene(
         if name in hist:
             preset = presets[k % len(presets)]
             k += 1
+            clean = rgb
             rgb, offset = _degrade(rgb, preset, _seed(key, name, seed), crop)
             entry.update(era="historical", preset=preset, crop_offset=list(offset))
+            if name in cards[:2]:
+                collage.append((rgb, entry))
+                continue
+            if look == "postcard":
+                rgb = archival.postcard(rgb, np.random.default_rng(_seed("card", key, name, seed)))
+            if name in cards[2:3]:
+                entries.append(_reprint(scene_dir, clean, entry, presets[k % len(presets)]))
         else:
             entry.update(era="modern")
         _write_jpg(scene_dir / "images" / out_name, rgb)
         entries.append(entry)
+    if collage:
+        entries.append(_collage(scene_dir, collage, max_size or 1024, _seed("collage", key, seed)))
     for i, dkey in enumerate(distractor_sources(key, pool, n_distractors, seed)):
         dnames = list_images(data_dir / dkey / "images")
         dname = dnames[
@@ -230,6 +292,8 @@ def build_scene(
             preset = presets[(k + i) % len(presets)]
             rgb, offset = _degrade(rgb, preset, _seed(key, dkey, dname, seed), crop)
             entry.update(preset=preset, crop_offset=list(offset))
+            if look == "postcard":
+                rgb = archival.postcard(rgb, _seed("card", key, dkey, dname, seed))
         _write_jpg(scene_dir / "images" / out_name, rgb)
         entries.append(entry)
     ref = reference_model_dir(key, data_dir) or pseudo_reference(key, data_dir, workspace)
@@ -268,6 +332,15 @@ def build_scene(
     return scene_dir
 
 
+def _brief(entry: dict) -> dict:
+    """What the multi-scene manifest keeps of an image: what scoring needs."""
+    keep = ("name", "era", "ref_name", "same_picture_as")
+    out = {k: v for k, v in entry.items() if k in keep}
+    if "panels" in entry:
+        out["panels"] = [_brief(panel) for panel in entry["panels"]]
+    return out
+
+
 def build_proxy(out_dir: Path, sources=DEFAULT_SOURCES, looks=tuple(LOOKS), **kwargs) -> Path:
     """All proxy scenes, one per source and look, + OUT/proxy_manifest.json (multi-scene schema);
     returns the manifest path."""
@@ -286,10 +359,7 @@ def build_proxy(out_dir: Path, sources=DEFAULT_SOURCES, looks=tuple(LOOKS), **kw
                 "reference": {"type": "colmap", "path": one["reference"]["path"]}
                 if one.get("reference")
                 else None,
-                "images": [
-                    {k: v for k, v in im.items() if k in ("name", "era", "ref_name")}
-                    for im in one["images"]
-                ],
+                "images": [_brief(im) for im in one["images"]],
             }
         )
     manifest = {

@@ -156,16 +156,41 @@ def largest_model(models: dict) -> pycolmap.Reconstruction | None:
     return max(models.values(), key=lambda rec: rec.num_reg_images(), default=None)
 
 
+def photos(images: list[dict]) -> list[dict]:
+    """The photos of a scene's manifest entries: a collage card's panels in place of the card."""
+    return [p for im in images for p in im.get("panels", [im])]
+
+
+def estimated_poses(
+    largest: pycolmap.Reconstruction | None, images: list[dict], same_picture: dict | None = None
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """{photo: pose} of a run: a panel under its own name (the pipeline cuts it into its
+    workspace, whose path prefixes the model's name), a print grouped with a registered print of
+    the same picture at that print's pose."""
+    est = model_poses(largest) if largest is not None else {}
+    panels = {p["name"] for im in images for p in im.get("panels", [])}
+    est = {(Path(n).name if Path(n).name in panels else n): pose for n, pose in est.items()}
+    for copy, first in (same_picture or {}).items():
+        if copy not in est and first in est:
+            est[copy] = est[first]
+    return est
+
+
 def score_registration(
     largest: pycolmap.Reconstruction | None,
     images: list[dict],
     reference: pycolmap.Reconstruction | None,
+    same_picture: dict | None = None,
     **tol,
 ) -> dict:
-    """Counts for one run: images = the scene's manifest entries (name, era, optional ref_name)."""
-    registered = set(model_poses(largest)) if largest is not None else set()
-    targets = [im for im in images if im["era"] != "distractor"]
+    """Counts for one run: images = the scene's manifest entries (name, era, optional ref_name,
+    a collage card's panels); ``same_picture``: {print: the print of its picture that the run
+    mapped}. A collage card registered whole holds no one view: it counts off the pose."""
+    est = estimated_poses(largest, images, same_picture)
+    registered = set(est)
+    targets = [im for im in photos(images) if im["era"] != "distractor"]
     distractors = [im for im in images if im["era"] == "distractor"]
+    whole_cards = sorted(im["name"] for im in images if "panels" in im and im["name"] in est)
     out = {
         "num_images": len(targets),
         "num_registered": sum(im["name"] in registered for im in targets),
@@ -183,7 +208,6 @@ def score_registration(
     out["correct"] = out["wrong"] = out["unverified"] = None
     if reference is not None and largest is not None:
         ref_poses_by_name = model_poses(reference)
-        est = model_poses(largest)
         to_ref = {im["name"]: im.get("ref_name", im["name"]) for im in targets}
         pairs = {
             n: (est[n], ref_poses_by_name[r])
@@ -199,7 +223,9 @@ def score_registration(
         )
         reg_targets = [im["name"] for im in targets if im["name"] in registered]
         out["correct"] = sum(1 for n in reg_targets if checks.get(n, {}).get("ok"))
-        out["wrong"] = sorted(n for n in reg_targets if checks.get(n, {}).get("ok") is False)
+        out["wrong"] = sorted(
+            [n for n in reg_targets if checks.get(n, {}).get("ok") is False] + whole_cards
+        )
         out["unverified"] = sorted(n for n in reg_targets if checks.get(n, {}).get("ok") is None)
         out["correct_ratio"] = out["correct"] / out["num_images"] if out["num_images"] else 0.0
         out["pose_checks"] = checks
@@ -384,6 +410,10 @@ def run_method(
             "timings": result["timings"],
             "num_models": result["model"]["num_models"],
             "matcher": result["matcher"],
+            "same_picture": {
+                copy: found["same_picture_as"]
+                for copy, found in result.get("repeated_prints", {}).items()
+            },
         }
     info["num_points3D"] = largest.num_points3D() if largest is not None else 0
     info["wall_time"] = time.time() - start
@@ -503,7 +533,8 @@ def evaluate_scene(
         if own:
             shutil.rmtree(previous)
             info["reused"]["database"] = "the same run's, mapped again (--remap)"
-        record = {**score_registration(largest, images, reference, **tol), **info}
+        score = score_registration(largest, images, reference, info.get("same_picture"), **tol)
+        record = {**score, **info}
         workspace.mkdir(parents=True, exist_ok=True)
         done.write_text(json.dumps(record, indent=1, default=str), encoding="utf-8")
         out["methods"][method] = record
@@ -512,7 +543,7 @@ def evaluate_scene(
 
 def era_counts(images: list[dict]) -> dict:
     out = {}
-    for im in images:
+    for im in photos(images):
         out[im["era"]] = out.get(im["era"], 0) + 1
     return out
 
