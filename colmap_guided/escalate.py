@@ -80,11 +80,14 @@ class BestFirst:
     deterministic, and a rerun after a kill, counting the pairs in the database, decides as the
     uninterrupted run."""
 
-    def __init__(self, db, id_pairs, enough, strong_inliers, options, descriptors: dict):
+    def __init__(self, db, id_pairs, enough, strong_inliers, options, descriptors: dict, apart=()):
         self.enough, self.strong_inliers, self.options = enough, strong_inliers, options
         self.similarity = {
             key: float(descriptors[key[2]] @ descriptors[key[3]]) for key in id_pairs
         }
+        # panels of one collage card: a publisher's different views (none of their pairs verified
+        # on the scanned collages), deferred to escalation
+        self.group = {name: i for i, names in enumerate(apart) for name in names}
         self.strong: Counter = Counter()
         self.pending: Counter = Counter()
         inliers = dbio.pair_inlier_counts(db)
@@ -112,6 +115,10 @@ class BestFirst:
         in flight decide it, wait for them."""
         if key in self.started:
             return False
+        if self.together(key):
+            if position >= self.first_pass:
+                self.deferred.append(key)
+            return False
         lacks = max if position < self.first_pass else min  # both photos lack / either does
         have = [self.strong[name] for name in key[2:]]
         match = lacks(have) < self.enough
@@ -120,6 +127,16 @@ class BestFirst:
         if not match and position >= self.first_pass:
             self.deferred.append(key)
         return match
+
+    def together(self, key: PairKey) -> bool:
+        """Both photos of the pair are panels of one card."""
+        a, b = (self.group.get(name) for name in key[2:])
+        return a is not None and a == b
+
+    def escalation_order(self, id_pairs: list[PairKey]) -> list[tuple[str, str]]:
+        """Most similar first, panels of one card after every other pair."""
+        ordered = sorted(id_pairs, key=lambda key: (self.together(key), -self.similarity[key]))
+        return [key[2:] for key in ordered]
 
     def start(self, key: PairKey) -> None:
         self.started.add(key)

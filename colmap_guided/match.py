@@ -98,9 +98,11 @@ def match_pairs(
     max_images_held: int = MAX_IMAGES_HELD,
     enough: int | None = None,
     strong_inliers: int = 100,
+    apart=(),
 ) -> dict:
     """``match_database`` with the matcher made: its pairs (``conf.pairs``) and verification
-    (``conf.verification`` over the matcher's) as they are, nothing decided again."""
+    (``conf.verification`` over the matcher's) as they are, nothing decided again; with
+    ``enough``, best first (``BestFirst``), pairs within a group of ``apart`` deferred."""
     verification_conf = {**matcher.verification_conf, **conf.verification.options}
     options = verify.two_view_options(verification_conf)
     stats = {
@@ -136,7 +138,7 @@ def match_pairs(
             if descriptors is None:
                 descriptors = _global_descriptors(matcher, image_path, names)
             schedule = BestFirst(
-                db, id_pairs, enough, strong_inliers, options, dict(zip(names, descriptors))
+                db, id_pairs, enough, strong_inliers, options, dict(zip(names, descriptors)), apart
             )
             todo = schedule.order(todo, len(images) <= max_images_held)
         if todo:
@@ -160,11 +162,7 @@ def match_pairs(
             stats["executor"] = run.describe()
         stats["match_time"] = time.time() - start
         # most similar first where the order was computed (escalation takes each photo's first)
-        stats["selected"] = (
-            [key[2:] for key in sorted(id_pairs, key=lambda key: -schedule.similarity[key])]
-            if schedule
-            else selected
-        )
+        stats["selected"] = schedule.escalation_order(id_pairs) if schedule else selected
         stats["num_pairs"] = len(id_pairs)
         stats["num_pairs_matched_now"] = len(schedule.started) if schedule else len(todo)
         if schedule is not None:

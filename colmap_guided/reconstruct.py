@@ -183,6 +183,7 @@ def reconstruct(
         conf,
         enough=conf.escalation.enough,
         strong_inliers=conf.escalation.strong_inliers,
+        apart=photos.panels.values(),
     )
     timings["match"] = match_stats.pop("match_time")
     timings["verify"] = match_stats.pop("verify_time")

@@ -91,6 +91,9 @@ def test_collage_panels_register_on_their_true_poses(card_scene, card_run, synth
     assert all((root / "out" / cards.PANELS / Path(n).name).is_file() for n in names)
     assert {p.name: p.read_bytes() for p in (root / "images").iterdir()} == before
     assert all(panel["registered"] for panel in result["cards"]["collage.jpg"]["panels"])
+    # a card's panels are a publisher's different views: their pair waits for escalation
+    with dbio.open_database(root / "out" / "database.db") as db:
+        assert not dbio.pair_has_matches(db, *(dbio.read_image(db, n).image_id for n in names))
     # the model aligned to the truth (the panels and the captioned card under their views' names)
     model = pycolmap.Reconstruction(str(root / "out" / "sparse" / "0"))
     true_name = {**dict(zip(names, COLLAGE)), "captioned.jpg": CAPTIONED}
