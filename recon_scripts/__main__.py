@@ -18,6 +18,7 @@ PRESETS = {
     "pairs": "benchmark_pairs",
     "pipeline": "benchmark_pipeline",
     "scale": "benchmark_scale",
+    "scale_default": "benchmark_scale",
     "scale_executors": "benchmark_scale",
 }
 

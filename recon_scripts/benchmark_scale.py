@@ -5,6 +5,7 @@
     python -m recon_scripts scale sets="50 200" pairs="retrieval exhaustive"
     python -m recon_scripts scale sets="50 200 1000" mappers="global hierarchical incremental"
     python -m recon_scripts scale_executors sets=200 num_pairs=160
+    python -m recon_scripts scale_default sets=1000   # reconstruct end to end, as shipped
 
 Photos: the 437 photos of the 20 training scenes of ../shared/data/train pooled (long side <=
 1024 px; symlinked, never copied) and 563 photos of 24 landmarks rendered by
@@ -30,7 +31,7 @@ from pathlib import Path
 from recon_scripts.bench import Benchmark
 from recon_scripts.scale.executors import match_executors
 from recon_scripts.scale.photos import make_pool, photo_set
-from recon_scripts.scale.report import executors_table, report
+from recon_scripts.scale.report import default_table, executors_table, report
 from recon_scripts.scale.stage import run_stage, stage_cli
 
 
@@ -92,6 +93,32 @@ class ScaleBenchmark(Benchmark):
 
     def summarize(self, results):
         return report(self.out, self.conf["sets"], self.conf["k"])
+
+
+class ScaleDefault(ScaleBenchmark):
+    """reconstruct end to end as shipped: stage times, pairs, registered photos, peak memory.
+
+    One uninterrupted run per N, in a fresh process, on the photo sets of `scale`."""
+
+    name = "scale_default"
+    default_conf = {
+        "sets": [1000],  # N photos, each set a prefix of the next
+        "work": "outputs/benchmark_scale",
+        "timeout": 3 * 3600,  # seconds per run
+    }
+
+    def configs(self):
+        return {"default": {}}
+
+    def prepare(self, n, images, work):
+        return {}
+
+    def run_config(self, n, images, prepared, label, config, out):
+        r = run_stage("reconstruct", out, images, out / "reconstruct.json", self.conf["timeout"])
+        return {"failed": "reconstruct"} if r is None else {"wall": r["wall"]}
+
+    def summarize(self, results):
+        return "\n".join(default_table(self.out, self.conf["sets"]))
 
 
 class ScaleExecutors(ScaleBenchmark):

@@ -109,13 +109,11 @@ def _stage_row(n: int, photos: str, label: str, kept: str, runs: tuple, row: dic
         else "–"
     )
     loads = [float(r[key].split("/")[0]) for r in stages for key in ("load_before", "load_after")]
-    # without a global mapping the row starts at "– | ": its first cells are left out
+    mapped = f"{g['wall']:.0f}" if g else "–"
     head = (
         f"| {n} ({photos}) | {label} | {m['num_pairs']} ({m['num_pairs'] / (n * (n - 1) / 2):.1%}) "
         f"| {m['num_verified_pairs']} ({kept}) | {ex['wall']:.0f} | {m['select_time']:.0f} "
-        f"| {m['match_time']:.0f} | {m['verify_time']:.0f} | {g['wall']:.0f} | "
-        if g
-        else "– | "
+        f"| {m['match_time']:.0f} | {m['verify_time']:.0f} | {mapped} | "
     )
     return head + (
         f"{row['total']:.0f} ({row['cpu']:.0f}) | {row['rss_run']} / "
@@ -198,5 +196,32 @@ def executors_table(executors: list[dict]) -> list[str]:
             f"| {r['config']} | {r['workers']} | {r['pairs']} | {r['match_time']:.0f} | "
             f"{r['pairs_per_s']:.2f} | {ratio:.2f} | {r['same_matches_as_local_1']} | "
             f"{_loads(r)} |"
+        )
+    return lines
+
+
+def default_table(work: Path, ns: list[int]) -> list[str]:
+    """One row per N of ``reconstruct`` end to end (the ``scale_default`` preset)."""
+    lines = [
+        "| N (photos) | pairs: selected / matched / verified | extract s | match s | verify s "
+        "| map s | escalation s | total s (CPU s) | peak RSS MB | registered: largest (train + "
+        "rendered) / all models | models | load 1-min |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for n in ns:
+        path = Path(work) / f"n{n}" / "default" / "reconstruct.json"
+        if not path.exists():
+            continue
+        r = json.loads(path.read_text())
+        t = r["timings"]
+        escalation = t.get("escalate_match", 0) + t.get("escalate_map", 0)
+        loads = [float(r[k].split("/")[0]) for k in ("load_before", "load_after")]
+        lines.append(
+            f"| {n} | {r['num_pairs']} / {r['num_pairs_matched']} / {r['num_verified_pairs']} "
+            f"| {t['extract']:.0f} | {t['match']:.0f} | {t['verify']:.0f} | {t['map']:.0f} "
+            f"| {escalation:.0f} | {r['wall']:.0f} ({r['cpu']:.0f}) | {r['peak_rss_mb']} "
+            f"| {r['largest']} ({r['registered_largest_train']} + "
+            f"{r['registered_largest_synthetic']}) / {r['registered']} | {r['num_models']} "
+            f"| {min(loads):.1f}–{max(loads):.1f} |"
         )
     return lines

@@ -1,5 +1,5 @@
-"""One stage of the pipeline (extract, match, map) in a fresh process under ``nice``, measured: its
-times, memory and load go to a JSON file."""
+"""One stage of the pipeline (extract, match, map, or reconstruct end to end) in a fresh process
+under ``nice``, measured: its times, memory and load go to a JSON file."""
 
 from __future__ import annotations
 
@@ -59,7 +59,30 @@ def _map(args, db: Path, images: Path, run_dir: Path) -> dict:
     }
 
 
-STAGES = {"extract": _extract, "match": _match, "map": _map}
+def _reconstruct(args, db: Path, images: Path, run_dir: Path) -> dict:
+    """``reconstruct`` end to end as shipped (its workspace: RUN_DIR/workspace)."""
+    from colmap_guided.reconstruct import reconstruct
+
+    result = reconstruct(images, image_path=images, output=run_dir / "workspace")
+    registered = [Path(n).name for n in result["model"]["registered_images"]]
+    return {
+        "timings": result["timings"],
+        "matcher": result["matcher"]["name"],
+        "num_pairs": result["database"]["num_pairs"],
+        "num_pairs_matched": result["database"]["num_pairs_matched_now"],
+        "num_verified_pairs": result["database"]["num_verified_pairs"],
+        "profile": result["database"]["profile"],
+        "escalation": result["database"].get("escalation", []),
+        "num_images": result["num_images"],
+        "largest": result["model"]["num_registered"],
+        "registered": result["model"]["num_registered_all_models"],
+        "num_models": result["model"]["num_models"],
+        "registered_largest_train": sum(n.startswith("t_") for n in registered),
+        "registered_largest_synthetic": sum(n.startswith("s_") for n in registered),
+    }
+
+
+STAGES = {"extract": _extract, "match": _match, "map": _map, "reconstruct": _reconstruct}
 
 
 def stage_main(args) -> None:
@@ -125,7 +148,7 @@ def stage_cli(argv=None) -> None:
     """One stage in this process (what run_stage starts)."""
     s = argparse.ArgumentParser(description="one stage of the scale benchmark")
     s.add_argument("cmd", choices=["_stage"])
-    s.add_argument("stage", choices=["extract", "match", "map"])
+    s.add_argument("stage", choices=list(STAGES))
     for a in ("--run_dir", "--images", "--result", "--pairs", "--mapper"):
         s.add_argument(a)
     s.add_argument("--k", type=int, default=10)
