@@ -8,6 +8,7 @@ import pycolmap
 import pytest
 
 from colmap_guided import cards
+from colmap_guided import database as dbio
 from colmap_guided.database import open_database, pair_inlier_counts, read_keypoints
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
 from recon_scripts import eval_registration, mapper_choice, summarize_registration
@@ -93,6 +94,22 @@ def test_postcard_look_has_cards_a_collage_and_a_reprint(shared_data, tmp_path):
             found = cards.find_layout(scene / "images" / im["name"])
             assert found.border and not found.panels, im["name"]
     assert registration.era_counts(one["images"])["historical"] == len(historical) + 1
+
+
+def test_a_reused_database_brings_its_panels_into_the_run(shared_data, tmp_path):
+    """guided starts from raw's keypoints: the collage panels in its database are its own, once."""
+    scene = proxy.build_scene(
+        "train/strecha_entry_P10", tmp_path, look="postcard", max_size=480, max_images=6
+    )
+    out = registration.evaluate_scene(scene, ["raw", "guided"], threads=1)
+    runs = scene / "runs"
+    with open_database(runs / "guided" / "database.db") as db:
+        names = sorted(dbio.images_by_name(db))
+    panels = [n for n in names if "/panels/" in n]
+    assert len(panels) == 2 and all(n.startswith("../runs/guided/panels/") for n in panels)
+    assert all((scene / "images" / n).is_file() for n in panels)
+    assert len(names) == sum(out["eras"].values())  # every photo once, a collage as its panels
+    assert out["methods"]["guided"]["reused"]["stages"] == ["extract"]
 
 
 def test_score_registration_of_panels_and_prints(shared_data):

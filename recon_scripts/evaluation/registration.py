@@ -19,6 +19,7 @@ Distractors (era 'distractor') must never register; each one registered is a fai
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import time
@@ -241,7 +242,7 @@ def method_slug(method: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.=-]+", "_", method).strip("_")
 
 
-def _fresh_workspace(workspace: Path, database: Path | None) -> Path:
+def _fresh_workspace(workspace: Path, database: Path | None, image_dir: Path) -> Path:
     """``workspace`` without what an earlier run wrote (with a copy of ``database`` when given);
     returns its database path."""
     from colmap_guided.reconstruct import WRITES
@@ -250,7 +251,27 @@ def _fresh_workspace(workspace: Path, database: Path | None) -> Path:
     workspace.record(*WRITES, "eval.json")
     if database is not None:
         shutil.copyfile(database, workspace.path / "database.db")
+        _take_panels(Path(database).parent, workspace.path, Path(image_dir))
     return workspace.path / "database.db"
+
+
+def _take_panels(source: Path, workspace: Path, image_dir: Path) -> None:
+    """The collage panels of a database copied from the run in ``source``: named after the
+    workspace they were cut into, they are copied into ``workspace`` and renamed, so that the run
+    matches its own panels, not those and its own again."""
+    from colmap_guided import database as dbio
+    from colmap_guided.cards import PANELS
+
+    theirs = (source / PANELS).resolve()
+    if not theirs.is_dir():
+        return
+    shutil.copytree(theirs, workspace / PANELS, dirs_exist_ok=True)
+    with dbio.open_database(workspace / "database.db") as db:
+        for name, image in dbio.images_by_name(db).items():
+            if (image_dir / name).resolve().parent == theirs:
+                own = os.path.relpath(workspace / PANELS / Path(name).name, image_dir)
+                image.name = Path(own).as_posix()
+                db.update_image(image)
 
 
 # pycolmap's default pipeline, and its database mapped by this project's mapping stage (what the
@@ -272,7 +293,7 @@ def run_pycolmap_default(
     ``threads``: the mapper's threads, 1 = runs repeat exactly; ``database``: a finished database of
     this pipeline to map again, extraction and matching skipped; ``own_mapping``: the database
     mapped by ``mapping.run_mapping`` with its defaults instead); returns (models, timings)."""
-    db = _fresh_workspace(workspace, database)
+    db = _fresh_workspace(workspace, database, image_dir)
     (Path(workspace) / "sparse").mkdir()
     timings = {}
     if database is None:
@@ -391,7 +412,8 @@ def run_method(
             **({"num_threads": threads} if threads is not None else {}),
             **own_mapping,
         } or None
-        db = _fresh_workspace(workspace, database)  # reconstruct resumes from the copied database
+        # reconstruct resumes from the copied database
+        db = _fresh_workspace(workspace, database, image_dir)
         if database is not None and features_only:
             with open_database(db) as opened:
                 clear_matches(opened)
