@@ -45,7 +45,9 @@ def rescore(record: dict, scene: dict, method: str, reference: pycolmap.Reconstr
     models = load_models(workspace / "sparse")
     return {
         **record,
-        **registration.score_registration(registration.largest_model(models), images, reference),
+        **registration.score_registration(
+            registration.largest_model(models), images, reference, record.get("same_picture")
+        ),
     }
 
 
@@ -53,15 +55,12 @@ def era_checks(record: dict, scene: dict) -> tuple[int | None, int | None]:
     """(correct, wrong) among the historical photos of one run."""
     if record.get("correct") is None:
         return None, None
-    eras = {
-        im["name"]: im["era"]
-        for im in json.loads((Path(scene["scene_dir"]) / "manifest.json").read_text())["images"]
-    }
+    images = json.loads((Path(scene["scene_dir"]) / "manifest.json").read_text())["images"]
+    # (a collage card registered whole is among the wrong ones; its panels are photos)
+    eras = {im["name"]: im["era"] for im in [*images, *registration.photos(images)]}
     checks = record.get("pose_checks") or {}
     ok = sum(1 for n, c in checks.items() if eras.get(n) == "historical" and c.get("ok"))
-    wrong = sum(
-        1 for n, c in checks.items() if eras.get(n) == "historical" and c.get("ok") is False
-    )
+    wrong = sum(1 for n in record.get("wrong") or [] if eras.get(n) == "historical")
     return ok, wrong
 
 
