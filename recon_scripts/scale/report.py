@@ -36,7 +36,8 @@ def report(out: Path, ns: list[int], k: int) -> str:
         lines += ["", *executors_table(executors)]
     text = "\n".join(lines)
     (out / "report.md").write_text(text + "\n")
-    plot(out / "scale.png", rows, executors, per_pair)
+    if rows or executors:  # (the pool alone: nothing to plot)
+        plot(out / "scale.png", rows, executors, per_pair)
     return text
 
 
