@@ -64,7 +64,7 @@ def _reconstruct(args, db: Path, images: Path, run_dir: Path) -> dict:
     from colmap_guided.reconstruct import reconstruct
 
     result = reconstruct(images, image_path=images, output=run_dir / "workspace")
-    registered = [Path(n).name for n in result["model"]["registered_images"]]
+    registered = result["model"]["registered_images"]
     return {
         "timings": result["timings"],
         "matcher": result["matcher"]["name"],
