@@ -283,7 +283,7 @@ def layout_of(rgb: np.ndarray, conf: dict | None = None) -> tuple[list[Box], boo
         for b in boxes
         if _area(b) >= conf["min_panel_area"] * w * h
         and _upright(b)
-        and _textured(texture, b)
+        and _textured(texture, b, 0.1)
         and not _caption_box(sharp, b)
     ]
     if not boxes:
