@@ -308,13 +308,16 @@ def collage(
     return card, boxes
 
 
-def postcard(picture: np.ndarray, rng: np.random.Generator | int | None = None) -> np.ndarray:
-    """A picture mounted as a publisher would: card stock, border and caption drawn from ``rng``."""
+def postcard(
+    picture: np.ndarray, rng: np.random.Generator | int | None = None
+) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """A picture mounted as a publisher would: card stock, border and caption drawn from ``rng``;
+    returns the card and the picture's box on it."""
     rng = _as_rng(rng)
     paper = PAPERS[int(rng.integers(len(PAPERS)))]
     border = int(round(max(picture.shape[:2]) * rng.uniform(0.03, 0.07)))
     caption = CAPTIONS[int(rng.integers(len(CAPTIONS)))]
-    return mount(picture, paper, border, caption)[0]
+    return mount(picture, paper, border, caption)
 
 
 def random_crop(

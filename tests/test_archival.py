@@ -135,8 +135,13 @@ def test_postcards_and_collages_are_what_the_card_finder_reads(photo, tmp_path):
     found = cards.find_layout(tmp_path / "card.jpg")
     assert found.border and not found.panels
     assert np.abs(np.subtract(found.picture, box)).max() <= 3
-    printed = archival.postcard(archival.apply_preset(photo, "postcard_sepia", 1), 1)
-    assert printed.shape[0] > photo.shape[0] and printed.shape[1] > photo.shape[1]
+    # smooth colour prints at the proxy's size: the picture, not the whole card
+    large = cv2.resize(photo, None, fx=1024 / photo.shape[1], fy=1024 / photo.shape[1])
+    for seed in range(3):
+        card, box = archival.postcard(archival.apply_preset(large, "postcard_colour", seed), seed)
+        cv2.imwrite(str(tmp_path / "colour.jpg"), card[..., ::-1])
+        found = cards.find_layout(tmp_path / "colour.jpg")
+        assert not found.whole and np.abs(np.subtract(found.picture, box)).max() <= 15, seed
     flipped = np.ascontiguousarray(photo[:, ::-1])
     card, boxes = archival.collage([photo, flipped], archival.PAPERS[0], 30, 20)
     cv2.imwrite(str(tmp_path / "collage.jpg"), card[..., ::-1])

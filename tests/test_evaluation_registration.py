@@ -92,7 +92,7 @@ def test_postcard_look_has_cards_a_collage_and_a_reprint(shared_data, tmp_path):
     for im in historical:
         if im is not collage:
             found = cards.find_layout(scene / "images" / im["name"])
-            assert found.border and not found.panels, im["name"]
+            assert found.border and not found.whole and not found.panels, im["name"]
     assert registration.era_counts(one["images"])["historical"] == len(historical) + 1
 
 

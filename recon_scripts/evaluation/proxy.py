@@ -125,10 +125,12 @@ def _reprint(folder: Path, clean: np.ndarray, first: dict, preset: str) -> dict:
     out_name = f"{Path(first['name']).stem}_reprint.jpg"
     rgb = cv2.resize(clean, None, fx=0.85, fy=0.85, interpolation=cv2.INTER_AREA)
     rgb, offset = _degrade(rgb, preset, _seed("reprint", out_name), 0.2)
-    _write_jpg(folder / "images" / out_name, archival.postcard(rgb, _seed("card", out_name)))
+    card, box = archival.postcard(rgb, _seed("card", out_name))
+    _write_jpg(folder / "images" / out_name, card)
     return {
         **first,
         "name": out_name,
+        "picture": list(box),
         "scale": 0.85 * first["scale"],
         "preset": preset,
         "crop_offset": list(offset),
@@ -266,7 +268,8 @@ def build_scene(
                 collage.append((rgb, entry))
                 continue
             if look == "postcard":
-                rgb = archival.postcard(rgb, np.random.default_rng(_seed("card", key, name, seed)))
+                rgb, box = archival.postcard(rgb, _seed("card", key, name, seed))
+                entry["picture"] = list(box)
             if name in cards[2:3]:
                 entries.append(_reprint(scene_dir, clean, entry, presets[k % len(presets)]))
         else:
@@ -293,7 +296,8 @@ def build_scene(
             rgb, offset = _degrade(rgb, preset, _seed(key, dkey, dname, seed), crop)
             entry.update(preset=preset, crop_offset=list(offset))
             if look == "postcard":
-                rgb = archival.postcard(rgb, _seed("card", key, dkey, dname, seed))
+                rgb, box = archival.postcard(rgb, _seed("card", key, dkey, dname, seed))
+                entry["picture"] = list(box)
         _write_jpg(scene_dir / "images" / out_name, rgb)
         entries.append(entry)
     ref = reference_model_dir(key, data_dir) or pseudo_reference(key, data_dir, workspace)
