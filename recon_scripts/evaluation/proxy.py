@@ -26,6 +26,7 @@ are reported on ``test``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import zlib
 from pathlib import Path
@@ -234,72 +235,15 @@ def build_scene(
     suffix, presets = LOOKS[look]
     data_dir = Path(data_dir) if data_dir else shared_data_dir()
     workspace = _claim(out_dir, data_dir)
-    src = data_dir / key / "images"
-    names = list_images(src)
-    if max_images:
-        names = names[:max_images]
-    hist = historical_half(names, key, seed)
+    names = list_images(data_dir / key / "images")[: max_images or None]
     scene = key.split("/")[-1] + suffix
     scene_dir = workspace.take(scene)
     if workspace.owns(f"{scene}/images"):  # the images of an earlier build, redrawn below
         workspace.remove(f"{scene}/images")
     workspace.record(f"{scene}/images", f"{scene}/manifest.json")
-    entries = []
-    k = 0
-    # postcards: the first two historical photos share one collage card, the third is printed twice
-    cards = sorted(hist) if look == "postcard" and len(hist) >= 3 else []
-    collage = []
-    for name in names:
-        rgb, scale = _resize(read_image(src / name), max_size)
-        out_name = str(Path(name).with_suffix(".jpg").as_posix())
-        entry = {
-            "name": out_name,
-            "source": f"{key}/images/{name}",
-            "ref_name": name,
-            "scale": scale,
-        }
-        if name in hist:
-            preset = presets[k % len(presets)]
-            k += 1
-            clean = rgb
-            rgb, offset = _degrade(rgb, preset, _seed(key, name, seed), crop)
-            entry.update(era="historical", preset=preset, crop_offset=list(offset))
-            if name in cards[:2]:
-                collage.append((rgb, entry))
-                continue
-            if look == "postcard":
-                rgb, box = archival.postcard(rgb, _seed("card", key, name, seed))
-                entry["picture"] = list(box)
-            if name in cards[2:3]:
-                entries.append(_reprint(scene_dir, clean, entry, presets[k % len(presets)]))
-        else:
-            entry.update(era="modern")
-        _write_jpg(scene_dir / "images" / out_name, rgb)
-        entries.append(entry)
-    if collage:
-        entries.append(_collage(scene_dir, collage, max_size or 1024, _seed("collage", key, seed)))
-    for i, dkey in enumerate(distractor_sources(key, pool, n_distractors, seed)):
-        dnames = list_images(data_dir / dkey / "images")
-        dname = dnames[
-            int(np.random.default_rng(_seed("pick", key, dkey, seed)).integers(len(dnames)))
-        ]
-        rgb, scale = _resize(read_image(data_dir / dkey / "images" / dname), max_size)
-        out_name = f"distractor_{dkey.split('/')[-1]}_{Path(dname).stem}.jpg"
-        entry = {
-            "name": out_name,
-            "era": "distractor",
-            "source": f"{dkey}/images/{dname}",
-            "scale": scale,
-        }
-        if i % 2 == 0:  # half of the distractors look archival too
-            preset = presets[(k + i) % len(presets)]
-            rgb, offset = _degrade(rgb, preset, _seed(key, dkey, dname, seed), crop)
-            entry.update(preset=preset, crop_offset=list(offset))
-            if look == "postcard":
-                rgb, box = archival.postcard(rgb, _seed("card", key, dkey, dname, seed))
-                entry["picture"] = list(box)
-        _write_jpg(scene_dir / "images" / out_name, rgb)
-        entries.append(entry)
+    build = _Build(scene_dir, data_dir, key, presets, look, seed, crop, max_size)
+    entries = build.photos(names, historical_half(names, key, seed))
+    entries += build.distractors(distractor_sources(key, pool, n_distractors, seed))
     ref = reference_model_dir(key, data_dir) or pseudo_reference(key, data_dir, workspace)
     one = {
         "scene": scene,
@@ -322,18 +266,91 @@ def build_scene(
         "images": entries,
     }
     (scene_dir / "manifest.json").write_text(json.dumps(one, indent=1) + "\n", encoding="utf-8")
-    counts = {
-        e: sum(x["era"] == e for x in entries) for e in ("historical", "modern", "distractor")
-    }
+    counts = [sum(x["era"] == e for x in entries) for e in ("historical", "modern", "distractor")]
     logger.info(
-        "Proxy %s: %d historical, %d modern, %d distractors -> %s",
-        scene,
-        counts["historical"],
-        counts["modern"],
-        counts["distractor"],
-        scene_dir,
+        "Proxy %s: %d historical, %d modern, %d distractors -> %s", scene, *counts, scene_dir
     )
     return scene_dir
+
+
+@dataclasses.dataclass
+class _Build:
+    """The photos of one proxy scene: written into ``scene_dir``, returned as manifest entries."""
+
+    scene_dir: Path
+    data_dir: Path
+    key: str
+    presets: tuple
+    look: str
+    seed: int
+    crop: float
+    max_size: int | None
+    made: int = 0  # archival prints made so far: the next one takes the next preset
+
+    def archival(self, rgb: np.ndarray, seed_parts: tuple, entry: dict, mount: bool = True):
+        """``rgb`` printed in the next preset's look (on a card for the postcard look)."""
+        preset = self.presets[self.made % len(self.presets)]
+        self.made += 1
+        rgb, offset = _degrade(rgb, preset, _seed(*seed_parts, self.seed), self.crop)
+        entry.update(preset=preset, crop_offset=list(offset))
+        if self.look == "postcard" and mount:
+            rgb, box = archival.postcard(rgb, _seed("card", *seed_parts, self.seed))
+            entry["picture"] = list(box)
+        return rgb
+
+    def photos(self, names: list[str], hist: set[str]) -> list[dict]:
+        """The set's photos, ``hist`` as archival prints; for the postcard look the first two of
+        them share one collage card and the third is printed twice."""
+        cards = sorted(hist) if self.look == "postcard" and len(hist) >= 3 else []
+        entries, collage = [], []
+        for name in names:
+            rgb, scale = _resize(
+                read_image(self.data_dir / self.key / "images" / name), self.max_size
+            )
+            out_name = str(Path(name).with_suffix(".jpg").as_posix())
+            entry = {
+                "name": out_name,
+                "source": f"{self.key}/images/{name}",
+                "ref_name": name,
+                "scale": scale,
+                "era": "historical" if name in hist else "modern",
+            }
+            if name in hist:
+                clean = rgb
+                rgb = self.archival(rgb, (self.key, name), entry, mount=name not in cards[:2])
+                if name in cards[:2]:
+                    collage.append((rgb, entry))
+                    continue
+                if name in cards[2:3]:
+                    preset = self.presets[self.made % len(self.presets)]
+                    entries.append(_reprint(self.scene_dir, clean, entry, preset))
+            _write_jpg(self.scene_dir / "images" / out_name, rgb)
+            entries.append(entry)
+        if collage:
+            width, seed = self.max_size or 1024, _seed("collage", self.key, self.seed)
+            entries.append(_collage(self.scene_dir, collage, width, seed))
+        return entries
+
+    def distractors(self, keys: list[str]) -> list[dict]:
+        """One photo of each of the unrelated sets ``keys``, half of them archival prints too."""
+        entries, made = [], self.made
+        for i, dkey in enumerate(keys):
+            dnames = list_images(self.data_dir / dkey / "images")
+            pick = np.random.default_rng(_seed("pick", self.key, dkey, self.seed))
+            dname = dnames[int(pick.integers(len(dnames)))]
+            rgb, scale = _resize(read_image(self.data_dir / dkey / "images" / dname), self.max_size)
+            entry = {
+                "name": f"distractor_{dkey.split('/')[-1]}_{Path(dname).stem}.jpg",
+                "era": "distractor",
+                "source": f"{dkey}/images/{dname}",
+                "scale": scale,
+            }
+            if i % 2 == 0:  # half of the distractors look archival too
+                self.made = made + i
+                rgb = self.archival(rgb, (self.key, dkey, dname), entry)
+            _write_jpg(self.scene_dir / "images" / entry["name"], rgb)
+            entries.append(entry)
+        return entries
 
 
 def _brief(entry: dict) -> dict:
