@@ -15,6 +15,7 @@ from pathlib import Path
 
 from . import database as dbio
 from .image_data import PairKey, pair_order
+from .log import logger
 
 default_conf = {
     # each photo's pairs are matched most similar first until it has this many neighbours verified
@@ -137,6 +138,17 @@ class BestFirst:
         """Most similar first, panels of one card after every other pair."""
         ordered = sorted(id_pairs, key=lambda key: (self.together(key), -self.similarity[key]))
         return [key[2:] for key in ordered]
+
+    def describe(self) -> dict:
+        """The rule and what it deferred, for the report (logged)."""
+        logger.info(
+            "%d pairs deferred: both photos already had %d neighbours with %d+ inliers",
+            len(self.deferred),
+            self.enough,
+            self.strong_inliers,
+        )
+        rule = {"enough": self.enough, "strong_inliers": self.strong_inliers}
+        return {"deferred": rule, "num_pairs_deferred": len(self.deferred)}
 
     def start(self, key: PairKey) -> None:
         self.started.add(key)

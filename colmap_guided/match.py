@@ -111,27 +111,14 @@ def match_pairs(
     }
     logger.debug("%s matcher options: %s", matcher.name, matcher.conf)
     with dbio.open_database(database_path) as db:
-        dbio.check_image_folder(db, image_path)
-        images = dbio.images_with_keypoints(db)
-        if len(images) < 2:
-            raise ValueError(
-                f"The database holds {len(images)} image(s) with "
-                "keypoints; at least 2 are needed to match."
-            )
-        features.check_matcher_features(matcher, features.database_feature_type(db))
-        if overwrite:
-            dbio.clear_matches(db)
+        images = _images_to_match(db, image_path, matcher, overwrite)
         names = sorted(images)
         selected, mode, stats["pairs"], descriptors = _select(image_path, names, matcher, conf)
         id_pairs = [(images[a].image_id, images[b].image_id, a, b) for a, b in selected]
         todo = [p for p in id_pairs if not dbio.pair_has_matches(db, p[0], p[1])]
-        logger.info(
-            "Matching %d %s pairs with the %s matcher (%d already matched)",
-            len(todo),
-            mode,
-            matcher.name,
-            len(id_pairs) - len(todo),
-        )
+        done = len(id_pairs) - len(todo)
+        log = "Matching %d %s pairs with the %s matcher (%d already matched)"
+        logger.info(log, len(todo), mode, matcher.name, done)
         start, seconds = time.time(), {"read": 0.0, "write": 0.0}
         schedule = None
         if enough is not None and todo:
@@ -147,15 +134,9 @@ def match_pairs(
             )
             try:
                 with scoped_torch_threads(matcher.torch_threads):
+                    todo = todo if schedule else pair_order(todo)
                     stats["memory"], seconds = _match_pairs(
-                        db,
-                        image_path,
-                        images,
-                        todo if schedule else pair_order(todo),
-                        matcher,
-                        run,
-                        max_images_held,
-                        schedule,
+                        db, image_path, images, todo, matcher, run, max_images_held, schedule
                     )
             finally:
                 run.close()
@@ -166,14 +147,7 @@ def match_pairs(
         stats["num_pairs"] = len(id_pairs)
         stats["num_pairs_matched_now"] = len(schedule.started) if schedule else len(todo)
         if schedule is not None:
-            stats["deferred"] = {"enough": enough, "strong_inliers": strong_inliers}
-            stats["num_pairs_deferred"] = len(schedule.deferred)
-            logger.info(
-                "%d pairs deferred: both photos already had %d neighbours with %d+ inliers",
-                len(schedule.deferred),
-                enough,
-                strong_inliers,
-            )
+            stats.update(schedule.describe())
 
         start = time.time()
         verify.verify_pairs(db, images, pair_order(id_pairs), options, max_images_held)
@@ -187,13 +161,25 @@ def match_pairs(
             "verify": stats["verify_time"],
         }
         stats.update(dbio.database_summary(db))
-    logger.info(
-        "%d/%d pairs verified, %d inlier matches",
-        stats["num_verified_pairs"],
-        stats["num_pairs"],
-        stats["num_inlier_matches"],
-    )
+    counts = [stats[k] for k in ("num_verified_pairs", "num_pairs", "num_inlier_matches")]
+    logger.info("%d/%d pairs verified, %d inlier matches", *counts)
     return stats
+
+
+def _images_to_match(db, image_path: Path, matcher: Matcher, overwrite: bool) -> dict:
+    """{name: image} of the database's images with keypoints, at least 2, of the features the
+    matcher takes (their matches cleared first with ``overwrite``)."""
+    dbio.check_image_folder(db, image_path)
+    images = dbio.images_with_keypoints(db)
+    if len(images) < 2:
+        raise ValueError(
+            f"The database holds {len(images)} image(s) with "
+            "keypoints; at least 2 are needed to match."
+        )
+    features.check_matcher_features(matcher, features.database_feature_type(db))
+    if overwrite:
+        dbio.clear_matches(db)
+    return images
 
 
 def _select(image_path: Path, names: list[str], matcher: Matcher, conf: PipelineConf) -> tuple:
