@@ -5,7 +5,7 @@ deferred once both its photos have ``enough`` strongly verified neighbours (``Be
 and guided LightGlue's pair gate matches nothing where the coarse network sees no overlap. Each of
 those decisions is undone for the photos that mapping leaves out: their deferred, gated and cheaply
 matched pairs are matched with the full matcher, and the model is extended with them
-(``reconstruct``), for ``rounds`` rounds or until no new pair verifies.
+(``reconstruct``), for ``rounds`` rounds or until a round adds no photo.
 """
 
 from __future__ import annotations
@@ -23,7 +23,8 @@ default_conf = {
     "enough": 5,
     "strong_inliers": 100,  # inliers that make a verified neighbour count towards enough
     # rounds in which photos left out of the model get their deferred, gated and cheaply matched
-    # pairs matched by the full matcher and join the model (0: none)
+    # pairs matched by the full matcher and join the model (0: none); a round that adds no photo
+    # is the last
     "rounds": 2,
     # pairs a left-out photo gets per round, its most similar first: an unrelated photo (always
     # left out) costs this many, not all its pairs

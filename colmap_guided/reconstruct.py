@@ -131,6 +131,8 @@ def _escalate(
             }
         )
         logger.info("Escalation registered %d more photo(s)", len(now - registered))
+        if not now - registered:  # the next round's pairs are less similar still
+            break
     return models, rounds
 
 

@@ -2,6 +2,7 @@
 strongly verified neighbours, the rest deferred; photos that mapping leaves out get their deferred
 and gated pairs matched with the gate off, and join the model."""
 
+import shutil
 from collections import Counter
 
 import pycolmap
@@ -94,6 +95,31 @@ def test_a_photo_the_pair_gate_left_out_is_escalated_into_the_model(synthetic_sc
     # a rerun starts from the database as it was left: nothing matched again, nothing escalated
     again = run()
     assert again["database"]["num_pairs_matched_now"] == 0 and again["num_registered"] == 8
+
+
+def test_escalation_stops_after_a_round_that_adds_no_photo(synthetic_scene, shared_data, tmp_path):
+    """An unrelated photo stays out whatever it is matched with: once a round adds no photo, the
+    rounds left do not spend the full matcher on its next pairs."""
+    scene = tmp_path / "scene" / "images"
+    shutil.copytree(synthetic_scene.image_dir, scene)
+    fern = sorted((shared_data / "train" / "llff_fern" / "images").iterdir())[0]
+    shutil.copy(fern, scene / "unrelated.jpg")
+    result = reconstruct(
+        scene.parent,
+        matcher="guided_lightglue",
+        matcher_conf={"min_pair_score": 0.66},
+        conf=PipelineConf.from_dict(
+            {"mapping": {"num_threads": 1}, "escalation": {"rounds": 3, "pairs_per_photo": 2}}
+        ),
+    )
+    rounds = result["database"]["escalation"]
+    assert rounds[0]["registered"] == ["view_007.jpg"] and not rounds[-1]["registered"]
+    assert len(rounds) == 2 and "unrelated.jpg" in rounds[-1]["photos"]
+    with dbio.open_database(scene.parent / "colmap_guided" / "database.db") as db:
+        image_id = dbio.read_image(db, "unrelated.jpg").image_id
+        matched = [pair for pair in dbio.pair_match_counts(db) if image_id in pair]
+    assert len(matched) == 4  # 2 pairs a round, 4 of its 8 left unmatched
+    assert result["num_registered"] == 8
 
 
 def test_escalation_options_are_reconstruct_flags():
