@@ -285,12 +285,13 @@ class _Build:
     seed: int
     crop: float
     max_size: int | None
-    made: int = 0  # archival prints made so far: the next one takes the next preset
+    made: int = 0  # historical prints made so far: the presets are taken in turn
 
-    def archival(self, rgb: np.ndarray, seed_parts: tuple, entry: dict, mount: bool = True):
-        """``rgb`` printed in the next preset's look (on a card for the postcard look)."""
-        preset = self.presets[self.made % len(self.presets)]
-        self.made += 1
+    def preset(self, k: int) -> str:
+        return self.presets[k % len(self.presets)]
+
+    def archival(self, rgb: np.ndarray, preset: str, seed_parts: tuple, entry: dict, mount=True):
+        """``rgb`` printed in ``preset``'s look (on a card for the postcard look)."""
         rgb, offset = _degrade(rgb, preset, _seed(*seed_parts, self.seed), self.crop)
         entry.update(preset=preset, crop_offset=list(offset))
         if self.look == "postcard" and mount:
@@ -316,14 +317,14 @@ class _Build:
                 "era": "historical" if name in hist else "modern",
             }
             if name in hist:
-                clean = rgb
-                rgb = self.archival(rgb, (self.key, name), entry, mount=name not in cards[:2])
+                clean, preset = rgb, self.preset(self.made)
+                self.made += 1
+                rgb = self.archival(rgb, preset, (self.key, name), entry, name not in cards[:2])
                 if name in cards[:2]:
                     collage.append((rgb, entry))
                     continue
                 if name in cards[2:3]:
-                    preset = self.presets[self.made % len(self.presets)]
-                    entries.append(_reprint(self.scene_dir, clean, entry, preset))
+                    entries.append(_reprint(self.scene_dir, clean, entry, self.preset(self.made)))
             _write_jpg(self.scene_dir / "images" / out_name, rgb)
             entries.append(entry)
         if collage:
@@ -333,7 +334,7 @@ class _Build:
 
     def distractors(self, keys: list[str]) -> list[dict]:
         """One photo of each of the unrelated sets ``keys``, half of them archival prints too."""
-        entries, made = [], self.made
+        entries = []
         for i, dkey in enumerate(keys):
             dnames = list_images(self.data_dir / dkey / "images")
             pick = np.random.default_rng(_seed("pick", self.key, dkey, self.seed))
@@ -346,8 +347,8 @@ class _Build:
                 "scale": scale,
             }
             if i % 2 == 0:  # half of the distractors look archival too
-                self.made = made + i
-                rgb = self.archival(rgb, (self.key, dkey, dname), entry)
+                preset = self.preset(self.made + i)
+                rgb = self.archival(rgb, preset, (self.key, dkey, dname), entry)
             _write_jpg(self.scene_dir / "images" / entry["name"], rgb)
             entries.append(entry)
         return entries
