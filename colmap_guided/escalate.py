@@ -47,20 +47,22 @@ def pairs_to_escalate(
     done: set,
     per_photo: int,
     cheap_inliers: int | None = None,
+    elsewhere: set[str] = frozenset(),
 ) -> list[PairKey]:
     """The ``selected`` pairs (most similar first) of the photos ``left`` out of the model that the
     first pass did not match with the full matcher, up to ``per_photo`` for each: deferred (no
     matches), gated (none kept) or, with a cheap pass that keeps pairs of ``cheap_inliers``
     verified inliers, those with that many (the full matcher finds more, which a photo that mapping
-    could not place may need); ``done``: pairs (name_a, name_b) escalated already. Returns
-    (id_a, id_b, name_a, name_b)."""
+    could not place may need); ``done``: pairs (name_a, name_b) escalated already. A pair of two
+    photos placed ``elsewhere`` (in models other than the largest) is not taken: it cannot bring
+    either into the model. Returns (id_a, id_b, name_a, name_b)."""
     with dbio.open_database(database_path) as db:
         ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
         counts, inliers = dbio.pair_match_counts(db), dbio.pair_inlier_counts(db)
     taken, todo = Counter(), []
     for a, b in selected:
         wants = [name for name in (a, b) if name in left and taken[name] < per_photo]
-        if not wants or (a, b) in done:
+        if not wants or (a, b) in done or {a, b} <= elsewhere:
             continue
         key = (min(ids[a], ids[b]), max(ids[a], ids[b]))
         if counts.get(key, 0) == 0 or (

