@@ -74,6 +74,7 @@ def timed(fn, repeats: int, sync=lambda: None, warmup: bool = True) -> tuple[flo
 
 
 def square_features(net: CoarseNet, path: Path, grid: int, device) -> torch.Tensor:
+    """The backbone features of the photo at ``path`` resized square to ``grid`` cells."""
     img = cv2.resize(read_image(path), (16 * grid, 16 * grid), interpolation=cv2.INTER_AREA)
     x = torch.from_numpy(img).permute(2, 0, 1)[None].float().to(device)
     with torch.no_grad():
@@ -81,6 +82,7 @@ def square_features(net: CoarseNet, path: Path, grid: int, device) -> torch.Tens
 
 
 def cm_sparse(cm: CoarseMatcher) -> str:
+    """The matcher's sparse support for a row label, empty unless sparse."""
     return (
         f", k={cm.conf['sparse_k']} radius={cm.conf['sparse_radius']}"
         if cm.impl == "sparse"
@@ -163,6 +165,7 @@ def match_stage(images: list[Path], workers: list[int], rounds: int = 5) -> dict
 
 
 def print_match_stage(r: dict, n_images: int, workers: list[int], set_name: str) -> None:
+    """The match stage's table of ``match_stage``'s timings."""
     ref = np.array(r["pycolmap"])
     print(
         f"\nMatch stage on one database ({n_images} {set_name} images, {r['pairs']} pairs, "
@@ -204,7 +207,8 @@ def print_match_stage(r: dict, n_images: int, workers: list[int], set_name: str)
     )
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser():
+    """The command line."""
     parser = script_parser(__doc__)
     parser.add_argument("--grids", type=int, nargs="+", default=[25, 32])
     parser.add_argument(
@@ -248,159 +252,127 @@ def main(argv: list[str] | None = None) -> int:
         default=1,
         help="torch CPU threads (1: as the pipeline matches on CPU, CoarseMatcher num_threads)",
     )
-    args = parser.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    return parser
 
-    torch.manual_seed(0)
-    weights, label = DEFAULT_WEIGHTS, "trained"
-    if not DEFAULT_WEIGHTS.is_file():  # the speed does not depend on the values
-        weights, label = (
-            Path(tempfile.mkdtemp(prefix="bench_coarse_")) / "random.safetensors",
-            "random",
+
+def _filter_weights() -> tuple[Path, str]:
+    """The trained filter weights, else random ones in a temporary file; and which of the two."""
+    if DEFAULT_WEIGHTS.is_file():
+        return DEFAULT_WEIGHTS, "trained"
+    # the speed does not depend on the values
+    weights = Path(tempfile.mkdtemp(prefix="bench_coarse_")) / "random.safetensors"
+    save_filter_weights(CoarseNet({"pretrained": False}), weights, resize_max=512)
+    return weights, "random"
+
+
+def _supports(supports: list[str]) -> list[tuple[int, int]]:
+    """``--supports`` values as (k, radius)."""
+    return [tuple(map(int, sup.split(","))) for sup in supports]
+
+
+def _timer(rows: list, device, grid: int, repeats: int, sync):
+    """A function timing ``fn`` and adding its row to ``rows`` (times per pair of ``per``)."""
+
+    def add(method: str, fn, per: int = 1, repeats: int = repeats, warmup: bool = True):
+        ms, cpu = timed(fn, repeats, sync, warmup)
+        rows.append((device.type, method, grid, ms / per, cpu / per))
+
+    return add
+
+
+def _cuda_rows(add, net: CoarseNet, fa, fb, vin, batch: int) -> None:
+    """The GPU rows at one grid: the filter batched, the dense match single and batched."""
+    vb = vin.expand(batch, -1, -1, -1, -1).contiguous()
+    add(f"dense batched x{batch} (filter only)", lambda: net.filter(vb), per=batch)
+    add("dense match (corr+filter+argmax)", lambda: net.match(fa, fb, "dense"))
+    fab, fbb = (f[None].expand(batch, -1, -1, -1).contiguous() for f in (fa, fb))
+    for name, dtype in PRECISIONS.items():  # the <= 2 ms/pair target: batched, features cached
+        add(
+            f"dense match batched x{batch}, {name} (corr+filter+argmax)",
+            lambda: net.match_batch(fab, fbb, dtype),
+            per=batch,
         )
-        save_filter_weights(CoarseNet({"pretrained": False}), weights, resize_max=512)
-    raw = CoarseNet({"filter": False}).eval()
-    naive = None if args.no_naive else conv4d_naive
-    images = shared_data_dir() / "lightglue_assets" / "images"
-    pair = [images / "sacre_coeur1.jpg", images / "sacre_coeur2.jpg"]
 
-    rows = []  # (device, method, grid, wall ms, CPU ms)
-    devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
-    for device in devices:
-        sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
-        cm = CoarseMatcher(
-            {"mode": "filter", "weights": weights, "device": device.type, "num_threads": None}
-        )
-        net = cm.net
-        raw.to(device)
-        for grid in args.grids:
-            fa, fb = (square_features(net, p, grid, device) for p in pair)
-            with torch.no_grad():
-                vin = soft_mutual_nn(torch.relu(correlation(fa[None], fb[None])))
-                if naive is not None and device.type == "cpu":
 
-                    def run_naive():
-                        x = vin.unsqueeze(1)
-                        for w, b, groups in net.filter.fused_layers():
-                            x = torch.relu(naive(x, w, b, groups))
-                        return x.mean(1)
+def _grid_rows(net: CoarseNet, raw: CoarseNet, pair: list[Path], grid: int, device, args, sync):
+    """The rows at one square grid: the filter alone (naive, dense) and each match mode."""
+    rows = []
+    add = _timer(rows, device, grid, args.repeats, sync)
+    fa, fb = (square_features(net, p, grid, device) for p in pair)
+    with torch.no_grad():
+        vin = soft_mutual_nn(torch.relu(correlation(fa[None], fb[None])))
+        if not args.no_naive and device.type == "cpu":
 
-                    rows.append(
-                        (
-                            device.type,
-                            "naive loop of conv3d (filter only)",
-                            grid,
-                            *timed(run_naive, 1, warmup=False),
-                        )
-                    )
-                rows.append(
-                    (
-                        device.type,
-                        "dense (filter only)",
-                        grid,
-                        *timed(lambda: net.filter(vin), args.repeats, sync),
-                    )
-                )
-                if device.type == "cuda":
-                    vb = vin.expand(args.batch, -1, -1, -1, -1).contiguous()
-                    ms, cpu = timed(lambda: net.filter(vb), args.repeats, sync)
-                    rows.append(
-                        (
-                            device.type,
-                            f"dense batched x{args.batch} (filter only)",
-                            grid,
-                            ms / args.batch,
-                            cpu / args.batch,
-                        )
-                    )
-                    rows.append(
-                        (
-                            device.type,
-                            "dense match (corr+filter+argmax)",
-                            grid,
-                            *timed(lambda: net.match(fa, fb, "dense"), args.repeats, sync),
-                        )
-                    )
-                    fab, fbb = (
-                        f[None].expand(args.batch, -1, -1, -1).contiguous() for f in (fa, fb)
-                    )
-                    for (
-                        name,
-                        dtype,
-                    ) in PRECISIONS.items():  # the <= 2 ms/pair target: batched, features cached
-                        ms, cpu = timed(
-                            lambda: net.match_batch(fab, fbb, dtype), args.repeats, sync
-                        )
-                        rows.append(
-                            (
-                                device.type,
-                                f"dense match batched x{args.batch}, {name} (corr+filter+argmax)",
-                                grid,
-                                ms / args.batch,
-                                cpu / args.batch,
-                            )
-                        )
-                for k, r in (map(int, sup.split(",")) for sup in args.supports):
-                    rows.append(
-                        (
-                            device.type,
-                            f"sparse k={k} radius={r} match (corr+filter+argmax)",
-                            grid,
-                            *timed(lambda: net.match(fa, fb, "sparse", k, r), args.repeats, sync),
-                        )
-                    )
-                rows.append(
-                    (
-                        device.type,
-                        "raw mode match (corr+argmax)",
-                        grid,
-                        *timed(lambda: raw.match(fa, fb), args.repeats, sync),
-                    )
-                )
-        img = (
-            torch.from_numpy(cv2.resize(read_image(pair[0]), (512, 368)))
-            .permute(2, 0, 1)[None]
-            .float()
-            .to(device)
-        )
-        with torch.no_grad():
-            times = timed(lambda: net.extract_features(net.normalize(img)), args.repeats, sync)
-        rows.append((device.type, "backbone Lite0 per image (512x368)", 0, *times))
-        fa, fb = (cm.extract(read_image(p)) for p in pair)
-        rows.append(
-            (
-                device.type,
-                f"CoarseMatcher.match, real pair 32x23 / 24x32 (default: {cm.impl}{cm_sparse(cm)})",
-                0,
-                *timed(lambda: cm.match(fa, fb), args.repeats, sync),
+            def run_naive():
+                x = vin.unsqueeze(1)
+                for w, b, groups in net.filter.fused_layers():
+                    x = torch.relu(conv4d_naive(x, w, b, groups))
+                return x.mean(1)
+
+            add("naive loop of conv3d (filter only)", run_naive, repeats=1, warmup=False)
+        add("dense (filter only)", lambda: net.filter(vin))
+        if device.type == "cuda":
+            _cuda_rows(add, net, fa, fb, vin, args.batch)
+        for k, r in _supports(args.supports):
+            add(
+                f"sparse k={k} radius={r} match (corr+filter+argmax)",
+                lambda: net.match(fa, fb, "sparse", k, r),
             )
-        )
-        if device.type == "cpu":
-            for k, r in (map(int, sup.split(",")) for sup in args.supports):
-                rows.append(
-                    (
-                        device.type,
-                        f"real pair 32x23 / 24x32, sparse k={k} radius={r}",
-                        0,
-                        *timed(
-                            lambda: net.match(fa.features, fb.features, "sparse", k, r),
-                            args.repeats,
-                            sync,
-                        ),
-                    )
-                )
+        add("raw mode match (corr+argmax)", lambda: raw.match(fa, fb))
+    return rows
 
-    sift = None
-    if args.sift_images >= 2:
-        sc = sorted(
-            p
-            for p in (shared_data_dir() / args.sift_set / "images").iterdir()
-            if p.suffix.lower() in (".jpg", ".jpeg")
-        )
-        sc = sc[: args.sift_images]
-        stage = match_stage(sc, args.workers, args.stage_rounds)
-        sift = float(np.median(stage["pycolmap"]))
-        print_match_stage(stage, len(sc), args.workers, args.sift_set)
+
+def _device_rows(device, weights: Path, raw: CoarseNet, pair: list[Path], args) -> list[tuple]:
+    """The rows of one device: every grid, then the backbone and the matcher on the real pair."""
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    cm = CoarseMatcher(
+        {"mode": "filter", "weights": weights, "device": device.type, "num_threads": None}
+    )
+    net = cm.net
+    raw.to(device)
+    rows = [
+        row for grid in args.grids for row in _grid_rows(net, raw, pair, grid, device, args, sync)
+    ]
+    add = _timer(rows, device, 0, args.repeats, sync)
+    img = (
+        torch.from_numpy(cv2.resize(read_image(pair[0]), (512, 368)))
+        .permute(2, 0, 1)[None]
+        .float()
+        .to(device)
+    )
+    with torch.no_grad():
+        add("backbone Lite0 per image (512x368)", lambda: net.extract_features(net.normalize(img)))
+    fa, fb = (cm.extract(read_image(p)) for p in pair)
+    add(
+        f"CoarseMatcher.match, real pair 32x23 / 24x32 (default: {cm.impl}{cm_sparse(cm)})",
+        lambda: cm.match(fa, fb),
+    )
+    if device.type == "cpu":
+        for k, r in _supports(args.supports):
+            add(
+                f"real pair 32x23 / 24x32, sparse k={k} radius={r}",
+                lambda: net.match(fa.features, fb.features, "sparse", k, r),
+            )
+    return rows
+
+
+def sift_reference(args) -> float | None:
+    """pycolmap's matching + verification ms per pair (match stage table printed), or None."""
+    if args.sift_images < 2:
+        return None
+    sc = sorted(
+        p
+        for p in (shared_data_dir() / args.sift_set / "images").iterdir()
+        if p.suffix.lower() in (".jpg", ".jpeg")
+    )
+    sc = sc[: args.sift_images]
+    stage = match_stage(sc, args.workers, args.stage_rounds)
+    print_match_stage(stage, len(sc), args.workers, args.sift_set)
+    return float(np.median(stage["pycolmap"]))
+
+
+def print_filter_table(rows: list[tuple], label: str, sift: float | None) -> None:
+    """The coarse filter's table, with ratios vs the naive loop and vs pycolmap's matching."""
     naive_ms = {(d, g): ms for d, m, g, ms, _ in rows if m.startswith("naive")}
     print(
         f"\nCoarse filter ({label} weights, {torch.get_num_threads()} CPU threads, "
@@ -420,6 +392,20 @@ def main(argv: list[str] | None = None) -> int:
             f"| {d} | {m} | {f'{g}x{g}' if g else '-'} | "
             f"{ms:.1f} | {cpu:.1f} | {ratio} | {vs_sift} |"
         )
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    weights, label = _filter_weights()
+    raw = CoarseNet({"filter": False}).eval()
+    images = shared_data_dir() / "lightglue_assets" / "images"
+    pair = [images / "sacre_coeur1.jpg", images / "sacre_coeur2.jpg"]
+    devices = [torch.device("cpu")] + ([torch.device("cuda")] if torch.cuda.is_available() else [])
+    rows = [row for device in devices for row in _device_rows(device, weights, raw, pair, args)]
+    sift = sift_reference(args)
+    print_filter_table(rows, label, sift)
     return 0
 
 

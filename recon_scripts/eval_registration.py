@@ -37,7 +37,8 @@ DEFAULT_PROXY = REPO_ROOT / "outputs" / "historical_proxy"
 WXBS_APPEARANCE = ("WGABS", "WLABS", "WGALBS")
 
 
-def main(argv=None) -> int:
+def _parser():
+    """The command line."""
     parser = script_parser(__doc__)
     parser.add_argument(
         "--manifest",
@@ -89,14 +90,11 @@ def main(argv=None) -> int:
         help="threads of every mapper (pycolmap's default pipeline too); 1 = "
         "every seeded run repeats exactly (default: each pipeline's, all cores)",
     )
-    args = parser.parse_args(argv)
-    set_verbosity(False, args.quiet)
-    try:  # refused before any work: a folder of the user's files, or one holding the photos
-        Workspace.claim(args.output, "evaluation").record(*registration.REPORT_FILES, "scenes")
-    except ValueError as err:
-        logger.error("%s", err)
-        return 2
+    return parser
 
+
+def load_manifest(args, parser) -> tuple[Path, dict]:
+    """The manifest's path and contents (the default proxy built if missing; --scan's scenes)."""
     manifest_path = args.manifest
     if manifest_path is None:
         manifest_path = args.proxy_dir / "proxy_manifest.json"
@@ -110,20 +108,20 @@ def main(argv=None) -> int:
         data["scenes"] = mf.scan_root(data["_root"])
         data["root"] = str(Path(data["_root"]).resolve())
         mf.save_manifest(args.output / "manifest_scanned.json", data)
-    scenes = mf.select_scenes(data, args.scenes, args.max_scenes)
-    if not scenes:
-        logger.error("%s lists no scene with images (LTLL: pass --root and --scan).", manifest_path)
-        return 2
-    methods = args.methods
-    # ValueError now, not after hours
-    matcher_specs.parse_specs(
-        [
-            registration.split_stage_options(m)[0]
-            for m in methods
-            if m not in registration.PYCOLMAP_METHODS
-        ]
-    )
-    extra = {"device": args.device, "weights": args.weights}
+    return manifest_path, data
+
+
+def matcher_parts(methods: list[str]) -> list[str]:
+    """The matcher specs of the methods other than pycolmap's, without their stage options."""
+    return [
+        registration.split_stage_options(m)[0]
+        for m in methods
+        if m not in registration.PYCOLMAP_METHODS
+    ]
+
+
+def evaluate_scenes(args, data: dict, scenes: list, manifest_path: Path, extra: dict) -> list:
+    """Every method on every scene, subset and seed; results.json rewritten after each subset."""
     tol = {"max_rotation_deg": args.max_rotation_deg, "max_center_frac": args.max_center_frac}
     results = []
     layouts = args.output / "scenes"
@@ -142,7 +140,7 @@ def main(argv=None) -> int:
                 results.append(
                     registration.evaluate_scene(
                         scene_dir,
-                        methods,
+                        args.methods,
                         extra_conf=extra,
                         resume=args.resume,
                         seed=seed,
@@ -154,40 +152,60 @@ def main(argv=None) -> int:
                 )
             tables.write_json(
                 args.output / "results.json",
-                {"manifest": str(manifest_path), "methods": methods, "scenes": results},
+                {"manifest": str(manifest_path), "methods": args.methods, "scenes": results},
             )
+    return results
+
+
+def wxbs_text(output: Path, max_pairs: int, specs: list[str], extra: dict) -> str:
+    """The WxBS appearance-change table of ``specs``, its results written; "" when skipped."""
+    if not (max_pairs and specs):
+        return ""
+    w = two_view.run_wxbs_benchmark(
+        specs, max_pairs=max_pairs, categories=WXBS_APPEARANCE, extra_conf=extra
+    )
+    tables.write_json(output / "wxbs_appearance.json", w)
+    rows = [
+        [label, *r["summary"]["share"], f"{r['summary']['mean_matches']:.0f}"]
+        for label, r in w["results"].items()
+    ]
+    return (
+        f"\nWxBS appearance-change pairs ({w['config']['num_pairs']}"
+        f" of {', '.join(WXBS_APPEARANCE)}; share of hand-labelled "
+        "correspondences consistent with the estimated F):\n\n"
+        + tables.markdown_table(["matcher", "@3 px", "@5 px", "@10 px", "matches"], rows)
+        + "\n"
+    )
+
+
+def main(argv=None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    set_verbosity(False, args.quiet)
+    try:  # refused before any work: a folder of the user's files, or one holding the photos
+        Workspace.claim(args.output, "evaluation").record(*registration.REPORT_FILES, "scenes")
+    except ValueError as err:
+        logger.error("%s", err)
+        return 2
+    manifest_path, data = load_manifest(args, parser)
+    scenes = mf.select_scenes(data, args.scenes, args.max_scenes)
+    if not scenes:
+        logger.error("%s lists no scene with images (LTLL: pass --root and --scan).", manifest_path)
+        return 2
+    specs = matcher_parts(args.methods)
+    matcher_specs.parse_specs(specs)  # ValueError now, not after hours
+    extra = {"device": args.device, "weights": args.weights}
+    results = evaluate_scenes(args, data, scenes, manifest_path, extra)
     distractors = sum(
         len(r["methods"][m].get("distractors_registered", []))
         for r in results
-        for m in methods
+        for m in args.methods
         if m in r["methods"]
     )
     extra_text = f"\n\nDistractors registered, all runs: {distractors} (must be 0)\n"
-
-    specs = [
-        registration.split_stage_options(m)[0]
-        for m in methods
-        if m not in registration.PYCOLMAP_METHODS
-    ]
-    if args.wxbs_max_pairs and specs:
-        w = two_view.run_wxbs_benchmark(
-            specs, max_pairs=args.wxbs_max_pairs, categories=WXBS_APPEARANCE, extra_conf=extra
-        )
-        tables.write_json(args.output / "wxbs_appearance.json", w)
-        rows = [
-            [label, *r["summary"]["share"], f"{r['summary']['mean_matches']:.0f}"]
-            for label, r in w["results"].items()
-        ]
-        extra_text += (
-            f"\nWxBS appearance-change pairs ({w['config']['num_pairs']}"
-            f" of {', '.join(WXBS_APPEARANCE)}; share of hand-labelled "
-            "correspondences consistent with the estimated F):\n\n"
-        )
-        extra_text += (
-            tables.markdown_table(["matcher", "@3 px", "@5 px", "@10 px", "matches"], rows) + "\n"
-        )
+    extra_text += wxbs_text(args.output, args.wxbs_max_pairs, specs, extra)
     text = registration.write_report(
-        args.output, data.get("name", "manifest"), manifest_path, methods, results, extra_text
+        args.output, data.get("name", "manifest"), manifest_path, args.methods, results, extra_text
     )
     print(text)
     print(f"Results in {args.output}")

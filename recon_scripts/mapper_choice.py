@@ -35,7 +35,13 @@ from recon_scripts import script_parser
 from recon_scripts.evaluation import registration
 from recon_scripts.evaluation.matcher_specs import parse_spec
 from recon_scripts.evaluation.tables import markdown_table, write_json
-from recon_scripts.summarize_registration import rescore
+from recon_scripts.summarize_registration import (
+    PROTOCOLS,
+    add_reference_flag,
+    load_references,
+    reference_for,
+    rescore,
+)
 
 
 def map_and_score(
@@ -66,6 +72,7 @@ def map_and_score(
 
 
 def choose(models: dict[str, dict], rule: str) -> dict:
+    """The model that ``rule`` picks among one run's models."""
     if rule == "auto":  # incremental first: max keeps the first of equal keys
         return max((models["incremental"], models["global"]), key=lambda m: tuple(m["auto_key"]))
     if rule == "oracle":
@@ -73,7 +80,8 @@ def choose(models: dict[str, dict], rule: str) -> dict:
     return models[rule]
 
 
-def main(argv=None) -> int:
+def _parser():
+    """The command line."""
     parser = script_parser(__doc__)
     parser.add_argument(
         "results", type=Path, help="results.json of an eval_registration run of METHOD"
@@ -86,12 +94,7 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--method", default="guided", help="the method whose databases are mapped again"
     )
-    parser.add_argument(
-        "--reference",
-        nargs="*",
-        default=[],
-        help="SCENE_PREFIX=MODEL_DIR: a reference for scenes without one",
-    )
+    add_reference_flag(parser)
     parser.add_argument(
         "--variant",
         nargs="*",
@@ -99,91 +102,105 @@ def main(argv=None) -> int:
         help="NAME:key=value,...: incremental mapping under these mapping options too",
     )
     parser.add_argument("--json", type=Path, help="write every run's models here")
-    args = parser.parse_args(argv)
-    refs = {k: pycolmap.Reconstruction(v) for k, _, v in (r.partition("=") for r in args.reference)}
-    variants = {
+    return parser
+
+
+def load_variants(specs: list[str]) -> dict[str, dict]:
+    """``--variant`` values as {name: mapping options}."""
+    return {
         name: parse_spec(f"x:{options}").conf
-        for name, _, options in (v.partition(":") for v in args.variant)
+        for name, _, options in (v.partition(":") for v in specs)
     }
-    columns = ["incremental", "global", *variants, "auto", "oracle"]
+
+
+def remap_run(
+    scene: dict, base_scene: dict, method: str, variants: dict, refs: dict, tmp: Path
+) -> dict | None:
+    """One run's database remapped by each mapper and scored beside pycolmap; None if unscored."""
+    record = scene["methods"].get(method)
+    baseline = base_scene.get("methods", {}).get("pycolmap")
+    ref_path = scene.get("reference")
+    reference = (
+        pycolmap.Reconstruction(ref_path) if ref_path else reference_for(scene["scene"], refs)
+    )
+    if not record or "error" in record or reference is None:
+        return None
+    database = (
+        registration.seed_runs_dir(scene["scene_dir"], scene.get("seed"))
+        / registration.method_slug(method)
+        / "database.db"
+    )
+    confs = {
+        "incremental": {"mapper": "incremental"},
+        "global": {"mapper": "global"},
+        **{n: {"mapper": "incremental", **c} for n, c in variants.items()},
+    }
+    models = {
+        name: map_and_score(database, scene, scene.get("seed") or 0, conf, reference, tmp / name)
+        for name, conf in confs.items()
+    }
+    if baseline and "error" not in baseline and baseline.get("correct") is None:
+        baseline = rescore(baseline, base_scene, "pycolmap", reference)
+    return {
+        "scene": scene["scene"],
+        "subset": scene["subset"],
+        "seed": scene.get("seed"),
+        "models": models,
+        "pycolmap": baseline.get("correct") if baseline and "error" not in baseline else None,
+    }
+
+
+def remap_runs(results: Path, baseline: Path | None, method: str, variants: dict, refs: dict):
+    """``remap_run`` of every run in ``results``, pycolmap's runs from ``baseline``."""
     baselines = {
         (s["scene"], s["subset"], s.get("seed")): s
-        for s in json.loads((args.baseline or args.results).read_text())["scenes"]
+        for s in json.loads((baseline or results).read_text())["scenes"]
     }
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
-        for scene in json.loads(args.results.read_text())["scenes"]:
+        for scene in json.loads(results.read_text())["scenes"]:
             base_scene = baselines.get((scene["scene"], scene["subset"], scene.get("seed")), {})
-            record, baseline = (
-                scene["methods"].get(args.method),
-                base_scene.get("methods", {}).get("pycolmap"),
-            )
-            ref_path = scene.get("reference")
-            reference = (
-                pycolmap.Reconstruction(ref_path)
-                if ref_path
-                else next(
-                    (r for k, r in refs.items() if scene["scene"] in (k, f"{k}_realistic")), None
-                )
-            )
-            if not record or "error" in record or reference is None:
-                continue
-            database = (
-                registration.seed_runs_dir(scene["scene_dir"], scene.get("seed"))
-                / registration.method_slug(args.method)
-                / "database.db"
-            )
-            confs = {
-                "incremental": {"mapper": "incremental"},
-                "global": {"mapper": "global"},
-                **{n: {"mapper": "incremental", **c} for n, c in variants.items()},
-            }
-            models = {
-                name: map_and_score(
-                    database, scene, scene.get("seed") or 0, conf, reference, Path(tmp) / name
-                )
-                for name, conf in confs.items()
-            }
-            if baseline and "error" not in baseline and baseline.get("correct") is None:
-                baseline = rescore(baseline, base_scene, "pycolmap", reference)
-            runs.append(
-                {
-                    "scene": scene["scene"],
-                    "subset": scene["subset"],
-                    "seed": scene.get("seed"),
-                    "models": models,
-                    "pycolmap": baseline.get("correct")
-                    if baseline and "error" not in baseline
-                    else None,
-                }
-            )
-    for subset, title in (
-        ("historical", "historical photos + distractors"),
-        ("all", "historical + modern photos + distractors"),
-    ):
+            run = remap_run(scene, base_scene, method, variants, refs, Path(tmp))
+            if run is not None:
+                runs.append(run)
+    return runs
+
+
+def choice_rows(runs: list[dict], rules: list[str]) -> list[list]:
+    """A row per way of choosing: photos on / off the pose, and the runs below pycolmap."""
+    rows = []
+    for rule in rules:
+        picks = [(r, choose(r["models"], rule)) for r in runs]
+        below = [
+            f"{r['scene']} s{r['seed']} {m['correct']}<{r['pycolmap']}"
+            for r, m in picks
+            if r["pycolmap"] is not None and m["correct"] < r["pycolmap"]
+        ]
+        rows.append(
+            [
+                rule,
+                sum(m["correct"] for _, m in picks),
+                sum(m["wrong"] for _, m in picks),
+                f"{len(below)} of {len(picks)}" + (f" ({'; '.join(below)})" if below else ""),
+            ]
+        )
+    return rows
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    refs = load_references(args.reference)
+    variants = load_variants(args.variant)
+    runs = remap_runs(args.results, args.baseline, args.method, variants, refs)
+    for subset, title in PROTOCOLS:
         chosen = [r for r in runs if r["subset"] == subset]
         if not chosen:
             continue
-        rows = []
-        for rule in columns:
-            picks = [(r, choose(r["models"], rule)) for r in chosen]
-            below = [
-                f"{r['scene']} s{r['seed']} {m['correct']}<{r['pycolmap']}"
-                for r, m in picks
-                if r["pycolmap"] is not None and m["correct"] < r["pycolmap"]
-            ]
-            rows.append(
-                [
-                    rule,
-                    sum(m["correct"] for _, m in picks),
-                    sum(m["wrong"] for _, m in picks),
-                    f"{len(below)} of {len(picks)}" + (f" ({'; '.join(below)})" if below else ""),
-                ]
-            )
         print(
             f"\n**{args.method}, {title}** — photos on the reference pose ✓ / off it ✗ summed "
             f"over {len(chosen)} runs; runs below pycolmap's default pipeline (same seed)\n"
         )
+        rows = choice_rows(chosen, ["incremental", "global", *variants, "auto", "oracle"])
         print(markdown_table(["models chosen by", "✓", "✗", "runs below pycolmap"], rows))
     if args.json:
         write_json(args.json, runs)
