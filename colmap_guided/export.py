@@ -96,80 +96,11 @@ def export_h5(
             )
     workspace.record(*WRITES)
     tmp = {k: p.with_suffix(".h5.partial") for k, p in paths.items()}
-    pairs = []
     with dbio.open_database(database_path) as db:
         images = sorted(dbio.images_by_name(db).values(), key=lambda im: im.name)
-        by_id = {im.image_id: im for im in images}
-        names_seen: dict[str, str] = {}
-        for im in images:
-            key = im.name.replace("/", "-")
-            if key in names_seen:
-                raise ValueError(
-                    f"Images {names_seen[key]!r} and {im.name!r} have "
-                    f"the same hloc pair key {key!r}; rename one of them."
-                )
-            names_seen[key] = im.name
-        with (
-            h5py.File(tmp["features"], "w") as fd,
-            _bar(len(images), "export features", "img") as bar,
-        ):
-            for im in images:
-                if not dbio.has_keypoints(db, im.image_id):
-                    bar.update(1)
-                    continue
-                kpts = dbio.read_keypoints(db, im.image_id)
-                desc, kind = dbio.read_descriptors(db, im.image_id)
-                camera = dbio.read_camera(db, im.camera_id)
-                grp = fd.create_group(im.name)
-                grp.create_dataset("keypoints", data=kpts[:, :2] - 0.5)
-                grp.create_dataset("descriptors", data=np.ascontiguousarray(desc.T))
-                grp.create_dataset("scores", data=np.ones(len(kpts), np.float32))
-                grp.create_dataset(
-                    "image_size", data=np.array([camera.width, camera.height], np.int64)
-                )
-                grp.create_dataset("colmap_keypoints", data=kpts)
-                grp.attrs["colmap_descriptor_type"] = kind
-                grp.attrs["colmap_camera_id"] = int(camera.camera_id)
-                grp.attrs["colmap_camera_model"] = camera.model.name
-                grp.attrs["colmap_camera_params"] = np.asarray(camera.params, np.float64)
-                grp.attrs["colmap_prior_focal_length"] = bool(camera.has_prior_focal_length)
-                bar.update(1)
-        id_pairs = list(dbio.pair_match_counts(db))
-        with (
-            h5py.File(tmp["matches"], "w") as fd,
-            _bar(len(id_pairs), "export matches", "pair") as bar,
-        ):
-            for id_a, id_b in sorted(
-                id_pairs, key=lambda p: tuple(sorted(by_id[i].name for i in p))
-            ):
-                a, b = by_id[id_a], by_id[id_b]
-                if a.name > b.name:
-                    a, b = b, a
-                matches = dbio.read_pair_matches(db, a.image_id, b.image_id)
-                geometry = dbio.read_two_view_geometry(db, a.image_id, b.image_id)
-                if inliers_only:
-                    matches = (
-                        np.asarray(geometry.inlier_matches, np.uint32).reshape(-1, 2)
-                        if geometry is not None
-                        else np.zeros((0, 2), np.uint32)
-                    )
-                grp = fd.create_group(names_to_pair(a.name, b.name))
-                num0 = dbio.num_keypoints(db, a.image_id)
-                matches0 = np.full(num0, -1, np.int32)
-                matches0[matches[:, 0]] = matches[:, 1]
-                grp.create_dataset("matches0", data=matches0)
-                grp.create_dataset("matching_scores0", data=(matches0 >= 0).astype(np.float16))
-                grp.attrs["colmap_names"] = [a.name, b.name]
-                representable = len(np.unique(matches[:, 0])) == len(matches) and np.all(
-                    np.diff(matches[:, 0].astype(np.int64)) > 0
-                )
-                # a keypoint matched twice, or not in order: matches0 cannot hold it exactly
-                if not representable:
-                    grp.create_dataset("colmap_matches", data=matches)
-                if geometry is not None and not inliers_only:
-                    _write_geometry(grp, geometry)
-                pairs.append((a.name, b.name))
-                bar.update(1)
+        _check_pair_keys(images)
+        _export_features(db, images, tmp["features"])
+        pairs = _export_matches(db, images, tmp["matches"], inliers_only)
     for key in paths:
         tmp[key].replace(paths[key])
     write_pairs(output / "pairs.txt", pairs)
@@ -181,6 +112,86 @@ def export_h5(
         "matches": str(paths["matches"]),
         "pairs": str(output / "pairs.txt"),
     }
+
+
+def _check_pair_keys(images: list) -> None:
+    """Refuse two images whose names give the same hloc pair key ('/' written as '-')."""
+    names_seen: dict[str, str] = {}
+    for im in images:
+        key = im.name.replace("/", "-")
+        if key in names_seen:
+            raise ValueError(
+                f"Images {names_seen[key]!r} and {im.name!r} have "
+                f"the same hloc pair key {key!r}; rename one of them."
+            )
+        names_seen[key] = im.name
+
+
+def _export_features(db, images: list, path: Path) -> None:
+    """features.h5 at ``path``: a group for each image with keypoints."""
+    with h5py.File(path, "w") as fd, _bar(len(images), "export features", "img") as bar:
+        for im in images:
+            if dbio.has_keypoints(db, im.image_id):
+                _write_features(fd, db, im)
+            bar.update(1)
+
+
+def _write_features(fd: h5py.File, db, im) -> None:
+    """One image's group: hloc's keypoints, descriptors, scores, size; COLMAP's exact rows."""
+    kpts = dbio.read_keypoints(db, im.image_id)
+    desc, kind = dbio.read_descriptors(db, im.image_id)
+    camera = dbio.read_camera(db, im.camera_id)
+    grp = fd.create_group(im.name)
+    grp.create_dataset("keypoints", data=kpts[:, :2] - 0.5)
+    grp.create_dataset("descriptors", data=np.ascontiguousarray(desc.T))
+    grp.create_dataset("scores", data=np.ones(len(kpts), np.float32))
+    grp.create_dataset("image_size", data=np.array([camera.width, camera.height], np.int64))
+    grp.create_dataset("colmap_keypoints", data=kpts)
+    grp.attrs["colmap_descriptor_type"] = kind
+    grp.attrs["colmap_camera_id"] = int(camera.camera_id)
+    grp.attrs["colmap_camera_model"] = camera.model.name
+    grp.attrs["colmap_camera_params"] = np.asarray(camera.params, np.float64)
+    grp.attrs["colmap_prior_focal_length"] = bool(camera.has_prior_focal_length)
+
+
+def _export_matches(db, images: list, path: Path, inliers_only: bool) -> list[tuple[str, str]]:
+    """matches.h5 at ``path``: a group for each matched pair, by name; returns the pairs."""
+    by_id = {im.image_id: im for im in images}
+    id_pairs = list(dbio.pair_match_counts(db))
+    pairs = []
+    with h5py.File(path, "w") as fd, _bar(len(id_pairs), "export matches", "pair") as bar:
+        for id_a, id_b in sorted(id_pairs, key=lambda p: tuple(sorted(by_id[i].name for i in p))):
+            a, b = sorted((by_id[id_a], by_id[id_b]), key=lambda im: im.name)
+            _write_matches(fd, db, a, b, inliers_only)
+            pairs.append((a.name, b.name))
+            bar.update(1)
+    return pairs
+
+
+def _write_matches(fd: h5py.File, db, a, b, inliers_only: bool) -> None:
+    """One pair's group: hloc's matches0 and scores, and COLMAP's exact matches and geometry."""
+    matches = dbio.read_pair_matches(db, a.image_id, b.image_id)
+    geometry = dbio.read_two_view_geometry(db, a.image_id, b.image_id)
+    if inliers_only:
+        matches = (
+            np.asarray(geometry.inlier_matches, np.uint32).reshape(-1, 2)
+            if geometry is not None
+            else np.zeros((0, 2), np.uint32)
+        )
+    grp = fd.create_group(names_to_pair(a.name, b.name))
+    matches0 = np.full(dbio.num_keypoints(db, a.image_id), -1, np.int32)
+    matches0[matches[:, 0]] = matches[:, 1]
+    grp.create_dataset("matches0", data=matches0)
+    grp.create_dataset("matching_scores0", data=(matches0 >= 0).astype(np.float16))
+    grp.attrs["colmap_names"] = [a.name, b.name]
+    representable = len(np.unique(matches[:, 0])) == len(matches) and np.all(
+        np.diff(matches[:, 0].astype(np.int64)) > 0
+    )
+    # a keypoint matched twice, or not in order: matches0 cannot hold it exactly
+    if not representable:
+        grp.create_dataset("colmap_matches", data=matches)
+    if geometry is not None and not inliers_only:
+        _write_geometry(grp, geometry)
 
 
 def _write_geometry(grp: h5py.Group, geometry: pycolmap.TwoViewGeometry) -> None:
@@ -281,101 +292,13 @@ def import_h5(
         h5py.File(features_path, "r") as fd,
         dbio.open_database(database_path, must_exist=False) as db,
     ):
-        groups = _feature_groups(fd)
-        if not groups:
-            raise ValueError(
-                f"{features_path} has no image groups with 'keypoints': not an hloc features file."
-            )
-        existing = dbio.images_by_name(db)
-        cameras: dict[int, int] = {}  # exported camera id -> camera id in this database
-        with _bar(len(groups), "import features", "img") as bar:
-            for name in sorted(groups):
-                grp = groups[name]
-                kpts = np.asarray(
-                    grp["colmap_keypoints"][()]
-                    if "colmap_keypoints" in grp
-                    else grp["keypoints"][()] + 0.5,
-                    np.float32,
-                )
-                desc = (
-                    np.ascontiguousarray(np.asarray(grp["descriptors"][()]).T)
-                    if "descriptors" in grp
-                    else None
-                )
-                if name in existing and dbio.has_keypoints(db, existing[name].image_id):
-                    have = dbio.read_keypoints(db, existing[name].image_id)
-                    if have.shape[0] != kpts.shape[0] or not np.array_equal(
-                        have[:, :2], kpts[:, :2]
-                    ):
-                        raise ValueError(
-                            f"{name}: the database has other keypoints than {features_path}; "
-                            "import into a new database (another --database_path)."
-                        )
-                    bar.update(1)
-                    continue
-                kind = str(grp.attrs.get("colmap_descriptor_type", "SIFT"))
-                if desc is not None and desc.dtype != np.uint8:
-                    raise ValueError(
-                        f"{name}: descriptors are {desc.dtype}; COLMAP's database "
-                        "holds uint8 (SIFT) descriptors — import keypoints and "
-                        "matches only by deleting 'descriptors' or convert them."
-                    )
-                with dbio.transaction(db):
-                    if name in existing:
-                        image_id = existing[name].image_id
-                    else:
-                        exported = (
-                            int(grp.attrs["colmap_camera_id"])
-                            if "colmap_camera_id" in grp.attrs
-                            else None
-                        )
-                        if exported is not None and exported in cameras:
-                            camera = dbio.read_camera(db, cameras[exported])
-                        else:
-                            camera = _new_camera(grp, name, image_path)
-                            camera.camera_id = dbio.write_camera(db, camera)
-                            if exported is not None:
-                                cameras[exported] = camera.camera_id
-                        image_id = dbio.add_image(db, name, camera)
-                        stats["num_images_added"] += 1
-                    dbio.write_features(db, image_id, kpts, desc, kind)
-                bar.update(1)
+        stats["num_images_added"] = _import_features(db, fd, features_path, image_path)
         if matches_path is None:
             return stats
         images = dbio.images_by_name(db)
-        by_key = {}
-        for name in images:
-            by_key.setdefault(name.replace("/", "-"), []).append(name)
-        id_pairs = []
-        with h5py.File(matches_path, "r") as fm:
-            entries = list(_match_groups(fm, by_key))
-            with _bar(len(entries), "import matches", "pair") as bar:
-                for a, b, grp in entries:
-                    ia, ib = images[a].image_id, images[b].image_id
-                    id_pairs.append((ia, ib, a, b))
-                    if dbio.pair_has_matches(db, ia, ib):
-                        bar.update(1)
-                        continue
-                    if "colmap_matches" in grp:
-                        matches = np.asarray(grp["colmap_matches"][()], np.uint32).reshape(-1, 2)
-                    else:
-                        matches0 = np.asarray(grp["matches0"][()]).astype(np.int64)
-                        idx = np.flatnonzero(matches0 >= 0)
-                        matches = np.stack([idx, matches0[idx]], axis=1).astype(np.uint32)
-                    num_a, num_b = dbio.num_keypoints(db, ia), dbio.num_keypoints(db, ib)
-                    if len(matches) and (
-                        matches[:, 0].max() >= num_a or matches[:, 1].max() >= num_b
-                    ):
-                        raise ValueError(
-                            f"Pair {a} / {b}: matches index keypoints that {features_path} "
-                            "does not have; the two files do not belong together."
-                        )
-                    dbio.write_pair_matches(db, ia, ib, matches)
-                    geometry = _read_geometry(grp)
-                    if geometry is not None:
-                        dbio.write_pair_geometry(db, ia, ib, geometry)
-                    stats["num_pairs_added"] += 1
-                    bar.update(1)
+        id_pairs, stats["num_pairs_added"] = _import_matches(
+            db, images, matches_path, features_path
+        )
         stats["num_pairs_verified"] = verify.verify_pairs(
             db, images, id_pairs, verify.two_view_options(verification_conf)
         )
@@ -388,6 +311,124 @@ def import_h5(
         stats["num_pairs_verified"],
     )
     return stats
+
+
+def _import_features(db, fd: h5py.File, features_path: Path, image_path: Path | None) -> int:
+    """Each image group of features.h5 into the database; returns how many images were new."""
+    groups = _feature_groups(fd)
+    if not groups:
+        raise ValueError(
+            f"{features_path} has no image groups with 'keypoints': not an hloc features file."
+        )
+    existing = dbio.images_by_name(db)
+    cameras: dict[int, int] = {}  # exported camera id -> camera id in this database
+    added = 0
+    with _bar(len(groups), "import features", "img") as bar:
+        for name in sorted(groups):
+            grp = groups[name]
+            kpts, desc = _read_features(grp)
+            old = existing.get(name)
+            if old is not None and dbio.has_keypoints(db, old.image_id):
+                _check_same_keypoints(db, old.image_id, kpts, name, features_path)
+                bar.update(1)
+                continue
+            kind = str(grp.attrs.get("colmap_descriptor_type", "SIFT"))
+            if desc is not None and desc.dtype != np.uint8:
+                raise ValueError(
+                    f"{name}: descriptors are {desc.dtype}; COLMAP's database "
+                    "holds uint8 (SIFT) descriptors — import keypoints and "
+                    "matches only by deleting 'descriptors' or convert them."
+                )
+            with dbio.transaction(db):
+                if old is not None:
+                    image_id = old.image_id
+                else:
+                    image_id = dbio.add_image(db, name, _camera(db, grp, name, cameras, image_path))
+                    added += 1
+                dbio.write_features(db, image_id, kpts, desc, kind)
+            bar.update(1)
+    return added
+
+
+def _read_features(grp: h5py.Group) -> tuple[np.ndarray, np.ndarray | None]:
+    """COLMAP keypoint rows (exact ones, else hloc's shifted back by 0.5) and (N, D) descriptors."""
+    kpts = np.asarray(
+        grp["colmap_keypoints"][()] if "colmap_keypoints" in grp else grp["keypoints"][()] + 0.5,
+        np.float32,
+    )
+    desc = (
+        np.ascontiguousarray(np.asarray(grp["descriptors"][()]).T) if "descriptors" in grp else None
+    )
+    return kpts, desc
+
+
+def _check_same_keypoints(
+    db, image_id: int, kpts: np.ndarray, name: str, features_path: Path
+) -> None:
+    """Refuse a file whose keypoints differ from those the database holds for the image."""
+    have = dbio.read_keypoints(db, image_id)
+    if have.shape[0] != kpts.shape[0] or not np.array_equal(have[:, :2], kpts[:, :2]):
+        raise ValueError(
+            f"{name}: the database has other keypoints than {features_path}; "
+            "import into a new database (another --database_path)."
+        )
+
+
+def _camera(
+    db, grp: h5py.Group, name: str, cameras: dict[int, int], image_path: Path | None
+) -> pycolmap.Camera:
+    """The image's camera: one already imported for its exported camera id, else a new one."""
+    exported = int(grp.attrs["colmap_camera_id"]) if "colmap_camera_id" in grp.attrs else None
+    if exported is not None and exported in cameras:
+        return dbio.read_camera(db, cameras[exported])
+    camera = _new_camera(grp, name, image_path)
+    camera.camera_id = dbio.write_camera(db, camera)
+    if exported is not None:
+        cameras[exported] = camera.camera_id
+    return camera
+
+
+def _import_matches(
+    db, images: dict, matches_path: Path, features_path: Path
+) -> tuple[list[tuple[int, int, str, str]], int]:
+    """Each pair group of matches.h5 not matched yet into the database; returns every pair of the
+    file (id_a, id_b, name_a, name_b) and how many were new."""
+    by_key = {}
+    for name in images:
+        by_key.setdefault(name.replace("/", "-"), []).append(name)
+    id_pairs = []
+    added = 0
+    with h5py.File(matches_path, "r") as fm:
+        entries = list(_match_groups(fm, by_key))
+        with _bar(len(entries), "import matches", "pair") as bar:
+            for a, b, grp in entries:
+                ia, ib = images[a].image_id, images[b].image_id
+                id_pairs.append((ia, ib, a, b))
+                if not dbio.pair_has_matches(db, ia, ib):
+                    _import_pair(db, grp, (a, b), (ia, ib), features_path)
+                    added += 1
+                bar.update(1)
+    return id_pairs, added
+
+
+def _import_pair(db, grp: h5py.Group, names: tuple, ids: tuple, features_path: Path) -> None:
+    """One pair's matches (exact ones, else from matches0) and exported geometry, if any."""
+    if "colmap_matches" in grp:
+        matches = np.asarray(grp["colmap_matches"][()], np.uint32).reshape(-1, 2)
+    else:
+        matches0 = np.asarray(grp["matches0"][()]).astype(np.int64)
+        idx = np.flatnonzero(matches0 >= 0)
+        matches = np.stack([idx, matches0[idx]], axis=1).astype(np.uint32)
+    num_a, num_b = dbio.num_keypoints(db, ids[0]), dbio.num_keypoints(db, ids[1])
+    if len(matches) and (matches[:, 0].max() >= num_a or matches[:, 1].max() >= num_b):
+        raise ValueError(
+            f"Pair {names[0]} / {names[1]}: matches index keypoints that {features_path} "
+            "does not have; the two files do not belong together."
+        )
+    dbio.write_pair_matches(db, *ids, matches)
+    geometry = _read_geometry(grp)
+    if geometry is not None:
+        dbio.write_pair_geometry(db, *ids, geometry)
 
 
 def _match_groups(fm: h5py.File, by_key: dict[str, list[str]]):

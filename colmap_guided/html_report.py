@@ -430,13 +430,26 @@ def render_html(
 ) -> str:
     """The page. ``reconstruction``: the largest pycolmap.Reconstruction (default: read from
     report's sparse_path/0)."""
+    image_path = Path(report.get("image_path", "."))
+    rec, eras, geo = _page_model(report, reconstruction)
+    out = _header(report, image_path)
+    if rec is not None and rec.num_reg_images():
+        out += _model_section(rec, eras, geo, image_path if thumbnails else None)
+    out += _ratio_section(report)
+    out += _why_table(report, image_path, thumbnails)
+    out += _localized_table(report, image_path, thumbnails)
+    out += _cards_table(report, image_path, thumbnails)
+    out += _panels_section(panels)
+    out += _details_section(report)
+    out.append("</body></html>")
+    return "\n".join(out)
+
+
+def _page_model(report: dict, reconstruction) -> tuple:
+    """The model drawn (localized cameras added, in ENU metres where georeferenced), each photo's
+    era, and the georeference (or None)."""
     from .report import read_manifest
 
-    model = report["model"]
-    image_path = Path(report.get("image_path", "."))
-    esc = html.escape
-    matcher = report.get("matcher", {})
-    matcher_name = matcher.get("name", "?") if isinstance(matcher, dict) else str(matcher)
     rec = reconstruction if reconstruction is not None else _load_model(report)
     eras = read_manifest(Path(report["manifest_path"])) if report.get("manifest_path") else {}
     localized = _localized(report)
@@ -449,7 +462,16 @@ def render_html(
     if rec is not None and geo is not None:  # shown in east-north-up metres
         rec = pycolmap.Reconstruction(rec)
         rec.transform(geo[0].sim3d())
-    out = [
+    return rec, eras, geo
+
+
+def _header(report: dict, image_path: Path) -> list[str]:
+    """The page's head, title, matcher line and the registered ratio in large."""
+    model = report["model"]
+    esc = html.escape
+    matcher = report.get("matcher", {})
+    matcher_name = matcher.get("name", "?") if isinstance(matcher, dict) else str(matcher)
+    return [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
         f"<title>Reconstruction report: {esc(str(report.get('scene', '')))}"
         f"</title><style>\n{CSS}</style></head><body>",
@@ -462,22 +484,29 @@ def render_html(
         + (f" ({model['num_models']} models in all)" if model.get("num_models", 1) > 1 else "")
         + ".</p>",
     ]
-    if rec is not None and rec.num_reg_images():
-        out.append("<h2>The 3D model</h2>")
-        enu = geo is not None
-        out.append(model_view.view_html(rec, eras, image_path if thumbnails else None, enu=enu))
-        out.append("<h2>Where the photos were taken from</h2>")
-        out.append(
-            "<p>Seen from above: the points of the model, each photo's "
-            "position (dot) and the direction it looks in (arrow)"
-            + (f", north up, in metres from {_lat_lon(geo[1]['origin'])}.</p>" if enu else ".</p>")
-        )
-        out.append(
-            f"<img src='{model_view.photo_map(rec, eras, enu)}' alt='map of the camera positions'>"
-        )
-        if enu:
-            out += _geo_table(geo[1])
-    out += [
+
+
+def _model_section(rec, eras: dict, geo, photos: Path | None) -> list[str]:
+    """The 3D view and the map of the camera positions (with their latitudes where georeferenced);
+    ``photos``: the folder for the view's thumbnails, or None."""
+    enu = geo is not None
+    out = [
+        "<h2>The 3D model</h2>",
+        model_view.view_html(rec, eras, photos, enu=enu),
+        "<h2>Where the photos were taken from</h2>",
+        "<p>Seen from above: the points of the model, each photo's "
+        "position (dot) and the direction it looks in (arrow)"
+        + (f", north up, in metres from {_lat_lon(geo[1]['origin'])}.</p>" if enu else ".</p>"),
+        f"<img src='{model_view.photo_map(rec, eras, enu)}' alt='map of the camera positions'>",
+    ]
+    return out + _geo_table(geo[1]) if enu else out
+
+
+def _ratio_section(report: dict) -> list[str]:
+    """Registered images, all and per era (table and bars), model figures and timings."""
+    model = report["model"]
+    esc = html.escape
+    out = [
         "<h2>Registered images</h2>",
         "<table><tr><th>images</th><th>registered</th><th>ratio</th></tr>",
         f"<tr><td>all</td><td class='num'>{model['num_registered']}/{model['num_images']}</td>"
@@ -502,29 +531,36 @@ def render_html(
             + ", ".join(f"{esc(k)} {v:.1f} s" for k, v in timings.items())
             + "</p>"
         )
-    out += _why_table(report, image_path, thumbnails)
-    out += _localized_table(report, image_path, thumbnails)
-    out += _cards_table(report, image_path, thumbnails)
+    return out
 
-    out.append("<h2>Matches of a few pairs</h2>")
-    if panels:
+
+def _panels_section(panels: list[Panel] | None) -> list[str]:
+    """The drawings of the verified matches of a few pairs."""
+    out = ["<h2>Matches of a few pairs</h2>"]
+    if not panels:
+        return out + ["<p>No pair was verified.</p>"]
+    out.append(
+        "<p>Lines join the same point seen in both photos (verified "
+        "matches: they agree with one camera geometry).</p>"
+    )
+    for title, image_a, image_b, matches in panels:
+        try:
+            uri = draw_matches(image_a, image_b, matches)
+        except Exception as err:  # noqa: BLE001 - one unreadable pair must not lose the page
+            logger.warning("Could not draw %s (%s)", title, err)
+            continue
+        shown = f" ({MAX_LINES} drawn)" if len(matches) > MAX_LINES else ""
         out.append(
-            "<p>Lines join the same point seen in both photos (verified "
-            "matches: they agree with one camera geometry).</p>"
+            f"<figure class='pair'><figcaption>{html.escape(title)}{shown}</figcaption>"
+            f"<img src='{uri}' alt='{html.escape(title)}'></figure>"
         )
-        for title, image_a, image_b, matches in panels:
-            try:
-                uri = draw_matches(image_a, image_b, matches)
-            except Exception as err:  # noqa: BLE001 - one unreadable pair must not lose the page
-                logger.warning("Could not draw %s (%s)", title, err)
-                continue
-            shown = f" ({MAX_LINES} drawn)" if len(matches) > MAX_LINES else ""
-            out.append(
-                f"<figure class='pair'><figcaption>{esc(title)}{shown}</figcaption>"
-                f"<img src='{uri}' alt='{esc(title)}'></figure>"
-            )
-    else:
-        out.append("<p>No pair was verified.</p>")
+    return out
+
+
+def _details_section(report: dict) -> list[str]:
+    """The database's figures and the paths of what the run wrote."""
+    esc = html.escape
+    out = []
     database = report.get("database") or {}
     if database:
         out.append("<h2>Details</h2><table>")
@@ -544,8 +580,7 @@ def render_html(
         for key, value in paths.items()
         if value
     )
-    out.append("</body></html>")
-    return "\n".join(out)
+    return out
 
 
 def write_html_report(

@@ -104,45 +104,20 @@ def explain_unregistered(
     inliers), the best one and its inliers, how many of the verified partners are in the model, and
     the best unverified candidate.
     """
-    from . import database as dbio
-
     largest = max(models, key=lambda k: models[k].num_reg_images(), default=None)
     in_model = {k: {rec.images[i].name for i in rec.reg_image_ids()} for k, rec in models.items()}
     registered = in_model.get(largest, set())
     todo = [name for name in image_names if name not in registered]
-    out: dict[str, dict] = {}
-    for name in todo:
-        if name in skipped:
-            reason, _, hint = skipped[name].partition("; ")
-            out[name] = {
-                "stage": "reading",
-                "reason": f"The file could not be used: {reason}.",
-                "suggestion": (hint[:1].upper() + hint[1:] + ".") if hint else SUGGEST["reading"],
-            }
+    out = {name: _unreadable(skipped[name]) for name in todo if name in skipped}
     if len(out) == len(todo):
         return out
-    with dbio.open_database(database_path) as db:
-        by_id = dbio.image_names(db)
-        ids = {n: i for i, n in by_id.items()}
-        verified: dict[str, list[tuple[int, str]]] = {}
-        candidates: dict[str, list[tuple[int, str]]] = {}
-        for table, pairs_counts in (
-            (verified, dbio.pair_inlier_counts(db)),
-            (candidates, dbio.pair_match_counts(db)),
-        ):
-            for (id_a, id_b), count in pairs_counts.items():
-                if count <= 0 and table is verified:
-                    continue
-                a, b = by_id[id_a], by_id[id_b]
-                table.setdefault(a, []).append((count, b))
-                table.setdefault(b, []).append((count, a))
-        keypoints = {
-            n: dbio.num_keypoints(db, ids[n]) if n in ids else 0 for n in todo if n not in out
-        }
+    verified, candidates, keypoints = _pair_evidence(
+        database_path, [name for name in todo if name not in out]
+    )
     for name in todo:
         if name in out:
             continue
-        pairs = sorted(verified.get(name, []), key=lambda t: (-t[0], t[1]))
+        pairs = verified.get(name, [])
         best_inliers, best = pairs[0] if pairs else (0, None)
         entry = {
             "verified_pairs": len(pairs),
@@ -152,60 +127,115 @@ def explain_unregistered(
         }
         other = next((k for k in models if k != largest and name in in_model[k]), None)
         if not pairs and keypoints[name] < MIN_KEYPOINTS:
-            stage = "features"
-            found = f"Only {keypoints[name]}" if keypoints[name] else "No"
-            reason = (
-                f"{found} distinctive points were found in the photo (a blank, blurred, "
-                "very dark or very small image): too few to match it with the others."
-            )
+            stage, reason = "features", _features_reason(keypoints[name])
         elif not pairs:
-            stage = "matching"
-            tried = sorted(candidates.get(name, []), key=lambda t: (-t[0], t[1]))
-            if tried and tried[0][0] >= min_num_inliers:
-                reason = (
-                    f"None of the {len(tried)} photos it was compared with shares enough "
-                    f"details with it. The best, {tried[0][1]}, had {tried[0][0]} tentative "
-                    f"matches, but fewer than {min_num_inliers} of them fit one consistent "
-                    "pair of camera positions (the others are chance look-alikes)."
-                )
-            elif tried:
-                count = (
-                    f"only {tried[0][0]} tentative match{'es' if tried[0][0] != 1 else ''}"
-                    if tried[0][0]
-                    else "no tentative match"
-                )
-                reason = (
-                    f"None of the {len(tried)} photos it was compared with shares enough "
-                    f"details with it: the best, {tried[0][1]}, had {count}, and at least "
-                    f"{min_num_inliers} must fit one consistent pair of camera positions."
-                )
-            else:
-                reason = "It was compared with no other photo (the pairs list leaves it out)."
+            tried = candidates.get(name, [])
+            stage, reason = "matching", _matching_reason(tried, min_num_inliers)
             entry.update(
                 best_candidate=tried[0][1] if tried else None,
                 best_candidate_matches=tried[0][0] if tried else 0,
             )
         elif other is not None:
             stage = "separate model"
-            reason = (
-                f"It was placed, with {len(in_model[other]) - 1} other photo(s), in a separate "
-                f"smaller model (sparse/{other}): no chain of matched photos links that group "
-                f"to the main model. Its best match is {best} ({best_inliers} verified matches)."
-            )
+            reason = _separate_reason(other, len(in_model[other]) - 1, best, best_inliers)
             entry["model"] = other
         else:
-            stage = "mapping"
-            linked = sum(partner in registered for _, partner in pairs)
-            reason = (
-                f"It matched {len(pairs)} photo(s), {linked} of them in the model; "
-                f"the best, {best}, with {best_inliers} matches that agree with "
-                "one geometry. Still, the mapper could not fix its position from "
-                "them: too few of those matches fall on points of the 3D model"
-                + (" (none of the photos it matched is in the model)." if not linked else ".")
-            )
+            stage, reason = "mapping", _mapping_reason(pairs, registered)
         entry.update(stage=stage, reason=reason, suggestion=SUGGEST[stage].format(best=best))
         out[name] = entry
     return {name: out[name] for name in todo}
+
+
+def _unreadable(skip_reason: str) -> dict:
+    """The ``reading`` entry of a skipped photo, from its "reason; hint" text."""
+    reason, _, hint = skip_reason.partition("; ")
+    return {
+        "stage": "reading",
+        "reason": f"The file could not be used: {reason}.",
+        "suggestion": (hint[:1].upper() + hint[1:] + ".") if hint else SUGGEST["reading"],
+    }
+
+
+def _pair_evidence(database_path: Path, names: list[str]) -> tuple[dict, dict, dict]:
+    """Verified partners, tentative partners (strongest first) and keypoint counts of ``names``."""
+    from . import database as dbio
+
+    with dbio.open_database(database_path) as db:
+        by_id = dbio.image_names(db)
+        ids = {n: i for i, n in by_id.items()}
+        verified = _partners(by_id, dbio.pair_inlier_counts(db), positive_only=True)
+        candidates = _partners(by_id, dbio.pair_match_counts(db))
+        keypoints = {n: dbio.num_keypoints(db, ids[n]) if n in ids else 0 for n in names}
+    return verified, candidates, keypoints
+
+
+def _partners(
+    by_id: dict[int, str], counts: dict[tuple[int, int], int], positive_only: bool = False
+) -> dict[str, list[tuple[int, str]]]:
+    """{name: [(count, partner), ...]} from pair counts, largest count first, then by name."""
+    table: dict[str, list[tuple[int, str]]] = {}
+    for (id_a, id_b), count in counts.items():
+        if count <= 0 and positive_only:
+            continue
+        a, b = by_id[id_a], by_id[id_b]
+        table.setdefault(a, []).append((count, b))
+        table.setdefault(b, []).append((count, a))
+    return {name: sorted(pairs, key=lambda t: (-t[0], t[1])) for name, pairs in table.items()}
+
+
+def _features_reason(num_keypoints: int) -> str:
+    """Why a photo with too few keypoints matched nothing."""
+    found = f"Only {num_keypoints}" if num_keypoints else "No"
+    return (
+        f"{found} distinctive points were found in the photo (a blank, blurred, "
+        "very dark or very small image): too few to match it with the others."
+    )
+
+
+def _matching_reason(tried: list[tuple[int, str]], min_num_inliers: int) -> str:
+    """Why none of the pairs ``tried`` (strongest first) passed two-view verification."""
+    if not tried:
+        return "It was compared with no other photo (the pairs list leaves it out)."
+    num_matches, best = tried[0]
+    if num_matches >= min_num_inliers:
+        return (
+            f"None of the {len(tried)} photos it was compared with shares enough "
+            f"details with it. The best, {best}, had {num_matches} tentative "
+            f"matches, but fewer than {min_num_inliers} of them fit one consistent "
+            "pair of camera positions (the others are chance look-alikes)."
+        )
+    count = (
+        f"only {num_matches} tentative match{'es' if num_matches != 1 else ''}"
+        if num_matches
+        else "no tentative match"
+    )
+    return (
+        f"None of the {len(tried)} photos it was compared with shares enough "
+        f"details with it: the best, {best}, had {count}, and at least "
+        f"{min_num_inliers} must fit one consistent pair of camera positions."
+    )
+
+
+def _separate_reason(model: int, num_others: int, best: str, best_inliers: int) -> str:
+    """Why a photo placed in a smaller model is not in the largest."""
+    return (
+        f"It was placed, with {num_others} other photo(s), in a separate "
+        f"smaller model (sparse/{model}): no chain of matched photos links that group "
+        f"to the main model. Its best match is {best} ({best_inliers} verified matches)."
+    )
+
+
+def _mapping_reason(pairs: list[tuple[int, str]], registered: set[str]) -> str:
+    """Why a photo with verified pairs (strongest first) was still not placed by the mapper."""
+    count, best = pairs[0]
+    linked = sum(partner in registered for _, partner in pairs)
+    return (
+        f"It matched {len(pairs)} photo(s), {linked} of them in the model; "
+        f"the best, {best}, with {count} matches that agree with "
+        "one geometry. Still, the mapper could not fix its position from "
+        "them: too few of those matches fall on points of the 3D model"
+        + (" (none of the photos it matched is in the model)." if not linked else ".")
+    )
 
 
 def explain_no_model(database_path: Path, mapping_conf: dict, left_out=()) -> dict:
