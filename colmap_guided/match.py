@@ -245,88 +245,101 @@ def _match_pairs(
     With a ``schedule`` pairs it defers are skipped, and the others verified as they are written.
     Returns the most images held at once and the image reads, and the seconds spent reading and
     writing."""
-    # unfinished pairs: the matcher's cache is released after the last
-    remaining = Counter(name for p in todo for name in p[2:])
-    prepare_bar = (
-        tqdm(
-            desc="prepare",
-            total=len(remaining),
-            unit="img",
-            disable=None,
-            dynamic_ncols=True,
-            leave=False,
-        )
-        if matcher.prepares_images
-        else None
-    )
-    seconds = {"read": 0.0, "write": 0.0}
-
-    def load(name: str):
-        start = time.perf_counter()
-        image = dbio.read_image_data(db, images[name], image_path)
-        seconds["read"] += time.perf_counter() - start
-        with matcher.timed("prepare"):
-            matcher.prepare(image)
-        if prepare_bar is not None:
-            prepare_bar.update(1)
-        return run.put(image)
-
-    held = HeldImages(todo, load, max_held, on_drop=matcher.release)
-    started, finished = deque(), {}  # with a schedule: pairs in the order they started
-    by_id = {image.image_id: image for image in images.values()}
-    with _progress(None, "match", schedule.first_pass if schedule else len(todo)) as bar:
-
-        def write_done() -> None:
-            done = run.wait()
-            errors = [value for _, value in done if isinstance(value, BaseException)]
-            done = [(key, value) for key, value in done if not isinstance(value, BaseException)]
-            start = time.perf_counter()
-            batch = [(key[0], key[1], *result) for key, result in done]
-            if schedule is not None:  # verified now, written in the order they started
-                for key, item in zip([key for key, _ in done], batch):
-                    finished[key] = _verified(db, by_id, *item, schedule.options)
-                    schedule.finish(key, len(finished[key][3].inlier_matches))
-                batch = []
-                while started and started[0] in finished:
-                    batch.append(finished.pop(started.popleft()))
-            dbio.write_pairs_matches(db, batch)
-            seconds["write"] += time.perf_counter() - start
-            bar.update(len(done))
-            if errors:  # the finished pairs are written (resumable); the first error stops the run
-                raise errors[0]
-            for key, _ in done:
-                passed(key)
-
-        def passed(key: PairKey) -> None:
-            for name in key[2:]:
-                remaining[name] -= 1
-                if remaining[name] == 0:
-                    matcher.release(name)
-
+    pairs = _PairRun(db, image_path, images, todo, matcher, run, schedule)
+    held = HeldImages(todo, pairs.load, max_held, on_drop=matcher.release)
+    with _progress(None, "match", schedule.first_pass if schedule else len(todo)) as pairs.bar:
         for position, key in enumerate(todo):
             while schedule is not None and (need := schedule.decide(position, key)) is None:
-                write_done()
+                pairs.write_done()
             if schedule is not None and not need:
                 held.skip(key)
-                passed(key)
+                pairs.passed(key)
                 continue
             if schedule is not None:
                 schedule.start(key)
-                started.append(key)
+                pairs.started.append(key)
             # an image dropped after its last pair: the pair holds it
             run.submit(key, *held.pair(key))
             while run.in_flight >= run.capacity:
-                write_done()
+                pairs.write_done()
         while run.in_flight:
-            write_done()
-    if prepare_bar is not None:
-        prepare_bar.close()
+            pairs.write_done()
+    if pairs.prepare_bar is not None:
+        pairs.prepare_bar.close()
     memory = {
         "images_held_max": held.most_held,
         "image_reads": held.reads,
         "max_images_held": max_held,
     }
-    return memory, seconds
+    return memory, pairs.seconds
+
+
+class _PairRun:
+    """``_match_pairs``' state: images read for the executor, finished pairs written in the order
+    they started (with a schedule), each image's matcher cache released after its last pair."""
+
+    def __init__(self, db, image_path, images, todo, matcher, run, schedule):
+        self.db, self.image_path, self.images = db, image_path, images
+        self.matcher, self.run, self.schedule = matcher, run, schedule
+        # unfinished pairs: the matcher's cache is released after the last
+        self.remaining = Counter(name for p in todo for name in p[2:])
+        self.prepare_bar = (
+            tqdm(
+                desc="prepare",
+                total=len(self.remaining),
+                unit="img",
+                disable=None,
+                dynamic_ncols=True,
+                leave=False,
+            )
+            if matcher.prepares_images
+            else None
+        )
+        self.seconds = {"read": 0.0, "write": 0.0}
+        self.started, self.finished = deque(), {}  # with a schedule: pairs in start order
+        self.by_id = {image.image_id: image for image in images.values()}
+        self.bar = None
+
+    def load(self, name: str):
+        """One image read and prepared, put where the executor's workers find it."""
+        start = time.perf_counter()
+        image = dbio.read_image_data(self.db, self.images[name], self.image_path)
+        self.seconds["read"] += time.perf_counter() - start
+        with self.matcher.timed("prepare"):
+            self.matcher.prepare(image)
+        if self.prepare_bar is not None:
+            self.prepare_bar.update(1)
+        return self.run.put(image)
+
+    def write_done(self) -> None:
+        """Wait for finished pairs and write them (with a schedule: verified now, in the order they
+        started); the first error stops the run once the finished pairs are written."""
+        done = self.run.wait()
+        errors = [value for _, value in done if isinstance(value, BaseException)]
+        done = [(key, value) for key, value in done if not isinstance(value, BaseException)]
+        start = time.perf_counter()
+        batch = [(key[0], key[1], *result) for key, result in done]
+        if self.schedule is not None:
+            for key, item in zip([key for key, _ in done], batch):
+                self.finished[key] = _verified(self.db, self.by_id, *item, self.schedule.options)
+                self.schedule.finish(key, len(self.finished[key][3].inlier_matches))
+            batch = []
+            while self.started and self.started[0] in self.finished:
+                batch.append(self.finished.pop(self.started.popleft()))
+        dbio.write_pairs_matches(self.db, batch)
+        self.seconds["write"] += time.perf_counter() - start
+        self.bar.update(len(done))
+        if errors:
+            raise errors[0]
+        for key, _ in done:
+            self.passed(key)
+
+    def passed(self, key: PairKey) -> None:
+        """The pair is done with: an image whose last pair it was is released."""
+        for name in key[2:]:
+            self.remaining[name] -= 1
+            if self.remaining[name] == 0:
+                self.matcher.release(name)
 
 
 def add_parser(sub) -> None:
