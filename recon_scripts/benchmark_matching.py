@@ -386,7 +386,8 @@ def markdown(rows: list[dict], unrelated_rows: list[dict], names: list[str]) -> 
     return "\n".join(out)
 
 
-def main(argv=None) -> None:
+def _parser():
+    """The command line."""
     parser = script_parser(__doc__)
     parser.add_argument("--pairs_per_set", type=int, default=3)
     parser.add_argument("--unrelated", type=int, default=24, help="number of unrelated-image pairs")
@@ -438,15 +439,11 @@ def main(argv=None) -> None:
         default=1,
         help="torch CPU threads (1: stable timings on a shared machine)",
     )
-    args = parser.parse_args(argv)
-    if args.sweep and args.features != "sift":
-        parser.error("--sweep runs on SIFT only")
-    torch.set_grad_enabled(False)
-    torch.set_num_threads(args.threads)
+    return parser
 
-    pairs = related_pairs(args.pairs_per_set)
-    unrelated = unrelated_pairs(args.unrelated)
-    database = extract(pairs + unrelated, args.features, args.cache_dir)
+
+def build_matchers(args) -> dict:
+    """The ``--matchers`` by name, each checked against the ``--features``."""
     # a preset, optionally with name:key=value options
     specs = {n: matcher_specs.parse_spec(n) for n in args.matchers}
     matchers = {
@@ -462,6 +459,31 @@ def main(argv=None) -> None:
     }
     for matcher in matchers.values():
         features.check_matcher_features(matcher, args.features)
+    return matchers
+
+
+def run_pairs(pairs: list[dict], matchers: dict, database: Path, args, related: bool) -> list:
+    """``run_pair`` on every pair, logging its inliers; related pairs timed ``--repeat`` times."""
+    rows, repeat = [], args.repeat if related else 1
+    for pair in pairs:
+        rows.append(run_pair(pair, matchers, database, args.max_ref_err, repeat))
+        label = f"{pair['set']} {pair['a'].name}" if related else f"unrelated {pair['set']}"
+        logger.info("%s: %s", label, {n: rows[-1][n]["inliers"] for n in matchers})
+    return rows
+
+
+def main(argv=None) -> None:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.sweep and args.features != "sift":
+        parser.error("--sweep runs on SIFT only")
+    torch.set_grad_enabled(False)
+    torch.set_num_threads(args.threads)
+
+    pairs = related_pairs(args.pairs_per_set)
+    unrelated = unrelated_pairs(args.unrelated)
+    database = extract(pairs + unrelated, args.features, args.cache_dir)
+    matchers = build_matchers(args)
     result = {
         "features": args.features,
         "matchers": {n: m.describe() for n, m in matchers.items()},
@@ -475,24 +497,9 @@ def main(argv=None) -> None:
         result["sweep"] = sweep(pairs, unrelated, guided, database, args.max_ref_err)
         print(sweep_markdown(result["sweep"]))
     else:
-        rows, unrelated_rows = [], []
-        for pair in pairs:
-            rows.append(run_pair(pair, matchers, database, args.max_ref_err, args.repeat))
-            logger.info(
-                "%s %s: %s",
-                pair["set"],
-                pair["a"].name,
-                {n: rows[-1][n]["inliers"] for n in matchers},
-            )
-        for pair in unrelated:
-            unrelated_rows.append(run_pair(pair, matchers, database, args.max_ref_err, 1))
-            logger.info(
-                "unrelated %s: %s",
-                pair["set"],
-                {n: unrelated_rows[-1][n]["inliers"] for n in matchers},
-            )
-        result["related"], result["unrelated"] = rows, unrelated_rows
-        print(markdown(rows, unrelated_rows, list(matchers)))
+        result["related"] = run_pairs(pairs, matchers, database, args, True)
+        result["unrelated"] = run_pairs(unrelated, matchers, database, args, False)
+        print(markdown(result["related"], result["unrelated"], list(matchers)))
     if args.json:
         args.json.write_text(json.dumps(result, indent=1, default=str))
 

@@ -171,7 +171,8 @@ def markdown(results: dict, conf: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main(argv=None):
+def _parser():
+    """The command line."""
     p = script_parser(__doc__)
     p.add_argument(
         "--weights", nargs="*", type=Path, default=[], help="trained filter .safetensors files"
@@ -206,39 +207,38 @@ def main(argv=None):
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--verbose", action="store_true")
-    args = p.parse_args(argv)
-    set_verbosity(args.verbose)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    args.out.mkdir(parents=True, exist_ok=True)
-    pairs = select_pairs(args.scenes, args.pairs_per_scene, args.max_points, args.seed)
-    logger.info("%d held-out pairs from %s.", len(pairs), ", ".join(args.scenes))
+    return p
+
+
+def weight_labels(args) -> list[str]:
+    """The table names of the ``--weights``: ``--labels``, else each file's run folder or stem."""
+    return args.labels or [
+        w.parent.name if w.name == "coarse_filter.safetensors" else w.stem for w in args.weights
+    ]
+
+
+def methods_to_run(args, tmp: Path) -> list[tuple[str, dict]]:
+    """(label, matcher options) of the baselines (the untrained filter saved in ``tmp``) and of
+    each trained filter."""
+    methods: list[tuple[str, dict]] = []
+    if not args.no_baselines:
+        untrained = untrained_weights(tmp / "untrained.safetensors", args.backbone, args.resize_max)
+        methods.append(("raw correlation", {"mode": "raw"}))
+        methods.append(("untrained filter", {"weights": str(untrained)}))
+    return methods + [
+        (label, {"weights": str(w)}) for label, w in zip(weight_labels(args), args.weights)
+    ]
+
+
+def evaluate_methods(methods: list[tuple[str, dict]], pairs, args) -> tuple[dict, str]:
+    """Each method's PCK, clean and with ``--archival``; and the last matcher's filter path."""
     common = {
         "backbone": args.backbone,
         "resize_max": args.resize_max,
         "impl": args.impl,
         "sparse_k": args.sparse_k,
     }
-    methods: list[tuple[str, dict]] = []
-    tmp = tempfile.TemporaryDirectory()
-    if not args.no_baselines:
-        methods.append(("raw correlation", {"mode": "raw"}))
-        methods.append(
-            (
-                "untrained filter",
-                {
-                    "weights": str(
-                        untrained_weights(
-                            Path(tmp.name) / "untrained.safetensors", args.backbone, args.resize_max
-                        )
-                    )
-                },
-            )
-        )
-    labels = args.labels or [
-        w.parent.name if w.name == "coarse_filter.safetensors" else w.stem for w in args.weights
-    ]
-    methods += [(label, {"weights": str(w)}) for label, w in zip(labels, args.weights)]
+    weights = dict(zip(weight_labels(args), args.weights))
     conditions = [None] + ([args.archival] if args.archival else [])
     results, shared_cache = {}, {}
     for label, conf in methods:
@@ -247,8 +247,7 @@ def main(argv=None):
         matcher.cache = shared_cache.setdefault(matcher.features_key, {})
         for cond in conditions:
             name = label + (f"|{cond}" if cond else "")
-            results[name] = evaluate(matcher, pairs, cond, name)
-            r = results[name]
+            r = results[name] = evaluate(matcher, pairs, cond, name)
             logger.info(
                 "%-32s PCK@8/16/32 = %.1f / %.1f / %.1f %%",
                 name,
@@ -257,25 +256,40 @@ def main(argv=None):
                 100 * r["pck32"],
             )
         if label not in ("raw correlation", "untrained filter"):
-            results[label]["weights"] = str(dict(zip(labels, args.weights))[label])
+            results[label]["weights"] = str(weights[label])
             results[label]["training"] = matcher.weights_config.get("training", {})
-    conf = {
-        "scenes": args.scenes,
-        "n_pairs": len(pairs),
-        "resize_max": args.resize_max,
-        "impl": matcher.impl,
-        "pairs_per_scene": args.pairs_per_scene,
-        "max_points": args.max_points,
-        "seed": args.seed,
-        "archival": args.archival,
-    }
-    (args.out / "coarse_pck.json").write_text(
-        json.dumps({"conf": conf, "results": results}, indent=1)
-    )
+    return results, matcher.impl
+
+
+def write_results(out: Path, results: dict, conf: dict) -> None:
+    """OUT/coarse_pck.json and OUT/coarse_pck.md; the Markdown printed."""
+    (out / "coarse_pck.json").write_text(json.dumps({"conf": conf, "results": results}, indent=1))
     md = markdown(results, conf)
-    (args.out / "coarse_pck.md").write_text(md)
+    (out / "coarse_pck.md").write_text(md)
     print(md)
-    tmp.cleanup()
+
+
+def main(argv=None):
+    args = _parser().parse_args(argv)
+    set_verbosity(args.verbose)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    args.out.mkdir(parents=True, exist_ok=True)
+    pairs = select_pairs(args.scenes, args.pairs_per_scene, args.max_points, args.seed)
+    logger.info("%d held-out pairs from %s.", len(pairs), ", ".join(args.scenes))
+    with tempfile.TemporaryDirectory() as tmp:
+        results, impl = evaluate_methods(methods_to_run(args, Path(tmp)), pairs, args)
+        conf = {
+            "scenes": args.scenes,
+            "n_pairs": len(pairs),
+            "resize_max": args.resize_max,
+            "impl": impl,
+            "pairs_per_scene": args.pairs_per_scene,
+            "max_points": args.max_points,
+            "seed": args.seed,
+            "archival": args.archival,
+        }
+        write_results(args.out, results, conf)
 
 
 if __name__ == "__main__":

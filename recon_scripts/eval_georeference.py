@@ -23,6 +23,7 @@ from colmap_guided import geoframe
 from colmap_guided import georeference as geo
 from colmap_guided.geometry import photo_up
 from recon_scripts import script_parser
+from recon_scripts.evaluation.tables import markdown_table
 
 
 def truth_frame(reference: pycolmap.Reconstruction, origin, yaw_deg: float) -> geoframe.GeoFrame:
@@ -36,7 +37,8 @@ def truth_frame(reference: pycolmap.Reconstruction, origin, yaw_deg: float) -> g
     return geoframe.GeoFrame(tuple(origin), 1.0, R, -R @ centres.mean(axis=0), True)
 
 
-def main(argv=None) -> None:
+def _parser():
+    """The command line."""
     parser = script_parser(__doc__)
     parser.add_argument("workspace", type=Path)
     parser.add_argument(
@@ -55,32 +57,34 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--noise", type=float, default=0.0, help="metres (sigma) of map-reading error per control"
     )
-    args = parser.parse_args(argv)
-    reference = pycolmap.Reconstruction(str(args.reference))
-    truth = truth_frame(reference, args.origin, args.yaw)
-    by_name = {reference.images[i].name: reference.images[i] for i in reference.reg_image_ids()}
-    true_cams = {name: truth.camera(image.cam_from_world()) for name, image in by_name.items()}
+    return parser
 
-    def enu(cam):
-        return geoframe.geodetic_to_enu(
-            cam["latitude"], cam["longitude"], cam["altitude"], truth.origin
-        )
 
+def geodetic(position: np.ndarray, origin) -> dict:
+    """A control point's latitude, longitude, altitude at ``position`` (metres E, N, U)."""
+    lat, lon, alt = geoframe.enu_to_geodetic(position, origin)
+    return {"latitude": float(lat), "longitude": float(lon), "altitude": float(alt)}
+
+
+def enu(cam: dict, origin) -> np.ndarray:
+    """A camera's position in metres east, north, up of ``origin``."""
+    return geoframe.geodetic_to_enu(cam["latitude"], cam["longitude"], cam["altitude"], origin)
+
+
+def control_points(true_cams: dict, args, origin) -> dict:
+    """The ``--controls`` at their true positions, moved by ``--noise``; ``--off`` 100 m east."""
     controls = {n: true_cams[n] for n in args.controls}
     rng = np.random.default_rng(0)
     for name in controls if args.noise else []:  # horizontal error of a position read off a map
-        moved = enu(controls[name]) + [*rng.normal(0, args.noise, 2), 0]
-        lat, lon, alt = geoframe.enu_to_geodetic(moved, truth.origin)
-        controls[name] = {"latitude": float(lat), "longitude": float(lon), "altitude": float(alt)}
+        moved = enu(controls[name], origin) + [*rng.normal(0, args.noise, 2), 0]
+        controls[name] = geodetic(moved, origin)
     if args.off:
-        lat, lon, alt = geoframe.enu_to_geodetic(
-            enu(true_cams[args.off]) + [100, 0, 0], truth.origin
-        )
-        controls[args.off] = {
-            "latitude": float(lat),
-            "longitude": float(lon),
-            "altitude": float(alt),
-        }
+        controls[args.off] = geodetic(enu(true_cams[args.off], origin) + [100, 0, 0], origin)
+    return controls
+
+
+def georeference(workspace: Path, controls: dict) -> dict:
+    """``georeference``'s output for the workspace fitted to ``controls`` (a temporary CSV)."""
     with tempfile.TemporaryDirectory() as tmp:
         control = Path(tmp) / "control.csv"
         control.write_text(
@@ -90,38 +94,51 @@ def main(argv=None) -> None:
                 for n, r in controls.items()
             )
         )
-        out = geo.georeference(args.workspace, control)
-    print(geo.summary_text(out))
+        return geo.georeference(workspace, control)
 
+
+def error_table(cameras: dict, controls: dict, true_cams: dict, origin) -> str:
+    """Position and heading errors of the photos that are not controls, then median and max."""
     rows = []
-    for name, cam in sorted(out["cameras"].items()):
+    for name, cam in sorted(cameras.items()):
         if name in controls or name not in true_cams:
             continue
-        d = enu(cam) - enu(true_cams[name])
+        d = enu(cam, origin) - enu(true_cams[name], origin)
         dh = (cam["heading"] - true_cams[name]["heading"] + 180) % 360 - 180
         rows.append((name, np.linalg.norm(d[:2]), d[2], np.linalg.norm(d), dh))
-    print("\n| photo | horizontal (m) | vertical (m) | 3D (m) | heading (deg) |")
-    print("|---|---|---|---|---|")
-    for name, h, v, p, dh in rows:
-        print(f"| {name} | {h:.3f} | {v:+.3f} | {p:.3f} | {dh:+.2f} |")
-    err = np.array([r[1:] for r in rows])
-    print(
-        f"| median | {np.median(err[:, 0]):.3f} | {np.median(np.abs(err[:, 1])):.3f} | "
-        f"{np.median(err[:, 2]):.3f} | {np.median(np.abs(err[:, 3])):.2f} |"
-    )
-    print(
-        f"| max | {err[:, 0].max():.3f} | {np.abs(err[:, 1]).max():.3f} | {err[:, 2].max():.3f} "
-        f"| {np.abs(err[:, 3]).max():.2f} |"
-    )
-    extent = np.ptp(np.array([enu(c) for c in true_cams.values()]), axis=0)
+    cells = [
+        [name, f"{h:.3f}", f"{v:+.3f}", f"{p:.3f}", f"{dh:+.2f}"] for name, h, v, p, dh in rows
+    ]
+    err = np.abs(np.array([r[1:] for r in rows]))  # horizontal and 3D: already >= 0
+    for label, v in (("median", np.median(err, axis=0)), ("max", err.max(axis=0))):
+        cells.append([label, *(f"{x:.3f}" for x in v[:3]), f"{v[3]:.2f}"])
+    headers = ["photo", "horizontal (m)", "vertical (m)", "3D (m)", "heading (deg)"]
+    return markdown_table(headers, cells)
+
+
+def photo_up_angle(rec: pycolmap.Reconstruction) -> float:
+    """Degrees between the model's photo up and its photos' mean image-up."""
+    rotations = [rec.images[i].cam_from_world().rotation.matrix() for i in rec.reg_image_ids()]
+    mean = -np.mean([R[1] for R in rotations], axis=0)
+    return math.degrees(math.acos(photo_up(rotations) @ mean / np.linalg.norm(mean)))
+
+
+def main(argv=None) -> None:
+    args = _parser().parse_args(argv)
+    reference = pycolmap.Reconstruction(str(args.reference))
+    truth = truth_frame(reference, args.origin, args.yaw)
+    by_name = {reference.images[i].name: reference.images[i] for i in reference.reg_image_ids()}
+    true_cams = {name: truth.camera(image.cam_from_world()) for name, image in by_name.items()}
+    controls = control_points(true_cams, args, truth.origin)
+    out = georeference(args.workspace, controls)
+    print(geo.summary_text(out))
+    print("\n" + error_table(out["cameras"], controls, true_cams, truth.origin))
+    extent = np.ptp(np.array([enu(c, truth.origin) for c in true_cams.values()]), axis=0)
     print(f"\nThe {len(true_cams)} reference cameras span {extent[0]:.1f} x {extent[1]:.1f} m.")
     # how far the photos' up (the vertical of the truth and of the fit) is from their mean image-up
-    for label, rec in (("reference", reference), ("reconstruction", None)):
-        rec = rec or pycolmap.Reconstruction(str(Path(args.workspace) / "sparse" / "0"))
-        rotations = [rec.images[i].cam_from_world().rotation.matrix() for i in rec.reg_image_ids()]
-        mean = -np.mean([R[1] for R in rotations], axis=0)
-        angle = math.degrees(math.acos(photo_up(rotations) @ mean / np.linalg.norm(mean)))
-        print(f"{label}: photo_up is {angle:.1f} deg from the mean image-up")
+    print(f"reference: photo_up is {photo_up_angle(reference):.1f} deg from the mean image-up")
+    rec = pycolmap.Reconstruction(str(Path(args.workspace) / "sparse" / "0"))
+    print(f"reconstruction: photo_up is {photo_up_angle(rec):.1f} deg from the mean image-up")
 
 
 if __name__ == "__main__":

@@ -156,7 +156,8 @@ def plot_wxbs(result: dict, path: Path) -> None:
     )
 
 
-def main(argv=None) -> int:
+def _parser():
+    """The command line."""
     parser = script_parser(__doc__)
     parser.add_argument(
         "--scenes",
@@ -206,58 +207,75 @@ def main(argv=None) -> int:
     parser.add_argument("--cache_dir", type=Path, default=two_view.DEFAULT_CACHE)
     parser.add_argument("--output", type=Path, default=REPO_ROOT / "outputs" / "eval_two_view")
     parser.add_argument("--quiet", "-q", action="store_true")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def publish(out: Path, note: dict, stem: str, result: dict, text: str, plot) -> None:
+    """OUT/stem.json (with the machine), OUT/stem.md and OUT/stem.png; the Markdown printed."""
+    result["machine"] = note
+    tables.write_json(out / f"{stem}.json", result)
+    (out / f"{stem}.md").write_text(text, encoding="utf-8")
+    plot(result, out / f"{stem}.png")
+    print(text)
+
+
+def pose_benchmark(args, specs: list, note: dict) -> None:
+    """The relative pose benchmark, published as OUTPUT/two_view.*."""
+    result = two_view.run_pose_benchmark(
+        args.scenes,
+        specs,
+        args.max_pairs,
+        args.seed,
+        args.min_covisible,
+        args.max_num_features,
+        estimator=args.estimator,
+        reference_source=args.reference,
+        cache_dir=args.cache_dir,
+    )
+    publish(
+        args.output,
+        note,
+        "two_view",
+        result,
+        f"### Relative pose AUC ({sum(1 for _ in result['pairs'])} pairs; {note['date']}, "
+        f"{note['torch_device']}, {note['cpu_count']} CPUs)\n\n{pose_table(result)}\n\n"
+        f"Per scene:\n\n{pose_scene_table(result)}\n",
+        plot_pose,
+    )
+
+
+def wxbs_benchmark(args, specs: list, note: dict) -> None:
+    """The WxBS benchmark, published as OUTPUT/wxbs.*."""
+    result = two_view.run_wxbs_benchmark(
+        specs,
+        max_pairs=args.wxbs_max_pairs,
+        geometry=args.wxbs_geometry,
+        max_num_features=args.max_num_features,
+        cache_dir=args.cache_dir,
+    )
+    publish(
+        args.output,
+        note,
+        "wxbs",
+        result,
+        f"### WxBS ({result['config']['num_pairs']} pairs, {args.wxbs_geometry} "
+        f"by MAGSAC++; {note['date']})\n\n{wxbs_table(result)}\n\n"
+        f"Per category (share @5 px):\n\n{wxbs_category_table(result)}\n",
+        plot_wxbs,
+    )
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
     set_verbosity(False, args.quiet)
     extra = {"device": args.device, "weights": args.weights}
     specs = matcher_specs.parse_specs(args.matchers, extra)
-    out = args.output
     note = tables.machine_note()
-
-    def publish(stem: str, result: dict, text: str, plot) -> None:
-        """OUT/stem.json (with the machine), OUT/stem.md and OUT/stem.png; the Markdown printed."""
-        result["machine"] = note
-        tables.write_json(out / f"{stem}.json", result)
-        (out / f"{stem}.md").write_text(text, encoding="utf-8")
-        plot(result, out / f"{stem}.png")
-        print(text)
-
     if not args.no_pose:
-        result = two_view.run_pose_benchmark(
-            args.scenes,
-            specs,
-            args.max_pairs,
-            args.seed,
-            args.min_covisible,
-            args.max_num_features,
-            estimator=args.estimator,
-            reference_source=args.reference,
-            cache_dir=args.cache_dir,
-        )
-        publish(
-            "two_view",
-            result,
-            f"### Relative pose AUC ({sum(1 for _ in result['pairs'])} pairs; {note['date']}, "
-            f"{note['torch_device']}, {note['cpu_count']} CPUs)\n\n{pose_table(result)}\n\n"
-            f"Per scene:\n\n{pose_scene_table(result)}\n",
-            plot_pose,
-        )
+        pose_benchmark(args, specs, note)
     if not args.no_wxbs:
-        result = two_view.run_wxbs_benchmark(
-            specs,
-            max_pairs=args.wxbs_max_pairs,
-            geometry=args.wxbs_geometry,
-            max_num_features=args.max_num_features,
-            cache_dir=args.cache_dir,
-        )
-        publish(
-            "wxbs",
-            result,
-            f"### WxBS ({result['config']['num_pairs']} pairs, {args.wxbs_geometry} "
-            f"by MAGSAC++; {note['date']})\n\n{wxbs_table(result)}\n\n"
-            f"Per category (share @5 px):\n\n{wxbs_category_table(result)}\n",
-            plot_wxbs,
-        )
-    print(f"Results in {out}")
+        wxbs_benchmark(args, specs, note)
+    print(f"Results in {args.output}")
     return 0
 
 

@@ -23,6 +23,7 @@ import os
 import re
 import shutil
 import time
+from functools import partial
 from itertools import combinations
 from pathlib import Path
 
@@ -470,6 +471,55 @@ def seed_runs_dir(scene_dir: Path, seed: int | None) -> Path:
     return Path(scene_dir) / "runs" / (f"seed{seed}" if seed is not None else "")
 
 
+def _set_aside(workspace: Path) -> Path:
+    """Move a finished run to WORKSPACE.remap, so its database outlives the emptied workspace."""
+    previous = workspace.with_name(workspace.name + ".remap")
+    shutil.rmtree(previous, ignore_errors=True)
+    workspace.rename(previous)
+    return previous
+
+
+def _own_database(previous: Path) -> tuple[Path, bool, dict]:
+    """A set-aside run's database to map again, as ``_reusable`` gives one: all of it reused."""
+    timings = json.loads((previous / "eval.json").read_text()).get("timings", {})
+    return previous / "database.db", False, timings
+
+
+def _count_reused(info: dict, reuse: Path, source_timings: dict, features_only: bool) -> None:
+    """Add the reused stages' times to the run's, as if it had run them (not the mapping)."""
+    reused = {
+        k: v
+        for k, v in source_timings.items()
+        if not k.endswith("map") and (k == "extract" or not features_only)
+    }
+    info["timings"] = {
+        **info["timings"],
+        **{k: v + info["timings"].get(k, 0.0) for k, v in reused.items()},
+    }
+    info["wall_time"] += sum(reused.values())
+    info["reused"] = {"database": str(reuse), "stages": sorted(reused)}
+
+
+def _load_scene(
+    scene_dir: Path, seed: int | None
+) -> tuple[dict, list, pycolmap.Reconstruction | None]:
+    """The scene's record to fill (no methods yet), its manifest images and reference model."""
+    one = json.loads((scene_dir / "manifest.json").read_text(encoding="utf-8"))
+    images = one["images"]
+    ref_path = (one.get("reference") or {}).get("path")
+    reference = pycolmap.Reconstruction(ref_path) if ref_path and Path(ref_path).is_dir() else None
+    out = {
+        "scene": one.get("scene", scene_dir.name),
+        "subset": one.get("subset", "all"),
+        "scene_dir": str(scene_dir),
+        "reference": ref_path,
+        "seed": seed,
+        "eras": era_counts(images),
+        "methods": {},
+    }
+    return out, images, reference
+
+
 def evaluate_scene(
     scene_dir: Path,
     methods: list[str],
@@ -489,20 +539,12 @@ def evaluate_scene(
     seed whose finished databases are mapped again; ``remap``: a finished run maps its own database
     again, after a change of the mapping stage or of ``threads``; pycolmap's runs too)."""
     scene_dir = Path(scene_dir)
-    one = json.loads((scene_dir / "manifest.json").read_text(encoding="utf-8"))
-    images = one["images"]
-    ref_path = (one.get("reference") or {}).get("path")
-    reference = pycolmap.Reconstruction(ref_path) if ref_path and Path(ref_path).is_dir() else None
+    out, images, reference = _load_scene(scene_dir, seed)
     runs_dir = Path(runs_dir) if runs_dir else seed_runs_dir(scene_dir, seed)
-    out = {
-        "scene": one.get("scene", scene_dir.name),
-        "subset": one.get("subset", "all"),
-        "scene_dir": str(scene_dir),
-        "reference": ref_path,
-        "seed": seed,
-        "eras": era_counts(images),
-        "methods": {},
-    }
+    sources = [runs_dir] + ([Path(databases_from)] if databases_from else [])
+    run = partial(
+        run_method, extra_conf=extra_conf, seed=seed, feature_conf=feature_conf, threads=threads
+    )
     for method in methods:
         workspace = runs_dir / method_slug(method)
         done = workspace / "eval.json"
@@ -511,47 +553,20 @@ def evaluate_scene(
             out["methods"][method] = json.loads(done.read_text())
             continue
         logger.info("%s [%s]: %s", out["scene"], out["subset"], method)
-        if own:  # set aside: the workspace is emptied before the run
-            previous = workspace.with_name(workspace.name + ".remap")
-            shutil.rmtree(previous, ignore_errors=True)
-            workspace.rename(previous)
+        previous = _set_aside(workspace) if own else None  # the workspace is emptied before the run
         try:
-            sources = [Path(databases_from)] if databases_from else []
-            if own:
-                reuse, features_only = previous / "database.db", False
-                source_timings = json.loads((previous / "eval.json").read_text()).get("timings", {})
-            else:
-                reuse, features_only, source_timings = _reusable(
-                    [runs_dir, *sources], methods, method
-                )
-            largest, info = run_method(
-                scene_dir,
-                method,
-                workspace,
-                extra_conf,
-                seed,
-                feature_conf,
-                reuse,
-                features_only,
-                threads,
+            reuse, features_only, source_timings = (
+                _own_database(previous) if own else _reusable(sources, methods, method)
+            )
+            largest, info = run(
+                scene_dir, method, workspace, database=reuse, features_only=features_only
             )
         except Exception as err:  # one failing method must not lose the others' results
             logger.error("%s [%s] %s failed: %r", out["scene"], out["subset"], method, err)
             out["methods"][method] = {"error": repr(err)}
             continue
-        # the stages reused count in this method's time, as if it had run them
         if reuse is not None:
-            reused = {
-                k: v
-                for k, v in source_timings.items()
-                if not k.endswith("map") and (k == "extract" or not features_only)
-            }
-            info["timings"] = {
-                **info["timings"],
-                **{k: v + info["timings"].get(k, 0.0) for k, v in reused.items()},
-            }
-            info["wall_time"] += sum(reused.values())
-            info["reused"] = {"database": str(reuse), "stages": sorted(reused)}
+            _count_reused(info, reuse, source_timings, features_only)
         if own:
             shutil.rmtree(previous)
             info["reused"]["database"] = "the same run's, mapped again (--remap)"

@@ -29,7 +29,7 @@ from colmap_guided.matchers.base import ImageData, scoped_torch_threads
 from colmap_guided.paths import shared_data_dir
 
 from . import matcher_specs, metrics
-from .reference import RefScene, load_reference
+from .reference import TWO_VIEW_SCENES, RefScene, load_reference
 
 ROTATION_BINS = (0.0, 15.0, 30.0, 60.0, 180.0)
 DEFAULT_CACHE = paths.cache_dir("evaluation")
@@ -240,28 +240,10 @@ def summarize_pose(records: list[dict], thresholds=metrics.AUC_THRESHOLDS) -> di
     }
 
 
-def run_pose_benchmark(
-    scenes=(
-        "lund_door_gtsfm",
-        "train/strecha_castle",
-        "train/strecha_entry_P10",
-        "train/instantngp_fox",
-    ),
-    specs=matcher_specs.DEFAULT_TWO_VIEW_SPECS,
-    max_pairs: int | None = 10,
-    seed: int = 0,
-    min_covisible: int = 50,
-    max_num_features: int = 2000,
-    threshold_px: float = 1.0,
-    estimator: str = "cv2",
-    reference_source: str = "auto",
-    cache_dir: Path = DEFAULT_CACHE,
-    extra_conf: dict | None = None,
-    data_dir: Path | None = None,
-) -> dict:
-    """The Table 2 protocol on the given scenes; returns {'config', 'pairs', 'results': label ->
-    ...}."""
-    specs = _as_specs(specs, extra_conf)
+def _pose_inputs(
+    scenes, max_pairs, seed, min_covisible, max_num_features, reference_source, cache_dir, data_dir
+) -> tuple[dict, list[dict], dict]:
+    """Each scene's reference, its sampled pairs with features of both images, and the features."""
     refs, all_pairs, images = {}, [], {}
     for key in scenes:
         ref = load_reference(key, reference_source, data_dir)
@@ -277,40 +259,74 @@ def run_pose_benchmark(
         )
         images[key] = feats
         all_pairs += [p for p in pairs if p["a"] in feats and p["b"] in feats]
+    return refs, all_pairs, images
+
+
+def _pose_record(ref: RefScene, images, pair, matches, time_s, threshold_px, estimator) -> dict:
+    """One variant's record of one pair: the pair, its time and ``evaluate_pose_pair``'s errors."""
+    a, b = images[pair["a"]], images[pair["b"]]
+    r = evaluate_pose_pair(ref, a, b, matches, threshold_px, estimator)
+    return {"scene": pair["scene"], "a": pair["a"], "b": pair["b"], "time": time_s, **r}
+
+
+def _pose_result(spec, records: list[dict], scenes) -> dict:
+    """One variant's summary, per scene and overall, with its per-pair records (logged)."""
+    result = {
+        "matcher": spec.name,
+        "conf": spec.conf,
+        "summary": summarize_pose(records),
+        "per_scene": {
+            key: summarize_pose([r for r in records if r["scene"] == key]) for key in scenes
+        },
+        "pairs": records,
+    }
+    s = result["summary"]
+    logger.info(
+        "%-28s AUC@5/10/20 %.1f / %.1f / %.1f  (%d pairs)", spec.label, *s["auc"], s["num_pairs"]
+    )
+    return result
+
+
+def run_pose_benchmark(
+    scenes=TWO_VIEW_SCENES,
+    specs=matcher_specs.DEFAULT_TWO_VIEW_SPECS,
+    max_pairs: int | None = 10,
+    seed: int = 0,
+    min_covisible: int = 50,
+    max_num_features: int = 2000,
+    threshold_px: float = 1.0,
+    estimator: str = "cv2",
+    reference_source: str = "auto",
+    cache_dir: Path = DEFAULT_CACHE,
+    extra_conf: dict | None = None,
+    data_dir: Path | None = None,
+) -> dict:
+    """The Table 2 protocol on the given scenes; returns {'config', 'pairs', 'results': label ->
+    ...}."""
+    specs = _as_specs(specs, extra_conf)
+    refs, all_pairs, images = _pose_inputs(
+        scenes,
+        max_pairs,
+        seed,
+        min_covisible,
+        max_num_features,
+        reference_source,
+        cache_dir,
+        data_dir,
+    )
+    by_scene = {key: [p for p in all_pairs if p["scene"] == key] for key in scenes}
     per_key = {
-        key: run_specs(
-            specs, [(p["a"], p["b"]) for p in all_pairs if p["scene"] == key], images[key]
-        )
+        key: run_specs(specs, [(p["a"], p["b"]) for p in by_scene[key]], images[key])
         for key in scenes
     }
     results = {}
     for spec in specs:
-        records = []
-        for key in scenes:
-            pairs = [p for p in all_pairs if p["scene"] == key]
-            matches, times = per_key[key][spec.label]
-            for p, m, t in zip(pairs, matches, times):
-                r = evaluate_pose_pair(
-                    refs[key], images[key][p["a"]], images[key][p["b"]], m, threshold_px, estimator
-                )
-                records.append({"scene": key, "a": p["a"], "b": p["b"], "time": t, **r})
-        per_scene = {
-            key: summarize_pose([r for r in records if r["scene"] == key]) for key in scenes
-        }
-        results[spec.label] = {
-            "matcher": spec.name,
-            "conf": spec.conf,
-            "summary": summarize_pose(records),
-            "per_scene": per_scene,
-            "pairs": records,
-        }
-        s = results[spec.label]["summary"]
-        logger.info(
-            "%-28s AUC@5/10/20 %.1f / %.1f / %.1f  (%d pairs)",
-            spec.label,
-            *s["auc"],
-            s["num_pairs"],
-        )
+        records = [
+            _pose_record(refs[key], images[key], p, m, t, threshold_px, estimator)
+            for key in scenes
+            for p, m, t in zip(by_scene[key], *per_key[key][spec.label])
+        ]
+        results[spec.label] = _pose_result(spec, records, scenes)
     config = {
         "scenes": list(scenes),
         "max_pairs": max_pairs,
