@@ -234,12 +234,8 @@ def _enu(controls: list[Control], origin) -> np.ndarray:
     ).reshape(-1, 3)
 
 
-def fit(
-    controls: list[Control], centres: np.ndarray, up: np.ndarray | None, conf: dict
-) -> tuple[GeoFrame, dict]:
-    """The GeoFrame of the controls (camera ``centres`` in model coordinates, same order), robust
-    to controls that disagree; and the fit's account: each control's residuals, whether it was
-    used, the threshold, where the up direction came from."""
+def _check_fit_inputs(controls: list[Control], up: np.ndarray | None) -> None:
+    """One-line ValueError for fewer than 3 controls or photos without a common up."""
     if len(controls) < 3:
         raise ValueError(
             f"{len(controls)} photo(s) with a known position; at least 3 (not all at one spot) "
@@ -251,28 +247,32 @@ def fit(
             "The photos' up directions disagree (scans rotated by 90 degrees?); rotate them "
             "upright, reconstruct again, then georeference."
         )
-    origin = _origin(controls)
-    enu = _enu(controls, origin)
-    has_alt = np.array([c.altitude is not None for c in controls])
-    horizontal = enu[:, :2]
-    spread = float(np.median(np.linalg.norm(horizontal - np.median(horizontal, 0), axis=1)))
-    threshold = max(conf["min_max_error"], conf["max_error_share"] * spread)
-    pairs = list(combinations(range(len(controls)), 2))
-    if len(pairs) > conf["max_pairs"]:
+
+
+def _control_pairs(count: int, max_pairs: int) -> list[tuple[int, int]]:
+    """Every pair of controls, or a fixed random subset of ``max_pairs`` of them."""
+    pairs = list(combinations(range(count), 2))
+    if len(pairs) > max_pairs:
         rng = np.random.default_rng(0)
-        pairs = [pairs[i] for i in rng.choice(len(pairs), conf["max_pairs"], replace=False)]
+        pairs = [pairs[i] for i in rng.choice(len(pairs), max_pairs, replace=False)]
+    return pairs
 
-    def horizontal_residuals(frame) -> np.ndarray:
-        s, R, t = frame
-        return np.linalg.norm((s * centres @ R.T + t - enu)[:, :2], axis=1)
 
+def _horizontal_residuals(frame, centres: np.ndarray, enu: np.ndarray) -> np.ndarray:
+    """Horizontal distances (m) from each control to its camera placed by ``frame`` (s, R, t)."""
+    s, R, t = frame
+    return np.linalg.norm((s * centres @ R.T + t - enu)[:, :2], axis=1)
+
+
+def _best_pair_fit(centres, enu, has_alt, up, conf: dict, threshold: float):
+    """The upright fit through a pair of controls that most controls agree with (MSAC)."""
     best, best_score = None, np.inf
-    for i, j in pairs:
-        if np.linalg.norm(horizontal[i] - horizontal[j]) < 1e-3:
+    for i, j in _control_pairs(len(enu), conf["max_pairs"]):
+        if np.linalg.norm(enu[i, :2] - enu[j, :2]) < 1e-3:
             continue
         sample = np.array([i, j])
         guess = fit_upright(centres[sample], enu[sample], has_alt[sample], up, conf["eye_height"])
-        score = np.minimum(horizontal_residuals(guess), threshold).sum()  # MSAC
+        score = np.minimum(_horizontal_residuals(guess, centres, enu), threshold).sum()
         if score < best_score:
             best, best_score = guess, score
     if best is None:
@@ -280,16 +280,53 @@ def fit(
             "The controls are all at one spot; give at least 3 photos taken from places "
             "metres apart."
         )
-    used = horizontal_residuals(best) < threshold
+    return best
+
+
+def _account(controls: list[Control], error: np.ndarray, used, threshold: float, full: bool):
+    """The fit's account: threshold, up's source, each control's residuals and use, their RMS."""
+    rows = [
+        {
+            **dataclasses.asdict(c),
+            "residual_m": round(float(np.linalg.norm(e[:2])), 3),
+            **({"vertical_residual_m": round(float(e[2]), 3)} if c.altitude is not None else {}),
+            "used": bool(u),
+        }
+        for c, e, u in zip(controls, error, used)
+    ]
+    rms = float(np.sqrt(np.mean([c["residual_m"] ** 2 for c in rows if c["used"]])))
+    return {
+        "threshold_m": round(threshold, 3),
+        "up_from": "controls" if full else "photos",
+        "controls": rows,
+        "rms_m": round(rms, 3),
+    }
+
+
+def fit(
+    controls: list[Control], centres: np.ndarray, up: np.ndarray | None, conf: dict
+) -> tuple[GeoFrame, dict]:
+    """The GeoFrame of the controls (camera ``centres`` in model coordinates, same order), robust
+    to controls that disagree; and the fit's account: each control's residuals, whether it was
+    used, the threshold, where the up direction came from."""
+    _check_fit_inputs(controls, up)
+    enu = _enu(controls, _origin(controls))
+    has_alt = np.array([c.altitude is not None for c in controls])
+    horizontal = enu[:, :2]
+    spread = float(np.median(np.linalg.norm(horizontal - np.median(horizontal, 0), axis=1)))
+    threshold = max(conf["min_max_error"], conf["max_error_share"] * spread)
+    residuals = _horizontal_residuals(
+        _best_pair_fit(centres, enu, has_alt, up, conf, threshold), centres, enu
+    )
+    used = residuals < threshold
     if used.sum() < 3:
         raise ValueError(
             f"Only {used.sum()} of the {len(controls)} controls agree within {threshold:.1f} m "
-            f"(residuals: {_listing(controls, horizontal_residuals(best))}); 3 must: check their "
+            f"(residuals: {_listing(controls, residuals)}); 3 must: check their "
             "names and positions, or add controls."
         )
     # the final fit in the used controls' own frame
-    kept = [c for c, u in zip(controls, used) if u]
-    origin = _origin(kept)
+    origin = _origin([c for c, u in zip(controls, used) if u])
     enu = _enu(controls, origin)
     full = bool(has_alt[used].all() and used.sum() >= 4) and not _collinear(
         enu[used], conf["collinear_ratio"]
@@ -299,27 +336,7 @@ def fit(
     else:
         s, R, t = fit_upright(centres[used], enu[used], has_alt[used], up, conf["eye_height"])
     frame = GeoFrame(origin, s, R, t, bool(has_alt[used].any()))
-    error = frame.to_enu(centres) - enu
-    account = {
-        "threshold_m": round(threshold, 3),
-        "up_from": "controls" if full else "photos",
-        "controls": [
-            {
-                **dataclasses.asdict(c),
-                "residual_m": round(float(np.linalg.norm(e[:2])), 3),
-                **(
-                    {"vertical_residual_m": round(float(e[2]), 3)} if c.altitude is not None else {}
-                ),
-                "used": bool(u),
-            }
-            for c, e, u in zip(controls, error, used)
-        ],
-    }
-    account["rms_m"] = round(
-        float(np.sqrt(np.mean([c["residual_m"] ** 2 for c in account["controls"] if c["used"]]))),
-        3,
-    )
-    return frame, account
+    return frame, _account(controls, frame.to_enu(centres) - enu, used, threshold, full)
 
 
 def _listing(controls: list[Control], residuals) -> str:

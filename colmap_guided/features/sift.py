@@ -221,6 +221,100 @@ def _sift_pixels(image_path: Path, names: list[str], conf: dict) -> int | None:
     return max(pixels) if pixels else None
 
 
+def _database_cameras(database_path: Path) -> tuple[dict[str, int], dict[str, int]]:
+    """Camera ids of the images already extracted and of every image row, by name."""
+    if not database_path.exists():
+        return {}, {}
+    with open_database(database_path) as db:
+        done = {
+            name: image.camera_id
+            for name, image in dbio.images_with_keypoints(db, descriptors=True).items()
+        }
+        # every image row, extracted or not (a killed run leaves rows import_new wrote)
+        rows = {name: image.camera_id for name, image in dbio.images_by_name(db).items()}
+    return done, rows
+
+
+def _camera_keys(
+    image_path: Path, todo: list[str], rows: dict[str, int], mode: str
+) -> tuple[dict[str, object], dict[object, int]]:
+    """Each photo's camera key (None: a camera of its own), and the camera id of each known key."""
+    if mode == "per_image":
+        return dict.fromkeys(todo), {}
+    keys = {name: camera_key(image_path, name, mode) for name in todo}
+    known = {}
+    if any(key is not None for key in keys.values()):
+        # COLMAP's reader does not share a camera with a row it did not write
+        for name, camera_id in rows.items():
+            known.setdefault(camera_key(image_path, name, mode), camera_id)
+        known.pop(None, None)
+    return keys, known
+
+
+def _joins_chunk(name: str, camera_id: int | None, same: bool, prepared, keys, known) -> bool:
+    """Whether ``name`` is extracted like the chunk: the same way, onto the same kind of camera."""
+    if prepared[name] != same:
+        return False
+    key = keys[name]
+    if camera_id is not None:  # onto a camera already in the database
+        return key is not None and known.get(key) == camera_id
+    return key is None or key not in known  # COLMAP makes (and shares) the cameras itself
+
+
+def _chunks(todo: list[str], size: int, prepared: dict[str, bool], keys, known):
+    """Runs of at most ``size`` photos and their camera id; ``known`` is read afresh per run."""
+    i = 0
+    while i < len(todo):
+        camera_id, same = known.get(keys[todo[i]]), prepared[todo[i]]
+        j = i + 1
+        while j < min(len(todo), i + size) and _joins_chunk(
+            todo[j], camera_id, same, prepared, keys, known
+        ):
+            j += 1
+        yield todo[i:j], camera_id
+        i = j
+
+
+def _remember_cameras(database_path: Path, run: list[str], keys, known) -> None:
+    """Add the cameras COLMAP made for the keyed photos of ``run`` to ``known``."""
+    if not any(keys[name] is not None for name in run):
+        return
+    with open_database(database_path) as db:
+        for name in run:
+            image = dbio.read_image(db, name) if keys[name] is not None else None
+            if image is not None:
+                known.setdefault(keys[name], image.camera_id)
+
+
+def _extract_todo(
+    database_path: Path, image_path: Path, todo: list[str], rows: dict[str, int], conf: dict
+) -> dict[str, bool]:
+    """Extract ``todo`` chunk by chunk; whether each photo got SIFT on a prepared grey copy."""
+    keys, known = _camera_keys(image_path, todo, rows, conf["camera_mode"])
+    # A few images per pycolmap call (one per thread, twice): the bar moves, and nothing but
+    # pycolmap touches the database meanwhile (COLMAP opens it without a busy timeout).
+    options = extraction_options(conf, _sift_pixels(image_path, todo, conf))
+    prepared = {name: bool(prepared_grey(image_path / name, conf)[1]) for name in todo}
+    if any(prepared.values()):
+        logger.info(
+            "%d photo(s) get SIFT on a contrast-stretched "
+            "and/or smoothed grey copy (archival prints).",
+            sum(prepared.values()),
+        )
+    size = max(2, 2 * options.num_threads)
+    bar_options = {"desc": "extract", "unit": "img", "disable": None, "dynamic_ncols": True}
+    with tqdm(total=len(todo), leave=False, **bar_options) as bar:
+        for run, camera_id in _chunks(todo, size, prepared, keys, known):
+            # a chunk is extracted one way: COLMAP's, or on prepared grey images
+            (_extract_prepared if prepared[run[0]] else _extract_chunk)(
+                database_path, image_path, run, conf, camera_id, options
+            )
+            if camera_id is None:
+                _remember_cameras(database_path, run, keys, known)
+            bar.update(len(run))
+    return prepared
+
+
 def extract(
     database_path: Path, image_path: Path, image_names: list[str], conf: dict, check: bool = True
 ) -> dict:
@@ -228,16 +322,7 @@ def extract(
     Photos that COLMAP would have put on a camera already in the database (same folder in
     ``per_folder``, same EXIF camera and size in ``auto``, all in ``single``) are extracted onto
     that camera, so a rerun after a kill gives the same cameras as one uninterrupted run."""
-    done: dict[str, int] = {}
-    # every image row, extracted or not (a killed run leaves rows import_new wrote)
-    rows: dict[str, int] = {}
-    if database_path.exists():
-        with open_database(database_path) as db:
-            done = {
-                name: image.camera_id
-                for name, image in dbio.images_with_keypoints(db, descriptors=True).items()
-            }
-            rows = {name: image.camera_id for name, image in dbio.images_by_name(db).items()}
+    done, rows = _database_cameras(database_path)
     todo = [name for name in image_names if name not in done]
     skipped: dict[str, str] = {}
     if todo and check:
@@ -254,77 +339,13 @@ def extract(
         logger.info(
             "Extracting SIFT for %d images (%d already in the database)", len(todo), len(done)
         )
-        mode = conf["camera_mode"]
-        keys = (
-            {name: camera_key(image_path, name, mode) for name in todo}
-            if mode != "per_image"
-            else dict.fromkeys(todo)
-        )
-        known = {}
-        if any(key is not None for key in keys.values()):
-            # COLMAP's reader does not share a camera with a row it did not write
-            for name, camera_id in rows.items():
-                known.setdefault(camera_key(image_path, name, mode), camera_id)
-            known.pop(None, None)
-        # A few images per pycolmap call (one per thread, twice): the bar moves, and nothing but
-        # pycolmap touches the database meanwhile (COLMAP opens it without a busy timeout).
-        options = extraction_options(conf, _sift_pixels(image_path, todo, conf))
-        chunk = max(2, 2 * options.num_threads)
-        prepared = {name: bool(prepared_grey(image_path / name, conf)[1]) for name in todo}
-        if any(prepared.values()):
-            logger.info(
-                "%d photo(s) get SIFT on a contrast-stretched "
-                "and/or smoothed grey copy (archival prints).",
-                sum(prepared.values()),
-            )
-        with tqdm(
-            total=len(todo),
-            desc="extract",
-            unit="img",
-            disable=None,
-            dynamic_ncols=True,
-            leave=False,
-        ) as bar:
-            i = 0
-            while i < len(todo):
-                camera_id = known.get(keys[todo[i]])
-                j = i + 1
-                # a chunk is extracted one way: COLMAP's, or on prepared grey images
-                same = prepared[todo[i]]
-                if camera_id is not None:  # onto a camera already in the database
-                    while (
-                        j < min(len(todo), i + chunk)
-                        and prepared[todo[j]] == same
-                        and keys[todo[j]] is not None
-                        and known.get(keys[todo[j]]) == camera_id
-                    ):
-                        j += 1
-                else:  # COLMAP makes (and shares) the cameras itself
-                    while (
-                        j < min(len(todo), i + chunk)
-                        and prepared[todo[j]] == same
-                        and not (keys[todo[j]] is not None and keys[todo[j]] in known)
-                    ):
-                        j += 1
-                run = todo[i:j]
-                (_extract_prepared if same else _extract_chunk)(
-                    database_path, image_path, run, conf, camera_id, options
-                )
-                if camera_id is None and any(keys[name] is not None for name in run):
-                    with open_database(database_path) as db:
-                        for name in run:
-                            image = dbio.read_image(db, name) if keys[name] is not None else None
-                            if image is not None:
-                                known.setdefault(keys[name], image.camera_id)
-                bar.update(len(run))
-                i = j
+        prepared = _extract_todo(database_path, image_path, todo, rows, conf)
     with open_database(database_path) as db:
         present = set(dbio.images_with_keypoints(db))
     skip_unread(todo, present, skipped)
-    prepared = sorted(name for name in todo if name in present and prepared.get(name))
     return {
         "num_extracted": sum(name in present for name in todo),
-        "prepared": prepared,
+        "prepared": sorted(name for name in todo if name in present and prepared.get(name)),
         "skipped": skipped,
         "time": time.time() - start,
     }

@@ -60,6 +60,7 @@ class SceneInfo:
 
 
 _UP = np.array([0.0, 0.0, 1.0])
+_STONE = (0.7, 0.66, 0.6)
 
 
 def _wall(p0, p1, height: float, tex: Texture, shade: float, gable: float | None = None) -> Polygon:
@@ -103,113 +104,144 @@ def _flat_top(
     )
 
 
-def _box_walls(
-    x0: float, y0: float, x1: float, y1: float, height: float, make_tex, shade_of
-) -> list[Polygon]:
-    """The four walls of an axis-aligned box standing on the ground."""
+def _box_walls(box: tuple, height: float, make_tex, shade_of, gables=(None,) * 4) -> list[Polygon]:
+    """The four walls (south, east, north, west) of an axis-aligned box (x0, y0, x1, y1) standing
+    on the ground, each with an apex at its ``gables`` height if given."""
+    x0, y0, x1, y1 = box
     corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
     walls = []
-    for p0, p1 in zip(corners, corners[1:] + corners[:1]):
+    for p0, p1, gable in zip(corners, corners[1:] + corners[:1], gables):
         length = math.dist(p0, p1)
         normal = np.array([p1[1] - p0[1], p0[0] - p1[0], 0.0]) / length
-        walls.append(_wall(p0, p1, height, make_tex(length, height, height), shade_of(normal)))
+        tex = make_tex(length, gable or height, height)
+        walls.append(_wall(p0, p1, height, tex, shade_of(normal), gable))
     return walls
+
+
+class _Materials:
+    """The sun's shading and the textures of one scene, drawn from ``rng`` in the order built."""
+
+    def __init__(self, rng: np.random.Generator, ppm: float, repeated: bool):
+        self.rng, self.ppm = rng, ppm
+        sun_az = rng.uniform(0, 2 * np.pi)
+        self.sun = np.array([np.cos(sun_az) * 0.75, np.sin(sun_az) * 0.75, 0.66])
+        self.motif = (
+            textures.window_motif(np.random.default_rng(rng.integers(2**32)), ppm)
+            if repeated
+            else None
+        )
+        self.up_shade = self.shade_of(_UP)
+
+    def shade_of(self, normal: np.ndarray) -> float:
+        """Brightness of a face with this outward normal."""
+        return float(0.55 + 0.5 * max(0.0, normal @ self.sun) + 0.1 * normal[2])
+
+    def facade(self, width: float, height: float, eave: float) -> Texture:
+        """A building facade (windows up to the eave)."""
+        return make_texture(
+            textures.facade(self.rng, width, height, eave, self.ppm, self.motif), self.ppm
+        )
+
+    def roof(self, width: float, height: float) -> Texture:
+        """Roof tiles."""
+        return make_texture(textures.roof(self.rng, width, height, self.ppm), self.ppm)
+
+    def stone_block(self, width: float, height: float, _eave: float) -> Texture:
+        """Masonry of a stone block's side."""
+        image = textures.masonry(
+            self.rng, int(height * self.ppm), int(width * self.ppm), self.ppm, (0.5, 0.3), _STONE
+        )
+        return make_texture(image, self.ppm)
+
+    def plaster(self, rows: int, cols: int, colour, stains: float) -> Texture:
+        """Plaster (or gravel) of a flat top."""
+        image = textures.plaster(self.rng, rows, cols, self.ppm, colour, stains=stains)
+        return make_texture(image, self.ppm)
+
+
+def _hall(m: _Materials) -> list[Polygon]:
+    """Hall: 12 x 8 m, eaves at 6.5 m, ridge along x at 9.5 m, gables east and west."""
+    hx, hy, eave, ridge = 6.0, 4.0, 6.5, 9.5
+    walls = _box_walls((-hx, -hy, hx, hy), eave, m.facade, m.shade_of, (None, ridge, None, ridge))
+    south = _roof_face(
+        (-hx, -hy, eave), (hx, -hy, eave), (hx, 0, ridge), m.roof(12, 5), m.shade_of, False
+    )
+    north = _roof_face(
+        (hx, hy, eave), (-hx, hy, eave), (-hx, 0, ridge), m.roof(12, 5), m.shade_of, False
+    )
+    return [*walls, south, north]
+
+
+def _tower(m: _Materials) -> list[Polygon]:
+    """Tower through the west gable: 4 x 4 m, 11 m, pyramid roof up to 14 m."""
+    tx0, ty0, tx1, ty1, th = -9.0, -2.0, -5.0, 2.0, 11.0
+    polys = _box_walls((tx0, ty0, tx1, ty1), th, m.facade, m.shade_of)
+    apex = ((tx0 + tx1) / 2, (ty0 + ty1) / 2, th + 3.0)
+    ring = [(tx0, ty0, th), (tx1, ty0, th), (tx1, ty1, th), (tx0, ty1, th)]
+    for p0, p1 in zip(ring, ring[1:] + ring[:1]):
+        polys.append(_roof_face(p0, p1, apex, m.roof(4, 3.7), m.shade_of, True))
+    return polys
+
+
+def _flat_topped_box(
+    m: _Materials, box: tuple, height: float, walls, top_shape: tuple, top_colour, stains: float
+) -> list[Polygon]:
+    """An axis-aligned box (x0, y0, x1, y1) with ``walls`` textures and a flat plaster top."""
+    polys = _box_walls(box, height, walls, m.shade_of)
+    top = m.plaster(*top_shape, top_colour, stains)
+    return [*polys, _flat_top(*box, height, top, m.up_shade)]
+
+
+def _stone_blocks(m: _Materials) -> list[Polygon]:
+    """Three stone blocks at random on the plaza."""
+    polys = []
+    for _ in range(3):
+        ang, dist = m.rng.uniform(0, 2 * np.pi), m.rng.uniform(10.5, 12.5)
+        cx, cy = dist * np.cos(ang), dist * np.sin(ang)
+        s, bh = m.rng.uniform(0.5, 0.8), m.rng.uniform(0.8, 1.8)
+        side = int(2 * s * m.ppm)
+        box = (cx - s, cy - s, cx + s, cy + s)
+        polys += _flat_topped_box(m, box, bh, m.stone_block, (side, side), _STONE, 0.4)
+    return polys
+
+
+def _ground(m: _Materials, size: float, tile: float) -> list[Polygon]:
+    """The ground: a ``size`` square in ``tile`` squares (each picks its own mip level)."""
+    macro, detail = textures.ground(m.rng, size, plaza_radius=14.0)
+    macro_tex = make_texture(macro, 1024 / size)
+    detail_tex = make_texture(detail, 2048 / 24.0, wrap=True)
+    tiles = []
+    for x in np.arange(-size / 2, size / 2, tile):
+        for y in np.arange(-size / 2, size / 2, tile):
+            ground = _flat_top(-size / 2, -size / 2, size / 2, size / 2, 0.0, macro_tex, m.up_shade)
+            a, b = x + size / 2, size / 2 - y - tile
+            ground.vertices = np.array([(a, b), (a + tile, b), (a + tile, b + tile), (a, b + tile)])
+            ground.detail = detail_tex
+            tiles.append(ground)
+    return tiles
+
+
+def _tree_line(m: _Materials, half: float) -> list[Polygon]:
+    """A 12 m tree line around the square ``half`` metres from the centre, facing inwards."""
+    edge = [(-half, -half), (-half, half), (half, half), (half, -half)]  # clockwise
+    return [
+        _wall(p0, p1, 12.0, make_texture(textures.treeline(m.rng, 2 * half, 12.0, 10.0), 10.0), 0.8)
+        for p0, p1 in zip(edge, edge[1:] + edge[:1])
+    ]
 
 
 def build_scene(
     seed: int = 0, repeated: bool = False, texels_per_m: float = 100.0
 ) -> list[Polygon]:
     """The polygons of the scene: hall, tower, annex, stone blocks, ground and tree line."""
-    rng = np.random.default_rng(seed)
-    ppm = texels_per_m
-    sun_az = rng.uniform(0, 2 * np.pi)
-    sun = np.array([np.cos(sun_az) * 0.75, np.sin(sun_az) * 0.75, 0.66])
-
-    def shade_of(normal: np.ndarray) -> float:
-        return float(0.55 + 0.5 * max(0.0, normal @ sun) + 0.1 * normal[2])
-
-    motif = (
-        textures.window_motif(np.random.default_rng(rng.integers(2**32)), ppm) if repeated else None
+    m = _Materials(np.random.default_rng(seed), texels_per_m, repeated)
+    polys = _hall(m) + _tower(m)
+    # the annex on the south side, with a gravel roof
+    polys += _flat_topped_box(
+        m, (1.5, -7.5, 6.5, -4.0), 3.5, m.facade, (400, 600), (0.5, 0.5, 0.48), 0.5
     )
-
-    def facade(width: float, height: float, eave: float) -> Texture:
-        return make_texture(textures.facade(rng, width, height, eave, ppm, motif), ppm)
-
-    def roof(width: float, height: float) -> Texture:
-        return make_texture(textures.roof(rng, width, height, ppm), ppm)
-
-    stone = (0.7, 0.66, 0.6)
-
-    def stone_block(width: float, height: float, _eave: float) -> Texture:
-        return make_texture(
-            textures.masonry(rng, int(height * ppm), int(width * ppm), ppm, (0.5, 0.3), stone), ppm
-        )
-
-    up_shade = shade_of(_UP)
-    # Hall: 12 x 8 m, eaves at 6.5 m, ridge along x at 9.5 m, gables east and west.
-    hx, hy, eave, ridge = 6.0, 4.0, 6.5, 9.5
-    corners = [(-hx, -hy), (hx, -hy), (hx, hy), (-hx, hy)]
-    polys: list[Polygon] = []
-    for i, gable in enumerate([None, ridge, None, ridge]):
-        p0, p1 = corners[i], corners[(i + 1) % 4]
-        length = math.dist(p0, p1)
-        normal = np.array([p1[1] - p0[1], p0[0] - p1[0], 0.0]) / length
-        polys.append(
-            _wall(p0, p1, eave, facade(length, gable or eave, eave), shade_of(normal), gable)
-        )
-    polys.append(
-        _roof_face((-hx, -hy, eave), (hx, -hy, eave), (hx, 0, ridge), roof(12, 5), shade_of, False)
-    )
-    polys.append(
-        _roof_face((hx, hy, eave), (-hx, hy, eave), (-hx, 0, ridge), roof(12, 5), shade_of, False)
-    )
-    # Tower through the west gable: 4 x 4 m, 11 m, pyramid roof up to 14 m.
-    tx0, ty0, tx1, ty1, th = -9.0, -2.0, -5.0, 2.0, 11.0
-    polys += _box_walls(tx0, ty0, tx1, ty1, th, facade, shade_of)
-    apex = ((tx0 + tx1) / 2, (ty0 + ty1) / 2, th + 3.0)
-    ring = [(tx0, ty0, th), (tx1, ty0, th), (tx1, ty1, th), (tx0, ty1, th)]
-    for p0, p1 in zip(ring, ring[1:] + ring[:1]):
-        polys.append(_roof_face(p0, p1, apex, roof(4, 3.7), shade_of, True))
-    # Annex on the south side with a gravel roof, and a few stone blocks on the plaza.
-    polys += _box_walls(1.5, -7.5, 6.5, -4.0, 3.5, facade, shade_of)
-    gravel = make_texture(textures.plaster(rng, 400, 600, ppm, (0.5, 0.5, 0.48), stains=0.5), ppm)
-    polys.append(_flat_top(1.5, -7.5, 6.5, -4.0, 3.5, gravel, up_shade))
-    for _ in range(3):
-        ang, dist = rng.uniform(0, 2 * np.pi), rng.uniform(10.5, 12.5)
-        cx, cy, s, bh = (
-            dist * np.cos(ang),
-            dist * np.sin(ang),
-            rng.uniform(0.5, 0.8),
-            rng.uniform(0.8, 1.8),
-        )
-        polys += _box_walls(cx - s, cy - s, cx + s, cy + s, bh, stone_block, shade_of)
-        top = make_texture(
-            textures.plaster(rng, int(2 * s * ppm), int(2 * s * ppm), ppm, stone, stains=0.4), ppm
-        )
-        polys.append(_flat_top(cx - s, cy - s, cx + s, cy + s, bh, top, up_shade))
-    # Ground: 120 m square in 10 m tiles (each picks its own mip level), a tree line at its edge.
-    size, tile = 120.0, 10.0
-    macro, detail = textures.ground(rng, size, plaza_radius=14.0)
-    macro_tex, detail_tex = (
-        make_texture(macro, 1024 / size),
-        make_texture(detail, 2048 / 24.0, wrap=True),
-    )
-    for x in np.arange(-size / 2, size / 2, tile):
-        for y in np.arange(-size / 2, size / 2, tile):
-            ground = _flat_top(-size / 2, -size / 2, size / 2, size / 2, 0.0, macro_tex, up_shade)
-            a, b = x + size / 2, size / 2 - y - tile
-            ground.vertices = np.array([(a, b), (a + tile, b), (a + tile, b + tile), (a, b + tile)])
-            ground.detail = detail_tex
-            polys.append(ground)
-    half = size / 2 - 2
-    edge = [(-half, -half), (-half, half), (half, half), (half, -half)]  # clockwise: facing inwards
-    for p0, p1 in zip(edge, edge[1:] + edge[:1]):
-        polys.append(
-            _wall(
-                p0, p1, 12.0, make_texture(textures.treeline(rng, 2 * half, 12.0, 10.0), 10.0), 0.8
-            )
-        )
-    return polys
+    size = 120.0  # the ground's side; the tree line stands 2 m inside its edge
+    return polys + _stone_blocks(m) + _ground(m, size, 10.0) + _tree_line(m, size / 2 - 2)
 
 
 def _cameras(
