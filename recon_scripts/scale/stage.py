@@ -114,14 +114,17 @@ def run_stage(
     stage: str, run_dir: Path, images: Path, result: Path, timeout: float, **extra
 ) -> dict | None:
     """The stage's JSON ``result``: read when it exists, else written by this module run in a
-    fresh process with one torch/BLAS thread; None when that failed or ran past ``timeout`` s."""
+    fresh process, with one torch/BLAS thread for a single stage (``reconstruct`` runs with the
+    machine's own, as a user's run); None when that failed or ran past ``timeout`` s."""
     if result.exists():
         return json.loads(result.read_text())
     options = {"run_dir": run_dir, "images": images, "result": result, **extra}
     cmd = ["nice", "-n", "5", sys.executable, "-m", "recon_scripts.scale.stage", "_stage", stage]
     cmd += [a for k, v in options.items() for a in (f"--{k}", str(v))]
     path = os.pathsep.join(filter(None, [str(CHECKOUT), os.environ.get("PYTHONPATH")]))
-    env = {**os.environ, **dict.fromkeys(THREADS, "1"), "PYTHONPATH": path}
+    env = {**os.environ, "PYTHONPATH": path}
+    if stage != "reconstruct":
+        env.update(dict.fromkeys(THREADS, "1"))
     print(
         f"[{time.strftime('%H:%M:%S', time.gmtime())}] "
         f"{stage} {run_dir.name} {extra} (load {load()})",
