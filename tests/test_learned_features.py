@@ -92,23 +92,24 @@ def test_feature_map_at_pixels_equals_the_dense_map(aliked, synthetic_scene):
     image = torch.from_numpy(np.array(rgb)).permute(2, 0, 1)[None].float() / 255.0
     with torch.inference_mode():
         fmap, _ = model.dense(image)
-        size = fmap.parts[0].shape[-2:]
+        parts = [part.permute(2, 0, 1)[None] for part in fmap.parts]  # (h, w, C) -> (1, C, h, w)
+        size = parts[0].shape[-2:]
         up = [
             torch.nn.functional.interpolate(p, size=size, mode="bilinear", align_corners=True)
-            for p in fmap.parts[1:]
+            for p in parts[1:]
         ]
-        dense = torch.nn.functional.normalize(torch.cat([fmap.parts[0], *up], 1), dim=1)
+        dense = torch.nn.functional.normalize(torch.cat([parts[0], *up], 1), dim=1)
         (px, py), (w, h) = fmap.pad, fmap.size
         dense = dense[..., py : py + h, px : px + w]
         assert (w, h) == (201, 150)
         xy = torch.rand(500, 2) * torch.tensor([w + 6.0, h + 6.0]) - 3.0  # some outside the image
         torch.testing.assert_close(
-            fmap.bilinear(xy), lf.sample(dense, xy[None])[0], atol=1e-5, rtol=1e-4
+            fmap.bilinear(xy), lf.sample(dense, xy[None])[0].T, atol=1e-5, rtol=1e-4
         )
         x, y = xy.floor().long().unbind(1)
         inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
         torch.testing.assert_close(
-            fmap.at(x[inside], y[inside]), dense[0][:, y[inside], x[inside]], atol=1e-5, rtol=1e-4
+            fmap.at(x[inside], y[inside]), dense[0][:, y[inside], x[inside]].T, atol=1e-5, rtol=1e-4
         )
         assert not fmap.at(x[~inside], y[~inside]).any() and (~inside).sum() > 10
 

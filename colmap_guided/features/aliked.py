@@ -155,53 +155,54 @@ class SDDH(nn.Module):
         win = torch.arange(-r, r + 1, device=kpts.device)
         patch = fmap.at(
             at[:, 0, None, None] + win[None, None, :], at[:, 1, None, None] + win[None, :, None]
-        )
+        )  # (N, K, K, DIM)
         limit = max(fmap.size) / 4.0
         offset = (
-            self.offset_conv(patch.permute(1, 0, 2, 3))
+            self.offset_conv(patch.permute(0, 3, 1, 2))
             .clamp(-limit, limit)
             .view(n, 2, M)
             .transpose(1, 2)
         )
-        feats = fmap.bilinear(kpts[:, None] + offset)  # (C, N, M)
-        feats = F.selu(self.sf_conv(feats.permute(1, 0, 2)[..., None]))[..., 0]  # (N, C, M)
-        return F.normalize(torch.einsum("ncm,mcd->nd", feats, self.agg_weights), dim=1)
+        feats = fmap.bilinear(kpts[:, None] + offset)  # (N, M, C)
+        feats = F.selu(F.linear(feats, self.sf_conv.weight[:, :, 0, 0]))  # the 1x1 convolution
+        return F.normalize(torch.einsum("nmc,mcd->nd", feats, self.agg_weights), dim=1)
 
 
 class FeatureMap:
     """ALIKED's unit feature map: the four blocks' features, upsampled to full resolution,
     concatenated and L2-normalised, computed only at the pixels asked for (the dense map, 128
     channels at full resolution, took over half of the extraction time on CPU). Pixels (x, y) of the
-    unpadded image; zero outside it, as ``grid_sample``'s padding."""
+    unpadded image; zero outside it, as ``grid_sample``'s padding. Each part is held as (h, w, C):
+    a pixel's channels side by side, so that reading a pixel is one contiguous row."""
 
     def __init__(self, parts: list[torch.Tensor], pad: tuple[int, int], size: tuple[int, int]):
-        self.parts, self.pad, self.size = parts, pad, size  # size: (width, height) of the image
+        self.parts = [part[0].permute(1, 2, 0).contiguous() for part in parts]
+        self.pad, self.size = pad, size  # size: (width, height) of the image
 
     def at(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        """Integer pixels x, y (same shape S) -> (DIM, *S), as ``F.normalize(cat(parts
-        upsampled))[x, y]``."""
+        """Integer pixels x, y (same shape S) -> (*S, DIM), as ``F.normalize(cat(parts
+        upsampled))`` at (y, x)."""
         x, y = torch.broadcast_tensors(x, y)
         inside = (x >= 0) & (x < self.size[0]) & (y >= 0) & (y < self.size[1])
         xp, yp = (
             x.clamp(0, self.size[0] - 1) + self.pad[0],
             y.clamp(0, self.size[1] - 1) + self.pad[1],
         )
-        full_h, full_w = self.parts[0].shape[-2:]
-        cols = [self.parts[0][0][:, yp, xp]]
+        full_h, full_w = self.parts[0].shape[:2]
+        cols = [self.parts[0][yp, xp]]
         # F.interpolate(align_corners=True) of the part, at these pixels
         for part in self.parts[1:]:
-            h, w = part.shape[-2:]
-            xy = torch.stack(
-                [xp * ((w - 1) / max(full_w - 1, 1)), yp * ((h - 1) / max(full_h - 1, 1))], -1
-            )
-            cols.append(sample(part, xy.to(part.dtype)[None])[0])
-        return F.normalize(torch.cat(cols), dim=0) * inside
+            h, w = part.shape[:2]
+            fx = (xp * ((w - 1) / max(full_w - 1, 1))).to(part.dtype).clamp(0, w - 1)
+            fy = (yp * ((h - 1) / max(full_h - 1, 1))).to(part.dtype).clamp(0, h - 1)
+            cols.append(_bilinear(part, fx, fy))
+        return F.normalize(torch.cat(cols, -1), dim=-1) * inside[..., None]
 
     def bilinear(self, xy: torch.Tensor) -> torch.Tensor:
-        """Pixel positions (..., 2) -> (DIM, ...): ``sample`` of the dense map
+        """Pixel positions (..., 2) -> (..., DIM): ``sample`` of the dense map
         (bilinear, zero outside)."""
         x0, y0 = xy[..., 0].floor(), xy[..., 1].floor()
-        fx, fy = xy[..., 0] - x0, xy[..., 1] - y0
+        fx, fy = (xy[..., 0] - x0)[..., None], (xy[..., 1] - y0)[..., None]
         x0, y0 = x0.long(), y0.long()
         return (
             self.at(x0, y0) * ((1 - fx) * (1 - fy))
@@ -209,6 +210,17 @@ class FeatureMap:
             + self.at(x0, y0 + 1) * ((1 - fx) * fy)
             + self.at(x0 + 1, y0 + 1) * (fx * fy)
         )
+
+
+def _bilinear(part: torch.Tensor, fx: torch.Tensor, fy: torch.Tensor) -> torch.Tensor:
+    """Bilinear values of ``part`` (h, w, C) at positions (fx, fy) inside it: (*S, C)."""
+    h, w = part.shape[:2]
+    x0, y0 = fx.floor().long(), fy.floor().long()
+    x1, y1 = (x0 + 1).clamp(max=w - 1), (y0 + 1).clamp(max=h - 1)
+    ax, ay = (fx - x0)[..., None], (fy - y0)[..., None]
+    return (part[y0, x0] * (1 - ax) + part[y0, x1] * ax) * (1 - ay) + (
+        part[y1, x0] * (1 - ax) + part[y1, x1] * ax
+    ) * ay
 
 
 class ALIKED(nn.Module):
@@ -325,7 +337,9 @@ def load_model(conf: dict) -> tuple[ALIKED, torch.device]:
         if conf["device"] == "auto" and torch.cuda.is_available()
         else ("cpu" if conf["device"] == "auto" else conf["device"])
     )
-    return model.eval().to(device), device
+    # channels last: oneDNN's convolutions run faster so on CPU (1.6x on the whole extraction), and
+    # FeatureMap's (h, w, C) parts are then views
+    return model.eval().to(device, memory_format=torch.channels_last), device
 
 
 def extract_image(
