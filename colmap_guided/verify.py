@@ -66,27 +66,6 @@ def verify_pair(
     )
 
 
-def fitting(
-    geometry: pycolmap.TwoViewGeometry,
-    kpts_a: np.ndarray,
-    kpts_b: np.ndarray,
-    matches: np.ndarray,
-    max_error: float,
-) -> np.ndarray | None:
-    """Which of ``matches`` (N, 2) fit ``geometry``'s fundamental matrix (Sampson error under
-    ``max_error`` pixels, the RANSAC threshold); None without one (e.g. a pure rotation)."""
-    F = np.asarray(geometry.F, np.float64)
-    if F.shape != (3, 3) or not np.all(np.isfinite(F)) or not np.any(F):
-        return None
-    matches = np.asarray(matches, np.int64).reshape(-1, 2)
-    errors = pycolmap.compute_squared_sampson_error(
-        np.ascontiguousarray(kpts_a[matches[:, 0], :2], np.float64),
-        np.ascontiguousarray(kpts_b[matches[:, 1], :2], np.float64),
-        F,
-    )
-    return np.asarray(errors) < max_error**2
-
-
 def agreement(
     geometry: pycolmap.TwoViewGeometry,
     kpts_a: np.ndarray,
@@ -94,11 +73,20 @@ def agreement(
     matches: np.ndarray,
     max_error: float,
 ) -> float:
-    """Share of ``matches`` that fit ``geometry`` (``fitting``): do two matchers' verified pairs
-    tell the same geometry? 1.0 when there is nothing to compare (no match; no fundamental
-    matrix)."""
-    fit = fitting(geometry, kpts_a, kpts_b, matches, max_error) if len(matches) else None
-    return 1.0 if fit is None else float(np.mean(fit))
+    """Share of ``matches`` (N, 2) that fit ``geometry``'s fundamental matrix (Sampson error under
+    ``max_error`` pixels, the RANSAC threshold): do two matchers' verified pairs tell the same
+    geometry? 1.0 when there is nothing to compare (no match; no fundamental matrix, e.g. a pure
+    rotation)."""
+    F = np.asarray(geometry.F, np.float64)
+    if len(matches) == 0 or F.shape != (3, 3) or not np.all(np.isfinite(F)) or not np.any(F):
+        return 1.0
+    matches = np.asarray(matches, np.int64)
+    errors = pycolmap.compute_squared_sampson_error(
+        np.ascontiguousarray(kpts_a[matches[:, 0], :2], np.float64),
+        np.ascontiguousarray(kpts_b[matches[:, 1], :2], np.float64),
+        F,
+    )
+    return float(np.mean(np.asarray(errors) < max_error**2))
 
 
 def union(primary: np.ndarray, extra: np.ndarray) -> np.ndarray:

@@ -236,14 +236,7 @@ class GuidedLightGlueMatcher(Matcher):
     name = "guided_lightglue"
     feature_types = ("aliked",)
     fine = LightGlueMatcher  # the matcher inside the window
-    flow_options = (
-        "window_cells",
-        "window_fb_cells",
-        "readmit",
-        "prune_fb_cells",
-        "min_pair_score",
-        "cheap_inliers",
-    )
+    flow_options = ("window_cells", "prune_fb_cells", "min_pair_score", "cheap_inliers")
     default_conf = {
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
         # Keypoints per photo that enter LightGlue, the best first (None = all; its cost grows with
@@ -253,12 +246,6 @@ class GuidedLightGlueMatcher(Matcher):
         # W of eq. 1 around LightGlue's matches, in coarse cells: 3 keeps the same-landmark pairs
         # where the coarse flow errs (docs/RESULTS.md).
         "window_cells": 3.0,
-        # A match outside the window is kept where neither coarse flow leads back within this many
-        # cells (forward-backward error: the flow cannot judge there); None: the window judges all.
-        "window_fb_cells": None,
-        # LightGlue's matches outside the window that fit the epipolar geometry of those inside are
-        # kept too: the window chooses the pair's geometry, LightGlue the matches.
-        "readmit": False,
         # Keypoints whose coarse match does not lead back within this many cells (the
         # forward-backward error of the coarse flow: outside the covisible region) do not enter
         # LightGlue; a pair left with fewer than min_inliers keypoints on a side is not matched at
@@ -345,42 +332,11 @@ class GuidedLightGlueMatcher(Matcher):
         keep_a = np.arange(len(a.keypoints)) if keep_a is None else keep_a
         keep_b = np.arange(len(b.keypoints)) if keep_b is None else keep_b
         budget = self.conf["max_keypoints"]
-        window = (window, conf["window_fb_cells"])
-
-        def matched(keep_a, keep_b) -> tuple[np.ndarray, np.ndarray]:
-            every = self.lightglue.match(a, b, keep_a, keep_b)
-            return every, near_flow(every, a, b, flows, *window)
-
-        every, m = matched(keep_a[:budget], keep_b[:budget])
+        m = self.in_window(a, b, flows, keep_a[:budget], keep_b[:budget], window)
         if len(m) < self.conf["min_inliers"] and max(len(keep_a), len(keep_b)) > (budget or np.inf):
             # too few to verify: every keypoint
-            every, m = matched(keep_a, keep_b)
-        if conf["readmit"]:
-            return self.readmit(a, b, m, every, verification)
+            m = self.in_window(a, b, flows, keep_a, keep_b, window)
         return m, None
-
-    def readmit(self, a: ImageData, b: ImageData, m, every, verification: dict) -> tuple:
-        """The window's matches ``m`` and those of ``every`` that fit their epipolar geometry,
-        with the geometry of the whole."""
-        camera_a, camera_b = (
-            image.camera or verify.default_camera(image.width, image.height) for image in (a, b)
-        )
-        options = verify.two_view_options(verification)
-
-        def verified(matches: np.ndarray):
-            return verify.verify_pair(
-                camera_a, a.keypoints, camera_b, b.keypoints, matches, options
-            )
-
-        with colmap_quiet():
-            geometry = verified(m)
-            if len(geometry.inlier_matches) < options.min_num_inliers:
-                return m, geometry
-            fit = verify.fitting(
-                geometry, a.keypoints, b.keypoints, every, options.ransac.max_error
-            )
-            both = m if fit is None else verify.union(m, every[fit]).astype(np.uint32)
-            return (m, geometry) if len(both) == len(m) else (both, verified(both))
 
     def cheap(self, a: ImageData, b: ImageData, flows, window: float, verification: dict):
         """Mutual nearest neighbours of the descriptors inside the window, and their geometry."""
@@ -405,11 +361,11 @@ class GuidedLightGlueMatcher(Matcher):
         return m, geometry
 
     def in_window(
-        self, a: ImageData, b: ImageData, flows, keep_a, keep_b, window: float, fb_cells=None
+        self, a: ImageData, b: ImageData, flows, keep_a, keep_b, window: float
     ) -> np.ndarray:
-        """LightGlue's matches of the keypoints ``keep_a`` / ``keep_b`` that ``near_flow`` keeps."""
-        m = self.lightglue.match(a, b, keep_a, keep_b)
-        return near_flow(m, a, b, flows, window, fb_cells)
+        """LightGlue's matches of the keypoints ``keep_a`` / ``keep_b`` that lie within ``window``
+        cells of the coarse match of their partner, in either direction."""
+        return near_flow(self.lightglue.match(a, b, keep_a, keep_b), a, b, flows, window)
 
     def match(self, a: ImageData, b: ImageData) -> np.ndarray:
         return self.match_guided(a, b)
@@ -422,12 +378,9 @@ class GuidedLightGlueMatcher(Matcher):
         }
 
 
-def near_flow(
-    m: np.ndarray, a: ImageData, b: ImageData, flows, window: float, fb_cells: float | None = None
-) -> np.ndarray:
+def near_flow(m: np.ndarray, a: ImageData, b: ImageData, flows, window: float) -> np.ndarray:
     """The matches (i, j) whose j lies within ``window`` cells of i's coarse match in B, or i
-    within that of j's coarse match in A (eq. 1's window around another matcher's matches); with
-    ``fb_cells``, also those where neither coarse match leads back within that many cells."""
+    within that of j's coarse match in A (eq. 1's window around another matcher's matches)."""
     m = np.asarray(m, np.int64).reshape(-1, 2)
     with np.errstate(invalid="ignore"):  # a keypoint without coarse match (NaN) is never near
         near_b = (
@@ -438,12 +391,7 @@ def near_flow(
             np.linalg.norm(flows.flow_ba[m[:, 1]] - a.keypoints[m[:, 0], :2], axis=1)
             < window * flows.cell_a
         )
-    keep = near_a | near_b
-    if fb_cells is not None:
-        keep |= (flows.fb_ab[m[:, 0]] > fb_cells * flows.cell_b) & (
-            flows.fb_ba[m[:, 1]] > fb_cells * flows.cell_a
-        )
-    return m[keep].astype(np.uint32)
+    return m[near_a | near_b].astype(np.uint32)
 
 
 class LighterGlueMatcher(LightGlueMatcher):
