@@ -50,26 +50,27 @@ def pairs_to_escalate(
     elsewhere: set[str] = frozenset(),
 ) -> list[PairKey]:
     """The ``selected`` pairs (most similar first) of the photos ``left`` out of the model that the
-    first pass did not match with the full matcher, up to ``per_photo`` for each: deferred (no
-    matches), gated (none kept) or, with a cheap pass that keeps pairs of ``cheap_inliers``
-    verified inliers, those with that many (the full matcher finds more, which a photo that mapping
-    could not place may need); ``done``: pairs (name_a, name_b) escalated already. A pair of two
+    first pass did not match with the full matcher, up to ``per_photo`` for each: deferred or gated
+    (never written) or, with a cheap pass that keeps pairs of ``cheap_inliers`` verified inliers,
+    those with that many (the full matcher finds more, which a photo that mapping could not place
+    may need). A pair written with fewer is the full matcher's own result: matching it again
+    would give it again. ``done``: pairs (name_a, name_b) escalated already. A pair of two
     photos placed ``elsewhere`` (in models other than the largest) is not taken: it cannot bring
     either into the model. Returns (id_a, id_b, name_a, name_b)."""
+    taken, todo = Counter(), []
     with dbio.open_database(database_path) as db:
         ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
-        counts, inliers = dbio.pair_match_counts(db), dbio.pair_inlier_counts(db)
-    taken, todo = Counter(), []
-    for a, b in selected:
-        wants = [name for name in (a, b) if name in left and taken[name] < per_photo]
-        if not wants or (a, b) in done or {a, b} <= elsewhere:
-            continue
-        key = (min(ids[a], ids[b]), max(ids[a], ids[b]))
-        if counts.get(key, 0) == 0 or (
-            cheap_inliers is not None and inliers.get(key, 0) >= cheap_inliers
-        ):
-            taken.update(wants)
-            todo.append((ids[a], ids[b], a, b))
+        inliers = dbio.pair_inlier_counts(db)
+        for a, b in selected:
+            wants = [name for name in (a, b) if name in left and taken[name] < per_photo]
+            if not wants or (a, b) in done or {a, b} <= elsewhere:
+                continue
+            key = (min(ids[a], ids[b]), max(ids[a], ids[b]))
+            if not dbio.pair_has_matches(db, *key) or (
+                cheap_inliers is not None and inliers.get(key, 0) >= cheap_inliers
+            ):
+                taken.update(wants)
+                todo.append((ids[a], ids[b], a, b))
     return todo
 
 

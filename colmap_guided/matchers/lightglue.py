@@ -251,8 +251,8 @@ class GuidedLightGlueMatcher(Matcher):
         # LightGlue; a pair left with fewer than min_inliers keypoints on a side is not matched at
         # all. None: every keypoint enters.
         "prune_fb_cells": None,
-        # Pairs whose coarse image-level score (paper eq. 3) is below this are matched with none,
-        # without LightGlue (a rerun does not redo them; escalation does); None: every pair.
+        # Pairs whose coarse image-level score (paper eq. 3) is below this are not matched, as
+        # deferred ones: escalation matches them (a rerun judges them again); None: every pair.
         "min_pair_score": 0.05,
         # Cheap first: mutual nearest neighbours of the descriptors (Lowe's ratio 0.9) inside the
         # window; a pair they verify with at least this many inliers keeps them and skips LightGlue
@@ -300,7 +300,8 @@ class GuidedLightGlueMatcher(Matcher):
             return self.guide.coarse_flows(a, b)
 
     def match_flows(self, a: ImageData, b: ImageData, flows, **overrides) -> np.ndarray:
-        return self.flows_verified(a, b, flows, self.verification_conf, **overrides)[0]
+        m = self.flows_verified(a, b, flows, self.verification_conf, **overrides)[0]
+        return np.zeros((0, 2), np.uint32) if m is None else m
 
     def match_verified(self, a: ImageData, b: ImageData, verification: dict) -> tuple:
         return self.match_guided(
@@ -311,12 +312,13 @@ class GuidedLightGlueMatcher(Matcher):
         self, a: ImageData, b: ImageData, flows, verification: dict, **overrides
     ) -> tuple[np.ndarray, object]:
         """The pair's matches given the coarse flows, and their geometry where the cheap pass
-        verified them (None: LightGlue's, verified later)."""
+        verified them (None: LightGlue's, verified later); (None, None) where the pair gate
+        skips the pair: not matched, so that escalation can match it."""
         conf = self.flow_conf(overrides)
         window, keep_a, keep_b = conf["window_cells"], None, None
         # no overlap seen
         if conf["min_pair_score"] is not None and flows.pair_score < conf["min_pair_score"]:
-            return np.zeros((0, 2), np.uint32), None
+            return None, None
         if conf["cheap_inliers"] is not None:
             with self.timed("cheap"):
                 m, geometry = self.cheap(a, b, flows, window, verification)
