@@ -195,7 +195,11 @@ def _features_reason(num_keypoints: int) -> str:
 def _matching_reason(tried: list[tuple[int, str]], min_num_inliers: int) -> str:
     """Why none of the pairs ``tried`` (strongest first) passed two-view verification."""
     if not tried:
-        return "It was compared with no other photo (the pairs list leaves it out)."
+        return (
+            "It was matched with no other photo: the pairs list leaves it out, or its pairs "
+            "were left unmatched (the coarse network saw no overlap) and escalation did not "
+            "reach them (--rounds, --pairs_per_photo)."
+        )
     num_matches, best = tried[0]
     if num_matches >= min_num_inliers:
         return (
