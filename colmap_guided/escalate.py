@@ -1,10 +1,11 @@
 """Escalation: the learned matcher's full work only where it changes the outcome.
 
 The first matching pass is cheap on purpose: pairs are matched most similar first and a pair is
-deferred once both its photos have ``enough`` strongly verified neighbours (``BestFirst``),
-and guided LightGlue's pair gate matches nothing where the coarse network sees no overlap. Each of
-those decisions is undone for the photos that mapping leaves out: their deferred, gated and cheaply
-matched pairs are matched with the full matcher, and the model is extended with them
+deferred once both its photos have ``enough`` strongly verified neighbours (``BestFirst``), guided
+LightGlue's pair gate matches nothing where the coarse network sees no overlap, and its probe on
+each photo's best keypoints keeps what it verifies with margin and leaves what it finds nothing in.
+Each of those decisions is undone for the photos that mapping leaves out: their deferred, left and
+cheaply matched pairs are matched with the full matcher, and the model is extended with them
 (``reconstruct``), for ``rounds`` rounds or until a round adds no photo.
 """
 
@@ -29,15 +30,27 @@ default_conf = {
     # pairs a left-out photo gets per round, its most similar first: an unrelated photo (always
     # left out) costs this many, not all its pairs
     "pairs_per_photo": 5,
+    # deferred pairs that a group of photos no strong pair links to the others may try, most
+    # similar first, before mapping (0: none); two groups would be two models
+    "join_tries": 3,
 }
-# the options that turn a matcher's cheap decisions off: its pair gate and cheap pass
-GATES_OFF = {"min_pair_score": None, "cheap_inliers": None}
+# the options that turn a matcher's cheap decisions off: its pair gate, cheap pass and probe
+GATES_OFF = {"min_pair_score": None, "cheap_inliers": None, "probe_keypoints": None}
+# a cheap decision's option (on) and the verified inliers with which it keeps a pair's matches
+KEEPS = {"cheap_inliers": "cheap_inliers", "probe_keypoints": "probe_inliers"}
 
 
 def full_matcher(matcher):
     """``matcher`` with its pair gate off (the matcher itself when it has none)."""
     off = {k: v for k, v in GATES_OFF.items() if k in matcher.conf and matcher.conf[k] != v}
     return type(matcher)({**matcher.conf, **off}) if off else matcher
+
+
+def kept_cheaply(matcher) -> int | None:
+    """The fewest verified inliers with which one of the matcher's cheap decisions keeps a pair
+    (None: it keeps none): a pair written with as many may not be the full matcher's result."""
+    kept = [matcher.conf[k] for on, k in KEEPS.items() if matcher.conf.get(on) is not None]
+    return min(kept, default=None)
 
 
 def pairs_to_escalate(
@@ -50,13 +63,14 @@ def pairs_to_escalate(
     elsewhere: set[str] = frozenset(),
 ) -> list[PairKey]:
     """The ``selected`` pairs (most similar first) of the photos ``left`` out of the model that the
-    first pass did not match with the full matcher, up to ``per_photo`` for each: deferred or gated
-    (never written) or, with a cheap pass that keeps pairs of ``cheap_inliers`` verified inliers,
-    those with that many (the full matcher finds more, which a photo that mapping could not place
-    may need). A pair written with fewer is the full matcher's own result: matching it again
-    would give it again. ``done``: pairs (name_a, name_b) escalated already. A pair of two
-    photos placed ``elsewhere`` (in models other than the largest) is not taken: it cannot bring
-    either into the model. Returns (id_a, id_b, name_a, name_b)."""
+    first pass did not match with the full matcher, up to ``per_photo`` for each: deferred or
+    left by a cheap decision (never written) or, where one keeps pairs of ``cheap_inliers``
+    verified inliers (``kept_cheaply``), those with that many (the full matcher finds more, which
+    a photo that mapping could not place may need). A pair written with fewer is the full
+    matcher's own result: matching it again would give it again. ``done``: pairs (name_a, name_b)
+    escalated already. A pair of two photos placed ``elsewhere`` (in models other than the
+    largest) is not taken: it cannot bring either into the model. Returns (id_a, id_b, name_a,
+    name_b)."""
     taken, todo = Counter(), []
     with dbio.open_database(database_path) as db:
         ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
@@ -76,17 +90,21 @@ def pairs_to_escalate(
 
 class BestFirst:
     """Enough is enough, per photo: pairs are taken most similar first (retrieval descriptors), in
-    two passes. The first matches a pair only while both its photos lack ``enough`` neighbours
+    three passes. The first matches a pair only while both its photos lack ``enough`` neighbours
     verified with ``strong_inliers`` inliers, which spreads the work over every photo; the second
     matches what a photo still lacks, and defers, not matches, a pair once both its photos have
-    enough. Matched pairs are verified as they come, so the counts are known. Each decision is the
-    one that the results of every pair started before it give (it waits for pairs in flight when
-    they could change it), and pairs are written in the order they started: a run is
-    deterministic, and a rerun after a kill, counting the pairs in the database, decides as the
-    uninterrupted run."""
+    enough; the third links groups of photos that no strong pair joins (``join``). Matched pairs
+    are verified as they come, so the counts are known. Each decision is the one that the results
+    of every pair started before it give (it waits for pairs in flight when they could change it),
+    and pairs are written in the order they started: a run is deterministic, and a rerun after a
+    kill, counting the pairs in the database, decides as the uninterrupted run (its last pass
+    may try a few pairs more)."""
 
-    def __init__(self, db, id_pairs, enough, strong_inliers, options, descriptors: dict, apart=()):
+    def __init__(
+        self, db, id_pairs, enough, strong_inliers, join_tries, options, descriptors, apart=()
+    ):
         self.enough, self.strong_inliers, self.options = enough, strong_inliers, options
+        self.join_tries = join_tries
         self.similarity = {
             key: float(descriptors[key[2]] @ descriptors[key[3]]) for key in id_pairs
         }
@@ -95,16 +113,20 @@ class BestFirst:
         self.group = {name: i for i, names in enumerate(apart) for name in names}
         self.strong: Counter = Counter()
         self.pending: Counter = Counter()
+        # photos linked by strong pairs (union-find: photo -> a photo of its group), the group's
+        # size and the pairs it tried in the last pass to link to another group
+        self.linked, self.size, self.tries = {}, Counter(), Counter()
         inliers = dbio.pair_inlier_counts(db)
         for key in id_pairs:
             if inliers.get((min(key[:2]), max(key[:2])), 0) >= strong_inliers:
-                self.strong.update(key[2:])
+                self.add_strong(key)
         self.started: set = set()
-        self.deferred: list[PairKey] = []
+        self.deferred: dict[PairKey, None] = {}  # in the order deferred
+        self.joining = 0  # pairs matched in the last pass
 
     def order(self, todo: list[PairKey], by_similarity: bool) -> list[PairKey]:
-        """Both passes: most similar first; past ``max_images_held`` images, the memory order of
-        ``pair_order`` with each photo's pairs most similar first."""
+        """The three passes, each most similar first; past ``max_images_held`` images, the memory
+        order of ``pair_order`` with each photo's pairs most similar first."""
         if by_similarity:
             ordered = sorted(todo, key=lambda key: -self.similarity[key])
         else:
@@ -113,25 +135,60 @@ class BestFirst:
                 first.setdefault(key[2], i)
             ordered.sort(key=lambda key: (first[key[2]], -self.similarity[key]))
         self.first_pass = len(ordered)
-        return ordered + ordered
+        return ordered + ordered + ordered
 
     def decide(self, position: int, key: PairKey) -> bool | None:
         """Match the pair at ``position`` of ``order``: True; pass over it: False; None: the pairs
         in flight decide it, wait for them."""
-        if key in self.started:
+        if key in self.started or (position >= 2 * self.first_pass and key not in self.deferred):
             return False
         if self.together(key):
             if position >= self.first_pass:
-                self.deferred.append(key)
+                self.deferred[key] = None
             return False
+        if position >= 2 * self.first_pass:
+            return self.join(key)
         lacks = max if position < self.first_pass else min  # both photos lack / either does
         have = [self.strong[name] for name in key[2:]]
         match = lacks(have) < self.enough
         if match != (lacks(h + self.pending[n] for h, n in zip(have, key[2:])) < self.enough):
             return None
         if not match and position >= self.first_pass:
-            self.deferred.append(key)
+            self.deferred[key] = None
         return match
+
+    def join(self, key: PairKey) -> bool | None:
+        """The last pass: enough neighbours per photo can leave groups of photos that no strong
+        pair links (two cliques of ``enough`` + 1), which mapping would make separate models. A
+        deferred pair across two groups is matched, most similar first, while the smaller group
+        has tried fewer than ``join_tries``; None: wait for the pairs in flight, which may link
+        them."""
+        if any(self.pending.values()):
+            return None
+        a, b = (self.root(name) for name in key[2:])
+        if a == b:
+            return False
+        smaller = min(a, b, key=lambda root: (self.size[root], root))
+        if self.tries[smaller] >= self.join_tries:
+            return False
+        self.tries[smaller] += 1
+        self.joining += 1
+        del self.deferred[key]
+        return True
+
+    def root(self, name: str) -> str:
+        while self.linked.get(name, name) != name:
+            name = self.linked[name]
+        return name
+
+    def add_strong(self, key: PairKey) -> None:
+        """A strong pair: a neighbour more for both photos, their groups one (the larger's root
+        and tries stay)."""
+        self.strong.update(key[2:])
+        a, b = (self.root(name) for name in key[2:])
+        if a != b:
+            a, b = sorted((a, b), key=lambda root: (-max(self.size[root], 1), root))
+            self.linked[b], self.size[a] = a, max(self.size[a], 1) + max(self.size[b], 1)
 
     def together(self, key: PairKey) -> bool:
         """Both photos of the pair are panels of one card."""
@@ -151,8 +208,13 @@ class BestFirst:
             self.enough,
             self.strong_inliers,
         )
+        logger.info("%d deferred pairs matched to link groups of photos", self.joining)
         rule = {"enough": self.enough, "strong_inliers": self.strong_inliers}
-        return {"deferred": rule, "num_pairs_deferred": len(self.deferred)}
+        return {
+            "deferred": rule,
+            "num_pairs_deferred": len(self.deferred),
+            "num_pairs_joining": self.joining,
+        }
 
     def start(self, key: PairKey) -> None:
         self.started.add(key)
@@ -161,4 +223,4 @@ class BestFirst:
     def finish(self, key: PairKey, num_inliers: int) -> None:
         self.pending.subtract(key[2:])
         if num_inliers >= self.strong_inliers:
-            self.strong.update(key[2:])
+            self.add_strong(key)

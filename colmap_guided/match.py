@@ -17,7 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from . import database as dbio
-from . import features, verify
+from . import escalate, features, verify
 from .cli import add_pipeline_flags, conf_from_args
 from .conf import merge_conf
 from .escalate import BestFirst
@@ -50,6 +50,7 @@ def match_database(
     conf: PipelineConf | None = None,
     enough: int | None = None,
     strong_inliers: int = 100,
+    join_tries: int = escalate.default_conf["join_tries"],
 ) -> dict:
     """Match the selected pairs and verify them; return statistics for the report.
 
@@ -59,7 +60,8 @@ def match_database(
     per image above). ``executor``: 'local' (threads) or 'ray' (a private local Ray instance, or
     the cluster at ``ray_address`` / RAY_ADDRESS). ``max_images_held``: images held in memory at
     once. ``enough``: match the pairs most similar first and defer a pair once both its photos have
-    ``enough`` neighbours verified with ``strong_inliers`` (``BestFirst``); None: every pair."""
+    ``enough`` neighbours verified with ``strong_inliers`` (``BestFirst``, groups of photos that no
+    strong pair links trying ``join_tries`` pairs to link them); None: every pair."""
     conf = (conf or PipelineConf()).over(
         matcher,
         matcher_conf,
@@ -86,6 +88,7 @@ def match_database(
         max_images_held,
         enough,
         strong_inliers,
+        join_tries,
     )
 
 
@@ -98,6 +101,7 @@ def match_pairs(
     max_images_held: int = MAX_IMAGES_HELD,
     enough: int | None = None,
     strong_inliers: int = 100,
+    join_tries: int = escalate.default_conf["join_tries"],
     apart=(),
 ) -> dict:
     """``match_database`` with the matcher made: its pairs (``conf.pairs``) and verification
@@ -124,8 +128,9 @@ def match_pairs(
         if enough is not None and todo:
             if descriptors is None:
                 descriptors = _global_descriptors(matcher, image_path, names)
+            descriptors = dict(zip(names, descriptors))
             schedule = BestFirst(
-                db, id_pairs, enough, strong_inliers, options, dict(zip(names, descriptors)), apart
+                db, id_pairs, enough, strong_inliers, join_tries, options, descriptors, apart
             )
             todo = schedule.order(todo, len(images) <= max_images_held)
         if todo:

@@ -105,7 +105,7 @@ def _escalate(
             selected,
             done,
             conf.escalation.pairs_per_photo,
-            matcher.conf.get("cheap_inliers"),
+            escalate.kept_cheaply(matcher),
             _registered(models, [k for k in models if k != 0]),
         )
         if not todo:
@@ -188,6 +188,7 @@ def reconstruct(
         conf,
         enough=conf.escalation.enough,
         strong_inliers=conf.escalation.strong_inliers,
+        join_tries=conf.escalation.join_tries,
         apart=photos.panels.values(),
     )
     timings["match"] = match_stats.pop("match_time")

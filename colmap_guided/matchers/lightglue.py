@@ -236,13 +236,26 @@ class GuidedLightGlueMatcher(Matcher):
     name = "guided_lightglue"
     feature_types = ("aliked",)
     fine = LightGlueMatcher  # the matcher inside the window
-    flow_options = ("window_cells", "prune_fb_cells", "min_pair_score", "cheap_inliers")
+    flow_options = (
+        "window_cells",
+        "prune_fb_cells",
+        "min_pair_score",
+        "cheap_inliers",
+        "probe_keypoints",
+        "probe_inliers",
+        "probe_matches",
+    )
     default_conf = {
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
-        # Keypoints per photo that enter LightGlue, the best first (None = all; its cost grows with
-        # their square); a pair left with fewer than min_inliers matches in the window is matched
-        # again on every keypoint. A budget placed fewer photos: guided_lightglue_fast keeps 1,024.
-        "max_keypoints": None,
+        # LightGlue first on each photo's best keypoints (ALIKED stores them best first), a third
+        # of the full call's time; None: every keypoint at once. A pair the probe verifies with
+        # probe_inliers keeps its matches, one with fewer than probe_matches in the window is not
+        # matched (deferred: escalation matches it on every keypoint), the others get every one.
+        # On 689 development pairs no pair that verifies on every keypoint had fewer than 34
+        # matches in the probe's window (docs/RESULTS.md).
+        "probe_keypoints": 1024,
+        "probe_inliers": 100,
+        "probe_matches": 10,
         # W of eq. 1 around LightGlue's matches, in coarse cells: 3 keeps the same-landmark pairs
         # where the coarse flow errs (docs/RESULTS.md).
         "window_cells": 3.0,
@@ -311,9 +324,9 @@ class GuidedLightGlueMatcher(Matcher):
     def flows_verified(
         self, a: ImageData, b: ImageData, flows, verification: dict, **overrides
     ) -> tuple[np.ndarray, object]:
-        """The pair's matches given the coarse flows, and their geometry where the cheap pass
-        verified them (None: LightGlue's, verified later); (None, None) where the pair gate
-        skips the pair: not matched, so that escalation can match it."""
+        """The pair's matches given the coarse flows, and their geometry where the cheap pass or
+        the probe verified them (None: LightGlue's, verified later); (None, None) where the pair
+        gate or the probe leaves the pair: not matched, so that escalation can match it."""
         conf = self.flow_conf(overrides)
         window, keep_a, keep_b = conf["window_cells"], None, None
         # no overlap seen
@@ -333,12 +346,16 @@ class GuidedLightGlueMatcher(Matcher):
                 return np.zeros((0, 2), np.uint32), None
         keep_a = np.arange(len(a.keypoints)) if keep_a is None else keep_a
         keep_b = np.arange(len(b.keypoints)) if keep_b is None else keep_b
-        budget = self.conf["max_keypoints"]
-        m = self.in_window(a, b, flows, keep_a[:budget], keep_b[:budget], window)
-        if len(m) < self.conf["min_inliers"] and max(len(keep_a), len(keep_b)) > (budget or np.inf):
-            # too few to verify: every keypoint
-            m = self.in_window(a, b, flows, keep_a, keep_b, window)
-        return m, None
+        probe = conf["probe_keypoints"]
+        if probe is not None and max(len(keep_a), len(keep_b)) > probe:
+            with self.timed("probe"):
+                m = self.in_window(a, b, flows, keep_a[:probe], keep_b[:probe], window)
+                geometry = self.verified(a, b, m, verification)
+            if len(geometry.inlier_matches) >= conf["probe_inliers"]:
+                return m, geometry
+            if len(m) < conf["probe_matches"]:
+                return None, None
+        return self.in_window(a, b, flows, keep_a, keep_b, window), None
 
     def cheap(self, a: ImageData, b: ImageData, flows, window: float, verification: dict):
         """Mutual nearest neighbours of the descriptors inside the window, and their geometry."""
@@ -348,11 +365,16 @@ class GuidedLightGlueMatcher(Matcher):
             ALIKED_RATIO,
         )
         m = near_flow(m.cpu().numpy(), a, b, flows, window)
+        return m, self.verified(a, b, m, verification)
+
+    @staticmethod
+    def verified(a: ImageData, b: ImageData, m: np.ndarray, verification: dict):
+        """The two-view geometry of the matches ``m``."""
         camera_a, camera_b = (
             image.camera or verify.default_camera(image.width, image.height) for image in (a, b)
         )
         with colmap_quiet():
-            geometry = verify.verify_pair(
+            return verify.verify_pair(
                 camera_a,
                 a.keypoints,
                 camera_b,
@@ -360,7 +382,6 @@ class GuidedLightGlueMatcher(Matcher):
                 m,
                 verify.two_view_options(verification),
             )
-        return m, geometry
 
     def in_window(
         self, a: ImageData, b: ImageData, flows, keep_a, keep_b, window: float
