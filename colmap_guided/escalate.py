@@ -41,7 +41,7 @@ KEEPS = {"cheap_inliers": "cheap_inliers", "probe_keypoints": "probe_inliers"}
 
 
 def full_matcher(matcher):
-    """``matcher`` with its pair gate off (the matcher itself when it has none)."""
+    """``matcher`` with its cheap decisions off (the matcher itself when it has none)."""
     off = {k: v for k, v in GATES_OFF.items() if k in matcher.conf and matcher.conf[k] != v}
     return type(matcher)({**matcher.conf, **off}) if off else matcher
 

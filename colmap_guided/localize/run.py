@@ -10,7 +10,7 @@ from pathlib import Path
 import pycolmap
 
 from .. import database as dbio
-from .. import features, geoframe, images, match
+from .. import escalate, features, geoframe, images, match
 from ..log import logger
 from ..pairs import write_pairs
 from ..pipeline import MatcherConf
@@ -85,10 +85,12 @@ def localize_photos(
 
 def _matcher(path: Path, matcher: str, matcher_conf: dict | None) -> tuple:
     """(the matcher, database.db's feature type): ``auto`` is the one reconstruct picks for the
-    workspace database's features."""
+    workspace database's features, with its cheap decisions off (no escalation undoes them
+    here)."""
     with dbio.open_database(path / "database.db") as db:
         feature_type = features.database_feature_type(db)
     chosen = MatcherConf(matcher, matcher_conf or {}).resolve(feature_type).build()
+    chosen = escalate.full_matcher(chosen)
     features.check_matcher_features(chosen, feature_type)
     return chosen, feature_type
 
