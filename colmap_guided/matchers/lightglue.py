@@ -247,12 +247,9 @@ class GuidedLightGlueMatcher(Matcher):
     )
     default_conf = {
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
-        # LightGlue first on each photo's best keypoints (ALIKED stores them best first), a third
-        # of the full call's time; None: every keypoint at once. A pair the probe verifies with
-        # probe_inliers keeps its matches, one with fewer than probe_matches in the window is not
-        # matched (deferred: escalation matches it on every keypoint), the others get every one.
-        # On 689 development pairs no pair that verifies on every keypoint had fewer than 34
-        # matches in the probe's window (docs/RESULTS.md).
+        # LightGlue first on each photo's best keypoints (a third of the full call; None: off): a
+        # pair verified there with probe_inliers keeps its matches, one with fewer than
+        # probe_matches in the window is left for escalation, the others get every keypoint.
         "probe_keypoints": 1024,
         "probe_inliers": 100,
         "probe_matches": 10,
