@@ -146,7 +146,12 @@ def test_pairs_the_probe_left_are_escalated_into_the_model(synthetic_scene, tmp_
         synthetic_scene.image_dir.parent,
         output=out,
         matcher="guided_lightglue",
-        matcher_conf={"cheap_inliers": None, "probe_inliers": 10**6, "probe_matches": 10**6},
+        matcher_conf={
+            "cheap_inliers": None,
+            "probe_keypoints": 1024,
+            "probe_inliers": 10**6,
+            "probe_matches": 10**6,
+        },
         conf=PipelineConf.from_dict({"mapping": {"num_threads": 1}}),
     )
     stats = result["database"]

@@ -249,8 +249,9 @@ class GuidedLightGlueMatcher(Matcher):
         **LightGlueMatcher.default_conf,  # LightGlue's options, its min_inliers and device
         # LightGlue first on each photo's best keypoints (a third of the full call; None: off): a
         # pair verified there with probe_inliers keeps its matches, one with fewer than
-        # probe_matches in the window is left for escalation, the others get every keypoint.
-        "probe_keypoints": 1024,
+        # probe_matches in the window is left for escalation, the others get every keypoint. Off
+        # by default: the pairs it keeps put prints off their pose (docs/RESULTS.md, speed).
+        "probe_keypoints": None,
         "probe_inliers": 100,
         "probe_matches": 10,
         # W of eq. 1 around LightGlue's matches, in coarse cells: 3 keeps the same-landmark pairs
