@@ -63,6 +63,31 @@ def _nearest_in_window(
     if n == 0 or m == 0:
         return best, best_idx, second
 
+    queries, order, starts, lengths, n_cand, unit_start, unit_end = _window_units(
+        pred, pts_t, window, valid_q, rows
+    )
+    found, found_at = _best_in_units(
+        (desc_q, pred, desc_t, pts_t),
+        (queries, order, starts, lengths, n_cand, unit_start),
+        window,
+        rows,
+        max_pairs,
+    )
+    # Unit rows back to queries.
+    row = unit_start[:, None] + torch.arange(rows, device=dev)
+    real = row < unit_end[:, None]
+    q = queries[row[real]]
+    best[q], second[q] = found[0][real], found[1][real]
+    # (a query without candidate: any index, best = -inf)
+    best_idx[q] = order[found_at[real].clamp_(max=m - 1)]
+    return best, best_idx, second
+
+
+def _window_units(pred, pts_t, window: float, valid_q, rows: int) -> tuple:
+    """The target keypoints bucketed in a grid of cell ``window``, the queries cut in units of at
+    most ``rows`` sharing one cell, sorted by their candidates' count: (queries, target order,
+    (U, 3) ranges of the sorted target order and their lengths, candidates, unit start and end)."""
+    dev = pred.device
     # Target grid, cells sorted row-major: the three cells of one grid row around a query's cell are
     # one contiguous range of the sorted order.
     origin = pts_t.min(0).values
@@ -115,7 +140,15 @@ def _nearest_in_window(
         unit_end[by_count],
     )
     starts, lengths, n_cand = starts[unit_group], lengths[unit_group], n_cand[unit_group]
-    counts = n_cand.tolist()
+    return queries, order, starts, lengths, n_cand, unit_start, unit_end
+
+
+def _best_in_units(points: tuple, units: tuple, window: float, rows: int, max_pairs: int) -> tuple:
+    """Best and second-best similarity (2, U, rows) of each unit row and the sorted target position
+    of the best (U, rows): one batched product per block of at most ``max_pairs`` values."""
+    desc_q, pred, desc_t, pts_t = points
+    queries, order, starts, lengths, n_cand, unit_start = units
+    dev, m, counts = pred.device, pts_t.shape[0], n_cand.tolist()
 
     # Descriptors and positions in sorted order once, so that blocks gather contiguous rows; a last
     # sentinel row (zero descriptor, infinitely far) pads units to their block's shape.
@@ -164,14 +197,7 @@ def _nearest_in_window(
         found[0, i:j], found_at[i:j] = top, pos.gather(1, at)
         found[1, i:j] = sim.scatter_(2, at[..., None], -torch.inf).amax(2)
         i = j
-    # Unit rows back to queries.
-    row = unit_start[:, None] + torch.arange(rows, device=dev)
-    real = row < unit_end[:, None]
-    q = queries[row[real]]
-    best[q], second[q] = found[0][real], found[1][real]
-    # (a query without candidate: any index, best = -inf)
-    best_idx[q] = order[found_at[real].clamp_(max=m - 1)]
-    return best, best_idx, second
+    return found, found_at
 
 
 def guided_match(
