@@ -35,12 +35,7 @@ default_conf = {
     "join_tries": 3,
 }
 # the options that turn a matcher's cheap decisions off: its pair gate, cheap pass and probe
-GATES_OFF = {
-    "min_pair_score": None,
-    "cheap_inliers": None,
-    "cheap_only": False,
-    "probe_keypoints": None,
-}
+GATES_OFF = {"min_pair_score": None, "cheap_inliers": None, "probe_keypoints": None}
 # a cheap decision's option (on) and the verified inliers with which it keeps a pair's matches
 KEEPS = {"cheap_inliers": "cheap_inliers", "probe_keypoints": "probe_inliers"}
 

@@ -241,7 +241,6 @@ class GuidedLightGlueMatcher(Matcher):
         "prune_fb_cells",
         "min_pair_score",
         "cheap_inliers",
-        "cheap_only",
         "probe_keypoints",
         "probe_inliers",
         "probe_matches",
@@ -270,9 +269,6 @@ class GuidedLightGlueMatcher(Matcher):
         # window; a pair they verify with at least this many inliers keeps them and skips LightGlue
         # (None: LightGlue on every pair); at 100 two development photos went off their pose.
         "cheap_inliers": 200,
-        # True: a pair the cheap pass does not keep is left for escalation, so LightGlue runs only
-        # for the photos that mapping leaves out
-        "cheap_only": False,
         "weights": None,  # coarse filter weights, as the guided matcher's; None = the shipped ones
         "coarse": {},  # further CoarseMatcher options, as the guided matcher's
     }
@@ -339,8 +335,6 @@ class GuidedLightGlueMatcher(Matcher):
                 m, geometry = self.cheap(a, b, flows, window, verification)
             if len(geometry.inlier_matches) >= conf["cheap_inliers"]:
                 return m, geometry
-            if conf["cheap_only"]:
-                return None, None
         # the coarse flow restricts the candidates before matching
         if conf["prune_fb_cells"] is not None:
             keep_a = np.flatnonzero(flows.fb_ab <= conf["prune_fb_cells"] * flows.cell_b)
