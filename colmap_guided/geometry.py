@@ -62,3 +62,17 @@ def photo_up(cam_from_world_rotations, level_prior: float = 0.01) -> np.ndarray 
     xs, mean = R[upright, 0], ups[upright].mean(axis=0)
     up = np.linalg.solve(xs.T @ xs / len(xs) + level_prior * np.eye(3), mean)
     return up / np.linalg.norm(up)
+
+
+def image_rays(camera, xy: np.ndarray) -> np.ndarray:
+    """Normalised camera coordinates (N, 2) of pixels ``xy``, distortion included; where
+    undistortion does not converge (a print with strong estimated distortion, far from the centre)
+    the pinhole part of the camera gives the ray, so that no caller draws or writes NaN."""
+    xy = np.ascontiguousarray(xy, dtype=np.float64).reshape(-1, 2)
+    rays = np.asarray(camera.cam_from_img(xy), np.float64).reshape(-1, 2)
+    bad = ~np.isfinite(rays).all(axis=1)
+    if bad.any():
+        K = np.asarray(camera.calibration_matrix(), np.float64)
+        pinhole = np.c_[xy[bad], np.ones(bad.sum())] @ np.linalg.inv(K).T
+        rays[bad] = pinhole[:, :2] / pinhole[:, 2:]
+    return rays

@@ -50,7 +50,7 @@ import pycolmap
 
 from .conf import merge_conf
 from .geoframe import GEO, RESULT, GeoFrame, enu_to_geodetic, geodetic_to_enu
-from .geometry import photo_up
+from .geometry import image_rays, photo_up
 from .log import add_verbosity_flags, logger
 from .workspace import Workspace, model_digest
 
@@ -351,7 +351,7 @@ def view_volume(camera: pycolmap.Camera) -> dict:
     (distortion included)."""
     w, h = camera.width, camera.height
     cx, cy = camera.principal_point_x, camera.principal_point_y
-    rays = np.asarray(camera.cam_from_img(np.array([[0, cy], [w, cy], [cx, h], [cx, 0]], float)))
+    rays = image_rays(camera, np.array([[0, cy], [w, cy], [cx, h], [cx, 0]], float))
     left, right = (math.degrees(math.atan(v)) for v in rays[:2, 0])
     bottom, top = (-math.degrees(math.atan(v)) for v in rays[2:, 1])  # image y points down
     return {

@@ -23,7 +23,7 @@ import numpy as np
 import pycolmap
 
 from . import embed
-from .geometry import photo_up
+from .geometry import image_rays, photo_up
 from .images import read_thumbnail
 
 MAX_POINTS = 30000  # points drawn in the 3D view; a larger model is shown by an even random sample
@@ -103,7 +103,7 @@ def _cameras(rec: pycolmap.Reconstruction, origin, axes, radius) -> list[dict]:
             [[0, 0], [camera.width, 0], [camera.width, camera.height], [0, camera.height]],
             np.float64,
         )
-        rays = np.c_[np.asarray(camera.cam_from_img(corners)), np.ones(4)]
+        rays = np.c_[image_rays(camera, corners), np.ones(4)]
         rays *= FRUSTUM * radius / np.linalg.norm(rays, axis=1).max()
         world = (rays - t) @ rot  # R^T (p - t)
         out.append(
@@ -206,7 +206,8 @@ def view_html(
         if shown == total
         else f"{shown:,} of the {total:,} points (an even random sample, to keep this page small)"
     )
-    payload = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
+    # strict JSON: a NaN fails here, where it is made, not in the browser (JSON.parse refuses it)
+    payload = json.dumps(data, separators=(",", ":"), allow_nan=False).replace("</", "<\\/")
     return (
         "<p class='legend'><span class='model-buttons'>"
         "<button id='model-home'>Reset view</button><button id='model-top'>From above</button>"

@@ -14,11 +14,13 @@ default matcher.
 Chromium comes from Debian (`apt-get install chromium`); the page is opened from the file system
 with the network off, so the screenshot also proves the page needs nothing from outside
 (images are embedded). Prints the screenshot path; exit status 1 with a one-line message when no
-browser is installed.
+browser is installed, when the page wrote to the browser's console (the report's own scripts never
+do: a message is an error) or when its 3D view shows nothing but its background.
 """
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 import sys
@@ -29,6 +31,9 @@ from urllib.parse import quote
 from recon_scripts import script_parser
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
+# a console message in Chromium's log: [pid:tid:time:INFO:CONSOLE:line] "text", source: url (line)
+CONSOLE = re.compile(r":CONSOLE(?::\d+)?\] (.*)$", re.M)
+VIEW_BACKGROUND = (0x1D, 0x1F, 0x24)  # #model-view's background in assets/report.css
 
 
 def find_chromium() -> str | None:
@@ -47,7 +52,7 @@ def screenshot(
     photo: str | None = None,
 ) -> Path:
     """Screenshot of ``html_path`` (a local file) at ``size`` pixels, with the 3D view showing
-    ``photo``; raises RuntimeError when it fails."""
+    ``photo``; raises RuntimeError when it fails or the page wrote to the console."""
     browser = find_chromium()
     if browser is None:
         raise RuntimeError(
@@ -73,6 +78,8 @@ def screenshot(
             "--disable-component-update",
             "--disable-sync",
             "--hide-scrollbars",
+            "--enable-logging=stderr",
+            "--v=0",
             f"--user-data-dir={profile}",
             f"--screenshot={out_png}",
             f"--window-size={size[0]},{size[1]}",
@@ -84,7 +91,27 @@ def screenshot(
         raise RuntimeError(
             f"Chromium wrote no screenshot (exit {proc.returncode}): {' | '.join(tail)}"
         )
+    console = CONSOLE.findall(proc.stderr or "")
+    if console:
+        raise RuntimeError(
+            f"{html_path.name} wrote to the browser's console: {' | '.join(console)}"
+        )
     return out_png
+
+
+def view_pixels(png: Path) -> int | None:
+    """Pixels of the screenshot's 3D view that are not its background (points, frusta, labels);
+    None where the screenshot shows no 3D view."""
+    import numpy as np
+    from PIL import Image
+
+    shot = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    background = np.abs(shot - np.array(VIEW_BACKGROUND)).sum(axis=2) < 6
+    if background.sum() < 50_000:  # no canvas of the view's size on screen
+        return None
+    rows, cols = np.nonzero(background)
+    view = shot[rows.min() : rows.max() + 1, cols.min() : cols.max() + 1]
+    return int((np.abs(view - np.array(VIEW_BACKGROUND)).sum(axis=2) > 60).sum())
 
 
 def make_demo(scene_dir: Path) -> Path:
@@ -165,7 +192,10 @@ def main(argv=None) -> int:
     try:
         html = make_demo(args.demo) if args.demo else args.html
         out = args.out or Path(html).with_name(Path(html).stem + "_screenshot.png")
-        print(small_png(screenshot(html, out, (width, height), photo=args.photo)))
+        shot = screenshot(html, out, (width, height), photo=args.photo)
+        if view_pixels(shot) == 0:
+            raise RuntimeError(f"the 3D view of {html} shows nothing (screenshot: {shot})")
+        print(small_png(shot))
     except (RuntimeError, subprocess.TimeoutExpired) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1

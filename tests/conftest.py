@@ -1,5 +1,6 @@
 """Shared fixtures: one rendered synthetic scene per test session (exact ground-truth cameras)."""
 
+import os
 from pathlib import Path
 
 import pytest
@@ -31,3 +32,14 @@ def one_torch_thread():
 
     with scoped_torch_threads(1):
         yield
+
+
+@pytest.fixture(scope="session")
+def chromium():
+    """The page tests' browser: skipped without one; CI installs it (.ci/run), so there a missing
+    one fails."""
+    from recon_scripts.render_report_screenshot import find_chromium
+
+    if find_chromium() is None:
+        message = "Chromium is not installed (Debian: apt-get install chromium)"
+        pytest.fail(message) if os.environ.get("CI") else pytest.skip(message)

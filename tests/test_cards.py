@@ -125,6 +125,15 @@ def test_captioned_card_registers_with_no_inlier_off_its_picture(card_scene, car
     assert cards.in_box(used, picture).all()
 
 
+def test_card_workspace_page_draws_its_model_in_headless_chromium(chromium, card_run, tmp_path):
+    from recon_scripts.render_report_screenshot import screenshot, view_pixels
+
+    result, _ = card_run
+    # raises where the page writes to the console (a script error)
+    png = screenshot(Path(result["html_report_path"]), tmp_path / "shot.png", (1200, 900))
+    assert view_pixels(png) > 2000, "the 3D view shows nothing"
+
+
 def test_a_reprint_is_grouped_and_mapped_once(card_run):
     result, _ = card_run
     prints = result["repeated_prints"]
