@@ -203,7 +203,6 @@ STAGE_WORDS = {
     "reading": "reading the file",
     "features": "finding details",
     "matching": "matching with other photos",
-    "separate model": "joining the model",
     "mapping": "placing it in the model",
 }
 
@@ -224,11 +223,13 @@ def _why_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
                 "suggestion": "",
             },
         )
-    names = list(report["model"].get("unregistered_images") or [])
+    # a photo in another model is that model's (listed above), not a failure
+    elsewhere = {n for m in (report.get("models") or [])[1:] for n in m["images"]}
+    names = [n for n in report["model"].get("unregistered_images") or [] if n not in elsewhere]
     names += [n for n in why if n not in names]
-    out = [f"<h2>Photos not registered, and why ({len(names)})</h2>"]
+    out = [f"<h2>Photos in no model, and why ({len(names)})</h2>"]
     if not names:
-        return out + ["<p>None: every photo is in the model.</p>"]
+        return out + ["<p>None: every photo is in a model.</p>"]
     out.append(
         "<table class='why'><tr><th></th><th>photo</th>"
         "<th>dropped out at</th><th>why</th><th>what to do</th></tr>"
@@ -264,8 +265,8 @@ def _why_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
     return out
 
 
-def _localized(report: dict) -> list[dict]:
-    """The entries of localized.json beside report.json (``localize``), [] when there is none."""
+def _localized_file(report: dict) -> dict:
+    """localized.json beside report.json (``localize``), {} when there is none."""
     import json
 
     path = (
@@ -274,9 +275,20 @@ def _localized(report: dict) -> list[dict]:
         else None
     )
     try:
-        return list(json.loads(path.read_text(encoding="utf-8")).get("photos", [])) if path else []
-    except (OSError, ValueError, AttributeError):
-        return []
+        return dict(json.loads(path.read_text(encoding="utf-8"))) if path else {}
+    except (OSError, ValueError, AttributeError, TypeError):
+        return {}
+
+
+def _localized(report: dict) -> list[dict]:
+    """The entries of localized.json, [] when there is none."""
+    return list(_localized_file(report).get("photos", []))
+
+
+def _localized_into(report: dict) -> int:
+    """The index N of the model sparse/N that ``localize`` placed its photos in."""
+    name = Path(_localized_file(report).get("model") or "0").name
+    return int(name) if name.isdigit() else 0
 
 
 def _img(path: Path, thumbnails: bool, side: int = 120) -> str:
@@ -434,7 +446,9 @@ def render_html(
     rec, eras, geo = _page_model(report, reconstruction)
     out = _header(report, image_path)
     if rec is not None and rec.num_reg_images():
-        out += _model_section(rec, eras, geo, image_path if thumbnails else None)
+        others = _other_models(report)
+        out += _model_section(rec, eras, geo, image_path if thumbnails else None, others)
+    out += _models_table(report)
     out += _ratio_section(report)
     out += _why_table(report, image_path, thumbnails)
     out += _localized_table(report, image_path, thumbnails)
@@ -452,7 +466,7 @@ def _page_model(report: dict, reconstruction) -> tuple:
 
     rec = reconstruction if reconstruction is not None else _load_model(report)
     eras = read_manifest(Path(report["manifest_path"])) if report.get("manifest_path") else {}
-    localized = _localized(report)
+    localized = _localized(report) if _localized_into(report) == 0 else []
     # the localized photos' cameras, in their colour
     if rec is not None and rec.num_reg_images() and localized:
         rec, names = with_localized(rec, localized)
@@ -486,14 +500,57 @@ def _header(report: dict, image_path: Path) -> list[str]:
     ]
 
 
-def _model_section(rec, eras: dict, geo, photos: Path | None) -> list[str]:
-    """The 3D view and the map of the camera positions (with their latitudes where georeferenced);
-    ``photos``: the folder for the view's thumbnails, or None."""
+def _other_models(report: dict) -> list[tuple[int, pycolmap.Reconstruction]]:
+    """The workspace's models after the largest (sparse/1, ...), as the report lists them; the one
+    ``localize`` placed photos in with their cameras."""
+    root, into = Path(report.get("sparse_path") or ""), _localized_into(report)
+    out = []
+    for m in (report.get("models") or [])[1 : 1 + model_view.MAX_OTHER_MODELS]:
+        if (root / str(m["index"]) / "images.bin").is_file():
+            rec = pycolmap.Reconstruction(str(root / str(m["index"])))
+            if m["index"] == into:
+                rec = with_localized(rec, _localized(report))[0]
+            out.append((m["index"], rec))
+    return out
+
+
+def _models_table(report: dict) -> list[str]:
+    """Every model: a building, or a part of one; its photos, points and model check."""
+    models = report.get("models") or []
+    if len(models) < 2:
+        return []
+    esc = html.escape
+    out = [
+        f"<h2>The models ({len(models)})</h2><p>Photos that matched each other but no photo of "
+        "another group make a model of their own: usually another building, or another side of "
+        "one. Each is a result (in the 3D view's list, in its folder with points3D.ply and COLMAP "
+        "text; <code>localize</code> and <code>georeference</code> take <code>--model N</code>)."
+        "</p><table><tr><th>model</th><th>photos</th><th>3D points</th><th>model check</th>"
+        "<th>photos in it</th></tr>",
+    ]
+    for m in models:
+        names = ", ".join(m["images"][:8]) + (" ..." if len(m["images"]) > 8 else "")
+        check = (
+            "<td>passes</td>"
+            if m["passes_check"]
+            else f"<td class='warn'>{len(m['problems'])} problem(s)</td>"
+        )
+        out.append(
+            f"<tr><td>{esc(m['path'])}</td><td class='num'>{m['num_registered']}</td>"
+            f"<td class='num'>{m['num_points3D']}</td>{check}<td>{esc(names)}</td></tr>"
+        )
+    return out + ["</table>"]
+
+
+def _model_section(rec, eras: dict, geo, photos: Path | None, others=()) -> list[str]:
+    """The 3D view (``others``: the other models, in its picker) and the map of the largest model's
+    camera positions (with their latitudes where georeferenced); ``photos``: the folder for the
+    view's thumbnails, or None."""
     enu = geo is not None
     out = [
-        "<h2>The 3D model</h2>",
-        model_view.view_html(rec, eras, photos, enu=enu),
-        "<h2>Where the photos were taken from</h2>",
+        f"<h2>The 3D model{f's ({1 + len(others)}: pick one)' if others else ''}</h2>",
+        model_view.view_html(rec, eras, photos, enu=enu, others=others),
+        f"<h2>Where the photos were taken from{' (the largest model)' if others else ''}</h2>",
         "<p>Seen from above: the points of the model, each photo's "
         "position (dot) and the direction it looks in (arrow)"
         + (f", north up, in metres from {_lat_lon(geo[1]['origin'])}.</p>" if enu else ".</p>"),

@@ -134,13 +134,22 @@ def check_model(rec: pycolmap.Reconstruction, conf: dict | None = None) -> list[
     return problems + pose_jump_problems(rec, conf)
 
 
-def check_models(models: dict[int, pycolmap.Reconstruction], conf: dict | None = None) -> dict:
-    """``{"ok", "problems", "conf"}`` for report.json; problems are prefixed with the model's folder
-    sparse/N."""
+def check_each(
+    models: dict[int, pycolmap.Reconstruction], conf: dict | None = None
+) -> dict[int, list[str]]:
+    """Each model's problems ([] for a plausible model), by its index."""
     conf = merge_conf(default_conf, conf, "model check")
-    problems = [
-        f"sparse/{index}: {p}"
-        for index, rec in sorted(models.items())
-        for p in check_model(rec, conf)
-    ]
+    return {index: check_model(rec, conf) for index, rec in sorted(models.items())}
+
+
+def check_models(
+    models: dict[int, pycolmap.Reconstruction],
+    conf: dict | None = None,
+    each: dict[int, list[str]] | None = None,
+) -> dict:
+    """``{"ok", "problems", "conf"}`` for report.json; problems are prefixed with the model's folder
+    sparse/N. ``each``: ``check_each``'s result, when it was computed already."""
+    conf = merge_conf(default_conf, conf, "model check")
+    each = check_each(models, conf) if each is None else each
+    problems = [f"sparse/{index}: {p}" for index, found in sorted(each.items()) for p in found]
     return {"ok": not problems, "problems": problems, "conf": conf}

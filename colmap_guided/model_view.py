@@ -27,7 +27,9 @@ from .geometry import image_rays, photo_up
 from .images import read_thumbnail
 
 MAX_POINTS = 30000  # points drawn in the 3D view; a larger model is shown by an even random sample
-MAX_THUMBS = 300  # cameras that show their photo on hover (160 px JPEGs, ~6 KB each)
+MAX_THUMBS = 300  # cameras that show their photo on hover (160 px JPEGs, ~6 KB each), all models
+# the other models in the view's picker: the largest ones, each with at most a quarter of the points
+MAX_OTHER_MODELS = 20
 FRUSTUM = 0.07  # frustum depth in units of the model's radius
 # amber / blue: visible on dark and light; red: photos placed later by `localize`
 ERA_COLORS = {"historical": "#f0a030", "modern": "#3a8ee6", "localized": "#e03c31"}
@@ -126,9 +128,10 @@ def view_data(
     image_path: Path | None = None,
     max_points: int = MAX_POINTS,
     enu: bool = False,
+    max_thumbs: int = MAX_THUMBS,
 ) -> dict:
     """What the viewer draws (and what a test reads back): points, cameras, eras and the display
-    frame."""
+    frame; the first ``max_thumbs`` cameras carry their photo."""
     eras = eras or {}
     origin, axes, radius = ground_frame(rec, enu)
     ids = np.array(sorted(rec.points3D), np.int64)
@@ -144,7 +147,7 @@ def view_data(
     for i, cam in enumerate(cameras):
         cam["era"] = eras.get(cam["name"], "photo")
         cam["thumb"] = None
-        if image_path is not None and i < MAX_THUMBS:
+        if image_path is not None and i < max_thumbs:
             try:
                 cam["thumb"] = embed.encode_jpeg(
                     read_thumbnail(Path(image_path) / cam["name"], 160)[0], 75
@@ -186,36 +189,61 @@ def decode_points(data: dict) -> np.ndarray:
 VIEW_JS = embed.asset("model_view.js")
 
 
+def _json(data: dict) -> str:
+    """Strict JSON for a <script> block: a NaN fails here, where it is made, not in the browser
+    (JSON.parse refuses it)."""
+    return json.dumps(data, separators=(",", ":"), allow_nan=False).replace("</", "<\\/")
+
+
 def view_html(
     rec: pycolmap.Reconstruction,
     eras: dict[str, str] | None = None,
     image_path: Path | None = None,
     max_points: int = MAX_POINTS,
     enu: bool = False,
+    others: list[tuple[int, pycolmap.Reconstruction]] = (),
 ) -> str:
     """The 3D view: a legend, the canvas, its data (JSON) and the viewer script; nothing loaded from
-    outside."""
-    data = view_data(rec, eras, image_path, max_points, enu)
-    legend = "".join(
-        f"<i style='background:{color}'></i>{html.escape(era)}"
-        for era, color in data["colors_by_era"].items()
+    outside. ``others``: the workspace's other models (index, model), offered by a picker, each in
+    its own frame."""
+    models = [(0, rec, max_points, enu), *((k, m, max_points // 4, False) for k, m in others)]
+    blocks, thumbs = [], MAX_THUMBS
+    for k, model, points, in_enu in models[: 1 + MAX_OTHER_MODELS]:
+        data = view_data(model, eras, image_path, points, in_enu, max(thumbs, 0))
+        thumbs -= len(data["cameras"])
+        data["label"] = f"sparse/{k}: {len(data['cameras'])} photos"
+        data["legend"] = f"{len(data['cameras'])} cameras:" + "".join(
+            f"<i style='background:{color}'></i>{html.escape(era)}"
+            for era, color in data["colors_by_era"].items()
+        )
+        shown, total = data["num_points_shown"], data["num_points_total"]
+        data["note"] = (
+            f"all {total:,} points"
+            if shown == total
+            else f"{shown:,} of the {total:,} points (an even sample, to keep the page small)"
+        )
+        blocks.append(data)
+    picker = (
+        "<select id='model-pick' title='the model shown'>"
+        + "".join(
+            f"<option value='{i}'>{html.escape(d['label'])}</option>" for i, d in enumerate(blocks)
+        )
+        + "</select> "
+        if len(blocks) > 1
+        else ""
     )
-    shown, total = data["num_points_shown"], data["num_points_total"]
-    note = (
-        f"all {total:,} points"
-        if shown == total
-        else f"{shown:,} of the {total:,} points (an even random sample, to keep this page small)"
+    scripts = "".join(
+        f"<script type='application/json' id='model-data{f'-{i}' if i else ''}'>{_json(d)}</script>"
+        for i, d in enumerate(blocks)
     )
-    # strict JSON: a NaN fails here, where it is made, not in the browser (JSON.parse refuses it)
-    payload = json.dumps(data, separators=(",", ":"), allow_nan=False).replace("</", "<\\/")
     return (
         "<p class='legend'><span class='model-buttons'>"
         "<button id='model-home'>Reset view</button><button id='model-top'>From above</button>"
-        f"</span>{len(data['cameras'])} cameras:{legend}</p><div id='model-box'>"
-        "<canvas id='model-view'></canvas><div id='model-tip'></div></div>"
-        f"<p class='muted'>Showing {note}, coloured from the photos. Drag to turn, wheel to "
-        "zoom, shift-drag to move, double-click to reset; point at a camera (or click it) to "
-        f"see its photo.</p><script type='application/json' id='model-data'>{payload}</script>"
+        f"</span>{picker}<span id='model-legend'>{blocks[0]['legend']}</span></p>"
+        "<div id='model-box'><canvas id='model-view'></canvas><div id='model-tip'></div></div>"
+        f"<p class='muted'>Showing <span id='model-note'>{blocks[0]['note']}</span>, coloured "
+        "from the photos. Drag to turn, wheel to zoom, shift-drag to move, double-click to reset; "
+        f"point at a camera (or click it) to see its photo.</p>{scripts}"
         f"<script>\n{VIEW_JS}</script>"
     )
 

@@ -268,11 +268,15 @@ def _result(scene_dir, image_path, output, photos, conf, match_stats, models, ti
     """report.json's content."""
     stats = report.model_statistics(models, photos.names)
     registered = set(stats["registered_images"])
-    checked = model_check.check_models(models)
+    each = model_check.check_each(models)
+    checked = model_check.check_models(models, each=each)
     for problem in checked["problems"]:
         logger.warning("Model check: %s", problem)
     eras = report.read_manifest(Path(scene_dir) / "manifest.json")
     database_path, sparse_path = output / "database.db", output / "sparse"
+    entries = report.model_entries(models, each, eras)
+    for entry in entries:  # every model is a result: its points and COLMAP text beside it
+        entry["exports"] = export.export_model(models[entry["index"]], output / entry["path"])
     weak_start, prints = match_stats.pop("weak_start"), photos.prints
     result = {
         "scene": Path(scene_dir).resolve().name,
@@ -288,6 +292,7 @@ def _result(scene_dir, image_path, output, photos, conf, match_stats, models, ti
             "pairs": match_stats.pop("pairs"),
         },
         "model": stats,
+        "models": entries,
         "model_check": checked,
         "weak_start": mapping.WEAK_START if weak_start else None,
         "eras": report.era_ratios(eras, stats["registered_images"], photos.names) if eras else {},
@@ -297,7 +302,7 @@ def _result(scene_dir, image_path, output, photos, conf, match_stats, models, ti
             photos.layouts, photos.panels, photos.masked, photos.prints, registered
         ),
         "manifest_path": str(Path(scene_dir).resolve() / "manifest.json") if eras else None,
-        "exports": export.export_model(models[0], sparse_path / "0") if models else {},
+        "exports": entries[0]["exports"] if entries else {},
         "timings": timings,
         **{key: stats[key] for key in report.SUMMARY_KEYS},
     }

@@ -48,6 +48,31 @@ def model_statistics(models: dict[int, pycolmap.Reconstruction], image_names: li
     }
 
 
+def model_entries(
+    models: dict[int, pycolmap.Reconstruction], problems: dict[int, list[str]], eras: dict[str, str]
+) -> list[dict]:
+    """Every model, largest first: a building, or a part of one. Its folder, photos, points, model
+    check (``problems``: ``model_check.check_each``) and photos per era."""
+    out = []
+    for index, rec in sorted(models.items()):
+        names = sorted(rec.images[i].name for i in rec.reg_image_ids())
+        entry = {
+            "index": index,
+            "path": f"sparse/{index}",
+            "num_registered": len(names),
+            "num_points3D": rec.num_points3D(),
+            "passes_check": not problems[index],
+            "problems": problems[index],
+            "images": names,
+        }
+        if eras:
+            entry["eras"] = {
+                e: sum(eras.get(n) == e for n in names) for e in sorted(set(eras.values()))
+            }
+        out.append(entry)
+    return out
+
+
 def read_manifest(path: Path) -> dict[str, str]:
     """name -> era from a one-scene manifest; {} when there is none."""
     path = Path(path)
@@ -83,7 +108,6 @@ SUGGEST = {
     "viewpoint (and date) and the others', so that each step shares details with the next.",
     "mapping": "Add photos taken between this one and {best}, from nearby "
     "viewpoints, so that more of its details are also seen in photos of the model.",
-    "separate model": "Add photos that show what both groups see, so that the two models join.",
 }
 
 
@@ -94,19 +118,16 @@ def explain_unregistered(
     skipped: dict[str, str],
     min_num_inliers: int = 15,
 ) -> dict[str, dict]:
-    """Why each photo outside the largest model dropped out, in plain words: {name: {stage, reason,
-    suggestion, evidence}}.
+    """Why each photo in no model dropped out, in plain words: {name: {stage, reason, suggestion,
+    evidence}}. A photo in a smaller model is a result (that model's), not listed here.
 
     Stages, in pipeline order: ``reading`` (skipped: the file could not be used), ``features``
     (fewer than MIN_KEYPOINTS keypoints and no verified pair), ``matching`` (no pair passed two-view
-    verification), ``separate model`` (registered, but in a smaller model) and ``mapping`` (verified
-    pairs, yet the mapper could not place it). Evidence: verified pairs (two_view_geometries with
-    inliers), the best one and its inliers, how many of the verified partners are in the model, and
-    the best unverified candidate.
+    verification) and ``mapping`` (verified pairs, yet the mapper could not place it). Evidence:
+    verified pairs (two_view_geometries with inliers), the best one and its inliers, how many of the
+    verified partners are in a model, and the best unverified candidate.
     """
-    largest = max(models, key=lambda k: models[k].num_reg_images(), default=None)
-    in_model = {k: {rec.images[i].name for i in rec.reg_image_ids()} for k, rec in models.items()}
-    registered = in_model.get(largest, set())
+    registered = {rec.images[i].name for rec in models.values() for i in rec.reg_image_ids()}
     todo = [name for name in image_names if name not in registered]
     out = {name: _unreadable(skipped[name]) for name in todo if name in skipped}
     if len(out) == len(todo):
@@ -125,7 +146,6 @@ def explain_unregistered(
             "best_inliers": best_inliers,
             "num_keypoints": keypoints[name],
         }
-        other = next((k for k in models if k != largest and name in in_model[k]), None)
         if not pairs and keypoints[name] < MIN_KEYPOINTS:
             stage, reason = "features", _features_reason(keypoints[name])
         elif not pairs:
@@ -135,10 +155,6 @@ def explain_unregistered(
                 best_candidate=tried[0][1] if tried else None,
                 best_candidate_matches=tried[0][0] if tried else 0,
             )
-        elif other is not None:
-            stage = "separate model"
-            reason = _separate_reason(other, len(in_model[other]) - 1, best, best_inliers)
-            entry["model"] = other
         else:
             stage, reason = "mapping", _mapping_reason(pairs, registered)
         entry.update(stage=stage, reason=reason, suggestion=SUGGEST[stage].format(best=best))
@@ -221,25 +237,16 @@ def _matching_reason(tried: list[tuple[int, str]], min_num_inliers: int) -> str:
     )
 
 
-def _separate_reason(model: int, num_others: int, best: str, best_inliers: int) -> str:
-    """Why a photo placed in a smaller model is not in the largest."""
-    return (
-        f"It was placed, with {num_others} other photo(s), in a separate "
-        f"smaller model (sparse/{model}): no chain of matched photos links that group "
-        f"to the main model. Its best match is {best} ({best_inliers} verified matches)."
-    )
-
-
 def _mapping_reason(pairs: list[tuple[int, str]], registered: set[str]) -> str:
     """Why a photo with verified pairs (strongest first) was still not placed by the mapper."""
     count, best = pairs[0]
     linked = sum(partner in registered for _, partner in pairs)
     return (
-        f"It matched {len(pairs)} photo(s), {linked} of them in the model; "
+        f"It matched {len(pairs)} photo(s), {linked} of them in a model; "
         f"the best, {best}, with {count} matches that agree with "
         "one geometry. Still, the mapper could not fix its position from "
         "them: too few of those matches fall on points of the 3D model"
-        + (" (none of the photos it matched is in the model)." if not linked else ".")
+        + (" (none of the photos it matched is in a model)." if not linked else ".")
     )
 
 
@@ -326,14 +333,21 @@ def summary_text(report: dict) -> str:
             f"  {era}: {r['num_registered']}/{r['num_images']} "
             f"registered ({100 * r['registered_ratio']:.0f} %)"
         )
+    others = (report.get("models") or [])[1:]
+    if others:
+        shown = ", ".join(f"{m['path']} ({m['num_registered']})" for m in others[:10])
+        lines.append(
+            f"{len(others)} other model(s), photos in each: {shown}"
+            + (" ..." if len(others) > 10 else "")
+        )
     skipped = report.get("skipped_images") or {}
-    unregistered = [name for name in s["unregistered_images"] if name not in skipped]
+    why = report.get("unregistered") or {}
+    unregistered = [name for name in why if name not in skipped]
     if unregistered:
-        why = report.get("unregistered") or {}
-        shown = ", ".join(
-            name + (f" ({why[name]['stage']})" if name in why else "") for name in unregistered[:10]
-        ) + (" ..." if len(unregistered) > 10 else "")
-        lines.append(f"Not registered (stage where it dropped out): {shown}")
+        shown = ", ".join(f"{name} ({why[name]['stage']})" for name in unregistered[:10]) + (
+            " ..." if len(unregistered) > 10 else ""
+        )
+        lines.append(f"In no model (stage where it dropped out): {shown}")
     if skipped:
         reasons = skipped if isinstance(skipped, dict) else dict.fromkeys(skipped, "unreadable")
         lines.append(f"Skipped {len(reasons)} image(s):")

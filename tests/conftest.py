@@ -43,3 +43,22 @@ def chromium():
     if find_chromium() is None:
         message = "Chromium is not installed (Debian: apt-get install chromium)"
         pytest.fail(message) if os.environ.get("CI") else pytest.skip(message)
+
+
+@pytest.fixture(scope="session")
+def two_buildings(synthetic_scene, tmp_path_factory):
+    """One folder with the synthetic scene's 8 views and 6 of another building's 7 (named other_*),
+    reconstructed with raw SIFT: two models. Returns (result, workspace, other building's scene)."""
+    import shutil
+
+    from colmap_guided.reconstruct import reconstruct
+    from colmap_guided.synthetic import render_scene
+
+    root = tmp_path_factory.mktemp("two_buildings")
+    other = render_scene(root / "other", num_images=7, seed=7)
+    images = root / "scene" / "images"
+    shutil.copytree(synthetic_scene.image_dir, images)
+    for name in other.names[:6]:
+        shutil.copy(other.image_dir / name, images / f"other_{name}")
+    result = reconstruct(images.parent, output=root / "out", matcher="raw")
+    return result, root / "out", other

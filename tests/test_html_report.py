@@ -218,14 +218,14 @@ def test_each_photo_that_did_not_register_says_where_and_why(run_with_strangers)
     for entry in why.values():
         assert html.escape(entry["reason"]) in page and html.escape(entry["suggestion"]) in page
     assert (
-        "Not registered (stage where it dropped out): "
+        "In no model (stage where it dropped out): "
         "blank.png (features), unrelated.jpg (matching)" in report.summary_text(result)
     )
 
 
 def test_later_stages_are_told_apart(run_with_strangers):
-    """A photo with verified pairs that the mapper left out (``mapping``), or placed in a smaller
-    model."""
+    """A photo with verified pairs that the mapper left out (``mapping``); one placed in a smaller
+    model is that model's result, not a photo left out."""
     result, out, _ = run_with_strangers
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
     names = sorted(rec.images[i].name for i in rec.reg_image_ids())
@@ -238,9 +238,7 @@ def test_later_stages_are_told_apart(run_with_strangers):
     database = out / "database.db"
     everyone = names + ["blank.png", "unrelated.jpg"]
     mapping_stage = report.explain_unregistered(database, {0: left_out}, everyone, {})[names[0]]
-    separate = report.explain_unregistered(database, {0: left_out, 1: alone}, everyone, {})[
-        names[0]
-    ]
+    separate = report.explain_unregistered(database, {0: left_out, 1: alone}, everyone, {})
     with dbio.open_database(database) as db:
         image_id = db.read_image_with_name(names[0]).image_id
         pair_ids, counts = db.read_two_view_geometry_num_inliers()
@@ -255,11 +253,53 @@ def test_later_stages_are_told_apart(run_with_strangers):
         and mapping_stage["best_pair"] in names[1:]
     )
     assert mapping_stage["best_pair"] in mapping_stage["suggestion"]
-    assert (
-        separate["stage"] == "separate model"
-        and separate["model"] == 1
-        and "sparse/1" in separate["reason"]
+    assert names[0] not in separate and set(separate) == {"blank.png", "unrelated.jpg"}
+    entries = report.model_entries({0: left_out, 1: alone}, {0: [], 1: ["a problem"]}, {})
+    assert [(m["path"], m["images"], m["passes_check"]) for m in entries] == [
+        ("sparse/0", names[1:], True),
+        ("sparse/1", names[:2], False),
+    ]
+
+
+def test_every_model_is_a_result(two_buildings, synthetic_scene):
+    result, out, _ = two_buildings
+    sparse = load_models(out / "sparse")
+    others = sorted(f"other_view_{i:03d}.jpg" for i in range(6))
+    assert [sorted(rec.images[i].name for i in rec.reg_image_ids()) for rec in sparse.values()] == [
+        sorted(synthetic_scene.names),
+        others,
+    ]
+    # each model listed with its photos and check, exported beside it
+    assert [(m["path"], m["images"], m["passes_check"]) for m in result["models"]] == [
+        ("sparse/0", sorted(synthetic_scene.names), True),
+        ("sparse/1", others, True),
+    ]
+    for m, rec in zip(result["models"], sparse.values()):
+        text = pycolmap.Reconstruction(m["exports"]["text"])
+        assert text.num_points3D() == rec.num_points3D() == m["num_points3D"] > 100
+        assert Path(m["exports"]["ply"]) == out / m["path"] / "points3D.ply"
+    # the other building's photos are its model's, not photos that failed
+    assert result["unregistered"] == {}
+    text = report.summary_text(result)
+    assert "1 other model(s), photos in each: sparse/1 (6)" in text and "In no model" not in text
+    page = (out / "report.html").read_text(encoding="utf-8")
+    assert "<option value='1'>sparse/1: 6 photos</option>" in page
+    assert "Photos in no model, and why (0)" in page and "<h2>The models (2)</h2>" in page
+    assert sorted(c["name"] for c in _strict(page, "model-data-1")["cameras"]) == others
+
+
+def test_page_opens_the_model_that_holds_a_linked_photo(chromium, two_buildings, tmp_path):
+    from recon_scripts.render_report_screenshot import screenshot, view_pixels
+
+    _, out, _ = two_buildings
+    full = screenshot(out / "report.html", tmp_path / "first.png", (1200, 900))
+    linked = screenshot(
+        out / "report.html", tmp_path / "second.png", (1200, 900), photo="other_view_002.jpg"
     )
+    assert view_pixels(full) > 2000 and view_pixels(linked) > 2000
+    # another model on screen: the view differs
+    a, b = (np.asarray(Image.open(p).convert("RGB")).astype(int) for p in (full, linked))
+    assert np.abs(a - b).sum(axis=2).astype(bool).sum() > 5000
 
 
 def test_model_is_exported_for_other_tools(run_with_strangers):
@@ -312,8 +352,8 @@ def _undistortion_fails(rec: pycolmap.Reconstruction) -> str:
     return image.name
 
 
-def _strict(page: str) -> dict:
-    found = re.search(r"<script type='application/json' id='model-data'>(.*?)</script>", page, re.S)
+def _strict(page: str, block: str = "model-data") -> dict:
+    found = re.search(rf"<script type='application/json' id='{block}'>(.*?)</script>", page, re.S)
     assert found, "the page has no 3D view"
 
     def refuse(constant):

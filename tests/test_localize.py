@@ -299,3 +299,22 @@ def test_a_run_killed_before_the_poses_continues_from_the_database(second, works
         assert entry["status"] == before[entry["photo"]]["status"]
         if "tvec" in entry:
             assert np.allclose(entry["tvec"], before[entry["photo"]]["tvec"])
+
+
+def test_photos_are_placed_in_the_model_named_by_model(two_buildings, tmp_path, capfd):
+    result, _, other = two_buildings
+    ws = tmp_path / "ws"  # a workspace of its own: the shared one stays as reconstruct left it
+    reconstruct(Path(result["image_path"]).parent, output=ws, matcher="raw")
+    held_out = other.image_dir / other.names[6]  # the other building's view not in the folder
+    into_largest = loc.localize(ws, [held_out])["photos"][0]
+    assert into_largest["status"] == "not placed", into_largest
+    entry = loc.localize(ws, [held_out], model=1)["photos"][0]
+    assert entry["status"] == "placed" and entry["matched_images"][0]["image"].startswith("other_")
+    saved = json.loads((ws / "localized.json").read_text(encoding="utf-8"))
+    assert saved["model"] == str(ws / "sparse" / "1")
+    # the page draws the camera in that model's view
+    page = (ws / "report.html").read_text(encoding="utf-8")
+    data = json.loads(re.search(r"id='model-data-1'>(.*?)</script>", page, re.S).group(1))
+    assert held_out.name in {c["name"].rsplit("/", 1)[-1] for c in data["cameras"]}
+    code, errors = _run(["localize", ws, held_out, "--model", "4"], capfd)
+    assert code == 2 and len(errors) == 1 and "pass --model with one of 0, 1" in errors[0], errors

@@ -1,11 +1,21 @@
 (function () {
-  const D = JSON.parse(document.getElementById('model-data').textContent);
+  // one data block per model (the largest first); the picker chooses the one drawn
+  const blocks = Array.from(document.querySelectorAll("script[type='application/json'][id^='model-data']"));
   const bytes = s => Uint8Array.from(atob(s), c => c.charCodeAt(0));
-  const Q = new Uint16Array(bytes(D.points).buffer), RGB = bytes(D.colors), n = Q.length / 3;
-  const P = new Float32Array(3 * n);
-  for (let i = 0; i < 3 * n; i++) P[i] = D.quant.lo[i % 3] + Q[i] * D.quant.step[i % 3];
   const cv = document.getElementById('model-view'), ctx = cv.getContext('2d'), tip = document.getElementById('model-tip');
-  let v = {yaw: D.yaw, pitch: 0.45, zoom: 1, px: 0, py: 0}, home = null, hover = -1, pinned = -1, drag = null, W = 0, H = 0, r = 1;
+  const pick = document.getElementById('model-pick');
+  let D = null, RGB = null, P = null, n = 0;
+  let v = null, home = null, hover = -1, pinned = -1, drag = null, W = 0, H = 0, r = 1;
+  function load(k) {  // model k's points and cameras, seen from its first view
+    D = JSON.parse(blocks[k].textContent);
+    const Q = new Uint16Array(bytes(D.points).buffer);
+    RGB = bytes(D.colors); n = Q.length / 3; P = new Float32Array(3 * n);
+    for (let i = 0; i < 3 * n; i++) P[i] = D.quant.lo[i % 3] + Q[i] * D.quant.step[i % 3];
+    document.getElementById('model-legend').innerHTML = D.legend;
+    document.getElementById('model-note').textContent = D.note;
+    v = {yaw: D.yaw, pitch: 0.45, zoom: 1, px: 0, py: 0}; hover = -1; pinned = -1; show(-1);
+    setup(); fit(); home = Object.assign({}, v); draw();
+  }
   function setup() { r = window.devicePixelRatio || 1; W = cv.clientWidth * r; H = cv.clientHeight * r; cv.width = W; cv.height = H; }
   function project(p) {  // display frame (z up) -> [screen x, screen y, depth], device pixels
     const cy = Math.cos(v.yaw), sy = Math.sin(v.yaw), cp = Math.cos(v.pitch), sp = Math.sin(v.pitch);
@@ -96,10 +106,14 @@
   document.getElementById('model-home').onclick = () => { v = Object.assign({}, home); redraw(); };
   document.getElementById('model-top').onclick = () => { v = Object.assign({}, home, {pitch: 1.55, yaw: 0}); fit(); redraw(); };
   window.addEventListener('resize', () => { setup(); draw(); });
-  setup(); fit(); home = Object.assign({}, v); draw();
+  if (pick) pick.addEventListener('change', () => load(+pick.value));
   let wanted = null; try { wanted = decodeURIComponent(location.hash.replace(/^#photo=/, '')); } catch (err) { /* a malformed link: no photo */ }
+  const holds = k => JSON.parse(blocks[k].textContent).cameras.some(c => c.name === wanted);
+  const first = location.hash.startsWith('#photo=') && pick ? Math.max(0, blocks.findIndex((b, k) => holds(k))) : 0;
+  if (pick) pick.value = String(first);
+  load(first);
   const linked = location.hash.startsWith('#photo=') ? D.cameras.findIndex(c => c.name === wanted) : -1;
-  if (linked >= 0) {  // report.html#photo=NAME opens with that photo shown
+  if (linked >= 0) {  // report.html#photo=NAME opens with that photo shown, in the model that holds it
     const q = project(D.cameras[linked].c), b = cv.getBoundingClientRect();
     pinned = linked; draw(); show(linked, {clientX: b.left + q[0] / r, clientY: b.top + q[1] / r});
   }

@@ -1,6 +1,6 @@
 """After stage 5: localize new photos in an existing model, without rebuilding it.
 
-    python -m colmap_guided localize WORKSPACE PHOTOS... [--add] [--num_images 10]
+    python -m colmap_guided localize WORKSPACE PHOTOS... [--add] [--num_images 10] [--model N]
 
 "Where was this old photo taken?" For each new photo: retrieval of the model's most similar images
 (GeM descriptors of the matcher's backbone, as ``--pairs retrieval``), the workspace's matcher
@@ -9,7 +9,8 @@ features), COLMAP's two-view verification, 2D-3D correspondences through the mod
 absolute pose estimation with an unknown focal length (LO-RANSAC + refinement, pycolmap) and a pose
 check (inliers, reprojection error, the model check's focal length rule).
 
-The model (WORKSPACE/sparse/0), database.db and the photos are only read. What localize writes in
+The model (WORKSPACE/sparse/0, the largest; ``--model N``: sparse/N), database.db and the photos
+are only read. What localize writes in
 the workspace, recorded in its marker (so ``reconstruct --overwrite`` removes it):
 
 - ``localize.db``: a COLMAP database with the new photos' keypoints and matches and a copy of the
@@ -20,7 +21,7 @@ the workspace, recorded in its marker (so ``reconstruct --overwrite`` removes it
 - ``localize_pairs.txt``, ``localize_retrieval.npz``: the pairs matched, the model's retrieval
   descriptors.
 - ``sparse_localized/0`` with ``--add``: a new model version, the model with the placed photos
-  registered, their points triangulated and bundle adjustment run; sparse/0 is left as it was.
+  registered, their points triangulated and bundle adjustment run; sparse/N is left as it was.
 - ``report.html`` is written again with a section on the localized photos.
 
 Modules: ``results`` (the workspace's files, localized.json), ``pose`` (retrieval, matches, pose,
@@ -74,8 +75,10 @@ def localize(
     matcher_conf: dict | None = None,
     conf: dict | None = None,
     add: bool = False,
+    model: int = 0,
 ) -> dict:
-    """Localize ``photos`` (files or folders) in the model of a ``reconstruct`` workspace; returns
-    localized.json's content ({"photos": [...], ...}) and, with ``add``, the new model's folder."""
+    """Localize ``photos`` (files or folders) in a model of a ``reconstruct`` workspace
+    (sparse/``model``; 0: the largest); returns localized.json's content ({"photos": [...], ...})
+    and, with ``add``, the new model's folder."""
     conf = merge_conf(default_conf, conf, "localize")
-    return localize_photos(workspace, photos, matcher, matcher_conf, conf, add)
+    return localize_photos(workspace, photos, matcher, matcher_conf, conf, add, model)

@@ -1,5 +1,5 @@
 """``localize --add``: a new model version, the model with the placed photos registered, their
-points triangulated and bundle adjustment run; sparse/0 is left as it was."""
+points triangulated and bundle adjustment run; the model it started from is left as it was."""
 
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ def add_to_model(
         pycolmap.bundle_adjustment(new, options)
     final = _write(ws, new)
     logger.info(
-        "New model version with %d more photo(s): %s (sparse/0 unchanged).",
+        "New model version with %d more photo(s): %s (the model itself unchanged).",
         new.num_reg_images() - rec.num_reg_images(),
         final,
     )

@@ -20,7 +20,7 @@ def add_parser(subparsers) -> None:
         help="where was this photo taken? new photos localized in a reconstruct workspace's model",
     )
     loc.add_argument(
-        "workspace", type=Path, help="the --output folder of a reconstruct run (holds sparse/0)"
+        "workspace", type=Path, help="the --output folder of a reconstruct run (holds sparse/N)"
     )
     loc.add_argument(
         "photos", type=Path, nargs="+", help="photos, or folders of photos, to localize (only read)"
@@ -29,7 +29,13 @@ def add_parser(subparsers) -> None:
         "--add",
         action="store_true",
         help="also write WORKSPACE/sparse_localized/0: the "
-        "model with the placed photos added (sparse/0 is kept)",
+        "model with the placed photos added (sparse/N is kept)",
+    )
+    loc.add_argument(
+        "--model",
+        type=int,
+        default=0,
+        help="the model to place them in: sparse/N (default 0, the largest; report.json lists all)",
     )
     # its retrieval's k and, as reconstruct's, the matcher, its weights and device
     add_conf_flags(loc, package, ["num_images"])
@@ -43,6 +49,12 @@ def run(args: argparse.Namespace) -> None:
     matcher_conf = {k: v for k, v in matcher_options(args, MATCHER_FLAGS).items() if v is not None}
     conf = conf_from_flags(args, package, ["num_images"])
     out = package.localize(
-        args.workspace, args.photos, args.matcher, matcher_conf, conf, add=args.add
+        args.workspace,
+        args.photos,
+        args.matcher,
+        matcher_conf,
+        conf,
+        add=args.add,
+        model=args.model,
     )
     print(package.summary_text(out))

@@ -50,8 +50,8 @@ def image_root() -> Path:
     return Path(Path.cwd().resolve().anchor)
 
 
-def open_workspace(workspace: Path) -> tuple[Path, dict, Path]:
-    """(workspace, report.json, sparse/0) of a finished ``reconstruct`` run; one-line errors
+def open_workspace(workspace: Path, model: int = 0) -> tuple[Path, dict, Path]:
+    """(workspace, report.json, sparse/``model``) of a finished ``reconstruct`` run; one-line errors
     otherwise."""
     path = Path(workspace).expanduser().resolve()
     if not path.is_dir():
@@ -69,10 +69,16 @@ def open_workspace(workspace: Path) -> tuple[Path, dict, Path]:
             f"No report.json in {path}: run `python -m colmap_guided reconstruct` to the end first."
         )
     report = json.loads((path / "report.json").read_text(encoding="utf-8"))
-    model_dir = path / "sparse" / "0"
+    model_dir = path / "sparse" / str(model)
     if not any((model_dir / f"images.{ext}").is_file() for ext in ("bin", "txt")):
+        found = sorted(p.name for p in (path / "sparse").glob("[0-9]*") if p.is_dir())
         raise ValueError(
-            f"{path} holds no model (sparse/0): reconstruct made none to localize photos in."
+            f"{path} holds no model sparse/{model}: "
+            + (
+                f"pass --model with one of {', '.join(found)} (report.json lists them)."
+                if found
+                else "reconstruct made none to localize photos in."
+            )
         )
     return path, report, model_dir
 

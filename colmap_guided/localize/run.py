@@ -40,11 +40,12 @@ def localize_photos(
     matcher_conf: dict | None,
     conf: dict,
     add: bool,
+    model: int = 0,
 ) -> dict:
-    """``localize`` with ``conf`` complete (merged over ``default_conf``)."""
+    """``localize`` with ``conf`` complete (merged over ``default_conf``), in sparse/``model``."""
     if conf["num_images"] < 1:
         raise ValueError(f"--num_images must be at least 1, got {conf['num_images']}.")
-    path, report, model_dir = open_workspace(workspace)
+    path, report, model_dir = open_workspace(workspace, model)
     image_path = Path(report["image_path"])
     rec = pycolmap.Reconstruction(str(model_dir))
     digest = model_digest(model_dir)
