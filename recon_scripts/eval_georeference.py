@@ -1,11 +1,15 @@
 """Georeferencing on a real set with a reference model: the reference's camera centres placed on
-the Earth (its own units taken as metres, its photos' up as the vertical, a chosen origin and
-heading) are the truth; 3 of them are the controls, the other photos' position and heading errors
-are measured.
+the Earth (its own units taken as metres, or ``--scale`` metres each; its photos' up as the
+vertical, a chosen origin and heading) are the truth; 3 of them (or ``--controls``) are the
+controls, the other photos' position and heading errors are measured. The controls can be moved
+as a map reading moves them: ``--noise`` (Gaussian) or ``--moved MIN MAX`` (each by a distance
+between MIN and MAX metres, in a random direction: a standpoint guessed on a map), and given an
+``--accuracy``.
 
     python -m recon_scripts.eval_georeference WORKSPACE \
-        [--reference ../shared/data/lund_door_gtsfm/colmap_ground_truth] \
-        [--controls DSC_0001.JPG DSC_0006.JPG DSC_0012.JPG] [--noise METRES] [--off DSC_0009.JPG]
+        [--reference ../shared/data/lund_door_gtsfm/colmap_ground_truth] [--scale 1] \
+        [--controls DSC_0001.JPG DSC_0006.JPG DSC_0012.JPG] [--noise METRES | --moved MIN MAX] \
+        [--accuracy METRES] [--seed 0] [--off DSC_0009.JPG]
 
 WORKSPACE: a `reconstruct` output of the set (georeferenced by this script: WORKSPACE/geo/).
 """
@@ -26,15 +30,17 @@ from recon_scripts import script_parser
 from recon_scripts.evaluation.tables import markdown_table
 
 
-def truth_frame(reference: pycolmap.Reconstruction, origin, yaw_deg: float) -> geoframe.GeoFrame:
-    """The reference on the Earth: its photos' up as the vertical, turned by ``yaw_deg``, scale 1,
-    its cameras' centroid at ``origin``."""
+def truth_frame(
+    reference: pycolmap.Reconstruction, origin, yaw_deg: float, scale: float = 1.0
+) -> geoframe.GeoFrame:
+    """The reference on the Earth: its photos' up as the vertical, turned by ``yaw_deg``, ``scale``
+    metres per unit, its cameras' centroid at ``origin``."""
     images = [reference.images[i] for i in reference.reg_image_ids()]
     up = photo_up(im.cam_from_world().rotation.matrix() for im in images)
     c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
     R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ geo._level_rotation(up)
     centres = np.array([im.projection_center() for im in images])
-    return geoframe.GeoFrame(tuple(origin), 1.0, R, -R @ centres.mean(axis=0), True)
+    return geoframe.GeoFrame(tuple(origin), scale, R, -scale * R @ centres.mean(axis=0), True)
 
 
 def _parser():
@@ -57,6 +63,24 @@ def _parser():
     parser.add_argument(
         "--noise", type=float, default=0.0, help="metres (sigma) of map-reading error per control"
     )
+    parser.add_argument(
+        "--moved",
+        type=float,
+        nargs=2,
+        default=None,
+        metavar=("MIN", "MAX"),
+        help="move each control by MIN to MAX metres (uniform) in a random direction",
+    )
+    parser.add_argument(
+        "--accuracy",
+        type=float,
+        default=None,
+        help="metres: the controls' accuracy column (default: none, the command's default)",
+    )
+    parser.add_argument(
+        "--scale", type=float, default=1.0, help="metres per unit of the reference (its spread)"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="of --noise and --moved")
     return parser
 
 
@@ -72,15 +96,19 @@ def enu(cam: dict, origin) -> np.ndarray:
 
 
 def control_points(true_cams: dict, args, origin) -> dict:
-    """The ``--controls`` at their true positions, moved by ``--noise``; ``--off`` 100 m east."""
+    """The ``--controls`` at their true positions, moved by ``--noise`` or ``--moved``; ``--off``
+    100 m east; each with ``--accuracy``."""
     controls = {n: true_cams[n] for n in args.controls}
-    rng = np.random.default_rng(0)
-    for name in controls if args.noise else []:  # horizontal error of a position read off a map
-        moved = enu(controls[name], origin) + [*rng.normal(0, args.noise, 2), 0]
-        controls[name] = geodetic(moved, origin)
+    rng = np.random.default_rng(args.seed)
+    for name in controls:  # horizontal error of a position read off a map
+        shift = rng.normal(0, args.noise, 2) if args.noise else np.zeros(2)
+        if args.moved:
+            distance, turn = rng.uniform(*args.moved), rng.uniform(0, 2 * math.pi)
+            shift = shift + distance * np.array([math.cos(turn), math.sin(turn)])
+        controls[name] = geodetic(enu(controls[name], origin) + [*shift, 0], origin)
     if args.off:
         controls[args.off] = geodetic(enu(true_cams[args.off], origin) + [100, 0, 0], origin)
-    return controls
+    return {n: {**c, "accuracy": args.accuracy} for n, c in controls.items()}
 
 
 def georeference(workspace: Path, controls: dict) -> dict:
@@ -88,9 +116,10 @@ def georeference(workspace: Path, controls: dict) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         control = Path(tmp) / "control.csv"
         control.write_text(
-            "name,latitude,longitude,altitude\n"
+            "name,latitude,longitude,altitude,accuracy\n"
             + "".join(
-                f"{n},{r['latitude']:.9f},{r['longitude']:.9f},{r['altitude']:.3f}\n"
+                f"{n},{r['latitude']:.9f},{r['longitude']:.9f},{r['altitude']:.3f},"
+                f"{'' if r['accuracy'] is None else r['accuracy']}\n"
                 for n, r in controls.items()
             )
         )
@@ -126,11 +155,15 @@ def photo_up_angle(rec: pycolmap.Reconstruction) -> float:
 def main(argv=None) -> None:
     args = _parser().parse_args(argv)
     reference = pycolmap.Reconstruction(str(args.reference))
-    truth = truth_frame(reference, args.origin, args.yaw)
+    truth = truth_frame(reference, args.origin, args.yaw, args.scale)
     by_name = {reference.images[i].name: reference.images[i] for i in reference.reg_image_ids()}
     true_cams = {name: truth.camera(image.cam_from_world()) for name, image in by_name.items()}
     controls = control_points(true_cams, args, truth.origin)
-    out = georeference(args.workspace, controls)
+    try:
+        out = georeference(args.workspace, controls)
+    except ValueError as err:  # no 3 controls agree: the command's message is the result
+        print(f"Refused: {err}")
+        return
     print(geo.summary_text(out))
     print("\n" + error_table(out["cameras"], controls, true_cams, truth.origin))
     extent = np.ptp(np.array([enu(c, truth.origin) for c in true_cams.values()]), axis=0)
