@@ -162,25 +162,31 @@ def osm_url(place: dict) -> str:
 # --- the command --------------------------------------------------------------------------------
 
 
-def load(workspace: Path) -> tuple[GeoFrame, dict] | None:
-    """(GeoFrame, georeference.json) of a workspace, None where it is not georeferenced or its model
-    changed since (a reconstruct rerun)."""
-    path = Path(workspace) / GEO / RESULT
+def geo_folder(model: int) -> str:
+    """The folder of a model's georeference in the workspace: geo/ for model 0 (the largest),
+    geo_N/ for model N."""
+    return GEO if model == 0 else f"{GEO}_{model}"
+
+
+def load(workspace: Path, model: int = 0) -> tuple[GeoFrame, dict] | None:
+    """(GeoFrame, georeference.json) of a workspace's model sparse/``model``, None where it is not
+    georeferenced or the model changed since (a reconstruct rerun)."""
+    path = Path(workspace) / geo_folder(model) / RESULT
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
         frame = GeoFrame.from_json(data)
     except (OSError, ValueError, KeyError, TypeError):
         return None
-    if data.get("model_sha256") != model_digest(Path(workspace) / "sparse" / "0"):
+    if data.get("model_sha256") != model_digest(Path(workspace) / "sparse" / str(model)):
         logger.warning("%s is older than the model; run georeference again.", path)
         return None
     return frame, data
 
 
-def add_places(workspace: Path, entries) -> None:
-    """Each entry of localized.json with a pose gets its camera on the Earth (latitude, longitude,
-    altitude, heading, tilt, roll), where the workspace is georeferenced."""
-    geo = load(workspace)
+def add_places(workspace: Path, entries, model: int = 0) -> None:
+    """Each entry of localized.json with a pose in sparse/``model`` gets its camera on the Earth
+    (latitude, longitude, altitude, heading, tilt, roll), where that model is georeferenced."""
+    geo = load(workspace, model)
     for entry in entries if geo is not None else []:
         if "qvec_wxyz" in entry:
             w, x, y, z = entry["qvec_wxyz"]

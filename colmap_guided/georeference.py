@@ -59,7 +59,7 @@ import numpy as np
 import pycolmap
 
 from .conf import add_conf_flags, conf_from_flags, merge_conf
-from .geoframe import GEO, RESULT, GeoFrame, enu_to_geodetic, geodetic_to_enu
+from .geoframe import RESULT, GeoFrame, enu_to_geodetic, geo_folder, geodetic_to_enu
 from .geometry import image_rays, photo_up
 from .log import add_verbosity_flags, logger
 from .workspace import Workspace, model_digest
@@ -589,12 +589,6 @@ def model_folder(workspace: Path, model: int) -> Path:
             f"{', '.join(map(str, found)) or 'none'} (0 the largest); pass one of them."
         )
     return sparse / str(model)
-
-
-def geo_folder(model: int) -> str:
-    """The folder of a model's georeference in the workspace: geo/ for model 0 (the one the report
-    and ``localize`` read), geo_N/ for model N."""
-    return GEO if model == 0 else f"{GEO}_{model}"
 
 
 def georeference(

@@ -68,7 +68,7 @@ def localize_photos(
             "camera_mode": "per_image",
         }
         _localize_todo(ws, rec, image_path, chosen, feature_conf, todo, results, header, conf)
-    geoframe.add_places(path, results.values())
+    geoframe.add_places(path, results.values(), model)
     write_results(path / RESULTS, results, header)
     out = {
         **header,
