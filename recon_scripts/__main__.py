@@ -15,6 +15,7 @@ from recon_scripts.bench import BASE_CONF
 # preset -> the module that defines it (imported only when chosen)
 PRESETS = {
     "aliked": "benchmark_aliked",
+    "archive": "benchmark_scale",
     "pairs": "benchmark_pairs",
     "pipeline": "benchmark_pipeline",
     "scale": "benchmark_scale",

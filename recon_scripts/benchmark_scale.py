@@ -6,6 +6,8 @@
     python -m recon_scripts scale sets="50 200 1000" mappers="global hierarchical incremental"
     python -m recon_scripts scale_executors sets=200 num_pairs=160
     python -m recon_scripts scale_default sets=1000   # reconstruct end to end, as shipped
+    python -m recon_scripts archive                   # the 1,000-photo development archive
+    python -m recon_scripts archive sets=60 labels="sacre_coeur wxbs:k*" alone=false
 
 Photos: the 437 photos of the 20 training scenes of ../shared/data/train pooled (long side <=
 1024 px; symlinked, never copied) and 563 photos of 24 landmarks rendered by
@@ -21,14 +23,25 @@ written to WORK/n<N>/<pairs>/<stage>.json. A stage with its JSON is skipped: a k
 resumes, and a run with other mappers maps the databases already matched. Everything is under WORK
 (default outputs/benchmark_scale, git-ignored); nothing is written next to the photos. The summary:
 Markdown tables (printed, WORK/report.md) and WORK/scale.png.
+
+`archive`: every labelled photo of ../shared/data (landmark sets, postcards, training scenes,
+PhotoTourism landmarks, WxBS pairs: recon_scripts/scale/archive.py) and rendered landmarks up to
+N, shuffled (seeded) into one flat folder under opaque names (WORK/n<N>/archive: symlinks,
+labels.json); ``reconstruct`` of it in one run, then of each label of 3 photos or more alone; per
+label, how many of its own run's photos one archive model holds, and the archive's models that mix
+labels. A run that succeeded is kept (WORK/n<N>/default/run.json, alone/<label>/run.json) and is
+not run again.
 """
 
 from __future__ import annotations
 
+import hashlib
 import shutil
 from pathlib import Path
 
 from recon_scripts.bench import Benchmark
+from recon_scripts.evaluation.registration import method_slug
+from recon_scripts.scale.archive import archive_report, build_archive, run_archive
 from recon_scripts.scale.executors import match_executors
 from recon_scripts.scale.photos import make_pool, photo_set
 from recon_scripts.scale.report import default_table, executors_table, report
@@ -155,6 +168,58 @@ class ScaleExecutors(ScaleBenchmark):
 
     def run_config(self, n, images, prepared, label, config, work):
         return {"rows": match_executors(work, images, **config)}
+
+
+class Archive(Benchmark):
+    """The development archive in one run: per label its photos in one model, models mixing labels.
+
+    Labelled photo sets and rendered landmarks shuffled into one folder, reconstructed end to end in
+    one run and each label alone: per label the photos of its own run's model in one archive model
+    (≥ 95 % each), the models holding photos of two labels (none), time per stage, peak memory."""
+
+    name = "archive"
+    default_conf = {
+        "sets": [1000],  # N photos per archive: the labels' real photos, rendered landmarks to N
+        "work": "outputs/benchmark_archive",
+        # the labels taken (fnmatch patterns: "sacre_coeur postcards:* wxbs:*"); first N photos
+        "labels": ["*"],
+        "seed": 0,  # the shuffle: which photo gets which name
+        "alone": True,  # each label of 3 photos or more reconstructed alone: the reference
+        "timeout": 4 * 3600,  # seconds per reconstruct run
+    }
+    resume = True  # a killed benchmark keeps the runs that finished
+
+    def folder(self, n) -> str:
+        c = self.conf
+        labels = "" if c["labels"] == ["*"] else "_" + method_slug("-".join(c["labels"]))
+        if len(labels) > 40:  # the labels' start and a digest of them all
+            labels = labels[:32] + "_" + hashlib.sha1(labels.encode()).hexdigest()[:8]
+        return f"n{n}{labels}" + (f"_seed{c['seed']}" if c["seed"] else "")
+
+    def images(self, n, work):
+        return build_archive(work, n, self.conf["labels"], self.conf["seed"]) / "images"
+
+    def configs(self):
+        return {"default": {"alone": self.conf["alone"]}}
+
+    def run_config(self, n, images, prepared, label, config, out):
+        result = run_archive(images.parent, out, config["alone"], self.conf["timeout"])
+        (out / "report.md").write_text("\n".join(archive_report(n, result)) + "\n")
+        return result
+
+    def progress(self, results, n, label):
+        c = results[n][label].get("comparison")
+        if c is None:
+            return f"N={n}: the archive run failed"
+        return (
+            f"N={n}: {c['labels_ok']}/{c['labels_checked']} labels with ≥ 95 % in one model, "
+            f"{len(c['mixing'])} models mixing labels"
+        )
+
+    def summarize(self, results):
+        return "\n\n".join(
+            "\n".join(archive_report(n, res["default"])) for n, res in results.items()
+        )
 
 
 if __name__ == "__main__":

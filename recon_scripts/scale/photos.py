@@ -51,19 +51,20 @@ def _render_jobs(out: Path, left: int) -> list[tuple[str, int, int]]:
     return jobs
 
 
-def make_pool(out: Path, workers: int = 2) -> list[dict]:
-    """Scenes in pool order: [{'name', 'kind', 'files': [abs paths]}]; rendered scenes under
-    OUT/synthetic."""
-    if (out / "pool.json").exists():
-        return json.loads((out / "pool.json").read_text())
-    real = _train_scenes()
-    jobs = _render_jobs(out, POOL_SIZE - sum(len(s["files"]) for s in real))
-    from multiprocessing import Pool
+def render_landmarks(out: Path, photos: int, workers: int = 2) -> list[dict]:
+    """Rendered landmarks holding ``photos`` views in all (the last landmark cut, none below 2
+    views), rendered once under OUT/synthetic: [{'name', 'kind', 'files': [abs paths]}]."""
+    jobs = _render_jobs(out, photos)
+    if jobs:
+        from multiprocessing import Pool
 
-    with Pool(workers) as pool:
-        for done in pool.imap(_render, jobs):
-            print("rendered", done, flush=True)
-    synth = [
+        with Pool(min(workers, len(jobs))) as pool:
+            for done in pool.imap(_render, jobs):
+                print("rendered", done, flush=True)
+            # workers that end by themselves: terminated, pycolmap's handler prints a stack
+            pool.close()
+            pool.join()
+    return [
         {
             "name": Path(o).name,
             "kind": "synthetic",
@@ -71,6 +72,15 @@ def make_pool(out: Path, workers: int = 2) -> list[dict]:
         }
         for o, n, _ in jobs
     ]
+
+
+def make_pool(out: Path, workers: int = 2) -> list[dict]:
+    """Scenes in pool order: [{'name', 'kind', 'files': [abs paths]}]; rendered scenes under
+    OUT/synthetic."""
+    if (out / "pool.json").exists():
+        return json.loads((out / "pool.json").read_text())
+    real = _train_scenes()
+    synth = render_landmarks(out, POOL_SIZE - sum(len(s["files"]) for s in real), workers)
     random.Random(0).shuffle(real)
     random.Random(1).shuffle(synth)
     scenes = [s for pair in zip_longest(real, synth) for s in pair if s]
