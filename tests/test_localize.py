@@ -175,7 +175,9 @@ def test_the_report_shows_the_localized_photos(first, workspace):
 
 
 def logged(*args, **kwargs) -> tuple[dict, list[str]]:
-    """``localize(*args, **kwargs)`` and the messages it logged."""
+    """``localize(*args, **kwargs)`` and the messages it logged (at the default verbosity, whatever
+    an earlier test's command set)."""
+    set_verbosity()
     records = []
     handler = logging.Handler()
     handler.emit = records.append
