@@ -33,6 +33,9 @@ default_conf = {
     # deferred pairs that a group of photos no strong pair links to the others may try, most
     # similar first, before mapping (0: none); two groups would be two models
     "join_tries": 3,
+    # after escalation, the pairs of two models' most similar photos that the full matcher tries,
+    # to join the models into one (0: none)
+    "join_pairs": 10,
 }
 # the options that turn a matcher's cheap decisions off: its pair gate, cheap pass and probe
 GATES_OFF = {"min_pair_score": None, "cheap_inliers": None, "probe_keypoints": None}

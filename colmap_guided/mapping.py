@@ -273,30 +273,58 @@ def run_mapping(
     instead."""
     conf = check_conf(conf)
     sparse_path = Path(sparse_path)
+    if extend:
+        models = extend_model(database_path, image_path, sparse_path, 0, conf)
+    else:
+        tmp = _scratch(sparse_path, conf)
+        logger.info("%s mapping", conf["mapper"].capitalize())
+        with colmap_quiet():
+            models = _run(conf, database_path, image_path, tmp)
+    return write_models(sparse_path, models.values())
+
+
+def _scratch(sparse_path: Path, conf: dict) -> Path:
+    """An empty ``sparse_path``.partial for mapping to write into (``write_models`` replaces it),
+    the mapper seeded."""
     tmp = sparse_path.with_name(sparse_path.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     if conf["random_seed"] is not None:
         pycolmap.set_random_seed(conf["random_seed"])
-    logger.info("%s mapping", "Extending the model by" if extend else conf["mapper"].capitalize())
+    return tmp
+
+
+def extend_model(
+    database_path: Path, image_path: Path, sparse_path: Path, index: int, conf: dict | None = None
+) -> dict[int, pycolmap.Reconstruction]:
+    """``sparse_path``/``index`` continued incrementally with the photos it lacks (of
+    ``conf['image_names']``; None: all), weak photos pruned: the models mapping gives, not
+    written (``write_models``)."""
+    conf = check_conf(conf)
+    sparse_path = Path(sparse_path)
+    tmp = _scratch(sparse_path, conf)
+    logger.info("Extending the model by mapping")
     with colmap_quiet():
-        if extend:
-            models = _prune(
-                conf,
-                pycolmap.incremental_mapping(
-                    str(database_path),
-                    str(image_path),
-                    str(tmp),
-                    _incremental_options(conf),
-                    input_path=str(sparse_path / "0"),
-                ),
-            )
-        else:
-            models = _run(conf, database_path, image_path, tmp)
-    # Largest model first, as sparse/0, like COLMAP users expect to find it.
-    ordered = sorted(models.values(), key=lambda rec: rec.num_reg_images(), reverse=True)
+        models = pycolmap.incremental_mapping(
+            str(database_path),
+            str(image_path),
+            str(tmp),
+            _incremental_options(conf),
+            input_path=str(sparse_path / str(index)),
+        )
+    shutil.rmtree(tmp)
+    return _prune(conf, models)
+
+
+def write_models(sparse_path: Path, models) -> dict[int, pycolmap.Reconstruction]:
+    """``models`` written to ``sparse_path``/0, 1, ... largest first, as COLMAP users expect to
+    find them: into ``sparse_path``.partial, which then replaces ``sparse_path`` (a killed run
+    never leaves a half-written model). Returns them by folder."""
+    sparse_path = Path(sparse_path)
+    ordered = sorted(models, key=lambda rec: rec.num_reg_images(), reverse=True)
+    tmp = sparse_path.with_name(sparse_path.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
+    tmp.mkdir(parents=True)
     for index, rec in enumerate(ordered):
         (tmp / str(index)).mkdir()
         rec.write(str(tmp / str(index)))
@@ -319,13 +347,9 @@ def map_weak_start(
     models = run_mapping(database_path, image_path, sparse_path, {**conf, **WEAK_START})
     kept = [rec for rec in models.values() if not model_check.check_model(rec)]
     if len(kept) < len(models):
-        shutil.rmtree(sparse_path)
-        for index, rec in enumerate(kept):
-            (sparse_path / str(index)).mkdir(parents=True)
-            rec.write(str(sparse_path / str(index)))
-        sparse_path.mkdir(exist_ok=True)
+        models = write_models(sparse_path, kept)
     logger.info("A weaker initial pair (%s): %d model(s) kept.", WEAK_START, len(kept))
-    return dict(enumerate(kept))
+    return models
 
 
 def load_models(sparse_path: Path) -> dict[int, pycolmap.Reconstruction]:

@@ -9,6 +9,7 @@ pycolmap.incremental_mapping run on the database afterwards unchanged. Pairs alr
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from collections import Counter, deque
 from pathlib import Path
@@ -25,7 +26,7 @@ from .executor import get_executor
 from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey, pair_order
 from .log import add_verbosity_flags, colmap_quiet, logger
 from .matchers.base import Matcher, scoped_torch_threads
-from .pairs import global_descriptors, pair_mode, retrieves, select_pairs
+from .pairs import global_descriptors, pair_mode, retrieves, select_pairs, write_pairs
 from .pipeline import PipelineConf
 
 
@@ -149,6 +150,10 @@ def match_pairs(
         stats["match_time"] = time.time() - start
         # most similar first where the order was computed (escalation takes each photo's first)
         stats["selected"] = schedule.escalation_order(id_pairs) if schedule else selected
+        # {name: retrieval descriptor} where computed (joining models takes the most similar)
+        stats["descriptors"] = (
+            dict(zip(names, descriptors)) if isinstance(descriptors, np.ndarray) else descriptors
+        )
         stats["num_pairs"] = len(id_pairs)
         # written now; the pairs the matcher's gate left unmatched wait, as deferred ones, for
         # escalation
@@ -172,6 +177,23 @@ def match_pairs(
     counts = [stats[k] for k in ("num_verified_pairs", "num_pairs", "num_inlier_matches")]
     logger.info("%d/%d pairs verified, %d inlier matches", *counts)
     return stats
+
+
+def rematch(
+    database_path: Path,
+    image_path: Path,
+    matcher: Matcher,
+    conf: PipelineConf,
+    todo: list[PairKey],
+    pairs_path: Path,
+) -> dict:
+    """The pairs ``todo`` (id_a, id_b, name_a, name_b) matched again with ``matcher`` (escalation's
+    full matcher): what they had is deleted, they are written to ``pairs_path`` and matched."""
+    with dbio.open_database(database_path) as db:
+        dbio.delete_pairs(db, [key[:2] for key in todo])
+    write_pairs(pairs_path, [key[2:] for key in todo])
+    pairs = conf.pairs.over({"pairs": str(pairs_path)})
+    return match_pairs(database_path, image_path, matcher, dataclasses.replace(conf, pairs=pairs))
 
 
 def _images_to_match(db, image_path: Path, matcher: Matcher, overwrite: bool) -> dict:

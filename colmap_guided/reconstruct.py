@@ -22,10 +22,10 @@ from . import (
     export,
     features,
     html_report,
+    join,
     mapping,
     match,
     model_check,
-    pairs,
     report,
 )
 from . import database as dbio
@@ -36,6 +36,7 @@ from .pipeline import PipelineConf
 from .workspace import Workspace
 
 ESCALATION_PAIRS = "escalation_pairs.txt"  # the pairs escalate.py chose, in the last round
+JOIN_PAIRS = "join_pairs.txt"  # the pairs join.py matched, for the last two models it tried
 # Everything a run writes in its workspace: --overwrite removes these and nothing else.
 WRITES = (
     "database.db",
@@ -49,6 +50,7 @@ WRITES = (
     "report.html",
     "report.html.partial",
     ESCALATION_PAIRS,
+    JOIN_PAIRS,
     "geo",  # georeference's
     cards.PANELS,
 )
@@ -112,13 +114,8 @@ def _escalate(
             break
         logger.info("Escalation: %d pairs of %d photos left out of the model", len(todo), len(left))
         start, done = time.time(), done | {key[2:] for key in todo}
-        with dbio.open_database(database_path) as db:
-            dbio.delete_pairs(db, [key[:2] for key in todo])
-        pairs.write_pairs(output / ESCALATION_PAIRS, [key[2:] for key in todo])
         full = full or escalate.full_matcher(matcher)
-        escalated = conf.pairs.over({"pairs": str(output / ESCALATION_PAIRS)})
-        escalated = dataclasses.replace(conf, pairs=escalated)
-        match.match_pairs(database_path, image_path, full, escalated)
+        match.rematch(database_path, image_path, full, conf, todo, output / ESCALATION_PAIRS)
         timings["escalate_match"] = timings.get("escalate_match", 0) + time.time() - start
         start = time.time()
         models = mapping.run_mapping(
@@ -238,7 +235,7 @@ def _extract(database_path, image_path, output, image_names, feature_conf, timin
 
 def _map(database_path, image_path, output, photos, conf, matcher, match_stats, timings) -> dict:
     """Mapping of the photos but repeated prints' copies, a weaker start where no model starts,
-    then escalation's rounds; the rounds go to ``match_stats``."""
+    escalation's rounds, then models joined; the rounds and joins go to ``match_stats``."""
     start, sparse_path = time.time(), output / "sparse"
     photos.prints = cards.repeated_prints(database_path, photos.card_conf)
     prints = photos.prints
@@ -261,6 +258,20 @@ def _map(database_path, image_path, output, photos, conf, matcher, match_stats, 
         image_path,
         timings,
     )
+    start = time.time()
+    models, match_stats["joins"] = join.join_models(
+        database_path,
+        image_path,
+        sparse_path,
+        models,
+        matcher,
+        conf,
+        mapping_conf,
+        match_stats.pop("descriptors"),
+        output / JOIN_PAIRS,
+    )
+    if match_stats["joins"]:
+        timings["join"] = time.time() - start
     return models
 
 

@@ -37,6 +37,9 @@ default_conf = {
     "exif": True,
     "noise_sigma": 1.2,  # sensor noise, grey levels
     "texels_per_m": 100.0,  # texture resolution of the buildings
+    # the hall's length and width, metres; the tower (half as wide as the hall) stands through its
+    # west gable, the annex (1 m shorter than half the hall) against its south wall
+    "hall_size": (12.0, 8.0),
 }
 
 
@@ -121,15 +124,17 @@ def _box_walls(box: tuple, height: float, make_tex, shade_of, gables=(None,) * 4
 class _Materials:
     """The sun's shading and the textures of one scene, drawn from ``rng`` in the order built."""
 
-    def __init__(self, rng: np.random.Generator, ppm: float, repeated: bool):
+    def __init__(
+        self, rng: np.random.Generator, ppm: float, repeated: bool, style: int | None = None
+    ):
         self.rng, self.ppm = rng, ppm
         sun_az = rng.uniform(0, 2 * np.pi)
         self.sun = np.array([np.cos(sun_az) * 0.75, np.sin(sun_az) * 0.75, 0.66])
-        self.motif = (
-            textures.window_motif(np.random.default_rng(rng.integers(2**32)), ppm)
-            if repeated
-            else None
-        )
+        self.motif = None
+        if repeated:  # the style's window where given; the rest of the scene is drawn as without
+            motif_seed = rng.integers(2**32)
+            motif_rng = np.random.default_rng(motif_seed if style is None else style)
+            self.motif = textures.window_motif(motif_rng, ppm)
         self.up_shade = self.shade_of(_UP)
 
     def shade_of(self, normal: np.ndarray) -> float:
@@ -159,27 +164,30 @@ class _Materials:
         return make_texture(image, self.ppm)
 
 
-def _hall(m: _Materials) -> list[Polygon]:
-    """Hall: 12 x 8 m, eaves at 6.5 m, ridge along x at 9.5 m, gables east and west."""
-    hx, hy, eave, ridge = 6.0, 4.0, 6.5, 9.5
+def _hall(m: _Materials, hx: float, hy: float) -> list[Polygon]:
+    """Hall: 2 ``hx`` x 2 ``hy`` m (12 x 8), eaves at 6.5 m, ridge along x at 9.5 m, gables east
+    and west."""
+    eave, ridge = 6.5, 9.5
     walls = _box_walls((-hx, -hy, hx, hy), eave, m.facade, m.shade_of, (None, ridge, None, ridge))
+    slope = math.hypot(hy, ridge - eave)
     south = _roof_face(
-        (-hx, -hy, eave), (hx, -hy, eave), (hx, 0, ridge), m.roof(12, 5), m.shade_of, False
+        (-hx, -hy, eave), (hx, -hy, eave), (hx, 0, ridge), m.roof(2 * hx, slope), m.shade_of, False
     )
     north = _roof_face(
-        (hx, hy, eave), (-hx, hy, eave), (-hx, 0, ridge), m.roof(12, 5), m.shade_of, False
+        (hx, hy, eave), (-hx, hy, eave), (-hx, 0, ridge), m.roof(2 * hx, slope), m.shade_of, False
     )
     return [*walls, south, north]
 
 
-def _tower(m: _Materials) -> list[Polygon]:
-    """Tower through the west gable: 4 x 4 m, 11 m, pyramid roof up to 14 m."""
-    tx0, ty0, tx1, ty1, th = -9.0, -2.0, -5.0, 2.0, 11.0
+def _tower(m: _Materials, west: float, side: float) -> list[Polygon]:
+    """Tower through the west gable at x = ``west``: ``side`` x ``side`` m (4), 11 m, pyramid
+    roof up to 14 m."""
+    tx0, ty0, tx1, ty1, th = west - 0.75 * side, -side / 2, west + side / 4, side / 2, 11.0
     polys = _box_walls((tx0, ty0, tx1, ty1), th, m.facade, m.shade_of)
     apex = ((tx0 + tx1) / 2, (ty0 + ty1) / 2, th + 3.0)
     ring = [(tx0, ty0, th), (tx1, ty0, th), (tx1, ty1, th), (tx0, ty1, th)]
     for p0, p1 in zip(ring, ring[1:] + ring[:1]):
-        polys.append(_roof_face(p0, p1, apex, m.roof(4, 3.7), m.shade_of, True))
+        polys.append(_roof_face(p0, p1, apex, m.roof(side, 0.925 * side), m.shade_of, True))
     return polys
 
 
@@ -231,15 +239,21 @@ def _tree_line(m: _Materials, half: float) -> list[Polygon]:
 
 
 def build_scene(
-    seed: int = 0, repeated: bool = False, texels_per_m: float = 100.0
+    seed: int = 0,
+    repeated: bool = False,
+    texels_per_m: float = 100.0,
+    style: int | None = None,
+    hall_size: tuple[float, float] = (12.0, 8.0),
 ) -> list[Polygon]:
-    """The polygons of the scene: hall, tower, annex, stone blocks, ground and tree line."""
-    m = _Materials(np.random.default_rng(seed), texels_per_m, repeated)
-    polys = _hall(m) + _tower(m)
+    """The polygons of the scene: hall, tower, annex, stone blocks, ground and tree line.
+    ``style``: the seed of the repeated window (None: the scene's own): scenes of one style and
+    other ``hall_size`` are two buildings of one architect."""
+    m = _Materials(np.random.default_rng(seed), texels_per_m, repeated, style)
+    hx, hy = hall_size[0] / 2, hall_size[1] / 2
+    polys = _hall(m, hx, hy) + _tower(m, -hx, hy)
     # the annex on the south side, with a gravel roof
-    polys += _flat_topped_box(
-        m, (1.5, -7.5, 6.5, -4.0), 3.5, m.facade, (400, 600), (0.5, 0.5, 0.48), 0.5
-    )
+    annex = (1.5, 0.5 - 2 * hy, 0.5 + hx, -hy)
+    polys += _flat_topped_box(m, annex, 3.5, m.facade, (400, 600), (0.5, 0.5, 0.48), 0.5)
     size = 120.0  # the ground's side; the tree line stands 2 m inside its edge
     return polys + _stone_blocks(m) + _ground(m, size, 10.0) + _tree_line(m, size / 2 - 2)
 
@@ -275,9 +289,10 @@ def render_scene(
     seed: int = 0,
     repeated: bool = False,
     conf: dict | None = None,
+    style: int | None = None,
 ) -> SceneInfo:
     """Render the scene into ``out_dir`` (images/, ground_truth/, depth/) and return its
-    SceneInfo."""
+    SceneInfo; ``repeated``, ``style``: ``build_scene``'s."""
     if num_images < 2:
         raise ValueError(f"num_images must be at least 2, got {num_images}.")
     if width < 32 or height < 32:
@@ -294,7 +309,7 @@ def render_scene(
         if stale.stem not in {Path(n).stem for n in names}:
             stale.unlink()
     tic = time.perf_counter()
-    polygons = build_scene(seed, repeated, conf["texels_per_m"])
+    polygons = build_scene(seed, repeated, conf["texels_per_m"], style, conf["hall_size"])
     logger.debug("Built %d textured polygons in %.2f s.", len(polygons), time.perf_counter() - tic)
     f = conf["focal_factor"] * width
     K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])

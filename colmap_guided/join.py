@@ -1,0 +1,233 @@
+"""Joining models: the photos of one landmark that retrieval ranks apart (its modern street views
+and its archival prints) can make two models, which no pair of the first pass links and
+escalation, working for the largest model's left-out photos, does not try to link.
+
+After escalation, for every two models, largest first, the ``join_pairs`` most similar pairs of a
+photo of one and a photo of the other (retrieval descriptors) are matched with the full matcher
+where the first pass did not. Where pairs verified with ``strong_inliers`` reach at least
+``MIN_PHOTOS`` photos on each side, the larger model is continued by incremental mapping with the
+smaller's photos; the merge is kept only where it holds the two models' photos, has no model check
+problem they did not have, and its two parts agree on what their photos see
+(``visibility_conflicts``). Two buildings of one style (an architect's, a repeated facade) verify
+on their look-alike windows, and a merge aligned on them passes every other check; the rest of
+each building stands in front of what the other's photos see, and they stay two models.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from itertools import combinations
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from . import database as dbio
+from . import escalate, mapping, match, model_check
+from .log import logger
+from .matchers import Matcher
+from .pipeline import PipelineConf
+
+# verified pairs must reach this many photos of each model: a single look-alike pair (one
+# repeated facade seen from two places) joins nothing
+MIN_PHOTOS = 2
+# a merge may leave out this share of the two models' photos (mapping's pruning of weak photos);
+# one that leaves out more placed the smaller model only in part, and is not kept
+MAX_LEFT_OUT = 0.1
+# A merge whose parts put more than this share of their points in front of what the other part's
+# photos see there (``visibility_conflicts``) is two places that look alike: 0.32 on two halls of
+# one style, 0.01-0.04 on landmarks joined right (synthetic, lund_door; docs/RESULTS.md), ~2.7x
+# from each.
+MAX_CONFLICTS = 0.12
+# a point agrees with what a photo sees where their depths differ by at most this share; the
+# photo's view is cut in cells of this share of its larger side (each: its nearest point)
+DEPTH_TOLERANCE, CELL = 0.05, 0.015
+
+
+def registered(rec: pycolmap.Reconstruction) -> set[str]:
+    return {rec.images[i].name for i in rec.reg_image_ids()}
+
+
+def cross_pairs(
+    names_a: set[str], names_b: set[str], descriptors: dict, num_pairs: int
+) -> list[tuple[str, str]]:
+    """The ``num_pairs`` most similar pairs of a photo of ``names_a`` and one of ``names_b``
+    (cosine similarity of their retrieval ``descriptors``), most similar first, each photo in at
+    most a (2 ``MIN_PHOTOS``)th of them: a print similar to every photo takes few, and the pairs
+    reach several photos of each model."""
+    a, b = sorted(names_a), sorted(names_b)
+    similarity = np.stack([descriptors[n] for n in a]) @ np.stack([descriptors[n] for n in b]).T
+    per_photo, taken, pairs = -(-num_pairs // (2 * MIN_PHOTOS)), Counter(), []
+    for i, j in zip(
+        *np.unravel_index(np.argsort(-similarity, axis=None, kind="stable"), similarity.shape)
+    ):
+        if taken[a[i]] < per_photo and taken[b[j]] < per_photo:
+            taken.update((a[i], b[j]))
+            pairs.append((a[i], b[j]))
+            if len(pairs) == num_pairs:
+                break
+    return pairs
+
+
+def join_models(
+    database_path: Path,
+    image_path: Path,
+    sparse_path: Path,
+    models: dict,
+    matcher: Matcher,
+    conf: PipelineConf,
+    mapping_conf: dict,
+    descriptors: dict | None,
+    pairs_path: Path,
+) -> tuple[dict, list[dict]]:
+    """Every two ``models`` (by folder, largest first) tried once: their ``join_pairs`` most
+    similar cross pairs matched with the full matcher where the first pass did not (written to
+    ``pairs_path``), the models merged where verified pairs reach ``MIN_PHOTOS`` photos of each
+    (``merge``); a join rewrites ``sparse_path`` and the models are tried again. ``descriptors``:
+    the retrieval descriptors by name where matching computed them. Returns the models and a
+    record of each try."""
+    num_pairs, tries, tried = conf.escalation.join_pairs, [], set()
+    full, descriptors = None, dict(descriptors or {})
+    while num_pairs and len(models) > 1:
+        untried = [
+            pair for pair in combinations(sorted(models), 2) if _key(models, pair) not in tried
+        ]
+        if not untried:
+            break
+        start, pair = time.time(), untried[0]
+        tried.add(_key(models, pair))
+        names = [registered(models[k]) for k in pair]
+        missing = sorted(set().union(*names) - set(descriptors))
+        if missing:
+            descriptors.update(
+                zip(missing, match._global_descriptors(matcher, image_path, missing))
+            )
+        cross = cross_pairs(*names, descriptors, num_pairs)
+        todo = escalate.pairs_to_escalate(
+            database_path,
+            names[0] | names[1],
+            cross,
+            set(),
+            num_pairs,
+            escalate.kept_cheaply(matcher),
+        )
+        if todo:
+            full = full or escalate.full_matcher(matcher)
+            match.rematch(database_path, image_path, full, conf, todo, pairs_path)
+        with dbio.open_database(database_path) as db:
+            ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
+            inliers = dbio.pair_inlier_counts(db)
+        cross = [(a, b, inliers.get(tuple(sorted((ids[a], ids[b]))), 0)) for a, b in cross]
+        verified = [(a, b) for a, b, n in cross if n >= conf.escalation.strong_inliers]
+        sides = [len({p[k] for p in verified}) for k in (0, 1)]
+        merged, found = (
+            merge(database_path, image_path, sparse_path, models, pair, mapping_conf)
+            if min(sides) >= MIN_PHOTOS
+            else (None, {"why": f"verified pairs on {sides[0]} and {sides[1]} photos"})
+        )
+        tries.append(
+            {
+                "models": list(pair),
+                "photos": [len(n) for n in names],
+                "pairs": [list(p) for p in cross],
+                "matched": len(todo),
+                "verified": len(verified),
+                "joined": merged is not None,
+                **found,
+                "time": time.time() - start,
+            }
+        )
+        logger.info(
+            "Models %d and %d (%d and %d photos): %s", *pair, *tries[-1]["photos"], found["why"]
+        )
+        if merged is not None:
+            others = [rec for k, rec in models.items() if k not in pair]
+            models = mapping.write_models(sparse_path, [merged, *others])
+    return models, tries
+
+
+def _key(models: dict, pair: tuple[int, int]) -> frozenset:
+    """Two models by their photos (a try is not repeated when folders are renumbered)."""
+    return frozenset(frozenset(registered(models[k])) for k in pair)
+
+
+def merge(
+    database_path: Path,
+    image_path: Path,
+    sparse_path: Path,
+    models: dict,
+    pair: tuple[int, int],
+    mapping_conf: dict,
+) -> tuple[pycolmap.Reconstruction | None, dict]:
+    """The larger model of ``pair`` (``sparse_path``/N) continued by incremental mapping with the
+    smaller's photos, and why it is kept or not (None), with the evidence: kept where it holds the
+    two models' photos (``MAX_LEFT_OUT``), has no model check problem more than the two had and
+    few ``visibility_conflicts`` (``MAX_CONFLICTS``)."""
+    both = registered(models[pair[0]]) | registered(models[pair[1]])
+    conf = {**mapping_conf, "image_names": sorted(both)}
+    extended = mapping.extend_model(database_path, image_path, sparse_path, pair[0], conf)
+    merged = max(extended.values(), key=lambda rec: rec.num_reg_images(), default=None)
+    held = len(registered(merged) & both) if merged is not None else 0
+    if held < (1 - MAX_LEFT_OUT) * len(both):
+        return None, {"why": f"the merge held {held} of {len(both)} photos"}
+    problems = model_check.check_model(merged)
+    if len(problems) > sum(len(model_check.check_model(models[k])) for k in pair):
+        return None, {"why": f"the merge fails the model check: {problems[0]}"}
+    conflicts, agreements = visibility_conflicts(merged, registered(models[pair[1]]))
+    found = {"conflicts": [conflicts, agreements]}
+    if conflicts > MAX_CONFLICTS * max(1, conflicts + agreements):
+        why = (
+            f"the merge puts {conflicts} points of one model in front of what the other's photos "
+            f"see there ({agreements} agree): two places that look alike"
+        )
+        return None, {**found, "why": why}
+    return merged, {**found, "why": f"joined: one model of {held} photos"}
+
+
+def visibility_conflicts(rec: pycolmap.Reconstruction, names: set[str]) -> tuple[int, int]:
+    """How the two parts of ``rec`` (the photos ``names`` and the others) see each other: of the
+    points only one part observes, those that a photo of the other part would see where it
+    observes a point (the nearest in a ``CELL`` of its view), in front of that point (conflicts:
+    it would hide what the photo sees) or at its depth (``DEPTH_TOLERANCE``: agreements). A
+    landmark joined right agrees with itself; two buildings that share a facade, aligned on it,
+    conflict everywhere else. Points behind are hidden and say nothing. Returns (conflicts,
+    agreements)."""
+    part = {i: rec.images[i].name in names for i in rec.reg_image_ids()}
+    xyz = {True: [], False: []}
+    for point in rec.points3D.values():
+        sides = {part[element.image_id] for element in point.track.elements}
+        if len(sides) == 1:
+            xyz[sides.pop()].append(point.xyz)
+    conflicts = agreements = 0
+    for image_id, side in part.items():
+        image = rec.images[image_id]
+        camera = rec.cameras[image.camera_id]
+        observed = [rec.points3D[p.point3D_id].xyz for p in image.points2D if p.has_point3D()]
+        if not observed or not xyz[not side]:
+            continue
+        cell = CELL * max(camera.width, camera.height)
+        shape = (int(camera.height // cell) + 1, int(camera.width // cell) + 1)
+        nearest = np.full(shape, np.inf)
+        cells, depth = _project(image, camera, np.array(observed), cell)
+        np.minimum.at(nearest, cells, depth)
+        cells, depth = _project(image, camera, np.array(xyz[not side]), cell)
+        seen = nearest[cells]
+        depth, seen = depth[np.isfinite(seen)], seen[np.isfinite(seen)]
+        conflicts += int(np.sum(depth < (1 - DEPTH_TOLERANCE) * seen))
+        agreements += int(np.sum(np.abs(depth - seen) <= DEPTH_TOLERANCE * seen))
+    return conflicts, agreements
+
+
+def _project(image, camera, xyz: np.ndarray, cell: float) -> tuple[tuple, np.ndarray]:
+    """The cells (rows, columns) of the points ``xyz`` in front of the photo and inside its view,
+    and their depths."""
+    pose = image.cam_from_world()
+    cam = xyz @ pose.rotation.matrix().T + pose.translation
+    cam = cam[cam[:, 2] > 0]
+    uv = np.asarray(camera.img_from_cam(cam)).reshape(-1, 2)
+    inside = (
+        (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    )
+    uv = (uv[inside] // cell).astype(int)
+    return (uv[:, 1], uv[:, 0]), cam[inside, 2]

@@ -1,0 +1,193 @@
+"""Joining models: a landmark whose modern photos and prints map as two models, and two buildings
+of one style, each reconstructed with the join off (``join_pairs`` 0) and on (the default), in
+one workspace (the second run continues from the first's database: only mapping and the join
+run again).
+
+    python -m recon_scripts.join_models --out OUT [--scenes lund split halls] [--pairs within]
+
+Scenes: ``lund`` (lund_door_gtsfm at 512 px, 6 of its 12 photos printed grey and grainy;
+reference: its COLMAP ground truth), ``split`` (the synthetic landmark, 8 views at 384 x 288, 4
+of them printed; reference: the rendering's cameras), ``halls`` (two synthetic halls of one style:
+one window on every facade, 12 x 8 and 9 x 7 m, 5 views each at 384 x 288, and 2 unrelated photos
+of gtsfm_1dsfm_sample; no model may hold both halls). ``--pairs within``: each group's pairs only
+(modern photos and prints, or each hall), as where retrieval ranks the groups apart; ``retrieval``:
+each photo's 3 most similar.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import time
+from itertools import combinations
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+
+from colmap_guided import archival
+from colmap_guided.mapping import load_models
+from colmap_guided.paths import shared_data_dir
+from colmap_guided.pipeline import PipelineConf
+from colmap_guided.reconstruct import reconstruct
+from colmap_guided.synthetic import SceneInfo, render_scene
+from recon_scripts import script_parser
+from recon_scripts.evaluation.ground_truth import pose_errors
+
+LUND_PRINTED = (0, 2, 3, 7, 8, 9)  # lund_door_gtsfm's photos printed (sorted by name)
+
+
+@dataclasses.dataclass
+class Scene:
+    images: Path
+    groups: list[list[str]]  # modern photos and prints, or each building (and unrelated photos)
+    reference: SceneInfo | Path | None  # cameras to score the largest model against
+    conf: dict  # PipelineConf options of the scene
+
+
+def age(path: Path, seed: int) -> None:
+    """The photo at ``path`` printed: grey, faded, grainy (``archival``'s realistic_bw)."""
+    rgb = np.ascontiguousarray(cv2.imread(str(path))[:, :, ::-1])
+    aged = archival.apply_preset(rgb, "realistic_bw", seed=seed)
+    cv2.imwrite(str(path), np.ascontiguousarray(aged[:, :, ::-1]))
+
+
+def resized(src: Path, dst: Path, size: int) -> None:
+    photo = cv2.imread(str(src))
+    scale = size / max(photo.shape[:2])
+    cv2.imwrite(str(dst), cv2.resize(photo, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA))
+
+
+def within_pairs(path: Path, groups: list[list[str]]) -> Path:
+    """A pairs file of every pair inside each group and none across: what the first pass matches
+    where retrieval ranks the groups apart."""
+    path.write_text("".join(f"{a} {b}\n" for group in groups for a, b in combinations(group, 2)))
+    return path
+
+
+def split_scene(out: Path) -> Scene:
+    """The synthetic landmark, 8 views; the last 4 printed. One camera: the views' EXIF."""
+    scene = render_scene(out, num_images=8, width=384, height=288, seed=5)
+    for i, name in enumerate(scene.names[4:]):
+        age(scene.image_dir / name, i)
+    groups = [scene.names[:4], scene.names[4:]]
+    return Scene(scene.image_dir, groups, scene, {"features": {"camera_mode": "single"}})
+
+
+def halls_scene(out: Path, data: Path) -> Scene:
+    """Two halls of one style (one window, other sizes, towers and annexes), 5 views each, and 2
+    unrelated photos, in one folder."""
+    images = out / "images"
+    images.mkdir(parents=True)
+    groups = []
+    for tag, seed, size in (("a", 3, (12.0, 8.0)), ("b", 4, (9.0, 7.0))):
+        hall = render_scene(
+            out / tag, 5, 384, 288, seed, repeated=True, style=7, conf={"hall_size": size}
+        )
+        groups.append([f"{tag}_{name}" for name in hall.names])
+        for name in hall.names:
+            shutil.copy(hall.image_dir / name, images / f"{tag}_{name}")
+    groups.append([])
+    for path in sorted((data / "gtsfm_1dsfm_sample" / "images").iterdir())[:2]:
+        groups[-1].append(f"unrelated_{path.name}")
+        resized(path, images / groups[-1][-1], 384)
+    return Scene(images, groups, None, {})
+
+
+def lund_scene(out: Path, data: Path) -> Scene:
+    """lund_door_gtsfm at 512 px, ``LUND_PRINTED`` printed."""
+    images = out / "images"
+    images.mkdir(parents=True)
+    groups = [[], []]
+    for i, path in enumerate(sorted((data / "lund_door_gtsfm" / "images").iterdir())):
+        resized(path, images / path.name, 512)
+        if i in LUND_PRINTED:
+            age(images / path.name, i)
+        groups[i in LUND_PRINTED].append(path.name)
+    return Scene(images, groups, data / "lund_door_gtsfm" / "colmap_ground_truth", {})
+
+
+def run(scene: Scene, workspace: Path, pairs: str | Path, join_pairs: int) -> dict:
+    conf = {**scene.conf, "mapping": {"num_threads": 1}, "escalation": {"join_pairs": join_pairs}}
+    if pairs == "retrieval":
+        conf["pairs"] = {"pairs": "retrieval", "num_neighbors": 3}
+    else:
+        conf["pairs"] = {"pairs": str(pairs)}
+    start = time.time()
+    result = reconstruct(scene.images.parent, output=workspace, conf=PipelineConf.from_dict(conf))
+    result["wall"] = time.time() - start
+    return result
+
+
+def models_cell(workspace: Path, groups: list[list[str]]) -> str:
+    """Each model's photos by group, largest first: 4+0 | 0+4."""
+    models = load_models(workspace / "sparse").values()
+    names = [{rec.images[i].name for i in rec.reg_image_ids()} for rec in models]
+    return " \\| ".join("+".join(str(len(n & set(g))) for g in groups if g) for n in names) or "–"
+
+
+def main() -> None:
+    parser = script_parser(__doc__)
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--scenes", nargs="*", default=["lund", "split", "halls"])
+    parser.add_argument("--pairs", choices=["within", "retrieval"], default="within")
+    args = parser.parse_args()
+    data, rows = shared_data_dir(), []
+    print(
+        "| scene | photos (groups) | pairs | models, join off | models, join on | cross pairs "
+        "matched / verified | conflicts / agreements | joined: why | join s | largest model vs "
+        "reference: max rotation °, centre % of extent |\n|---|---|---|---|---|---|---|---|---|---|"
+    )
+    for name in args.scenes:
+        out = args.out / name
+        shutil.rmtree(out, ignore_errors=True)
+        builders = {"split": split_scene, "halls": halls_scene, "lund": lund_scene}
+        scene = builders[name](out / "scene", *([] if name == "split" else [data]))
+        pairs = (
+            within_pairs(out / "pairs.txt", scene.groups) if args.pairs == "within" else args.pairs
+        )
+        off = run(scene, out / "ws", pairs, 0)
+        apart = models_cell(out / "ws", scene.groups)
+        on = run(scene, out / "ws", pairs, 10)
+        tries = on["database"]["joins"]
+        errors = (
+            pose_errors(pycolmap.Reconstruction(str(out / "ws" / "sparse" / "0")), scene.reference)
+            if scene.reference is not None and on["num_registered"]
+            else {}
+        )
+        placed = [e for e in errors.values() if np.isfinite(e[0])]
+        pose = (
+            f"{max(e[0] for e in placed):.2f}, {100 * max(e[1] for e in placed):.2f}"
+            if placed
+            else "–"
+        )
+        row = {
+            "scene": name,
+            "photos": "+".join(str(len(g)) for g in scene.groups if g),
+            "pairs": args.pairs,
+            "off": apart,
+            "on": models_cell(out / "ws", scene.groups),
+            "tries": tries,
+            "pose": pose,
+            "timings_off": off["timings"],
+            "timings_on": on["timings"],
+        }
+        rows.append(row)
+        cross = "; ".join(f"{t['matched']} / {t['verified']}" for t in tries) or "–"
+        conflicts = "; ".join(
+            "/".join(map(str, t["conflicts"])) if t.get("conflicts") else "–" for t in tries
+        )
+        why = "; ".join(t["why"] for t in tries) or "no two models"
+        seconds = "; ".join(f"{t['time']:.1f}" for t in tries) or "–"
+        print(
+            f"| {name} | {row['photos']} | {args.pairs} | {apart} | {row['on']} | {cross} | "
+            f"{conflicts} | {why} | {seconds} | {pose} |",
+            flush=True,
+        )
+    (args.out / "join_models.json").write_text(json.dumps(rows, indent=1, default=str))
+
+
+if __name__ == "__main__":
+    main()
