@@ -2,7 +2,8 @@
 and its archival prints) can make two models, which no pair of the first pass links and
 escalation, working for the largest model's left-out photos, does not try to link.
 
-After escalation, for every two models, largest first, the ``join_pairs`` most similar pairs of a
+After escalation, for two models whose photos look alike (each model with its ``CANDIDATES`` most
+alike others, most alike first), the ``join_pairs`` most similar pairs of a
 photo of one and a photo of the other (retrieval descriptors) are matched with the full matcher
 where the first pass did not. Where pairs verified with ``strong_inliers`` reach at least
 ``MIN_PHOTOS`` photos on each side, the larger model is continued by incremental mapping with the
@@ -32,6 +33,9 @@ from .pipeline import PipelineConf
 # verified pairs must reach this many photos of each model: a single look-alike pair (one
 # repeated facade seen from two places) joins nothing
 MIN_PHOTOS = 2
+# each model tries the models whose photos are most like its own, this many: an archive of many
+# buildings costs a few tries per model, not one per two models
+CANDIDATES = 3
 # a merge may leave out this share of the two models' photos (mapping's pruning of weak photos);
 # one that leaves out more placed the smaller model only in part, and is not kept
 MAX_LEFT_OUT = 0.1
@@ -81,7 +85,7 @@ def join_models(
     descriptors: dict | None,
     pairs_path: Path,
 ) -> tuple[dict, list[dict]]:
-    """Every two ``models`` (by folder, largest first) tried once: their ``join_pairs`` most
+    """Two ``models`` of ``candidates`` at a time, each two tried once: their ``join_pairs`` most
     similar cross pairs matched with the full matcher where the first pass did not (written to
     ``pairs_path``), the models merged where verified pairs reach ``MIN_PHOTOS`` photos of each
     (``merge``); a join rewrites ``sparse_path`` and the models are tried again. ``descriptors``:
@@ -90,19 +94,19 @@ def join_models(
     num_pairs, tries, tried = conf.escalation.join_pairs, [], set()
     full, descriptors = None, dict(descriptors or {})
     while num_pairs and len(models) > 1:
+        missing = sorted(set().union(*map(registered, models.values())) - set(descriptors))
+        if missing:
+            descriptors.update(
+                zip(missing, match._global_descriptors(matcher, image_path, missing))
+            )
         untried = [
-            pair for pair in combinations(sorted(models), 2) if _key(models, pair) not in tried
+            pair for pair in candidates(models, descriptors) if _key(models, pair) not in tried
         ]
         if not untried:
             break
         start, pair = time.time(), untried[0]
         tried.add(_key(models, pair))
         names = [registered(models[k]) for k in pair]
-        missing = sorted(set().union(*names) - set(descriptors))
-        if missing:
-            descriptors.update(
-                zip(missing, match._global_descriptors(matcher, image_path, missing))
-            )
         cross = cross_pairs(*names, descriptors, num_pairs)
         todo = escalate.pairs_to_escalate(
             database_path,
@@ -145,6 +149,22 @@ def join_models(
             others = [rec for k, rec in models.items() if k not in pair]
             models = mapping.write_models(sparse_path, [merged, *others])
     return models, tries
+
+
+def candidates(models: dict, descriptors: dict) -> list[tuple[int, int]]:
+    """The pairs of models to try, most alike first: each model with its ``CANDIDATES`` most alike
+    others (the largest cosine similarity of a photo of one and a photo of the other)."""
+    stacks = {
+        k: np.stack([descriptors[n] for n in sorted(registered(rec))]) for k, rec in models.items()
+    }
+    alike = {
+        (a, b): float((stacks[a] @ stacks[b].T).max()) for a, b in combinations(sorted(models), 2)
+    }
+    kept = set()
+    for k in models:
+        mine = sorted((pair for pair in alike if k in pair), key=lambda pair: -alike[pair])
+        kept.update(mine[:CANDIDATES])
+    return sorted(kept, key=lambda pair: (-alike[pair], pair))
 
 
 def _key(models: dict, pair: tuple[int, int]) -> frozenset:
