@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 import pycolmap
 
-from colmap_guided import archival
+from colmap_guided import archival, images
 from colmap_guided.mapping import load_models
 from colmap_guided.paths import shared_data_dir
 from colmap_guided.pipeline import PipelineConf
@@ -49,13 +49,12 @@ class Scene:
 
 def age(path: Path, seed: int) -> None:
     """The photo at ``path`` printed: grey, faded, grainy (``archival``'s realistic_bw)."""
-    rgb = np.ascontiguousarray(cv2.imread(str(path))[:, :, ::-1])
-    aged = archival.apply_preset(rgb, "realistic_bw", seed=seed)
+    aged = archival.apply_preset(images.read_image(path), "realistic_bw", seed=seed)
     cv2.imwrite(str(path), np.ascontiguousarray(aged[:, :, ::-1]))
 
 
 def resized(src: Path, dst: Path, size: int) -> None:
-    photo = cv2.imread(str(src))
+    photo = np.ascontiguousarray(images.read_image(src)[:, :, ::-1])
     scale = size / max(photo.shape[:2])
     cv2.imwrite(str(dst), cv2.resize(photo, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA))
 
