@@ -575,22 +575,6 @@ def kml(cameras: list[dict], mode: str, title: str, near: float) -> bytes:
     return ET.tostring(root, encoding="utf-8", xml_declaration=True)
 
 
-def model_folder(workspace: Path, model: int) -> Path:
-    """WORKSPACE/sparse/``model``; a one-line ValueError naming the models there otherwise."""
-    sparse = Path(workspace) / "sparse"
-    found = sorted(
-        int(p.name)
-        for p in (sparse.iterdir() if sparse.is_dir() else [])
-        if p.name.isdigit() and any((p / f"images.{ext}").is_file() for ext in ("bin", "txt"))
-    )
-    if model not in found:
-        raise ValueError(
-            f"--model {model}: {sparse} holds model{'s' if len(found) > 1 else ''} "
-            f"{', '.join(map(str, found)) or 'none'} (0 the largest); pass one of them."
-        )
-    return sparse / str(model)
-
-
 def georeference(
     workspace: Path,
     control: Path | None = None,
@@ -610,8 +594,7 @@ def georeference(
             f"--accuracy {conf['accuracy']} is not a distance; give the metres a control may be "
             "off (one sigma), e.g. --accuracy 20 for standpoints guessed on a map."
         )
-    path, report, _ = open_workspace(workspace)
-    model_dir = model_folder(path, model)
+    path, report, model_dir = open_workspace(workspace, model)
     folder = geo_folder(model)
     image_path = Path(image_path or report["image_path"]).resolve()
     rec = pycolmap.Reconstruction(str(model_dir))

@@ -361,3 +361,24 @@ def load_models(sparse_path: Path) -> dict[int, pycolmap.Reconstruction]:
         for p in sorted(sparse_path.iterdir(), key=lambda p: p.name)
         if p.name.isdigit()
     }
+
+
+def model_folder(workspace: Path, model: int) -> Path:
+    """WORKSPACE/sparse/``model``; a one-line ValueError naming the models there otherwise."""
+    sparse = Path(workspace) / "sparse"
+    found = sorted(
+        int(p.name)
+        for p in (sparse.iterdir() if sparse.is_dir() else [])
+        if p.name.isdigit() and any((p / f"images.{ext}").is_file() for ext in ("bin", "txt"))
+    )
+    if not found:
+        raise ValueError(
+            f"{workspace} holds no model (sparse/0): reconstruct made none; its report.json says "
+            "why."
+        )
+    if model not in found:
+        raise ValueError(
+            f"--model {model}: {sparse} holds model{'s' if len(found) > 1 else ''} "
+            f"{', '.join(map(str, found)) or 'none'} (0 the largest); pass one of them."
+        )
+    return sparse / str(model)

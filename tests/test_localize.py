@@ -319,4 +319,8 @@ def test_photos_are_placed_in_the_model_named_by_model(two_buildings, tmp_path, 
     data = json.loads(re.search(r"id='model-data-1'>(.*?)</script>", page, re.S).group(1))
     assert held_out.name in {c["name"].rsplit("/", 1)[-1] for c in data["cameras"]}
     code, errors = _run(["localize", ws, held_out, "--model", "4"], capfd)
-    assert code == 2 and len(errors) == 1 and "pass --model with one of 0, 1" in errors[0], errors
+    assert (
+        code == 2
+        and len(errors) == 1
+        and "holds models 0, 1 (0 the largest); pass one of them." in errors[0]
+    ), errors

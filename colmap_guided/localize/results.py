@@ -14,6 +14,7 @@ import pycolmap
 from .. import database as dbio
 from .. import features
 from ..log import logger
+from ..mapping import model_folder
 from ..workspace import read_marker
 
 DATABASE = "localize.db"
@@ -69,18 +70,7 @@ def open_workspace(workspace: Path, model: int = 0) -> tuple[Path, dict, Path]:
             f"No report.json in {path}: run `python -m colmap_guided reconstruct` to the end first."
         )
     report = json.loads((path / "report.json").read_text(encoding="utf-8"))
-    model_dir = path / "sparse" / str(model)
-    if not any((model_dir / f"images.{ext}").is_file() for ext in ("bin", "txt")):
-        found = sorted(p.name for p in (path / "sparse").glob("[0-9]*") if p.is_dir())
-        raise ValueError(
-            f"{path} holds no model sparse/{model}: "
-            + (
-                f"pass --model with one of {', '.join(found)} (report.json lists them)."
-                if found
-                else "reconstruct made none to localize photos in."
-            )
-        )
-    return path, report, model_dir
+    return path, report, model_folder(path, model)
 
 
 def list_photos(photos: list[Path]) -> tuple[list[Path], dict[str, str]]:
