@@ -62,7 +62,9 @@ def add_pipeline_flags(parser: argparse.ArgumentParser, reconstruct: bool) -> No
             flags=MAPPING_FLAGS,
         )
         group = parser.add_argument_group("escalation options (where the learned matcher runs)")
-        add_conf_flags(group, escalate, types={"enough": none_or(int)})
+        add_conf_flags(
+            group, escalate, types={"enough": none_or(int), "orphan_after": none_or(int)}
+        )
     group = add_matcher_flags(parser, MATCHER_FLAGS)
     add_conf_flags(
         group,

