@@ -5,7 +5,8 @@ escalation, working for the largest model's left-out photos, does not try to lin
 After escalation, for two models whose photos look alike (each model with its ``CANDIDATES`` most
 alike others, most alike first), the ``join_pairs`` most similar pairs of a
 photo of one and a photo of the other (retrieval descriptors) are matched with the full matcher
-where the first pass did not. Where pairs verified with ``strong_inliers`` reach at least
+where the first pass did not (the ``PROBE`` most similar first, the rest only where one of them
+verified). Where pairs verified with ``strong_inliers`` reach at least
 ``MIN_PHOTOS`` photos on each side, the larger model is continued by incremental mapping with the
 smaller's photos; the merge is kept only where it holds the two models' photos, has no model check
 problem they did not have, and its two parts agree on what their photos see
@@ -33,6 +34,9 @@ from .pipeline import PipelineConf
 # verified pairs must reach this many photos of each model: a single look-alike pair (one
 # repeated facade seen from two places) joins nothing
 MIN_PHOTOS = 2
+# a try matches its most similar cross pairs first, this many, and stops where none verified: two
+# buildings' most alike photos are their best chance
+PROBE = 2 * MIN_PHOTOS
 # each model tries the models whose photos are most like its own, this many: an archive of many
 # buildings costs a few tries per model, not one per two models
 CANDIDATES = 3
@@ -116,14 +120,17 @@ def join_models(
             num_pairs,
             escalate.kept_cheaply(matcher),
         )
-        if todo:
-            full = full or escalate.full_matcher(matcher)
-            match.rematch(database_path, image_path, full, conf, todo, pairs_path)
-        with dbio.open_database(database_path) as db:
-            ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
-            inliers = dbio.pair_inlier_counts(db)
-        cross = [(a, b, inliers.get(tuple(sorted((ids[a], ids[b]))), 0)) for a, b in cross]
-        verified = [(a, b) for a, b, n in cross if n >= conf.escalation.strong_inliers]
+        matched = 0
+        for part in (todo[:PROBE], todo[PROBE:]):
+            if part:
+                full = full or escalate.full_matcher(matcher)
+                match.rematch(database_path, image_path, full, conf, part, pairs_path)
+                matched += len(part)
+            counted = _with_inliers(database_path, cross)
+            verified = [(a, b) for a, b, n in counted if n >= conf.escalation.strong_inliers]
+            if not verified:
+                break
+        cross = counted
         sides = [len({p[k] for p in verified}) for k in (0, 1)]
         merged, found = (
             merge(database_path, image_path, sparse_path, models, pair, mapping_conf)
@@ -135,7 +142,7 @@ def join_models(
                 "models": list(pair),
                 "photos": [len(n) for n in names],
                 "pairs": [list(p) for p in cross],
-                "matched": len(todo),
+                "matched": matched,
                 "verified": len(verified),
                 "joined": merged is not None,
                 **found,
@@ -149,6 +156,14 @@ def join_models(
             others = [rec for k, rec in models.items() if k not in pair]
             models = mapping.write_models(sparse_path, [merged, *others])
     return models, tries
+
+
+def _with_inliers(database_path: Path, pairs: list) -> list[tuple[str, str, int]]:
+    """(name_a, name_b, verified inliers; 0 where none) of ``pairs`` in the database."""
+    with dbio.open_database(database_path) as db:
+        ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
+        inliers = dbio.pair_inlier_counts(db)
+    return [(a, b, inliers.get(tuple(sorted((ids[a], ids[b]))), 0)) for a, b in pairs]
 
 
 def candidates(models: dict, descriptors: dict) -> list[tuple[int, int]]:

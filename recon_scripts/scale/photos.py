@@ -20,8 +20,16 @@ def _render(args):
 
     out, views, seed = args
     if not (Path(out) / "ground_truth" / "images.txt").exists():
-        render_scene(out, views, SYNTHETIC["width"], SYNTHETIC["height"], seed=seed)
+        conf = {"hall_size": hall_size(seed)}
+        render_scene(out, views, SYNTHETIC["width"], SYNTHETIC["height"], seed=seed, conf=conf)
     return out
+
+
+def hall_size(seed: int) -> tuple[float, float]:
+    """The hall's length and width (metres) of the landmark of ``seed``: each landmark is its own
+    building; landmarks of one shape (only their paint differs) are twins no geometry tells apart."""
+    rng = random.Random(seed)
+    return round(rng.uniform(8.0, 16.0), 1), round(rng.uniform(6.0, 10.0), 1)
 
 
 def _train_scenes() -> list[dict]:
