@@ -359,6 +359,14 @@ def pair_match_counts(db: pycolmap.Database) -> dict[tuple[int, int], int]:
     return {_image_pair(p): int(n) for p, n in zip(pair_ids, counts)}
 
 
+def written_pairs(path: Path) -> list[tuple[int, int]]:
+    """(image_id_a, image_id_b) of every pair with a two-view geometry in the database at ``path``:
+    matched and verified, with inliers or none (pycolmap reads only those with a geometry)."""
+    with sqlite_connection(path, read_only=True) as conn:
+        rows = conn.execute("SELECT pair_id FROM two_view_geometries").fetchall()
+    return [_image_pair(pair_id) for (pair_id,) in rows]
+
+
 def pair_inlier_counts(db: pycolmap.Database) -> dict[tuple[int, int], int]:
     """(image_id_a, image_id_b) -> verified inliers of every pair that verified (a pair whose
     geometry holds no inlier is not in it)."""

@@ -34,11 +34,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pycolmap
-from tqdm import tqdm
 
 from . import database as dbio
 from . import verify
-from .log import add_verbosity_flags, logger
+from .log import add_verbosity_flags, logger, progress
 from .pairs import write_pairs
 from .workspace import Workspace
 
@@ -75,7 +74,7 @@ def names_to_pair(name0: str, name1: str, separator: str = "/") -> str:
 
 
 def _bar(total: int, desc: str, unit: str):
-    return tqdm(total=total, desc=desc, unit=unit, disable=None, dynamic_ncols=True, leave=False)
+    return progress(desc=desc, unit=unit, total=total)
 
 
 def export_h5(

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageFile, UnidentifiedImageError
 
+from . import log
 from .conf import merge_conf
 from .log import logger
 
@@ -184,18 +185,9 @@ def check_images(
 ) -> tuple[list[str], dict[str, str]]:
     """Split ``names`` (relative to ``image_path``) into usable ones and {name: reason} for the
     others."""
-    from tqdm import tqdm
-
     conf = check_conf(conf)  # a typo fails before the first photo is opened
     ok, skipped, huge, rotated = [], {}, [], []
-    for name in tqdm(
-        names,
-        desc="check images",
-        unit="img",
-        disable=None if progress else True,
-        dynamic_ncols=True,
-        leave=False,
-    ):
+    for name in log.progress(names, "check images", "img", show=progress):
         reason, info = check_image(Path(image_path) / name, conf)
         if reason is None:
             ok.append(name)

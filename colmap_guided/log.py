@@ -33,6 +33,36 @@ if not any(isinstance(h, _CurrentStderrHandler) for h in logger.handlers):
     logger.propagate = False
 
 
+class _LogLines:
+    """tqdm's output as log lines: where stderr is no terminal (a log file), a bar's refresh is one
+    line."""
+
+    def write(self, text: str) -> None:
+        text = text.strip("\r\n ")
+        if text:
+            logger.info("%s", text)
+
+    def flush(self) -> None:
+        pass
+
+
+# seconds between a bar's lines in a log; none for a step shorter than that
+LOG_EVERY = 60.0
+_FORMAT = "{desc}: {n_fmt}/{total_fmt} {unit}s, {elapsed} elapsed, about {remaining} left"
+
+
+def progress(iterable=None, desc: str = "", unit: str = "it", total=None, show: bool = True):
+    """A progress bar with the time left (tqdm): drawn on a terminal, a log line a minute
+    elsewhere; none with ``show`` False."""
+    from tqdm import tqdm
+
+    if not show:
+        return tqdm(iterable, total=total, disable=True)
+    options = {"file": _LogLines(), "mininterval": LOG_EVERY, "delay": LOG_EVERY}
+    options = {"dynamic_ncols": True} if sys.stderr.isatty() else {**options, "bar_format": _FORMAT}
+    return tqdm(iterable, desc=desc, unit=unit, total=total, leave=False, **options)
+
+
 def add_verbosity_flags(parser) -> None:
     """--verbose and --quiet, for ``set_verbosity``."""
     group = parser.add_mutually_exclusive_group()

@@ -24,16 +24,10 @@ from .conf import merge_conf
 from .escalate import BestFirst
 from .executor import get_executor
 from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey, pair_order
-from .log import add_verbosity_flags, colmap_quiet, logger
+from .log import add_verbosity_flags, colmap_quiet, logger, progress
 from .matchers.base import Matcher, scoped_torch_threads
 from .pairs import global_descriptors, pair_mode, retrieves, select_pairs, write_pairs
 from .pipeline import PipelineConf
-
-
-def _progress(iterable, desc: str, total: int):
-    return tqdm(
-        iterable, desc=desc, total=total, unit="pair", disable=None, dynamic_ncols=True, leave=False
-    )
 
 
 def match_database(
@@ -294,7 +288,8 @@ def _match_pairs(
     writing, and how many pairs the matcher left unmatched (not written)."""
     pairs = _PairRun(db, image_path, images, todo, matcher, run, schedule)
     held = HeldImages(todo, pairs.load, max_held, on_drop=matcher.release)
-    with _progress(None, "match", schedule.first_pass if schedule else len(todo)) as pairs.bar:
+    total = schedule.first_pass if schedule else len(todo)
+    with progress(desc="match", unit="pair", total=total) as pairs.bar:
         for position, key in enumerate(todo):
             while schedule is not None and (need := schedule.decide(position, key)) is None:
                 pairs.write_done()

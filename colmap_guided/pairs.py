@@ -152,12 +152,10 @@ def global_descriptors(coarse, paths: dict[str, Path], desc: str = "retrieval") 
     """GeM descriptor (N, C) of each image of ``paths`` (name → file), in its order, from the
     backbone of a ``colmap_guided.coarse.CoarseMatcher``; each image's features are released at once
     (memory flat in N)."""
-    from tqdm import tqdm
+    from .log import progress
 
     out = []
-    for name, path in tqdm(
-        paths.items(), desc=desc, unit="img", disable=None, dynamic_ncols=True, leave=False
-    ):
+    for name, path in progress(paths.items(), desc, "img"):
         out.append(gem(coarse.extract_path(path, name).features.float().cpu().numpy()))
         coarse.release(name)
     return np.stack(out) if out else np.zeros((0, 0), np.float32)

@@ -10,12 +10,11 @@ from collections.abc import Callable
 
 import numpy as np
 import pycolmap
-from tqdm import tqdm
 
 from . import database as dbio
 from .conf import merge_conf
 from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey
-from .log import colmap_quiet
+from .log import colmap_quiet, progress
 
 default_conf = {
     "min_num_inliers": 15,  # COLMAP's default
@@ -182,15 +181,7 @@ def verify_pairs(
 
     held = HeldImages(unverified, load, max_images_held)
     with colmap_quiet():
-        for key in tqdm(
-            unverified,
-            desc="verify",
-            total=len(unverified),
-            unit="pair",
-            disable=None,
-            dynamic_ncols=True,
-            leave=False,
-        ):
+        for key in progress(unverified, "verify", "pair"):
             (camera_a, kpts_a), (camera_b, kpts_b) = held.pair(key)
             matches = dbio.read_pair_matches(db, key[0], key[1])
             geometry = verify_pair(camera_a, kpts_a, camera_b, kpts_b, matches, options)

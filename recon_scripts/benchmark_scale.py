@@ -41,7 +41,13 @@ from pathlib import Path
 
 from recon_scripts.bench import Benchmark
 from recon_scripts.evaluation.registration import method_slug
-from recon_scripts.scale.archive import archive_report, build_archive, run_archive
+from recon_scripts.scale.archive import (
+    RUNS,
+    archive_report,
+    build_archive,
+    costs_report,
+    run_archive,
+)
 from recon_scripts.scale.executors import match_executors
 from recon_scripts.scale.photos import make_pool, photo_set
 from recon_scripts.scale.report import default_table, executors_table, report
@@ -185,6 +191,7 @@ class Archive(Benchmark):
         "labels": ["*"],
         "seed": 0,  # the shuffle: which photo gets which name
         "alone": True,  # each label of 3 photos or more reconstructed alone: the reference
+        "runs": ["default"],  # the archive's runs, named in archive.RUNS: "default orphans_kept"
         "timeout": 4 * 3600,  # seconds per reconstruct run
     }
     resume = True  # a killed benchmark keeps the runs that finished
@@ -200,10 +207,13 @@ class Archive(Benchmark):
         return build_archive(work, n, self.conf["labels"], self.conf["seed"]) / "images"
 
     def configs(self):
-        return {"default": {"alone": self.conf["alone"]}}
+        return {
+            name: {"alone": self.conf["alone"], "flags": RUNS[name]} for name in self.conf["runs"]
+        }
 
     def run_config(self, n, images, prepared, label, config, out):
-        result = run_archive(images.parent, out, config["alone"], self.conf["timeout"])
+        timeout = self.conf["timeout"]
+        result = run_archive(images.parent, out, config["alone"], timeout, config["flags"])
         (out / "report.md").write_text("\n".join(archive_report(n, result)) + "\n")
         return result
 
@@ -217,9 +227,13 @@ class Archive(Benchmark):
         )
 
     def summarize(self, results):
-        return "\n\n".join(
-            "\n".join(archive_report(n, res["default"])) for n, res in results.items()
-        )
+        parts = []
+        for n, res in results.items():
+            for name, result in res.items():
+                head = [f"### {name}", ""] if len(res) > 1 else []
+                parts.append("\n".join(head + archive_report(n, result)))
+            parts.append("\n".join(costs_report(res)))
+        return "\n\n".join(parts)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ from colmap_guided.matchers import lightglue
 from colmap_guided.pipeline import PipelineConf
 from colmap_guided.reconstruct import reconstruct
 from recon_scripts.evaluation.ground_truth import pose_errors
+from recon_scripts.scale.archive import photo_costs
 
 
 def strong_neighbours(database_path, strong_inliers: int) -> tuple[Counter, dict, dict, dict]:
@@ -302,3 +303,7 @@ def test_a_photo_that_matches_nothing_costs_its_first_pairs_only(
     every, written_every = run(None)
     assert every["database"]["orphans"] == [] and every["num_registered"] == 8
     assert sum(written_every[name] for name in strays) >= 2 * sum(written[n] for n in strays)
+    # the archive benchmark's account of it: a photo in no model, 3 pairs
+    costs = [photo_costs(tmp_path / f"ws_{k}")["in no model"] for k in (3, None)]
+    assert costs[0]["photos"] == costs[1]["photos"] == 4 and costs[0]["pairs_per_photo"] == 3
+    assert costs[1]["pairs_per_photo"] >= 6 and costs[1]["seconds_per_photo"] > 0

@@ -2,6 +2,7 @@
 
 import hashlib
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -329,3 +330,19 @@ def test_match_database_takes_a_pipeline_conf(synthetic_scene, tmp_path):
     assert stats["num_pairs"] == 13 and stats["verification"]["min_num_inliers"] == 20
     stats = match_database(db, synthetic_scene.image_dir, "exhaustive", conf=conf)
     assert stats["num_pairs"] == 28 and stats["num_pairs_matched_now"] == 15
+
+
+def test_a_stage_logs_its_progress_with_the_time_left(
+    synthetic_scene, tmp_path, monkeypatch, capsys
+):
+    """Where stderr is no terminal (a log file), a stage's bar is a log line every ``LOG_EVERY``
+    seconds: photos done of all, time spent and time left."""
+    from colmap_guided import log
+    from colmap_guided.features import extract_features
+
+    monkeypatch.setattr(log, "LOG_EVERY", 0.0)
+    extract_features(tmp_path / "database.db", synthetic_scene.image_dir, synthetic_scene.names)
+    lines = [line for line in capsys.readouterr().err.splitlines() if "extract:" in line]
+    assert len(lines) >= 2, lines
+    assert re.search(r"INFO\] extract: 8/8 imgs, 00:[0-9]{2} elapsed, about 00:00 left$", lines[-1])
+    assert re.search(r"extract: [0-7]/8 imgs, .* elapsed, about .* left$", lines[0])

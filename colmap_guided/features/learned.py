@@ -14,11 +14,10 @@ from typing import Callable
 
 import numpy as np
 from PIL import Image
-from tqdm import tqdm
 
 from .. import database as dbio
 from .. import images
-from ..log import logger
+from ..log import logger, progress
 from .cameras import import_new, reader_options, skip_unread
 
 
@@ -89,9 +88,7 @@ def extract_images(
                 len(todo),
                 len(image_names) - len(todo) - len(skipped),
             )
-        for image in tqdm(
-            todo, desc="extract", unit="img", disable=None, dynamic_ncols=True, leave=False
-        ):
+        for image in progress(todo, "extract", "img"):
             keypoints, descriptors = extract_image(image_path / image.name)
             with dbio.transaction(db):
                 dbio.write_features(db, image.image_id, keypoints, descriptors, kind)

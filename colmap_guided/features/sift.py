@@ -20,12 +20,11 @@ import cv2
 import numpy as np
 import pycolmap
 from PIL import Image
-from tqdm import tqdm
 
 from .. import database as dbio
 from .. import images
 from ..database import open_database
-from ..log import colmap_quiet, logger
+from ..log import colmap_quiet, logger, progress
 from .cameras import camera_key, import_new, reader_options, skip_unread
 
 # COLMAP's grey conversion (Rec. 709 luma, rounded to 8 bits): its SIFT keypoints are reproduced
@@ -302,8 +301,7 @@ def _extract_todo(
             sum(prepared.values()),
         )
     size = max(2, 2 * options.num_threads)
-    bar_options = {"desc": "extract", "unit": "img", "disable": None, "dynamic_ncols": True}
-    with tqdm(total=len(todo), leave=False, **bar_options) as bar:
+    with progress(desc="extract", unit="img", total=len(todo)) as bar:
         for run, camera_id in _chunks(todo, size, prepared, keys, known):
             # a chunk is extracted one way: COLMAP's, or on prepared grey images
             (_extract_prepared if prepared[run[0]] else _extract_chunk)(

@@ -16,6 +16,7 @@ import re
 import shutil
 import sys
 import time
+from collections import Counter
 from fnmatch import fnmatch
 from pathlib import Path, PurePosixPath
 
@@ -48,6 +49,9 @@ SAME_PLACE = {
     "train:cut3r_livingroom": "train:cut3r_flat",
     "gtsfm_1dsfm_sample": "alamo",  # four photos of 1DSfM's Alamo set
 }
+# reconstruct's flags of a named run of the archive (``runs``): the default, and the default with
+# one decision undone, to print what it changes
+RUNS = {"default": [], "orphans_kept": ["--orphan_after", "none"]}
 # a label run on its own (the reference its archive model is compared with) from this many photos
 MIN_ALONE = 3
 # the share of a label's photos of its own run that one archive model must hold
@@ -122,15 +126,15 @@ def build_archive(out: Path, photos: int, labels: list[str], seed: int) -> Path:
     return archive
 
 
-def reconstruct_run(scene: Path, out: Path, timeout: float) -> dict:
-    """``python -m colmap_guided reconstruct SCENE`` as a user runs it (from scratch, the machine's
-    threads) into ``out``, measured (run_measured) with report.json's timings; kept in OUT.json,
-    so a run that succeeded is not run again. {'failed': why} otherwise."""
+def reconstruct_run(scene: Path, out: Path, timeout: float, flags=()) -> dict:
+    """``python -m colmap_guided reconstruct SCENE [flags]`` as a user runs it (from scratch, the
+    machine's threads) into ``out``, measured (run_measured) with report.json's timings; kept in
+    OUT.json, so a run that succeeded is not run again. {'failed': why} otherwise."""
     saved = out.with_suffix(".json")
     if saved.exists():
         return json.loads(saved.read_text())
     cmd = ["nice", "-n", "5", sys.executable, "-m", "colmap_guided", "reconstruct", str(scene)]
-    cmd += ["--output", str(out), "--overwrite"]
+    cmd += ["--output", str(out), "--overwrite", *flags]
     path = os.pathsep.join(filter(None, [str(CHECKOUT), os.environ.get("PYTHONPATH")]))
     now = time.strftime("%H:%M:%S", time.gmtime())
     n = len(list_images(scene / "images"))
@@ -216,11 +220,12 @@ def compare(
     }
 
 
-def run_archive(archive: Path, out: Path, alone: bool, timeout: float) -> dict:
-    """The archive reconstructed in one run (OUT/run), then each label of at least MIN_ALONE photos
-    alone (OUT/alone/<label>/run, its photos under their archive names), and their comparison."""
+def run_archive(archive: Path, out: Path, alone: bool, timeout: float, flags=()) -> dict:
+    """The archive reconstructed in one run (OUT/run, with reconstruct's ``flags``), then each
+    label of at least MIN_ALONE photos alone (ARCHIVE/../alone/<label>/run, its photos under their
+    archive names; one for every run of the archive), and their comparison."""
     labels = json.loads((archive / "labels.json").read_text())
-    result = {"archive": reconstruct_run(archive, out / "run", timeout), "alone": {}}
+    result = {"archive": reconstruct_run(archive, out / "run", timeout, flags), "alone": {}}
     by_label: dict[str, list[str]] = {}
     for name, label in labels.items():
         by_label.setdefault(label, []).append(name)
@@ -228,7 +233,7 @@ def run_archive(archive: Path, out: Path, alone: bool, timeout: float) -> dict:
     for label, names in sorted(by_label.items()):
         if not alone or len(names) < MIN_ALONE:
             continue
-        scene = out / "alone" / method_slug(label)
+        scene = archive.parent / "alone" / method_slug(label)
         if not (scene / "images").is_dir():
             tmp = scene / "images.partial"
             shutil.rmtree(tmp, ignore_errors=True)
@@ -241,7 +246,41 @@ def run_archive(archive: Path, out: Path, alone: bool, timeout: float) -> dict:
     if "failed" not in result["archive"]:
         models = read_models(out / "run" / "sparse", labels)
         result["comparison"] = compare(labels, models, own_models)
+        result["costs"] = photo_costs(out / "run")
     return result
+
+
+def photo_costs(workspace: Path) -> dict:
+    """What a photo in no model and a placed photo cost in the run of ``workspace``: photos, pairs
+    the matcher ran on per photo (a pair counts for each of its photos; first pass, escalation and
+    join) and the seconds of matching (first pass and escalation) that their pairs took, shared
+    evenly by the pairs; and the photos that matching took for orphans."""
+    from colmap_guided import database as dbio
+    from colmap_guided.mapping import load_models
+
+    report = json.loads((workspace / "report.json").read_text())
+    with dbio.open_database(workspace / "database.db") as db:
+        names = dbio.image_names(db)
+    pairs = dbio.written_pairs(workspace / "database.db")
+    placed = {
+        rec.images[i].name
+        for rec in load_models(workspace / "sparse").values()
+        for i in rec.reg_image_ids()
+    }
+    per_photo = Counter(names[i] for pair in pairs for i in pair)
+    t = report["timings"]
+    per_pair = (t.get("match", 0) + t.get("escalate_match", 0)) / max(len(pairs), 1)
+    costs = {}
+    for what, photos in (("placed", placed), ("in no model", set(names.values()) - placed)):
+        n = sum(per_photo[name] for name in photos)
+        costs[what] = {
+            "photos": len(photos),
+            "pairs_per_photo": n / max(len(photos), 1),
+            "seconds_per_photo": n * per_pair / max(len(photos), 1),
+        }
+    costs["orphans"] = len(report["database"].get("orphans", []))
+    costs["seconds_per_pair"] = per_pair
+    return costs
 
 
 def _s(timings: dict, *keys: str) -> str:
@@ -258,8 +297,9 @@ def _run_row(what: str, runs: list[dict], registered: str) -> str:
     return (
         f"| {what} | {sum(r['num_images'] for r in runs)} | {wall:.0f} ({cpu:.0f}) "
         f"| {_s(t, 'extract')} | {_s(t, 'match')} | {_s(t, 'verify')} | {_s(t, 'map')} "
-        f"| {_s(t, 'escalate_match', 'escalate_map')} | {max(r['peak_rss_mb'] for r in runs)} / "
-        f"{max(r['peak_tree_rss_mb'] for r in runs)} | {registered} |"
+        f"| {_s(t, 'escalate_match', 'escalate_map')} | {_s(t, 'join')} "
+        f"| {max(r['peak_rss_mb'] for r in runs)} / {max(r['peak_tree_rss_mb'] for r in runs)} "
+        f"| {registered} |"
     )
 
 
@@ -301,8 +341,8 @@ def archive_report(n: int, result: dict) -> list[str]:
     lines += [
         "",
         "| run | photos | wall s (CPU s) | extract s | match s | verify s | map s | escalation s "
-        "| peak RSS MB: largest process / tree | registered (models) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| join s | peak RSS MB: largest process / tree | registered (models) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
         _run_row(
             "archive, one run",
             [run],
@@ -312,4 +352,27 @@ def archive_report(n: int, result: dict) -> list[str]:
     if own:
         registered = sum(r.get("registered_alone_all", 0) for r in c["labels"].values())
         lines.append(_run_row(f"each label alone ({len(own)} runs, summed)", own, f"{registered}"))
+    return lines
+
+
+def costs_report(results: dict) -> list[str]:
+    """Markdown: per named run of the archive (``RUNS``), what a photo in no model and a placed
+    photo cost (``photo_costs``)."""
+    lines = [
+        "| run | photos placed / in no model (orphans) | pairs per photo: placed / in no model "
+        "| matching s per photo: placed / in no model | s per pair | wall s |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, result in results.items():
+        c = result.get("costs")
+        if c is None:
+            lines.append(f"| {name} | failed | – | – | – | – |")
+            continue
+        p, o = c["placed"], c["in no model"]
+        lines.append(
+            f"| {name} | {p['photos']} / {o['photos']} ({c['orphans']}) "
+            f"| {p['pairs_per_photo']:.1f} / {o['pairs_per_photo']:.1f} "
+            f"| {p['seconds_per_photo']:.1f} / {o['seconds_per_photo']:.1f} "
+            f"| {c['seconds_per_pair']:.2f} | {result['archive']['wall']:.0f} |"
+        )
     return lines

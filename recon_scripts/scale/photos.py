@@ -26,8 +26,8 @@ def _render(args):
 
 
 def hall_size(seed: int) -> tuple[float, float]:
-    """The hall's length and width (metres) of the landmark of ``seed``: each landmark is its own
-    building; landmarks of one shape (only their paint differs) are twins no geometry tells apart."""
+    """The hall's length and width (metres) of the landmark of ``seed``: each landmark its own
+    building (landmarks of one shape, only their paint apart, are twins geometry cannot tell)."""
     rng = random.Random(seed)
     return round(rng.uniform(8.0, 16.0), 1), round(rng.uniform(6.0, 10.0), 1)
 
