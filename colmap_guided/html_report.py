@@ -448,7 +448,7 @@ def render_html(
     if rec is not None and rec.num_reg_images():
         others = _other_models(report)
         out += _model_section(rec, eras, geo, image_path if thumbnails else None, others)
-    out += _models_table(report)
+    out += _models_table(report) + _joins_table(report)
     out += _ratio_section(report)
     out += _why_table(report, image_path, thumbnails)
     out += _localized_table(report, image_path, thumbnails)
@@ -538,6 +538,31 @@ def _models_table(report: dict) -> list[str]:
         out.append(
             f"<tr><td>{esc(m['path'])}</td><td class='num'>{m['num_registered']}</td>"
             f"<td class='num'>{m['num_points3D']}</td>{check}<td>{esc(names)}</td></tr>"
+        )
+    return out + ["</table>"]
+
+
+def _joins_table(report: dict) -> list[str]:
+    """Each two models tried for joining: their photos, the cross pairs matched and verified, and
+    whether they were joined, or why not."""
+    tries = (report.get("database") or {}).get("joins") or []
+    if not tries:
+        return []
+    joined = sum(t["joined"] for t in tries)
+    out = [
+        f"<h2>Joining models ({len(tries)} tried, {joined} joined)</h2><p>Two models whose photos "
+        "look alike: their most similar photos across them matched; where those pairs verify on "
+        "several photos of each, the models are merged, and the merge is kept only where it "
+        "passes the model check and its two parts agree on what their photos see (two buildings "
+        "of one style stay two).</p><table><tr><th>models (photos)</th><th>pairs matched now / "
+        "verified</th><th>joined</th></tr>",
+    ]
+    for t in tries:
+        models = " and ".join(f"sparse/{k} ({n})" for k, n in zip(t["models"], t["photos"]))
+        result = "yes" if t["joined"] else f"no: {html.escape(t.get('why', ''))}"
+        out.append(
+            f"<tr><td>{models}</td><td class='num'>{t['matched']} / {t['verified']}</td>"
+            f"<td>{result}</td></tr>"
         )
     return out + ["</table>"]
 

@@ -340,6 +340,10 @@ def summary_text(report: dict) -> str:
             f"{len(others)} other model(s), photos in each: {shown}"
             + (" ..." if len(others) > 10 else "")
         )
+    tries = (report.get("database") or {}).get("joins") or []
+    if tries:
+        joined = sum(t["joined"] for t in tries)
+        lines.append(f"Joining models: {len(tries)} tried, {joined} joined (report.html)")
     skipped = report.get("skipped_images") or {}
     why = report.get("unregistered") or {}
     unregistered = [name for name in why if name not in skipped]

@@ -282,9 +282,15 @@ def test_every_model_is_a_result(two_buildings, synthetic_scene):
     assert result["unregistered"] == {}
     text = report.summary_text(result)
     assert "1 other model(s), photos in each: sparse/1 (6)" in text and "In no model" not in text
+    assert "Joining models: 1 tried, 0 joined (report.html)" in text
     page = (out / "report.html").read_text(encoding="utf-8")
     assert "<option value='1'>sparse/1: 6 photos</option>" in page
     assert "Photos in no model, and why (0)" in page and "<h2>The models (2)</h2>" in page
+    # the two were tried for joining: their pairs, matched in the first pass, verified none
+    (tried,) = result["database"]["joins"]
+    assert "<h2>Joining models (1 tried, 0 joined)</h2>" in page
+    assert "<tr><td>sparse/0 (8) and sparse/1 (6)</td><td class='num'>0 / 0</td>" in page
+    assert f"<td>no: {tried['why']}</td></tr>" in page
     assert sorted(c["name"] for c in _strict(page, "model-data-1")["cameras"]) == others
 
 
