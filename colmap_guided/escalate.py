@@ -134,20 +134,11 @@ class BestFirst:
     kill, counting the pairs in the database, decides as the uninterrupted run (its last pass
     may try a few pairs more)."""
 
-    def __init__(
-        self,
-        db,
-        id_pairs,
-        enough,
-        strong_inliers,
-        join_tries,
-        options,
-        descriptors,
-        apart=(),
-        orphan_after=None,
-    ):
-        self.enough, self.strong_inliers, self.options = enough, strong_inliers, options
-        self.join_tries, self.orphan_after = join_tries, orphan_after
+    def __init__(self, db, id_pairs, rule: dict, options, descriptors, apart=()):
+        """``rule``: enough, strong_inliers, join_tries, orphan_after (``match_database``'s)."""
+        self.enough, self.strong_inliers = rule["enough"], rule["strong_inliers"]
+        self.join_tries, self.orphan_after = rule["join_tries"], rule["orphan_after"]
+        self.options = options
         self.similarity = {
             key: float(descriptors[key[2]] @ descriptors[key[3]]) for key in id_pairs
         }

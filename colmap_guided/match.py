@@ -128,17 +128,9 @@ def match_pairs(
             if descriptors is None:
                 descriptors = _global_descriptors(matcher, image_path, names)
             descriptors = dict(zip(names, descriptors))
-            schedule = BestFirst(
-                db,
-                id_pairs,
-                enough,
-                strong_inliers,
-                join_tries,
-                options,
-                descriptors,
-                apart,
-                orphan_after,
-            )
+            rule = {"enough": enough, "strong_inliers": strong_inliers}
+            rule.update(join_tries=join_tries, orphan_after=orphan_after)
+            schedule = BestFirst(db, id_pairs, rule, options, descriptors, apart)
             todo = schedule.order(todo, len(images) <= max_images_held)
         if todo:
             run = get_executor(
