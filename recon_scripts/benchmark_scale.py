@@ -47,6 +47,7 @@ from recon_scripts.scale.archive import (
     build_archive,
     costs_report,
     run_archive,
+    sample_archive,
 )
 from recon_scripts.scale.executors import match_executors
 from recon_scripts.scale.photos import make_pool, photo_set
@@ -190,21 +191,27 @@ class Archive(Benchmark):
         # the labels taken (fnmatch patterns: "sacre_coeur postcards:* wxbs:*"); first N photos
         "labels": ["*"],
         "seed": 0,  # the shuffle: which photo gets which name
+        "take": None,  # a sample: the archive's first N names (all kinds of photos), not all
         "alone": True,  # each label of 3 photos or more reconstructed alone: the reference
         "runs": ["default"],  # the archive's runs, named in archive.RUNS: "default orphans_kept"
         "timeout": 4 * 3600,  # seconds per reconstruct run
     }
     resume = True  # a killed benchmark keeps the runs that finished
 
-    def folder(self, n) -> str:
+    def folder(self, n, whole: bool = False) -> str:
         c = self.conf
         labels = "" if c["labels"] == ["*"] else "_" + method_slug("-".join(c["labels"]))
         if len(labels) > 40:  # the labels' start and a digest of them all
             labels = labels[:32] + "_" + hashlib.sha1(labels.encode()).hexdigest()[:8]
-        return f"n{n}{labels}" + (f"_seed{c['seed']}" if c["seed"] else "")
+        take = "" if whole or c["take"] is None else f"_take{c['take']}"
+        return f"n{n}{labels}" + (f"_seed{c['seed']}" if c["seed"] else "") + take
 
     def images(self, n, work):
-        return build_archive(work, n, self.conf["labels"], self.conf["seed"]) / "images"
+        c = self.conf
+        if c["take"] is None:
+            return build_archive(work, n, c["labels"], c["seed"]) / "images"
+        whole = build_archive(work.parent / self.folder(n, whole=True), n, c["labels"], c["seed"])
+        return sample_archive(whole, work / "archive", c["take"]) / "images"
 
     def configs(self):
         return {

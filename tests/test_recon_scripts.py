@@ -46,7 +46,12 @@ def test_an_unknown_option_or_preset_is_one_line_and_runs_nothing(capsys):
 def test_the_archive_is_a_flat_folder_of_labelled_photos_under_opaque_names(shared_data, tmp_path):
     from colmap_guided.features import list_images
     from colmap_guided.images import read_image
-    from recon_scripts.scale.archive import build_archive, plan_archive, real_sources
+    from recon_scripts.scale.archive import (
+        build_archive,
+        plan_archive,
+        real_sources,
+        sample_archive,
+    )
 
     chosen = ["berliner_dom", "wxbs:kettle", "alamo"]  # 5 + 4 + 4 photos, 2 rendered views
     archive = build_archive(tmp_path, 15, chosen, seed=3)
@@ -68,6 +73,12 @@ def test_the_archive_is_a_flat_folder_of_labelled_photos_under_opaque_names(shar
     plan = {n: (lb, str(f)) for n, (lb, f) in plan_archive(real + rendered, 3).items()}
     assert plan == {n: (labels[n], sources[n]) for n in files}
     assert plan_archive(real, 3) == plan_archive(real, 3) != plan_archive(real, 4)
+    # a sample: the first names, the same photos under the same labels
+    sample = sample_archive(archive, tmp_path / "sample", 5)
+    taken = sorted(os.listdir(sample / "images"))
+    assert taken == files[:5] == sorted(json.loads((sample / "labels.json").read_text()))
+    assert all((sample / "images" / n).resolve() == Path(sources[n]).resolve() for n in taken)
+    assert json.loads((sample / "labels.json").read_text()) == {n: labels[n] for n in taken}
     # each a link to a photo outside the checkout, read as the pipeline reads it
     for name in files:
         assert not Path(os.path.realpath(archive / "images" / name)).is_relative_to(REPO_ROOT)

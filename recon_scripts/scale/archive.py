@@ -126,6 +126,25 @@ def build_archive(out: Path, photos: int, labels: list[str], seed: int) -> Path:
     return archive
 
 
+def sample_archive(archive: Path, out: Path, take: int) -> Path:
+    """OUT: the first ``take`` names of ``archive`` (``build_archive``'s), the same photos under
+    the same names and labels. Built once: labels.json is written last."""
+    if (out / "labels.json").exists():
+        return out
+    labels = json.loads((archive / "labels.json").read_text())
+    names = sorted(labels)[:take]
+    shutil.rmtree(out / "images", ignore_errors=True)
+    (out / "images").mkdir(parents=True)
+    for name in names:
+        (out / "images" / name).symlink_to(os.readlink(archive / "images" / name))
+    sources = json.loads((archive / "sources.json").read_text())
+    write_json(out / "sources.json", {name: sources[name] for name in names})
+    eras = json.loads((archive / "manifest.json").read_text())["images"]
+    write_json(out / "manifest.json", {"images": [e for e in eras if e["name"] in set(names)]})
+    write_json(out / "labels.json", {name: labels[name] for name in names})
+    return out
+
+
 def reconstruct_run(scene: Path, out: Path, timeout: float, flags=()) -> dict:
     """``python -m colmap_guided reconstruct SCENE [flags]`` as a user runs it (from scratch, the
     machine's threads) into ``out``, measured (run_measured) with report.json's timings; kept in
