@@ -18,7 +18,7 @@ from colmap_guided.matchers import lightglue
 from colmap_guided.pipeline import PipelineConf
 from colmap_guided.reconstruct import reconstruct
 from recon_scripts.evaluation.ground_truth import pose_errors
-from recon_scripts.scale.archive import photo_costs
+from recon_scripts.scale.archive import label_pairs, photo_costs
 
 
 def strong_neighbours(database_path, strong_inliers: int) -> tuple[Counter, dict, dict, dict]:
@@ -307,3 +307,7 @@ def test_a_photo_that_matches_nothing_costs_its_first_pairs_only(
     costs = [photo_costs(tmp_path / f"ws_{k}")["in no model"] for k in (3, None)]
     assert costs[0]["photos"] == costs[1]["photos"] == 4 and costs[0]["pairs_per_photo"] == 3
     assert costs[1]["pairs_per_photo"] >= 6 and costs[1]["seconds_per_photo"] > 0
+    labels = {name: "landmark" for name in synthetic_scene.names}
+    labels.update({p.name: p.stem for p in scene.iterdir() if p.stem in strays})
+    pairs = label_pairs(tmp_path / "ws_3", labels)
+    assert pairs["across"]["pairs"] == 0 and pairs["within"]["pairs"] >= 7, pairs

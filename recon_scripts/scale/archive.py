@@ -266,7 +266,28 @@ def run_archive(archive: Path, out: Path, alone: bool, timeout: float, flags=())
         models = read_models(out / "run" / "sparse", labels)
         result["comparison"] = compare(labels, models, own_models)
         result["costs"] = photo_costs(out / "run")
+        result["pairs"] = label_pairs(out / "run", labels)
     return result
+
+
+def label_pairs(workspace: Path, labels: dict[str, str]) -> dict:
+    """The pairs verified in the run of ``workspace`` across two labels and within one: how many,
+    their inliers (median, largest). A pair across labels is two places that look alike."""
+    from colmap_guided import database as dbio
+
+    stems = {PurePosixPath(n).stem: n for n in labels}
+    with dbio.open_database(workspace / "database.db") as db:
+        names = dbio.image_names(db)
+        inliers = dbio.pair_inlier_counts(db)
+    found = {"across": [], "within": []}
+    for pair, n in inliers.items():
+        a, b = (labels.get(photo_of(names[i], stems)) for i in pair)
+        if a is not None and b is not None:
+            found["across" if a != b else "within"].append(n)
+    return {
+        k: {"pairs": len(v), "median": sorted(v)[len(v) // 2] if v else 0, "max": max(v, default=0)}
+        for k, v in found.items()
+    }
 
 
 def photo_costs(workspace: Path) -> dict:
@@ -350,6 +371,14 @@ def archive_report(n: int, result: dict) -> list[str]:
             f"| {label} | {r['photos']} | {r['registered_alone']} / {r['registered_alone_all']} "
             f"| {r['in_best_model']} ({r['best_model'] or '–'}) | {ratio} | {ok} | {archive} |"
         )
+    pairs = result.get("pairs")
+    if pairs:
+        a, w = pairs["across"], pairs["within"]
+        lines += [
+            "",
+            f"Pairs verified across two labels: {a['pairs']} (inliers: median {a['median']}, "
+            f"largest {a['max']}); within one label: {w['pairs']} (median {w['median']}).",
+        ]
     lines += ["", "Models that mix labels:", ""]
     lines += [
         f"- model {m['model']} ({m['photos']} photos): "
