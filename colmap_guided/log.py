@@ -58,7 +58,9 @@ def progress(iterable=None, desc: str = "", unit: str = "it", total=None, show: 
 
     if not show:
         return tqdm(iterable, total=total, disable=True)
-    options = {"file": _LogLines(), "mininterval": LOG_EVERY, "delay": LOG_EVERY}
+    # tqdm's monitor refreshes a bar idle for maxinterval: no sooner than the next line is due
+    every = {"mininterval": LOG_EVERY, "maxinterval": LOG_EVERY, "delay": LOG_EVERY}
+    options = {"file": _LogLines(), **every}
     options = {"dynamic_ncols": True} if sys.stderr.isatty() else {**options, "bar_format": _FORMAT}
     return tqdm(iterable, desc=desc, unit=unit, total=total, leave=False, **options)
 
