@@ -325,6 +325,7 @@ def _result(scene_dir, image_path, output, photos, conf, match_stats, models, ti
         photos.names,
         photos.skipped,
         result["options"]["verification"]["min_num_inliers"],
+        set(match_stats.get("orphans", [])),
     )
     result["unregistered"].update(cards.explain_prints(prints, registered))
     if not models:

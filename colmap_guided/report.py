@@ -111,19 +111,27 @@ SUGGEST = {
 }
 
 
+ORPHAN = (
+    " Its other pairs were not matched: a photo whose first pairs all fail is taken for a photo "
+    "of something else (--orphan_after none matches them all)."
+)
+
+
 def explain_unregistered(
     database_path: Path,
     models: dict[int, pycolmap.Reconstruction],
     image_names: list[str],
     skipped: dict[str, str],
     min_num_inliers: int = 15,
+    orphans: set[str] = frozenset(),
 ) -> dict[str, dict]:
     """Why each photo in no model dropped out, in plain words: {name: {stage, reason, suggestion,
     evidence}}. A photo in a smaller model is a result (that model's), not listed here.
 
     Stages, in pipeline order: ``reading`` (skipped: the file could not be used), ``features``
     (fewer than MIN_KEYPOINTS keypoints and no verified pair), ``matching`` (no pair passed two-view
-    verification) and ``mapping`` (verified pairs, yet the mapper could not place it). Evidence:
+    verification; ``orphans``: its other pairs left unmatched) and ``mapping`` (verified pairs,
+    yet the mapper could not place it). Evidence:
     verified pairs (two_view_geometries with inliers), the best one and its inliers, how many of the
     verified partners are in a model, and the best unverified candidate.
     """
@@ -151,6 +159,8 @@ def explain_unregistered(
         elif not pairs:
             tried = candidates.get(name, [])
             stage, reason = "matching", _matching_reason(tried, min_num_inliers)
+            if name in orphans:
+                reason += ORPHAN
             entry.update(
                 best_candidate=tried[0][1] if tried else None,
                 best_candidate_matches=tried[0][0] if tried else 0,

@@ -300,6 +300,9 @@ def test_a_photo_that_matches_nothing_costs_its_first_pairs_only(
     assert all(not set(r["photos"]) & set(stats["orphans"]) for r in stats["escalation"])
     assert stats["num_pairs_orphaned"] >= 10
     assert result["num_registered"] == len(synthetic_scene.names)
+    # the report says why: in no model, their other pairs not matched, and how to have them matched
+    why = [result["unregistered"][name] for name in stats["orphans"]]
+    assert all(w["stage"] == "matching" and "--orphan_after none" in w["reason"] for w in why)
     every, written_every = run(None)
     assert every["database"]["orphans"] == [] and every["num_registered"] == 8
     assert sum(written_every[name] for name in strays) >= 2 * sum(written[n] for n in strays)
