@@ -351,7 +351,8 @@ def archive_report(n: int, result: dict) -> list[str]:
         return [f"N={n}: the archive run failed ({run['failed']})"]
     c = result["comparison"]
     lines = [
-        f"**Archive of {n} photos, {len(c['labels'])} labels**: {c['labels_ok']} of "
+        f"**Archive of {run.get('num_images', n)} photos, {len(c['labels'])} labels**: "
+        f"{c['labels_ok']} of "
         f"{c['labels_checked']} labels run alone have ≥ {GOAL:.0%} of their model's photos in "
         f"one archive model; {len(c['mixing'])} of {c['archive_models']} models mix labels.",
         "",
