@@ -31,8 +31,9 @@ default_conf = {
     # left out) costs this many, not all its pairs
     "pairs_per_photo": 5,
     # a photo whose first this many pairs matched by the full matcher (most similar first; the
-    # gate's pairs not counted) verified none is an orphan: its other pairs are not matched and
-    # escalation gives it none (None: off); an archive's photos of nothing else cost that many
+    # gate's pairs not counted) verified none is an orphan: its other pairs are not matched, and
+    # escalation takes its pairs only for their other photo (None: off); an archive's photos of
+    # nothing else cost that many
     "orphan_after": 3,
     # deferred pairs that a group of photos no strong pair links to the others may try, most
     # similar first, before mapping (0: none); two groups would be two models
@@ -101,9 +102,9 @@ def pairs_to_escalate(
     a photo that mapping could not place may need). A pair written with fewer is the full
     matcher's own result: matching it again would give it again. ``done``: pairs (name_a, name_b)
     escalated already. A pair of two photos placed ``elsewhere`` (in models other than the
-    largest) is not taken: it cannot bring either into the model, nor is a pair of an orphan
-    (``orphans``, with ``orphan_after``): nothing it was matched with verified. Returns (id_a,
-    id_b, name_a, name_b)."""
+    largest) is not taken: it cannot bring either into the model. An orphan (``orphans``, with
+    ``orphan_after``: nothing it was matched with verified) is not left out: its pairs are taken
+    only for their other photo. Returns (id_a, id_b, name_a, name_b)."""
     taken, todo = Counter(), []
     with dbio.open_database(database_path) as db:
         ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
