@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 from pathlib import Path
 
 import cv2
@@ -572,6 +573,38 @@ def card_report(
         out["cards"][name] = entry
     out["repeated_prints"] = prints
     return out
+
+
+def colmap_names(report: dict) -> dict[str, str]:
+    """{the name COLMAP reads a collage panel by (its path from the photo folder, which climbs out
+    of it): the panel's name in the report and the page, its path inside the workspace}."""
+    panels = [p["name"] for c in (report.get("cards") or {}).values() for p in c.get("panels", [])]
+    workspace = Path(report.get("report_path") or ".").parent
+    out = {}
+    for name in panels:
+        shown = f"{PANELS}/{Path(name).name}"
+        read = os.path.relpath(workspace / shown, Path(report.get("image_path") or "."))
+        out[Path(read).as_posix()] = shown
+    return out
+
+
+def renamed(x, names: dict[str, str]):
+    """``x`` (a report, a page) with each key of ``names`` replaced by its value, in every list,
+    key and sentence."""
+    if not names:
+        return x
+    pattern = re.compile("|".join(map(re.escape, sorted(names, key=len, reverse=True))))
+
+    def rename(x):
+        if isinstance(x, str):
+            return pattern.sub(lambda m: names[m[0]], x)
+        if isinstance(x, dict):
+            return {rename(k): rename(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [rename(v) for v in x]
+        return x
+
+    return rename(x)
 
 
 def explain_prints(prints: dict[str, dict], registered: set[str]) -> dict[str, dict]:

@@ -31,6 +31,7 @@ import pycolmap
 
 from . import database as dbio
 from . import embed, geoframe, images, model_view
+from .cards import PANELS, colmap_names, renamed
 from .localize.results import with_localized
 from .log import add_verbosity_flags, logger
 from .workspace import read_marker
@@ -244,17 +245,8 @@ def _why_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
                 "suggestion": "",
             },
         )
-        img = ""
-        if thumbnails and i < 60 and entry["stage"] != "reading":
-            try:
-                img = (
-                    "<img src='"
-                    f"{embed.encode_jpeg(images.read_thumbnail(image_path / name, 120)[0], 75)}' "
-                    f"alt='{esc(name)}'>"
-                )
-            except Exception:  # noqa: BLE001
-                # a photo moved away since the run is listed without a picture
-                img = ""
+        shown = thumbnails and i < 60 and entry["stage"] != "reading"
+        img = _img(_file(report, image_path, name), shown)
         stage = STAGE_WORDS.get(entry["stage"], entry["stage"])
         cls = " class='warn'" if entry["stage"] == "reading" else ""
         out.append(
@@ -289,6 +281,12 @@ def _localized_into(report: dict) -> int:
     """The index N of the model sparse/N that ``localize`` placed its photos in."""
     name = Path(_localized_file(report).get("model") or "0").name
     return int(name) if name.isdigit() else 0
+
+
+def _file(report: dict, image_path: Path, name: str) -> Path:
+    """A photo's file: a collage panel (``panels/...`` in the report) is in the workspace."""
+    panel = Path(report.get("report_path") or ".").parent / name
+    return panel if name.startswith(PANELS + "/") and panel.is_file() else image_path / name
 
 
 def _img(path: Path, thumbnails: bool, side: int = 120) -> str:
@@ -399,7 +397,7 @@ def _cards_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
         figure = ""
         if thumbnails:
             try:
-                thumb, sx, sy = images.read_thumbnail(image_path / name, 240)
+                thumb, sx, sy = images.read_thumbnail(_file(report, image_path, name), 240)
                 thumb = thumb.copy()  # (drawn on)
                 boxes = [card["picture"]] + [p["box"] for p in card.get("panels", [])]
                 for k, (x0, y0, x1, y1) in enumerate(boxes):
@@ -430,7 +428,8 @@ def _cards_table(report: dict, image_path: Path, thumbnails: bool) -> list[str]:
         out.append(f"<tr><td>{figure}</td><td>{esc(name)}</td><td>{what}</td></tr>")
     for name, evidence in prints.items():
         out.append(
-            f"<tr><td>{_img(image_path / name, thumbnails)}</td><td>{esc(name)}</td><td>same "
+            f"<tr><td>{_img(_file(report, image_path, name), thumbnails)}</td><td>{esc(name)}</td>"
+            "<td>same "
             f"picture as {esc(evidence['same_picture_as'])}: mapped once</td></tr>"
         )
     out.append("</table>")
@@ -456,7 +455,8 @@ def render_html(
     out += _panels_section(panels)
     out += _details_section(report)
     out.append("</body></html>")
-    return "\n".join(out)
+    # the 3D view names its cameras as the model does: a panel by its name in the report
+    return renamed("\n".join(out), colmap_names(report))
 
 
 def _page_model(report: dict, reconstruction) -> tuple:

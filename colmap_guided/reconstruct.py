@@ -194,6 +194,7 @@ def reconstruct(
     timings["verify"] = match_stats.pop("verify_time")
     models = _map(database_path, image_path, output, photos, conf, matcher, match_stats, timings)
     result = _result(scene_dir, image_path, output, photos, conf, match_stats, models, timings)
+    result = cards.renamed(result, cards.colmap_names(result))
     _write_reports(output, image_path, result, models)
     return result
 

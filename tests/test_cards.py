@@ -5,6 +5,7 @@ cards made of rendered views with exact poses."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -85,10 +86,13 @@ def panel_names(result: dict) -> list[str]:
 def test_collage_panels_register_on_their_true_poses(card_scene, card_run, synthetic_scene):
     root, _, _ = card_scene
     result, before = card_run
+    # named in the report by their path inside the workspace, as they are cropped into it only
     names = panel_names(result)
-    assert [Path(n).name for n in names] == ["collage_p1.jpg", "collage_p2.jpg"]
-    # cropped into the workspace only; the photos are untouched
-    assert all((root / "out" / cards.PANELS / Path(n).name).is_file() for n in names)
+    assert names == ["panels/collage_p1.jpg", "panels/collage_p2.jpg"]
+    assert all((root / "out" / n).is_file() for n in names)
+    # the database and the model name them as COLMAP reads them: from the photo folder
+    names = [os.path.relpath(root / "out" / n, root / "images") for n in names]
+    # the photos are untouched
     assert {p.name: p.read_bytes() for p in (root / "images").iterdir()} == before
     assert all(panel["registered"] for panel in result["cards"]["collage.jpg"]["panels"])
     # a card's panels are a publisher's different views: their pair waits for escalation
@@ -102,9 +106,11 @@ def test_collage_panels_register_on_their_true_poses(card_scene, card_run, synth
     errors = pose_errors(model, synthetic_scene)
     assert max(errors[name][0] for name in COLLAGE) < 1.0, errors
     assert max(errors[name][1] for name in COLLAGE) < 0.02, errors
-    saved = json.loads((root / "out" / "report.json").read_text())
-    assert saved["cards"]["collage.jpg"]["panels"][0]["name"] == names[0]
-    assert "collage_p2.jpg" in (root / "out" / "report.html").read_text()
+    saved = (root / "out" / "report.json").read_text()
+    page = (root / "out" / "report.html").read_text()
+    assert json.loads(saved)["cards"]["collage.jpg"]["panels"][0]["name"] == panel_names(result)[0]
+    assert "panels/collage_p2.jpg" in page
+    assert not [text for text in (saved, page) if "../out/panels" in text]
 
 
 def test_captioned_card_registers_with_no_inlier_off_its_picture(card_scene, card_run):
