@@ -32,7 +32,6 @@ import pycolmap
 from . import database as dbio
 from . import embed, geoframe, images, model_view
 from .cards import PANELS, colmap_names, renamed
-from .localize.results import with_localized
 from .log import add_verbosity_flags, logger
 from .workspace import read_marker
 
@@ -277,6 +276,12 @@ def _localized(report: dict) -> list[dict]:
     return list(_localized_file(report).get("photos", []))
 
 
+def _posed(report: dict) -> list[dict]:
+    """The entries of localized.json drawn in the 3D view: placed or uncertain, with a pose."""
+    shown = ("placed", "uncertain")
+    return [e for e in _localized(report) if e.get("status") in shown and "qvec_wxyz" in e]
+
+
 def _localized_into(report: dict) -> int:
     """The index N of the model sparse/N that ``localize`` placed its photos in."""
     name = Path(_localized_file(report).get("model") or "0").name
@@ -466,10 +471,10 @@ def _page_model(report: dict, reconstruction) -> tuple:
 
     rec = reconstruction if reconstruction is not None else _load_model(report)
     eras = read_manifest(Path(report["manifest_path"])) if report.get("manifest_path") else {}
-    localized = _localized(report) if _localized_into(report) == 0 else []
+    localized = _posed(report) if _localized_into(report) == 0 else []
     # the localized photos' cameras, in their colour
     if rec is not None and rec.num_reg_images() and localized:
-        rec, names = with_localized(rec, localized)
+        rec, names = model_view.with_cameras(rec, localized)
         model_eras = {rec.images[i].name: "photo" for i in rec.reg_image_ids()}
         eras = {**model_eras, **eras, **dict.fromkeys(names, "localized")}
     geo = geoframe.load(Path(report["report_path"]).parent) if report.get("report_path") else None
@@ -509,7 +514,7 @@ def _other_models(report: dict) -> list[tuple[int, pycolmap.Reconstruction]]:
         if (root / str(m["index"]) / "images.bin").is_file():
             rec = pycolmap.Reconstruction(str(root / str(m["index"])))
             if m["index"] == into:
-                rec = with_localized(rec, _localized(report))[0]
+                rec = model_view.with_cameras(rec, _posed(report))[0]
             out.append((m["index"], rec))
     return out
 

@@ -327,3 +327,27 @@ def photo_map(
         ax.set_yticks([])
     ax.legend(loc="upper right", fontsize=8, frameon=True)
     return embed.figure_uri(fig)
+
+
+def with_cameras(
+    rec: pycolmap.Reconstruction, posed: list[dict]
+) -> tuple[pycolmap.Reconstruction, list[str]]:
+    """A copy of ``rec`` with the camera of each entry of ``posed`` (localized.json's, named by
+    its photo's path, no points), for the 3D view and the map; and their names."""
+    shown = pycolmap.Reconstruction(rec)
+    for entry in posed:
+        cam = entry["camera"]
+        camera = pycolmap.Camera(
+            model=cam["model"], width=cam["width"], height=cam["height"], params=cam["params"]
+        )
+        camera.camera_id = max([*shown.cameras, *shown.rigs], default=0) + 1
+        image_id = max([*shown.images, *shown.frames], default=0) + 1
+        w, x, y, z = entry["qvec_wxyz"]
+        pose = pycolmap.Rigid3d(
+            pycolmap.Rotation3d(np.array([x, y, z, w])), np.asarray(entry["tvec"], float)
+        )
+        shown.add_camera_with_trivial_rig(camera)
+        shown.add_image_with_trivial_frame(
+            pycolmap.Image(name=entry["photo"], camera_id=camera.camera_id, image_id=image_id), pose
+        )
+    return shown, [entry["photo"] for entry in posed]

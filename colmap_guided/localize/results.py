@@ -8,9 +8,6 @@ import json
 import os
 from pathlib import Path
 
-import numpy as np
-import pycolmap
-
 from .. import database as dbio
 from .. import features
 from ..log import logger
@@ -138,31 +135,3 @@ def copy_model_images(src: Path, dst: Path, names: dict[str, str]) -> None:
                     camera.camera_id = dbio.write_camera(out, camera)
                     image_id = dbio.add_image(out, name, camera)
                     dbio.write_features(out, image_id, keypoints, descriptors, kind)
-
-
-def with_localized(
-    rec: pycolmap.Reconstruction, entries: list[dict]
-) -> tuple[pycolmap.Reconstruction, list[str]]:
-    """A copy of ``rec`` with the cameras of the placed and uncertain photos of localized.json
-    (named by their path, no points), for the report's 3D view and map; and their names."""
-    shown = pycolmap.Reconstruction(rec)
-    names = []
-    for entry in entries:
-        if entry.get("status") not in (PLACED, UNCERTAIN) or "qvec_wxyz" not in entry:
-            continue
-        cam = entry["camera"]
-        camera = pycolmap.Camera(
-            model=cam["model"], width=cam["width"], height=cam["height"], params=cam["params"]
-        )
-        camera.camera_id = max([*shown.cameras, *shown.rigs], default=0) + 1
-        image_id = max([*shown.images, *shown.frames], default=0) + 1
-        w, x, y, z = entry["qvec_wxyz"]
-        pose = pycolmap.Rigid3d(
-            pycolmap.Rotation3d(np.array([x, y, z, w])), np.asarray(entry["tvec"], float)
-        )
-        shown.add_camera_with_trivial_rig(camera)
-        shown.add_image_with_trivial_frame(
-            pycolmap.Image(name=entry["photo"], camera_id=camera.camera_id, image_id=image_id), pose
-        )
-        names.append(entry["photo"])
-    return shown, names
