@@ -2,8 +2,10 @@
 
 import contextlib
 import logging
+import math
 import os
 import sys
+import time
 
 
 class _CurrentStderrHandler(logging.StreamHandler):
@@ -35,11 +37,15 @@ if not any(isinstance(h, _CurrentStderrHandler) for h in logger.handlers):
 
 class _LogLines:
     """tqdm's output as log lines: where stderr is no terminal (a log file), a bar's refresh is one
-    line."""
+    line, none within LOG_EVERY / 2 of the last (tqdm's monitor and the next update both draw)."""
+
+    def __init__(self) -> None:
+        self.last = -math.inf
 
     def write(self, text: str) -> None:
-        text = text.strip("\r\n ")
-        if text:
+        text, now = text.strip("\r\n "), time.monotonic()
+        if text and now - self.last >= LOG_EVERY / 2:
+            self.last = now
             logger.info("%s", text)
 
     def flush(self) -> None:

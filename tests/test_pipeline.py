@@ -346,3 +346,20 @@ def test_a_stage_logs_its_progress_with_the_time_left(
     assert len(lines) >= 2, lines
     assert re.search(r"INFO\] extract: 8/8 imgs, 00:[0-9]{2} elapsed, about 00:00 left$", lines[-1])
     assert re.search(r"extract: [0-7]/8 imgs, .* elapsed, about .* left$", lines[0])
+
+
+def test_a_bar_logs_no_two_lines_within_half_its_interval(monkeypatch, capsys):
+    """tqdm's monitor refreshes a bar as its next update draws it: one log line of the two."""
+    from colmap_guided import log
+
+    monkeypatch.setattr(log, "LOG_EVERY", 60.0)
+    lines = log._LogLines()
+    lines.write("match: 494/6955 pairs\r")
+    lines.write("match: 495/6955 pairs\r")
+    monkeypatch.setattr(log, "LOG_EVERY", 0.0)
+    lines.write("match: 496/6955 pairs\r")
+    logged = [line for line in capsys.readouterr().err.splitlines() if "match:" in line]
+    assert [line.split("] ")[1] for line in logged] == [
+        "match: 494/6955 pairs",
+        "match: 496/6955 pairs",
+    ]
