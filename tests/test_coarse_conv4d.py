@@ -10,9 +10,27 @@ from colmap_guided.coarse.conv4d import SparseNeighbourhood, conv4d, kernel_offs
 from colmap_guided.coarse.model import correlation
 from colmap_guided.images import read_image
 from colmap_guided.paths import shared_data_dir
-from recon_scripts.benchmark_coarse import conv4d_naive
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def conv4d_naive(x, weight, bias=None, groups=1):
+    """The paper's/NCNet's 4D convolution as a Python loop of 3D convolutions, one per output
+    I-slice and kernel I-offset: the reference the fast implementations are checked against."""
+    n, _, ni, nj, nk, nl = x.shape
+    ki = weight.shape[2]
+    out = x.new_zeros(n, weight.shape[0], ni, nj, nk, nl)
+    for i in range(ni):
+        for a in range(ki):
+            src = i + a - ki // 2
+            if 0 <= src < ni:
+                out[:, :, i] += torch.nn.functional.conv3d(
+                    x[:, :, src],
+                    weight[:, :, a],
+                    padding=tuple(k // 2 for k in weight.shape[3:]),
+                    groups=groups,
+                )
+    return out if bias is None else out + bias.view(1, -1, 1, 1, 1, 1)
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ from colmap_guided import cards
 from colmap_guided import database as dbio
 from colmap_guided.database import open_database, pair_inlier_counts, read_keypoints
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
-from recon_scripts import eval_registration, mapper_choice, summarize_registration
+from recon_scripts import eval_registration, summarize_registration
 from recon_scripts.evaluation import manifest as mf
 from recon_scripts.evaluation import proxy, registration
 
@@ -446,33 +446,3 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
         [str(out / "results.json"), "--label", f"{out / 'results.json'}:raw=raw (this run)"]
     )
     assert "| raw (this run) |" in capsys.readouterr().out
-    # mapper_choice maps the run's database again with each mapper: its `auto` pick is the
-    # pipeline's own model
-    assert (
-        mapper_choice.main(
-            [
-                str(out / "results.json"),
-                "--method",
-                "guided",
-                "--json",
-                str(tmp_path / "choice.json"),
-            ]
-        )
-        == 0
-    )
-    lines = capsys.readouterr().out.splitlines()
-    final = [
-        scene["methods"]["guided"]
-        for scene in json.loads((out / "results.json").read_text())["scenes"]
-    ]
-    right, wrong = sum(f["correct"] for f in final), sum(len(f["wrong"]) for f in final)
-    # no pycolmap run: none below it
-    assert f"| auto | {right} | {wrong} | 0 of {len(final)} |" in lines
-    choice = json.loads((tmp_path / "choice.json").read_text())
-    oracle = int(next(line for line in lines if line.startswith("| oracle |")).split("|")[2])
-    assert len(choice) == len(final) and all(
-        set(run["models"]) == {"incremental", "global"} for run in choice
-    )
-    assert (
-        oracle == sum(max(m["correct"] for m in run["models"].values()) for run in choice) >= right
-    )
