@@ -24,7 +24,11 @@ FEATURE_FLAGS = {
     "smooth_noise_above": "smooth_noise_above",
     "type": "features",
 }
-ALIKED_FLAGS = {"weights": "aliked_weights"}
+ALIKED_FLAGS = {
+    "weights": "aliked_weights",
+    "max_num_keypoints": "aliked_max_num_keypoints",
+    "max_image_size": "aliked_max_image_size",
+}
 MAPPING_FLAGS = {"mapper": "mapper", "random_seed": "seed", "num_threads": "threads"}
 # of the matcher's conf (the guided matcher's comments); not given: the chosen matcher's own
 MATCHER_FLAGS = ["ratio", "weights", "device"]
@@ -116,7 +120,8 @@ def conf_from_args(args: argparse.Namespace) -> PipelineConf:
         given = conf_from_flags(args, aliked, ALIKED_FLAGS, flags=ALIKED_FLAGS)
         conf["features"] = {
             **conf_from_flags(args, features, FEATURE_FLAGS, "feature", FEATURE_FLAGS),
-            "aliked": {k: v for k, v in given.items() if v is not None},
+            # ALIKED options set off their default (they make --features auto mean ALIKED)
+            "aliked": {k: v for k, v in given.items() if v != aliked.default_conf[k]},
         }
         conf["mapping"] = conf_from_flags(args, mapping, MAPPING_FLAGS, "mapping", MAPPING_FLAGS)
         conf["escalation"] = conf_from_flags(args, escalate, list(escalate.default_conf))

@@ -280,6 +280,12 @@ def test_command_line_flags_are_the_pipeline_conf():
     assert (conf.mapping.random_seed, conf.mapping.num_threads) == (3, 1)
     assert (conf.pairs.pairs, conf.pairs.num_neighbors) == ("sequential", 4)
     assert conf.matcher.name == "raw"
+    # ALIKED sized down: the options set, no others
+    args = parser.parse_args(
+        "reconstruct scene --aliked_max_num_keypoints 1024 --aliked_max_image_size 1024".split()
+    )
+    aliked = {"max_num_keypoints": 1024, "max_image_size": 1024}
+    assert conf_from_args(args).features.aliked == aliked
     rec = next(a for a in parser._actions if a.dest == "command").choices["reconstruct"]
     helps = {a.option_strings[0]: a.help for a in rec._actions if a.option_strings}
     comment = conf_comments(features)["stretch_contrast_below"].replace("%", "%%")

@@ -49,9 +49,14 @@ SAME_PLACE = {
     "train:cut3r_livingroom": "train:cut3r_flat",
     "gtsfm_1dsfm_sample": "alamo",  # four photos of 1DSfM's Alamo set
 }
-# reconstruct's flags of a named run of the archive (``runs``): the default, and the default with
-# one decision undone, to print what it changes
-RUNS = {"default": [], "orphans_kept": ["--orphan_after", "none"]}
+# reconstruct's flags of a named run of the archive (``runs``): the default, the default with one
+# decision undone or changed, to print what it changes
+RUNS = {
+    "default": [],
+    "orphans_kept": ["--orphan_after", "none"],
+    # ALIKED's 1,024 best keypoints on photos sized to 1,024 px (default 2,048 at 1,600 px)
+    "aliked_1024": ["--aliked_max_num_keypoints", "1024", "--aliked_max_image_size", "1024"],
+}
 # a label run on its own (the reference its archive model is compared with) from this many photos
 MIN_ALONE = 3
 # the share of a label's photos of its own run that one archive model must hold
