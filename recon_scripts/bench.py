@@ -6,8 +6,12 @@ A preset subclasses ``Benchmark``: ``default_conf`` (every option, set as key=va
 copy of the prepared database) and ``summarize`` (Markdown from all results). The base runs the
 sets and configs, keeps each result as WORK/<set>/<config>/result.json next to the conf it was made
 with (conf.json) and reuses it only while that conf is the same (otherwise it is run again), prints
-the summary and writes OUTPUT (JSON). Without ``work`` everything goes to a temporary folder, so
-ratios compare configs timed in the same run.
+the summary and writes OUTPUT (JSON: the conf and every result) and the summary beside it
+(OUTPUT with .md). Without ``work`` everything goes to a temporary folder, so ratios compare configs
+timed in the same run.
+
+Options are named alike in every preset: ``sets`` (what is measured on), ``methods`` (what one run
+compares: matcher specs, named runs), ``seeds`` (where a result is random), ``work``, ``output``.
 """
 
 from __future__ import annotations
@@ -137,5 +141,7 @@ class Benchmark:
                     results.setdefault(name, {})[label] = result
                     print(self.progress(results, name, label), flush=True)
                     write_json(output, {"conf": self.conf, "results": results})
-        print("\n" + self.summarize(results))
+        summary = self.summarize(results)
+        output.with_suffix(".md").write_text(summary + "\n")
+        print("\n" + summary)
         return results

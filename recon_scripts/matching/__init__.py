@@ -1,0 +1,1 @@
+"""Presets measured on pairs of photos: two-view pose, verified pairs, the coarse flow, retrieval."""
