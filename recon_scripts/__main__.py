@@ -14,13 +14,13 @@ from recon_scripts.bench import BASE_CONF
 
 # preset -> the module that defines it (imported only when chosen)
 PRESETS = {
-    "aliked": "benchmark_aliked",
-    "archive": "benchmark_scale",
-    "pairs": "benchmark_pairs",
-    "pipeline": "benchmark_pipeline",
-    "scale": "benchmark_scale",
-    "scale_default": "benchmark_scale",
-    "scale_executors": "benchmark_scale",
+    "aliked": "matching.aliked",
+    "archive": "scale.presets",
+    "pairs": "matching.pairs",
+    "pipeline": "registration.pipeline",
+    "scale": "scale.presets",
+    "scale_default": "scale.presets",
+    "scale_executors": "scale.presets",
 }
 
 

@@ -38,7 +38,7 @@ def one_torch_thread():
 def chromium():
     """The page tests' browser: skipped without one; CI installs it (.ci/run), so there a missing
     one fails."""
-    from recon_scripts.render_report_screenshot import find_chromium
+    from recon_scripts.evaluation.screenshot import find_chromium
 
     if find_chromium() is None:
         message = "Chromium is not installed (Debian: apt-get install chromium)"

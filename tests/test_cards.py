@@ -132,7 +132,7 @@ def test_captioned_card_registers_with_no_inlier_off_its_picture(card_scene, car
 
 
 def test_card_workspace_page_draws_its_model_in_headless_chromium(chromium, card_run, tmp_path):
-    from recon_scripts.render_report_screenshot import screenshot, view_pixels
+    from recon_scripts.evaluation.screenshot import screenshot, view_pixels
 
     result, _ = card_run
     # raises where the page writes to the console (a script error)

@@ -348,6 +348,13 @@ def test_method_specs_split_into_matcher_feature_and_mapping_options():
         {"enough": None},
     )
     assert split("pycolmap") == ("pycolmap", {}, {}, {})
+    sized = split("guided_lightglue:aliked.max_num_keypoints=1024,aliked.max_image_size=1024")
+    assert sized == (
+        "guided_lightglue",
+        {"aliked": {"max_num_keypoints": 1024, "max_image_size": 1024}},
+        {},
+        {},
+    )
     key = registration.database_key
     # the mapper does not change the database
     assert key("guided") == key("guided:mapper=incremental") != key("raw")

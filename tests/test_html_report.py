@@ -295,7 +295,7 @@ def test_every_model_is_a_result(two_buildings, synthetic_scene):
 
 
 def test_page_opens_the_model_that_holds_a_linked_photo(chromium, two_buildings, tmp_path):
-    from recon_scripts.render_report_screenshot import screenshot, view_pixels
+    from recon_scripts.evaluation.screenshot import screenshot, view_pixels
 
     _, out, _ = two_buildings
     full = screenshot(out / "report.html", tmp_path / "first.png", (1200, 900))
@@ -327,7 +327,7 @@ def test_model_is_exported_for_other_tools(run_with_strangers):
 
 
 def test_model_view_draws_in_headless_chromium(chromium, run_with_strangers, tmp_path):
-    from recon_scripts.render_report_screenshot import screenshot, view_pixels
+    from recon_scripts.evaluation.screenshot import screenshot, view_pixels
 
     _, out, eras = run_with_strangers
     # raises where the page writes to the console (a script error)
@@ -385,7 +385,7 @@ def test_a_camera_that_cannot_be_undistorted_keeps_the_view_valid(run_with_stran
 
 
 def test_page_with_such_a_camera_draws_in_headless_chromium(chromium, run_with_strangers, tmp_path):
-    from recon_scripts.render_report_screenshot import screenshot, view_pixels
+    from recon_scripts.evaluation.screenshot import screenshot, view_pixels
 
     result, out, _ = run_with_strangers
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
@@ -397,7 +397,7 @@ def test_page_with_such_a_camera_draws_in_headless_chromium(chromium, run_with_s
 
 @pytest.mark.slow
 def test_page_renders_in_headless_chromium(chromium, tmp_path):
-    from recon_scripts.render_report_screenshot import screenshot
+    from recon_scripts.evaluation.screenshot import screenshot
 
     folder = tmp_path / "images"
     (folder / "old").mkdir(parents=True)

@@ -326,10 +326,10 @@ def run_pycolmap_default(
 
 def split_stage_options(method: str) -> tuple[str, dict, dict, dict]:
     """A method spec's feature-stage options (keys of ``features.default_conf``, e.g.
-    ``guided:type=aliked``), mapping options (keys of ``mapping.default_conf``, e.g.
-    ``guided:mapper=global``) and escalation options (keys of ``escalate.default_conf``, e.g.
-    ``guided_lightglue:enough=None``) apart from its matcher spec: (matcher spec, feature conf,
-    mapping conf, escalation conf)."""
+    ``guided:type=aliked``, or of its nested options, ``aliked.max_num_keypoints=1024``), mapping
+    options (keys of ``mapping.default_conf``, e.g. ``guided:mapper=global``) and escalation
+    options (keys of ``escalate.default_conf``, e.g. ``guided_lightglue:enough=None``) apart from
+    its matcher spec: (matcher spec, feature conf, mapping conf, escalation conf)."""
     from colmap_guided.escalate import default_conf as escalation_defaults
     from colmap_guided.features import default_conf as feature_defaults
     from colmap_guided.mapping import default_conf as mapping_defaults
@@ -337,14 +337,25 @@ def split_stage_options(method: str) -> tuple[str, dict, dict, dict]:
     if method in PYCOLMAP_METHODS:
         return method, {}, {}, {}
     spec = matcher_specs.parse_spec(method)
-    feature, mapping, escalation = (
-        {k: v for k, v in spec.conf.items() if k in defaults}
-        for defaults in (feature_defaults, mapping_defaults, escalation_defaults)
-    )
+    stages = [{}, {}, {}]
+    taken = set()
+    for key, value in spec.conf.items():
+        head, dot, sub = key.partition(".")  # a nested option: aliked.max_num_keypoints=1024
+        for conf, defaults in zip(
+            stages, (feature_defaults, mapping_defaults, escalation_defaults)
+        ):
+            if not dot and key in defaults:
+                conf[key] = value
+            elif dot and isinstance(defaults.get(head), dict):
+                conf.setdefault(head, {})[sub] = value
+            else:
+                continue
+            taken.add(key)
+    feature, mapping, escalation = stages
     rest = ",".join(
         item
         for item in method.partition(":")[2].split(",")
-        if item and item.partition("=")[0].strip() not in {**feature, **mapping, **escalation}
+        if item and item.partition("=")[0].strip() not in taken
     )
     return spec.name + (f":{rest}" if rest else ""), feature, mapping, escalation
 

@@ -1,1 +1,2 @@
-"""Presets measured on pairs of photos: two-view pose, verified pairs, the coarse flow, retrieval."""
+"""Presets measured on pairs of photos: two-view pose, verified pairs, the coarse flow,
+retrieval."""

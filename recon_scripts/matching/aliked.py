@@ -1,7 +1,7 @@
 """Guided learned features (paper §4.4, Table 3): SIFT vs ALIKED, raw vs guided, in one run.
 
     python -m recon_scripts aliked [sets="sacre_coeur_hloc phototourism_superglue"]
-        [configs="sift:guided aliked:raw ..."]
+        [methods="sift:guided aliked:raw ..."]
 
 Features are extracted once per set and type (time per image, same run), then every config matches a
 copy of that database, verifies and maps (``reconstruct``). A config is
@@ -44,12 +44,12 @@ class AlikedBenchmark(Benchmark):
     name = "aliked"
     default_conf = {
         "sets": ["sacre_coeur_hloc", "phototourism_superglue"],
-        "configs": ["sift:guided", "aliked:raw", "aliked:guided"],  # FEATURES:MATCHER spec
+        "methods": ["sift:guided", "aliked:raw", "aliked:guided"],  # FEATURES:MATCHER spec
     }
 
     def configs(self) -> dict[str, dict]:
         configs = {}
-        for text in self.conf["configs"]:
+        for text in self.conf["methods"]:
             kind, _, spec = text.partition(":")
             (spec,) = matcher_specs.parse_specs([spec])  # a preset, options over it
             configs[text] = {"features": kind, "matcher": spec.name, "matcher_conf": spec.conf}

@@ -1,7 +1,7 @@
 """pycolmap's default pipeline vs `reconstruct` (matcher x mapper x seed) on the same images.
 
     python -m recon_scripts pipeline [sets="sacre_coeur_hloc opensfm_lund ..."]
-        [matchers="raw guided guided:raw_matches=none"]
+        [methods="raw guided guided:raw_matches=none"]
         [mappers="incremental global"] [seeds="0 1"]
 
 Per set and seed round: pycolmap's default pipeline (extract_features + match_exhaustive +
@@ -57,7 +57,7 @@ class PipelineBenchmark(Benchmark):
             *("sacre_coeur_hloc", "sceaux_castle", "opensfm_lund", "phototourism_superglue"),
             *("gtsfm_1dsfm_sample", "lund_door_gtsfm", "opensfm_berlin"),
         ],
-        "matchers": ["guided"],
+        "methods": ["guided"],
         "mappers": ["incremental", "global"],
         "seeds": [0],
         "threads": -1,  # mapping threads (1: each seeded run repeats exactly)
@@ -73,7 +73,7 @@ class PipelineBenchmark(Benchmark):
             "camera_mode": c["camera_mode"],
         }
         configs = {f"{DEFAULT} seed={s}": {"seeds": [s], **mapping} for s in c["seeds"]}
-        return configs | {m: {"matcher": m, "seeds": c["seeds"], **mapping} for m in c["matchers"]}
+        return configs | {m: {"matcher": m, "seeds": c["seeds"], **mapping} for m in c["methods"]}
 
     def prepare(self, name, image_path, work):
         ref_dir = reference_model_dir(name)

@@ -1,9 +1,9 @@
 """Render OUTPUT/report.html in headless Chromium and save a screenshot PNG (checks the page really
 renders).
 
-    python -m recon_scripts.render_report_screenshot OUTPUT/report.html [--out shot.png]
+    python -m recon_scripts.evaluation.screenshot OUTPUT/report.html [--out shot.png]
         [--size 1200,1600]
-    python -m recon_scripts.render_report_screenshot --demo /tmp/demo_scene --photo view_007.jpg
+    python -m recon_scripts.evaluation.screenshot --demo /tmp/demo_scene --photo view_007.jpg
         --size 1400,1600 --out docs/report_demo.png
 
 ``--demo DIR`` first makes the README's demo: the synthetic scene (12 views), a manifest that marks

@@ -52,7 +52,7 @@ from recon_scripts.scale.archive import (
 from recon_scripts.scale.executors import match_executors
 from recon_scripts.scale.photos import make_pool, photo_set
 from recon_scripts.scale.report import default_table, executors_table, report
-from recon_scripts.scale.stage import run_stage, stage_cli
+from recon_scripts.scale.stage import run_stage
 
 
 class ScaleBenchmark(Benchmark):
@@ -193,7 +193,7 @@ class Archive(Benchmark):
         "seed": 0,  # the shuffle: which photo gets which name
         "take": None,  # a sample: the archive's first N names (all kinds of photos), not all
         "alone": True,  # each label of 3 photos or more reconstructed alone: the reference
-        "runs": ["default"],  # the archive's runs, named in archive.RUNS: "default orphans_kept"
+        "methods": ["default"],  # the archive's runs, named in archive.RUNS: "default orphans_kept"
         "timeout": 4 * 3600,  # seconds per reconstruct run
     }
     resume = True  # a killed benchmark keeps the runs that finished
@@ -215,7 +215,8 @@ class Archive(Benchmark):
 
     def configs(self):
         return {
-            name: {"alone": self.conf["alone"], "flags": RUNS[name]} for name in self.conf["runs"]
+            name: {"alone": self.conf["alone"], "flags": RUNS[name]}
+            for name in self.conf["methods"]
         }
 
     def run_config(self, n, images, prepared, label, config, out):
@@ -241,7 +242,3 @@ class Archive(Benchmark):
                 parts.append("\n".join(head + archive_report(n, result)))
             parts.append("\n".join(costs_report(res)))
         return "\n\n".join(parts)
-
-
-if __name__ == "__main__":
-    stage_cli()  # one stage in this process: python -m recon_scripts.benchmark_scale _stage ...
