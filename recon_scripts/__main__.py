@@ -16,11 +16,13 @@ from recon_scripts.bench import BASE_CONF
 PRESETS = {
     "aliked": "benchmark_aliked",
     "archive": "benchmark_scale",
+    "coarse_pck": "matching.coarse_pck",
     "pairs": "benchmark_pairs",
     "pipeline": "benchmark_pipeline",
     "scale": "benchmark_scale",
     "scale_default": "benchmark_scale",
     "scale_executors": "benchmark_scale",
+    "two_view": "matching.two_view",
 }
 
 
