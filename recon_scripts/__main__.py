@@ -16,11 +16,13 @@ from recon_scripts.bench import BASE_CONF
 PRESETS = {
     "aliked": "matching.aliked",
     "archive": "scale.presets",
+    "coarse_pck": "matching.coarse_pck",
     "pairs": "matching.pairs",
     "pipeline": "registration.pipeline",
     "scale": "scale.presets",
     "scale_default": "scale.presets",
     "scale_executors": "scale.presets",
+    "two_view": "matching.two_view",
 }
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from colmap_guided.paths import REPO_ROOT
-from recon_scripts import eval_two_view
+from recon_scripts.__main__ import main
 from recon_scripts.evaluation import metrics, two_view
 from recon_scripts.evaluation.reference import load_reference
 
@@ -83,30 +83,26 @@ def test_wxbs_ground_truth_correspondences_score_high(shared_data):
     assert metrics.share_within(metrics.geometry_errors(shuffled, F, "F"))[0] < share[0] / 2
 
 
-def test_eval_two_view_script_in_process(shared_data, sift_cache, tmp_path, capsys):
-    """The script on one pair (features cached by the test above) and one WxBS pair; a matcher it
-    cannot run stops it before any work (a table never loses a row silently)."""
+def test_two_view_preset(shared_data, sift_cache, tmp_path, capsys):
+    """The preset on one pair of each of two scenes (strecha_entry_P10's features cached by the
+    test above) and one WxBS pair: the same records and summary as one run of the protocol on both
+    scenes; a matcher it cannot run stops it before any work (a table never loses a row
+    silently)."""
     out = tmp_path / "out"
+    scenes = ["train/strecha_entry_P10", "train/strecha_castle"]
     argv = [
-        "--scenes",
-        "train/strecha_entry_P10",
-        "--max_pairs",
-        "1",
-        "--matchers",
-        "raw:ratio=0.8",
-        "--wxbs_max_pairs",
-        "1",
-        "--cache_dir",
-        str(sift_cache),
-        "--output",
-        str(out),
-        "-q",
+        "two_view",
+        f"sets={' '.join(scenes)} wxbs",
+        "max_pairs=1",
+        "methods=raw:ratio=0.8",
+        "wxbs_max_pairs=1",
+        f"cache_dir={sift_cache}",
+        f"output={out / 'benchmark.json'}",
     ]
-    script = eval_two_view
     with pytest.raises(ValueError, match="no_such_matcher"):
-        script.main([*argv, "--matchers", "raw:ratio=0.8", "no_such_matcher"])
+        main([*argv, "methods=raw:ratio=0.8 no_such_matcher"])
     assert not out.exists()
-    assert script.main(argv) == 0
+    assert main(argv) == 0
     text = capsys.readouterr().out
     assert "| raw:ratio=0.8 |" in text and "AUC@5°" in text and "WxBS" in text
     for name in (
@@ -116,35 +112,42 @@ def test_eval_two_view_script_in_process(shared_data, sift_cache, tmp_path, caps
         "wxbs.json",
         "wxbs.md",
         "wxbs.png",
+        "benchmark.json",
+        "benchmark.md",
     ):
         assert (out / name).is_file()
     data = json.loads((out / "two_view.json").read_text())
-    assert list(data["results"]) == ["raw:ratio=0.8"] and len(data["pairs"]) == 1
+    assert list(data["results"]) == ["raw:ratio=0.8"] and len(data["pairs"]) == 2
+    whole = two_view.run_pose_benchmark(scenes, ["raw:ratio=0.8"], 1, cache_dir=sift_cache)
+    assert data["config"] == whole["config"] and data["pairs"] == whole["pairs"]
+    mine, theirs = data["results"]["raw:ratio=0.8"], whole["results"]["raw:ratio=0.8"]
+
+    def untimed(rows):
+        return [{k: v for k, v in r.items() if k not in ("time", "time_per_pair")} for r in rows]
+
+    assert untimed(mine["pairs"]) == untimed(theirs["pairs"])
+    assert untimed([mine["summary"]]) == untimed([theirs["summary"]])
+    assert list(mine["per_scene"]) == scenes
+    assert (out / "two_view.md").read_text() in text
     wxbs = json.loads((out / "wxbs.json").read_text())
     share = wxbs["results"]["raw:ratio=0.8"]["pairs"][0]["share"]
     assert share == sorted(share) and 0 <= share[0] <= 100
 
 
 @pytest.mark.slow
-def test_eval_two_view_script(shared_data, tmp_path):
+def test_two_view_preset_command(shared_data, tmp_path):
     out = tmp_path / "out"
     cmd = [
         sys.executable,
         "-m",
-        "recon_scripts.eval_two_view",
-        "--scenes",
-        "train/strecha_entry_P10",
-        "--max_pairs",
-        "1",
-        "--matchers",
-        "raw:ratio=0.8",
-        "--wxbs_max_pairs",
-        "1",
-        "--cache_dir",
-        str(tmp_path / "cache"),
-        "--output",
-        str(out),
-        "-q",
+        "recon_scripts",
+        "two_view",
+        "sets=train/strecha_entry_P10 wxbs",
+        "max_pairs=1",
+        "methods=raw:ratio=0.8",
+        "wxbs_max_pairs=1",
+        f"cache_dir={tmp_path / 'cache'}",
+        f"output={out / 'benchmark.json'}",
     ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=REPO_ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]

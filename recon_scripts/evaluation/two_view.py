@@ -287,6 +287,30 @@ def _pose_result(spec, records: list[dict], scenes) -> dict:
     return result
 
 
+def merge_pose_results(parts: list[dict]) -> dict:
+    """Results of ``run_pose_benchmark`` on disjoint scenes (e.g. one scene and one variant each)
+    as one run on all their scenes: each variant's records in the order of the parts."""
+    scenes = list(dict.fromkeys(key for part in parts for key in part["config"]["scenes"]))
+    pairs, records, specs = {}, {}, {}
+    for part in parts:
+        for p in part["pairs"]:
+            pairs.setdefault((p["scene"], p["a"], p["b"]), p)
+        for label, r in part["results"].items():
+            specs.setdefault(label, matcher_specs.MatcherSpec(r["matcher"], r["conf"], label))
+            records.setdefault(label, []).extend(r["pairs"])
+    config = {
+        **parts[0]["config"],
+        "scenes": scenes,
+        "reference_source": {
+            key: source
+            for part in parts
+            for key, source in part["config"]["reference_source"].items()
+        },
+    }
+    results = {label: _pose_result(spec, records[label], scenes) for label, spec in specs.items()}
+    return {"config": config, "pairs": list(pairs.values()), "results": results}
+
+
 def run_pose_benchmark(
     scenes=TWO_VIEW_SCENES,
     specs=matcher_specs.DEFAULT_TWO_VIEW_SPECS,
