@@ -16,6 +16,9 @@ from recon_scripts.bench import BASE_CONF
 PRESETS = {
     "aliked": "benchmark_aliked",
     "archive": "benchmark_scale",
+    "georeference": "registration.georeference",
+    "join": "registration.join",
+    "localize": "registration.localize",
     "pairs": "benchmark_pairs",
     "pipeline": "benchmark_pipeline",
     "scale": "benchmark_scale",
