@@ -4,8 +4,8 @@ CSV, or GPS EXIF written into copies of the photos) place the other cameras with
 degree of heading, a control 100 m off is named and left out, controls read off a map 15 m off
 with their accuracy place the others as well as they allow and a control 200 m off among them is
 left out, the second model goes to geo_1/, the KML and GeoJSON read back by xml.etree and shapely,
-the report and localize give latitudes and longitudes, and bad input is one line with nothing
-written."""
+the report and localize give latitudes and longitudes, bad input is one line with nothing
+written, and the benchmark preset measures the other photos' errors per seed."""
 
 from __future__ import annotations
 
@@ -593,3 +593,38 @@ def test_another_model_goes_to_its_own_folder(workspace, other_scene, tmp_path, 
     (copy / "notes.txt").write_text("mine", encoding="utf-8")
     Workspace.claim(copy, "reconstruct", overwrite=True)  # what reconstruct --overwrite does
     assert sorted(p.name for p in copy.iterdir()) == [".colmap_guided.json", "notes.txt"]
+
+
+def test_the_benchmark_preset_measures_the_other_photos_per_seed(
+    workspace, synthetic_scene, tmp_path
+):
+    """``python -m recon_scripts georeference`` on this workspace, the rendering's cameras as the
+    reference: with exact controls the other 5 photos land within 5 cm and 0.5 degrees of
+    heading; moved by map-reading noise, one run per seed, each seed moves them its own way and
+    further; controls 100-200 m off are refused, the command's message in the table's place."""
+    from recon_scripts.__main__ import main as bench
+
+    def run(name: str, *options: str) -> dict:
+        output = tmp_path / f"{name}.json"
+        assert bench(["georeference", f"sets={workspace}", f"output={output}", *options]) == 0
+        (results,) = json.loads(output.read_text())["results"].values()
+        return results
+
+    controls = f"controls={' '.join(CONTROLS)}"
+    common = (f"reference={synthetic_scene.gt_dir}", controls, f"work={tmp_path / 'work'}")
+    exact = run("exact", *common)["seed 0"]
+    assert [row[0] for row in exact["errors"]] == [
+        n for n in synthetic_scene.names if n not in CONTROLS
+    ]
+    assert max(row[3] for row in exact["errors"]) < 0.05, exact["errors"]
+    assert max(abs(row[4]) for row in exact["errors"]) < 0.5, exact["errors"]
+    noisy = run("noisy", *common, "noise=0.2", "seeds=0 1")
+    assert list(noisy) == ["seed 0", "seed 1"] and noisy["seed 0"] != noisy["seed 1"]
+    for r in noisy.values():
+        assert max(row[3] for row in r["errors"]) > max(row[3] for row in exact["errors"])
+    table = (tmp_path / "noisy.md").read_text()
+    assert table.count("| photo | horizontal (m) | vertical (m) | 3D (m) | heading (deg) |") == 2
+    assert "| median |" in table and "reconstruction: photo_up is" in table
+    refused = run("refused", *common, "moved=100 200")["seed 0"]
+    assert refused["refused"].startswith("Only "), refused
+    assert "Refused: Only " in (tmp_path / "refused.md").read_text()

