@@ -18,6 +18,7 @@ PRESETS = {
     "archive": "benchmark_scale",
     "pairs": "benchmark_pairs",
     "pipeline": "benchmark_pipeline",
+    "registration": "registration.ltll",
     "scale": "benchmark_scale",
     "scale_default": "benchmark_scale",
     "scale_executors": "benchmark_scale",

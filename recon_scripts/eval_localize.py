@@ -1,7 +1,7 @@
 """Localization benchmark on the historical proxy: a model of the modern photos, the historical ones
 localized.
 
-    python -m recon_scripts.make_historical_proxy --split test --output PROXY
+    python -m recon_scripts registration split=test proxy_dir=PROXY methods=[]   # the proxy
     python -m recon_scripts.eval_localize --manifest PROXY/proxy_manifest.json --output OUT
     python -m recon_scripts.eval_localize --manifest PROXY/proxy_manifest.json --output OUT
         --methods guided
@@ -167,7 +167,7 @@ def main(argv=None) -> int:
         "--manifest",
         type=Path,
         required=True,
-        help="PROXY/proxy_manifest.json of make_historical_proxy.py",
+        help="PROXY/proxy_manifest.json of the historical proxy (the registration preset)",
     )
     parser.add_argument("--output", type=Path, required=True)
     parser.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS))
