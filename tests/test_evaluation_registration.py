@@ -11,9 +11,9 @@ from colmap_guided import cards
 from colmap_guided import database as dbio
 from colmap_guided.database import open_database, pair_inlier_counts, read_keypoints
 from colmap_guided.paths import REPO_ROOT, shared_data_dir
-from recon_scripts import eval_registration, summarize_registration
 from recon_scripts.evaluation import manifest as mf
 from recon_scripts.evaluation import proxy, registration
+from recon_scripts.registration.ltll import RegistrationBenchmark, scenes_of
 
 
 @pytest.fixture(scope="module")
@@ -263,30 +263,60 @@ def test_score_registration_against_a_reference(shared_data):
     assert registration.score_registration(None, images, ref)["num_registered"] == 0
 
 
-def test_eval_registration_on_a_tiny_proxy_scene(tiny_proxy, tmp_path, capsys):
-    """The full script (layout, reconstruct with the raw matcher, reference check, table, plot)."""
-    out = tmp_path / "eval"
-    argv = [
-        "--manifest",
-        str(tiny_proxy),
-        "--subsets",
-        "all",
-        "--methods",
-        "raw",
-        "--wxbs_max_pairs",
-        "0",
-        "--output",
-        str(out),
-        "-q",
-    ]
-    assert eval_registration.main(argv) == 0
+def test_the_preset_builds_the_proxy_where_missing_and_refuses_another_build(tmp_path, capsys):
+    """Without a manifest the proxy of the options is built once; other options are refused."""
+    if not shared_data_dir().is_dir():
+        pytest.skip("real photo sets not found")
+    conf = {
+        "proxy_dir": str(tmp_path / "proxy"),
+        "sources": ["train/strecha_entry_P10"],
+        "looks": ["damaged"],
+        "distractors": 1,
+        "max_size": 240,
+        "max_images": 2,
+        "methods": [],
+    }
+    RegistrationBenchmark(conf).run()
+    path = tmp_path / "proxy" / "proxy_manifest.json"
+    assert f"Manifest: {path}" in capsys.readouterr().out
+    data = mf.load_manifest(path)
+    assert [s["name"] for s in data["scenes"]] == ["strecha_entry_P10"]
+    assert data["build"]["sources"] == ["train/strecha_entry_P10"] and data["build"]["seed"] == 0
+    before = path.stat().st_mtime_ns
+    RegistrationBenchmark(conf).run()  # built: taken as it is
+    assert path.stat().st_mtime_ns == before
+    with pytest.raises(ValueError, match="pass another proxy_dir"):
+        RegistrationBenchmark({**conf, "max_size": 320}).run()
+    with pytest.raises(ValueError, match="subsets"):
+        RegistrationBenchmark({"subsets": ["old"]})
+    with pytest.raises(ValueError, match="registry"):
+        RegistrationBenchmark({"methods": ["pycolmap", "no_such_matcher"]})
+
+
+def test_registration_on_a_tiny_proxy_scene(tiny_proxy, tmp_path, capsys):
+    """The preset (layout, reconstruct with the raw matcher, reference check, tables, plot)."""
+    out = tmp_path / "eval.json"
+    conf = {
+        "manifest": str(tiny_proxy),
+        "subsets": ["all"],
+        "methods": ["raw"],
+        "wxbs_max_pairs": 0,
+        "work": str(tmp_path / "work"),
+        "output": str(out),
+    }
+    RegistrationBenchmark(conf).run()
     text = capsys.readouterr().out
     assert (
         "| strecha_entry_P10 | all | 2/2/2 |" in text
         and "Distractors registered, all runs: 0" in text
+        and "**Protocol: historical + modern photos + distractors**" in text
     )
-    data = json.loads((out / "results.json").read_text())
-    rec = data["scenes"][0]["methods"]["raw"]
+    data = json.loads(out.read_text())
+    assert [(s["scene"], s["subset"]) for s in scenes_of(data)] == [
+        ("strecha_entry_P10", "all"),
+        ("strecha_entry_P10_realistic", "all"),
+    ]
+    rec = data["results"]["strecha_entry_P10"]["raw"]["runs"][0]["methods"]["raw"]
     assert (
         rec["num_images"] == 4
         and rec["num_distractors"] == 2
@@ -297,37 +327,31 @@ def test_eval_registration_on_a_tiny_proxy_scene(tiny_proxy, tmp_path, capsys):
         and rec["correct"] == rec["num_registered"]
         and rec["wrong"] == []
     )
-    assert (out / "registered.png").is_file() and (out / "results.md").is_file()
+    assert (tmp_path / "eval_registered.png").is_file()
+    assert out.with_suffix(".md").read_text().startswith("### historical_proxy: registration (")
 
 
 @pytest.mark.slow
-def test_eval_registration_all_methods_on_a_tiny_proxy_scene(tiny_proxy, tmp_path, capsys):
+def test_registration_all_methods_on_a_tiny_proxy_scene(tiny_proxy, tmp_path, capsys):
     """pycolmap's default pipeline, raw and guided on both subsets: no distractor registers, and
     every registered image is counted once as correct, wrong or unverified (pycolmap's default
     pipeline has been seen to register one image of this 4-image scene 26° off: a failure, not a
     success)."""
-    out = tmp_path / "eval"
-    argv = [
-        "--manifest",
-        str(tiny_proxy),
-        "--methods",
-        "pycolmap",
-        "raw",
-        "guided",
-        "--wxbs_max_pairs",
-        "1",
-        "--output",
-        str(out),
-        "-q",
-    ]
-    assert eval_registration.main(argv) == 0
-    data = json.loads((out / "results.json").read_text())
-    assert [(s["scene"], s["subset"]) for s in data["scenes"]] == [
+    out = tmp_path / "eval.json"
+    conf = {
+        "manifest": str(tiny_proxy),
+        "methods": ["pycolmap", "raw", "guided"],
+        "wxbs_max_pairs": 1,
+        "output": str(out),
+    }
+    RegistrationBenchmark(conf).run()
+    scenes = scenes_of(json.loads(out.read_text()))
+    assert [(s["scene"], s["subset"]) for s in scenes] == [
         (n, sub)
         for n in ("strecha_entry_P10", "strecha_entry_P10_realistic")
         for sub in ("historical", "all")
     ]
-    for scene in data["scenes"]:
+    for scene in scenes:
         for method in ("pycolmap", "raw", "guided"):
             rec = scene["methods"][method]
             assert rec["distractors_registered"] == []
@@ -336,7 +360,7 @@ def test_eval_registration_all_methods_on_a_tiny_proxy_scene(tiny_proxy, tmp_pat
                     rec["correct"] + len(rec["wrong"]) + len(rec["unverified"])
                     == rec["num_registered"]
                 )
-    assert (out / "wxbs_appearance.json").is_file()
+    assert (tmp_path / "eval_wxbs_appearance.json").is_file()
 
 
 def test_method_specs_split_into_matcher_feature_and_mapping_options():
@@ -365,29 +389,25 @@ def test_method_specs_split_into_matcher_feature_and_mapping_options():
     assert key("pycolmap")[0] != key("raw")[0]  # pycolmap's own SIFT is not reconstruct's
 
 
-def test_eval_registration_reuses_databases_across_mappers_and_matchers(
-    tiny_proxy, tmp_path, capsys
-):
+def test_registration_reuses_databases_across_mappers_and_matchers(tiny_proxy, tmp_path, capsys):
     """A mapper variant maps the same database again (only mapping runs) and a matcher with the same
     features reuses the keypoints (extraction skipped); the reused stages' times are counted."""
-    out = tmp_path / "eval"
-    argv = [
-        "--manifest",
-        str(tiny_proxy),
-        "--subsets",
-        "all",
-        "--methods",
-        "raw",
-        "raw:mapper=global",
-        "guided",
-        "--wxbs_max_pairs",
-        "0",
-        "--output",
-        str(out),
-        "-q",
-    ]
-    assert eval_registration.main(argv) == 0
-    methods = json.loads((out / "results.json").read_text())["scenes"][0]["methods"]
+    out = tmp_path / "eval.json"
+    conf = {
+        "manifest": str(tiny_proxy),
+        "sets": ["strecha_entry_P10"],
+        "subsets": ["all"],
+        "methods": ["raw", "raw:mapper=global", "guided"],
+        "wxbs_max_pairs": 0,
+        "work": str(tmp_path / "work"),
+        "output": str(out),
+    }
+
+    def latest():
+        return scenes_of(json.loads(out.read_text()))[0]["methods"]
+
+    RegistrationBenchmark(conf).run()
+    methods = latest()
     raw, raw_global, guided = (methods[m] for m in ("raw", "raw:mapper=global", "guided"))
     assert "reused" not in raw
     # every stage but mapping (escalation's matching too, where it ran)
@@ -397,7 +417,7 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
         and raw_global["timings"]["match"] >= raw["timings"]["match"]
     )
     assert guided["reused"]["stages"] == ["extract"] and guided["matcher"]["name"] == "guided"
-    runs = out / "scenes" / "strecha_entry_P10__all" / "runs"
+    runs = tmp_path / "work" / "strecha_entry_P10" / "strecha_entry_P10__all" / "runs"
     with (
         open_database(runs / "raw" / "database.db") as a,
         open_database(runs / "raw_mapper=global" / "database.db") as b,
@@ -408,22 +428,22 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
                 read_keypoints(a, image.image_id), read_keypoints(c, image.image_id)
             )
         assert pair_inlier_counts(a) == pair_inlier_counts(b) and len(pair_inlier_counts(a)) >= 1
-    # --remap maps each finished database again (a change of the mapping stage) and keeps the stage
+    # remap maps each finished database again (a change of the mapping stage) and keeps the stage
     # times
-    assert eval_registration.main(argv + ["--resume", "--remap"]) == 0
-    again = json.loads((out / "results.json").read_text())["scenes"][0]["methods"]
+    RegistrationBenchmark({**conf, "resume": True, "remap": True}).run()
+    again = latest()
     assert (
-        again["guided"]["reused"]["database"].endswith("(--remap)")
+        again["guided"]["reused"]["database"].endswith("(remap)")
         and again["guided"]["timings"]["match"] >= guided["timings"]["match"]
     )
     assert again["raw"]["num_registered"] == raw["num_registered"] and not list(
         runs.glob("*.remap")
     )
-    # --threads 1: every mapper on one thread, so a seeded run repeats exactly
+    # threads 1: every mapper on one thread, so a seeded run repeats exactly
     # (here: mapping it twice)
     poses = []
     for _ in range(2):
-        assert eval_registration.main(argv + ["--resume", "--remap", "--threads", "1"]) == 0
+        RegistrationBenchmark({**conf, "resume": True, "remap": True, "threads": 1}).run()
         model = pycolmap.Reconstruction(str(runs / "guided" / "sparse" / "0"))
         poses.append(
             {im.name: im.cam_from_world().matrix() for im in model.images.values() if im.has_pose}
@@ -431,9 +451,11 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
     assert poses[0].keys() == poses[1].keys() and len(poses[0]) >= 3
     assert all(np.array_equal(poses[0][n], poses[1][n]) for n in poses[0])
     # the summary: one table per LTLL protocol (rows = methods, columns = scenes) and the time per
-    # stage
-    summarize_registration.main([str(out / "results.json")])
+    # stage, of an output given to merge (nothing run)
+    capsys.readouterr()
+    RegistrationBenchmark({"merge": [str(out)]}).run()
     text = capsys.readouterr().out
+    assert "Registered images" not in text
     assert "**Protocol: historical + modern photos + distractors**" in text and "**Time**" in text
     row = next(line for line in text.splitlines() if line.startswith("| raw:mapper=global |"))
     assert f"· {again['raw:mapper=global']['correct']}/4 |" in row
@@ -447,9 +469,20 @@ def test_eval_registration_reuses_databases_across_mappers_and_matchers(
         f"| raw:mapper=global | {again['raw:mapper=global']['correct']} / "
         f"{len(again['raw:mapper=global']['wrong'] or [])} | – |"
     )
-    # one results file's runs of a method under their own label (the same method before and after a
-    # change)
-    summarize_registration.main(
-        [str(out / "results.json"), "--label", f"{out / 'results.json'}:raw=raw (this run)"]
+    # two outputs side by side (an evaluation's results.json: scene records whose photos are read
+    # from their layout), one output's runs of a method under their own label (the same method
+    # before and after a change)
+    earlier = tmp_path / "results.json"
+    scenes = [
+        {k: v for k, v in s.items() if k != "images"}
+        for s in scenes_of(json.loads(out.read_text()))
+    ]
+    earlier.write_text(json.dumps({"scenes": scenes}))
+    RegistrationBenchmark(
+        {"merge": [str(earlier), str(out)], "label": [f"{out}:raw=raw (this run)"]}
+    ).run()
+    text = capsys.readouterr().out
+    row = next(line for line in text.splitlines() if line.startswith("| raw (this run) |"))
+    assert row == next(line for line in text.splitlines() if line.startswith("| raw |")).replace(
+        "| raw |", "| raw (this run) |"
     )
-    assert "| raw (this run) |" in capsys.readouterr().out

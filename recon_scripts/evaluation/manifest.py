@@ -16,9 +16,10 @@ Schema (JSON)::
       ]
     }
 
-``root: null`` means the data is not shipped (LTLL): pass ``--root``. ``$COLMAP_GUIDED_DATA``
-expands to ``colmap_guided.paths.shared_data_dir()``. Eras: ``historical`` and ``modern`` as in
-LTLL; ``distractor`` marks images of another scene that must not register (the historical proxy).
+``root: null`` means the data is not shipped (LTLL): pass the registration preset's ``root``.
+``$COLMAP_GUIDED_DATA`` expands to ``colmap_guided.paths.shared_data_dir()``. Eras: ``historical``
+and ``modern`` as in LTLL; ``distractor`` marks images of another scene that must not register
+(the historical proxy).
 
 A laid-out scene is SCENE/images (symlinks to the photos, or copies) + SCENE/manifest.json (the
 one-scene schema ``colmap_guided.report.read_manifest`` reads); the source is never modified.
@@ -26,13 +27,11 @@ one-scene schema ``colmap_guided.report.read_manifest`` reads); the source is ne
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
 from pathlib import Path
 
-from colmap_guided.conf import at_most_zero, none_or
 from colmap_guided.features import IMAGE_EXTENSIONS
 from colmap_guided.log import logger
 from colmap_guided.paths import shared_data_dir
@@ -75,7 +74,8 @@ def expand(text: str | None, base: Path | None = None) -> Path | None:
 
 
 def load_manifest(path: Path, root: Path | None = None) -> dict:
-    """Read a manifest; ``root`` (e.g. --root) overrides its root. Adds '_root' (Path or None)."""
+    """Read a manifest; ``root`` (the preset's ``root``) overrides its root. Adds '_root' (Path or
+    None)."""
     path = Path(path)
     data = json.loads(path.read_text(encoding="utf-8"))
     data["_root"] = Path(root) if root else expand(data.get("root"), path.parent.resolve())
@@ -94,7 +94,7 @@ def scene_image_dir(manifest: dict, scene: dict) -> Path:
     if root is None:
         raise ValueError(
             f"Manifest {manifest.get('name')} has no root: "
-            "pass --root (the folder of your local copy)."
+            "pass root=FOLDER (the folder of your local copy)."
         )
     base = Path(root) / scene.get("path", scene["name"])
     return base / scene["image_dir"] if scene.get("image_dir") else base
@@ -235,40 +235,3 @@ def select_scenes(manifest: dict, names=None, max_scenes: int | None = None) -> 
             )
         scenes = [s for s in scenes if s["name"] in names]
     return scenes[:max_scenes] if max_scenes else scenes
-
-
-def add_manifest_flags(
-    parser: argparse.ArgumentParser, output: Path, methods: list[str], methods_help: str
-) -> None:
-    """The flags of eval_registration, which runs the scenes of a manifest: the local copy, which
-    scenes and subsets, the methods and their devices, where the results go (``output`` by
-    default)."""
-    parser.add_argument(
-        "--root",
-        type=Path,
-        default=None,
-        help="local copy of the dataset (overrides the manifest's root)",
-    )
-    parser.add_argument(
-        "--scan",
-        action="store_true",
-        help="fill the manifest's scenes and images from the folders under --root (LTLL)",
-    )
-    parser.add_argument("--scenes", nargs="+", default=None)
-    parser.add_argument(
-        "--max_scenes",
-        type=none_or(int, old_off=at_most_zero),
-        default=None,
-        help="first N scenes of the manifest (default none = all)",
-    )
-    parser.add_argument(
-        "--subsets", nargs="+", default=["historical", "all"], choices=sorted(SUBSETS)
-    )
-    parser.add_argument("--methods", nargs="+", default=methods, help=methods_help)
-    parser.add_argument(
-        "--resume", action="store_true", help="reuse finished runs (each method's eval.json)"
-    )
-    parser.add_argument("--device", default=None)
-    parser.add_argument("--weights", default=None)
-    parser.add_argument("--output", type=Path, default=output)
-    parser.add_argument("--quiet", "-q", action="store_true")

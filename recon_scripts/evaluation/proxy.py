@@ -17,10 +17,11 @@ All images are resized so the long side is <= ``max_size`` (default 1024, as the
 
 Output (never inside ../shared): OUT/<scene>/images/*.jpg + OUT/<scene>/manifest.json (one-scene
 schema with era, source file, reference name, preset, crop) and OUT/proxy_manifest.json (the
-multi-scene datasets/ltll_manifest.json schema, root = OUT), so eval_registration.py runs on it like
-on LTLL. The crop changes the pixel frame but not the camera pose: registrations are checked on
-poses only, against the set's reference model, or for a set without one a model of its original
-photos (``pseudo_reference``). Two splits (``SPLITS``): thresholds are chosen on ``dev``; figures
+multi-scene datasets/ltll_manifest.json schema, root = OUT, with the options it was built with),
+so the ``registration`` preset (recon_scripts/registration/ltll.py) runs on it like on LTLL. The
+crop changes the pixel frame but not the camera pose: registrations are checked on poses only,
+against the set's reference model, or for a set without one a model of its original photos
+(``pseudo_reference``). Two splits (``SPLITS``): thresholds are chosen on ``dev``; figures
 are reported on ``test``.
 """
 
@@ -387,12 +388,13 @@ def build_proxy(out_dir: Path, sources=DEFAULT_SOURCES, looks=tuple(LOOKS), **kw
     manifest = {
         "name": "historical_proxy",
         "description": "Offline historical proxy built by "
-        "recon_scripts/make_historical_proxy.py: half of each set degraded (era historical), "
+        "recon_scripts/evaluation/proxy.py: half of each set degraded (era historical), "
         "the rest modern, plus distractors of unrelated scenes that must not register.",
         "source": "../shared/data (see its README.md for provenance and licences)",
         "root": ".",
+        "build": {"sources": list(sources), "looks": list(looks), **kwargs},
         "scenes": scenes,
     }
     path = workspace.record("proxy_manifest.json")[0]
-    path.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
+    path.write_text(json.dumps(manifest, indent=1, default=str) + "\n", encoding="utf-8")
     return path

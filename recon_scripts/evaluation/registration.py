@@ -38,15 +38,6 @@ from colmap_guided.workspace import Workspace
 from . import matcher_specs
 from .metrics import rotation_angle
 
-# What an evaluation writes beside its scenes (``write_report``) and its WxBS table.
-REPORT_FILES = (
-    "results.json",
-    "results.md",
-    "registered.png",
-    "wxbs_appearance.json",
-    "manifest_scanned.json",
-)
-
 MAX_ROTATION_DEG = 5.0
 MAX_CENTER_FRAC = 0.1
 
@@ -542,13 +533,16 @@ def evaluate_scene(
     databases_from: Path | None = None,
     remap: bool = False,
     threads: int | None = None,
+    reuse_from: list[str] | None = None,
     **tol,
 ) -> dict:
     """Run every method on one laid-out scene (SCENE/images + SCENE/manifest.json) and score it
     (``seed``: the mappers' random seed; runs go to SCENE/runs/seed<seed>/ then; ``threads``: the
     mappers' threads, 1 = every run repeats exactly; ``databases_from``: the runs folder of another
     seed whose finished databases are mapped again; ``remap``: a finished run maps its own database
-    again, after a change of the mapping stage or of ``threads``; pycolmap's runs too)."""
+    again, after a change of the mapping stage or of ``threads``; pycolmap's runs too;
+    ``reuse_from``: the methods whose finished databases a run may start from, default
+    ``methods``)."""
     scene_dir = Path(scene_dir)
     out, images, reference = _load_scene(scene_dir, seed)
     runs_dir = Path(runs_dir) if runs_dir else seed_runs_dir(scene_dir, seed)
@@ -567,7 +561,9 @@ def evaluate_scene(
         previous = _set_aside(workspace) if own else None  # the workspace is emptied before the run
         try:
             reuse, features_only, source_timings = (
-                _own_database(previous) if own else _reusable(sources, methods, method)
+                _own_database(previous)
+                if own
+                else _reusable(sources, reuse_from or methods, method)
             )
             largest, info = run(
                 scene_dir, method, workspace, database=reuse, features_only=features_only
@@ -580,7 +576,7 @@ def evaluate_scene(
             _count_reused(info, reuse, source_timings, features_only)
         if own:
             shutil.rmtree(previous)
-            info["reused"]["database"] = "the same run's, mapped again (--remap)"
+            info["reused"]["database"] = "the same run's, mapped again (remap)"
         score = score_registration(largest, images, reference, info.get("same_picture"), **tol)
         record = {**score, **info}
         workspace.mkdir(parents=True, exist_ok=True)
@@ -678,31 +674,12 @@ def plot_registration(results: list[dict], methods: list[str], path: Path) -> No
     tables.save_figure(fig, path)
 
 
-def write_report(
-    output: Path,
-    title: str,
-    manifest: Path,
-    methods: list[str],
-    results: list[dict],
-    extra_text: str = "",
-) -> str:
-    """The registration tables under a title with the machine and date, then ``extra_text``, written
-    to OUTPUT/results.md, with OUTPUT/results.json and the OUTPUT/registered.png plot; returns the
-    Markdown."""
+def report_markdown(title: str, methods: list[str], results: list[dict]) -> str:
+    """The registration tables under a title with the machine and date."""
     from . import tables
 
     note = tables.machine_note()
-    text = (
+    return (
         f"### {title}: registration ({note['date']}, "
-        f"{note['torch_device']}, {note['cpu_count']} CPUs)\n\n"
-        + markdown_tables(results, methods)
-        + extra_text
+        f"{note['torch_device']}, {note['cpu_count']} CPUs)\n\n" + markdown_tables(results, methods)
     )
-    Workspace.claim(output, "evaluation").record(*REPORT_FILES)
-    tables.write_json(
-        output / "results.json",
-        {"manifest": str(manifest), "methods": methods, "machine": note, "scenes": results},
-    )
-    (output / "results.md").write_text(text + "\n", encoding="utf-8")
-    plot_registration(results, methods, output / "registered.png")
-    return text
