@@ -16,8 +16,10 @@ from recon_scripts.bench import BASE_CONF
 PRESETS = {
     "aliked": "benchmark_aliked",
     "archive": "benchmark_scale",
+    "matching": "matching.verified_pairs",
     "pairs": "benchmark_pairs",
     "pipeline": "benchmark_pipeline",
+    "retrieval": "matching.retrieval",
     "scale": "benchmark_scale",
     "scale_default": "benchmark_scale",
     "scale_executors": "benchmark_scale",
