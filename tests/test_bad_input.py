@@ -177,12 +177,12 @@ def test_read_image_is_colmaps_frame_and_pixels(tmp_path):
 def test_every_reader_reads_exif_rotated_photos_in_colmaps_frame(tmp_path, monkeypatch):
     """A JPEG tagged 'rotate 90°' (orientation 6) is read in its stored frame, where COLMAP's
     keypoints are, by every path that opens photos: archival CLI, historical proxy,
-    benchmark_matching's features (the coarse matcher: tests/test_coarse_matcher.py). OpenCV's
+    the matching preset's features (the coarse matcher: tests/test_coarse_matcher.py). OpenCV's
     imread would rotate it."""
     from colmap_guided import archival
     from colmap_guided.paths import REPO_ROOT
-    from recon_scripts import benchmark_matching as bench
     from recon_scripts.evaluation import proxy
+    from recon_scripts.matching import verified_pairs as bench
 
     photos = tmp_path / "data" / "rotated_set" / "images"
     photos.mkdir(parents=True)
