@@ -1,6 +1,6 @@
 """Historical photos localized in a model of the modern ones: on the reference pose, off it, not.
 
-    python -m recon_scripts.make_historical_proxy --split test --output PROXY
+    python -m recon_scripts registration split=test proxy_dir=PROXY methods=[]   # the proxy
     python -m recon_scripts localize manifest=PROXY/proxy_manifest.json [sets="sceaux_castle ..."]
         [methods="guided_lightglue guided lightglue"] [work=WORK] [output=OUT.json]
 
@@ -110,7 +110,7 @@ class LocalizeBenchmark(Benchmark):
     default_conf = {
         "sets": [],  # the manifest's scene names (empty: all that have a reference model)
         "methods": list(DEFAULT_METHODS),
-        "manifest": "outputs/proxy_test/proxy_manifest.json",  # make_historical_proxy's
+        "manifest": "outputs/proxy_test/proxy_manifest.json",  # the registration preset's proxy
     }
 
     @cached_property
