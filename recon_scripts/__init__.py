@@ -1,10 +1,10 @@
 """Benchmarks and evaluation scripts of colmap_guided, run from a checkout (not installed).
 
-    python -m recon_scripts PRESET [key=value ...]   # a benchmark preset (--help lists them)
-    python -m recon_scripts.NAME [--help]             # any other script
+    python -m recon_scripts PRESET [key=value ...]   # --help lists the presets
 
-``evaluation/`` holds what the scripts share: metrics, reference models, the historical proxy,
-manifests, registration scoring and tables.
+``bench.py`` is the presets' base; ``matching/`` measures pairs of photos, ``registration/`` photo
+sets, ``scale/`` hundreds to thousands of photos; ``evaluation/`` holds what they share: metrics,
+reference models, the historical proxy, manifests, registration scoring, tables, the screenshot.
 """
 
 import argparse
