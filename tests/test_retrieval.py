@@ -2,9 +2,12 @@
 
 import json
 
+import pytest
+
 from recon_scripts.__main__ import main
 
 
+@pytest.mark.slow  # GeM descriptors of two training scenes: about a minute
 def test_retrieval_preset(shared_data, tmp_path, capsys):
     sets = ["train/dfsfm_sacre_coeur", "train/bundler_et"]
     output, work = tmp_path / "retrieval.json", tmp_path / "work"
