@@ -11,6 +11,7 @@ cheaply matched pairs are matched with the full matcher, and the model is extend
 
 from __future__ import annotations
 
+import json
 from collections import Counter
 from pathlib import Path
 
@@ -41,6 +42,11 @@ default_conf = {
     # after escalation, the pairs of two models' most similar photos that the full matcher tries,
     # to join the models into one (0: none)
     "join_pairs": 10,
+    # a placed photo whose pairs with its model's photos were all kept by a cheap decision, or that
+    # observes fewer than check_points 3D points, gets this many of those pairs matched by the
+    # full matcher and keeps its place only where its pose from them agrees (recheck.py; 0: none)
+    "check_pairs": 2,
+    "check_points": 50,
 }
 # the options that turn a matcher's cheap decisions off: its pair gate, cheap pass and probe
 GATES_OFF = {"min_pair_score": None, "cheap_inliers": None, "probe_keypoints": None}
@@ -59,6 +65,32 @@ def kept_cheaply(matcher) -> int | None:
     (None: it keeps none): a pair written with as many may not be the full matcher's result."""
     kept = [matcher.conf[k] for on, k in KEEPS.items() if matcher.conf.get(on) is not None]
     return min(kept, default=None)
+
+
+def record_kept(path: Path | None, pairs: list[tuple[str, str]]) -> None:
+    """Append the pairs (name_a, name_b) whose matches a cheap decision kept to ``path`` (JSON
+    lines: names may hold any character)."""
+    if path is not None and pairs:
+        with open(path, "a", encoding="utf-8") as f:
+            f.writelines(json.dumps(list(pair)) + "\n" for pair in pairs)
+
+
+def read_kept(path: Path | None) -> set[frozenset]:
+    """The pairs ``record_kept`` wrote to ``path`` (none where it is missing)."""
+    if path is None or not Path(path).is_file():
+        return set()
+    lines = Path(path).read_text(encoding="utf-8").splitlines()
+    return {frozenset(json.loads(line)) for line in lines if line.strip()}
+
+
+def forget_kept(path: Path | None, pairs: list[tuple[str, str]]) -> None:
+    """The pairs matched again by the full matcher leave the record of ``path``."""
+    kept = read_kept(path)
+    if kept & {frozenset(pair) for pair in pairs}:
+        tmp = Path(path).with_name(Path(path).name + ".partial")
+        tmp.write_text("", encoding="utf-8")
+        record_kept(tmp, [tuple(sorted(p)) for p in kept - {frozenset(q) for q in pairs}])
+        tmp.replace(path)
 
 
 def orphans(tried: Counter, verified: set, orphan_after: int | None) -> set[str]:

@@ -102,10 +102,13 @@ def match_pairs(
     join_tries: int = escalate.default_conf["join_tries"],
     apart=(),
     orphan_after: int | None = None,
+    kept_path: Path | None = None,
 ) -> dict:
     """``match_database`` with the matcher made: its pairs (``conf.pairs``) and verification
     (``conf.verification`` over the matcher's) as they are, nothing decided again; with
-    ``enough``, best first (``BestFirst``), pairs within a group of ``apart`` deferred."""
+    ``enough``, best first (``BestFirst``), pairs within a group of ``apart`` deferred. The pairs
+    whose matches a cheap decision of the matcher kept are appended to ``kept_path``
+    (``escalate.record_kept``)."""
     verification_conf = {**matcher.verification_conf, **conf.verification.options}
     options = verify.two_view_options(verification_conf)
     stats = {
@@ -140,7 +143,15 @@ def match_pairs(
                 with scoped_torch_threads(matcher.torch_threads):
                     todo = todo if schedule else pair_order(todo)
                     stats["memory"], seconds, gated = _match_pairs(
-                        db, image_path, images, todo, matcher, run, max_images_held, schedule
+                        db,
+                        image_path,
+                        images,
+                        todo,
+                        matcher,
+                        run,
+                        max_images_held,
+                        schedule,
+                        kept_path,
                     )
             finally:
                 run.close()
@@ -189,11 +200,14 @@ def rematch(
     conf: PipelineConf,
     todo: list[PairKey],
     pairs_path: Path,
+    kept_path: Path | None = None,
 ) -> dict:
     """The pairs ``todo`` (id_a, id_b, name_a, name_b) matched again with ``matcher`` (escalation's
-    full matcher): what they had is deleted, they are written to ``pairs_path`` and matched."""
+    full matcher): what they had is deleted (and they leave the record of ``kept_path``), they are
+    written to ``pairs_path`` and matched."""
     with dbio.open_database(database_path) as db:
         dbio.delete_pairs(db, [key[:2] for key in todo])
+    escalate.forget_kept(kept_path, [key[2:] for key in todo])
     write_pairs(pairs_path, [key[2:] for key in todo])
     pairs = conf.pairs.over({"pairs": str(pairs_path)})
     return match_pairs(database_path, image_path, matcher, dataclasses.replace(conf, pairs=pairs))
@@ -270,6 +284,7 @@ def _match_pairs(
     run,
     max_held: int,
     schedule: BestFirst | None = None,
+    kept_path: Path | None = None,
 ) -> tuple[dict, dict, int]:
     """Match ``todo`` (id_a, id_b, name_a, name_b) on the executor ``run``; the caller's process is
     the only database writer (one transaction per batch of finished pairs). Images are read (and
@@ -277,8 +292,11 @@ def _match_pairs(
     ``max_held`` at once.
     With a ``schedule`` pairs it defers are skipped, and the others verified as they are written.
     Returns the most images held at once and the image reads, the seconds spent reading and
-    writing, and how many pairs the matcher left unmatched (not written)."""
+    writing, and how many pairs the matcher left unmatched (not written). Pairs a cheap decision
+    kept go to ``kept_path``."""
     pairs = _PairRun(db, image_path, images, todo, matcher, run, schedule)
+    # only a matcher with cheap decisions returns a geometry that is not the full matcher's
+    pairs.kept_path = kept_path if escalate.kept_cheaply(matcher) is not None else None
     held = HeldImages(todo, pairs.load, max_held, on_drop=matcher.release)
     total = schedule.first_pass if schedule else len(todo)
     with progress(desc="match", unit="pair", total=total) as pairs.bar:
@@ -333,7 +351,7 @@ class _PairRun:
         self.unmatched = 0  # pairs the matcher left unmatched (its pair gate)
         self.started, self.finished = deque(), {}  # with a schedule: pairs in start order
         self.by_id = {image.image_id: image for image in images.values()}
-        self.bar = None
+        self.bar, self.kept_path = None, None
 
     def load(self, name: str):
         """One image read and prepared, put where the executor's workers find it."""
@@ -355,6 +373,9 @@ class _PairRun:
         start = time.perf_counter()
         batch = [(key[0], key[1], *result) for key, result in done]
         self.unmatched += sum(item[2] is None for item in batch)
+        # recorded before the database holds them: a rerun after a kill matches them as cheaply
+        kept = [key[2:] for (key, _), item in zip(done, batch) if item[3] is not None]
+        escalate.record_kept(self.kept_path, kept)
         if self.schedule is not None:
             for key, item in zip([key for key, _ in done], batch):
                 if item[2] is not None:

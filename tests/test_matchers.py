@@ -512,18 +512,9 @@ def test_raw_matches_verified_never_loses_what_raw_matching_verifies(photo_pair)
     a, b, _ = photo_pair
     guided = get_matcher("guided", {"device": "cpu"})
     assert guided.conf["raw_matches"] == "verified"
-    options = verify.two_view_options(guided.verification_conf)
 
     def inliers(matches):
-        cam_a, cam_b = (
-            verify.default_camera(a.width, a.height),
-            verify.default_camera(b.width, b.height),
-        )
-        return len(
-            verify.verify_pair(
-                cam_a, a.keypoints, cam_b, b.keypoints, matches, options
-            ).inlier_matches
-        )
+        return len(verify.verify_images(a, b, matches, guided.verification_conf).inlier_matches)
 
     raw = inliers(get_matcher("raw", {"device": "cpu"}).match(a, b))
     right = guided.coarse_flows(a, b)

@@ -29,16 +29,7 @@ def _image_data(path, image_id):
 
 def _verified_inliers(a, b, matches, matcher):
     # as the pipeline verifies this matcher's pairs
-    options = verify.two_view_options(matcher.verification_conf)
-    geometry = verify.verify_pair(
-        verify.default_camera(a.width, a.height),
-        a.keypoints,
-        verify.default_camera(b.width, b.height),
-        b.keypoints,
-        matches,
-        options,
-    )
-    return len(geometry.inlier_matches)
+    return len(verify.verify_images(a, b, matches, matcher.verification_conf).inlier_matches)
 
 
 @pytest.fixture(scope="module")
@@ -95,15 +86,7 @@ def test_guided_never_verifies_a_wrong_geometry_on_day_night_pairs(matchers, pai
     a, b = (
         _image_data(next(folder.glob(f"{stem}.*[!t]")), i) for i, stem in ((1, "01"), (2, "02"))
     )
-    options = verify.two_view_options(guided.verification_conf)
-    geometry = verify.verify_pair(
-        verify.default_camera(a.width, a.height),
-        a.keypoints,
-        verify.default_camera(b.width, b.height),
-        b.keypoints,
-        guided.match(a, b),
-        options,
-    )
+    geometry = verify.verify_images(a, b, guided.match(a, b), guided.verification_conf)
     if len(geometry.inlier_matches) == 0:
         assert pair != "WGABS/petrzin", "the right geometry of petrzin should verify"
         return

@@ -368,18 +368,8 @@ class GuidedLightGlueMatcher(Matcher):
     @staticmethod
     def verified(a: ImageData, b: ImageData, m: np.ndarray, verification: dict):
         """The two-view geometry of the matches ``m``."""
-        camera_a, camera_b = (
-            image.camera or verify.default_camera(image.width, image.height) for image in (a, b)
-        )
         with colmap_quiet():
-            return verify.verify_pair(
-                camera_a,
-                a.keypoints,
-                camera_b,
-                b.keypoints,
-                m,
-                verify.two_view_options(verification),
-            )
+            return verify.verify_images(a, b, m, verification)
 
     def in_window(
         self, a: ImageData, b: ImageData, flows, keep_a, keep_b, window: float

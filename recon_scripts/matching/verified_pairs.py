@@ -86,7 +86,7 @@ def read_pair(database: Path, pair: dict) -> tuple[ImageData, ImageData]:
             dbio.read_image_data(db, dbio.read_image(db, image_name(pair[k])), shared_data_dir())
             for k in ("a", "b")
         )
-    # no database camera: matchers and verify_matches use COLMAP's default camera of the image size
+    # no database camera: matchers and verify_images take COLMAP's default camera of the image size
     return replace(a, camera=None), replace(b, camera=None)
 
 
@@ -171,22 +171,6 @@ def unrelated_pairs(count: int, seed: int = 0) -> list[dict]:
 # ------------------------------------------------------------------------------------------------
 
 
-def verify_matches(
-    a: ImageData, b: ImageData, matches: np.ndarray, matcher
-) -> pycolmap.TwoViewGeometry:
-    """COLMAP's two-view verification with the pipeline's options for ``matcher`` (raw: >= 15
-    inliers, guided: its min_inliers)."""
-    options = verify.two_view_options(matcher.verification_conf)
-    return verify.verify_pair(
-        verify.default_camera(a.width, a.height),
-        a.keypoints,
-        verify.default_camera(b.width, b.height),
-        b.keypoints,
-        matches,
-        options,
-    )
-
-
 def reference_error(geometry: pycolmap.TwoViewGeometry, corrs: np.ndarray | None) -> float | None:
     """Median error (px) of the reference correspondences under the verified geometry: symmetric
     epipolar distance for F (or E), symmetric transfer error for a planar / panoramic H."""
@@ -240,7 +224,7 @@ def extract_coarse(matcher: GuidedMatcher, a: ImageData, b: ImageData) -> None:
 
 def pair_row(pair: dict, a: ImageData, b: ImageData, matches, matcher, max_ref_err: float) -> dict:
     """The pair, and the verified geometry of ``matches`` against its reference correspondences."""
-    geometry = verify_matches(a, b, matches, matcher)
+    geometry = verify.verify_images(a, b, matches, matcher.verification_conf)
     err = reference_error(geometry, pair["corrs"])
     return {
         "set": pair["set"],

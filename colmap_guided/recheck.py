@@ -1,0 +1,161 @@
+"""Photos placed on cheap or thin evidence, checked before they count.
+
+A cheap decision keeps a pair's matches without the full matcher where they verify with many inliers
+(``escalate.KEEPS``); on a damaged print such matches can verify and still pull the photo to a wrong
+pose, and a photo that observes few 3D points rests on little. After mapping, such a photo (its
+pairs with its model's photos all kept cheaply, or fewer than ``check_points`` 3D points observed)
+gets its ``check_pairs`` most similar pairs with the model's photos that the full matcher did not
+match (kept cheaply, deferred or gated) matched by the full matcher, and its pose is estimated again
+from the model's 3D points those matches reach. It keeps its place only where the two poses agree;
+elsewhere it is taken out of the model, and escalation's mapping, continued on the full matcher's
+matches, may place it again.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from . import database as dbio
+from .escalate import read_kept
+from .image_data import PairKey
+from .log import colmap_quiet, logger
+
+# Two poses of a photo are one where they differ by less than this rotation and their centres by
+# less than this fraction of the photo's median depth (the evaluation's bounds of a correct pose).
+MAX_ROTATION_DEG = 5.0
+MAX_CENTER_FRAC = 0.1
+# what the report adds to the reason of a photo the check took out and mapping did not place again
+TAKEN_OUT = " Mapping placed it ({why}), but the full matcher's matches did not confirm that pose."
+
+
+def to_check(rec: pycolmap.Reconstruction, db, kept: set[frozenset], min_points: int) -> dict:
+    """{name: why} of the model's photos that the check takes: every verified pair with another
+    photo of the model kept by a cheap decision (``kept``), or fewer than ``min_points`` 3D
+    points observed."""
+    names = {rec.images[i].name: i for i in rec.reg_image_ids()}
+    by_id = {i: n for i, n in dbio.image_names(db).items() if n in names}
+    partners: dict[str, list[str]] = {name: [] for name in names}
+    for (a, b), n in dbio.pair_inlier_counts(db).items():
+        if a in by_id and b in by_id:
+            partners[by_id[a]].append(by_id[b])
+            partners[by_id[b]].append(by_id[a])
+    why = {}
+    for name, image_id in names.items():
+        if partners[name] and all(frozenset((name, o)) in kept for o in partners[name]):
+            why[name] = "placed through cheaply kept pairs only"
+        elif rec.images[image_id].num_points3D < min_points:
+            why[name] = f"observes {rec.images[image_id].num_points3D} 3D points"
+    return why
+
+
+def pairs_to_check(
+    name: str, model: set[str], selected, db, ids: dict, kept: set[frozenset], num: int
+) -> list[PairKey]:
+    """The photo's ``num`` most similar ``selected`` pairs with other photos of the ``model`` that
+    the full matcher did not match: kept cheaply or not matched at all."""
+    todo = []
+    for a, b in selected:
+        other = b if a == name else a if b == name else None
+        if other is None or other not in model:
+            continue
+        if frozenset((a, b)) in kept or not dbio.pair_has_matches(db, ids[a], ids[b]):
+            todo.append((ids[a], ids[b], a, b))
+            if len(todo) == num:
+                break
+    return todo
+
+
+def pose_again(rec: pycolmap.Reconstruction, image_id: int, db, min_inliers: int):
+    """The photo's pose from its verified matches with the model's other photos that reach 3D
+    points seen by at least two photos besides it (independent of its own pose): (cam_from_world,
+    2D-3D inliers), or None when fewer than ``min_inliers`` agree."""
+    image = rec.images[image_id]
+    ids = {rec.images[i].name: i for i in rec.reg_image_ids()}
+    db_ids = {n: i for i, n in dbio.image_names(db).items() if n in ids}
+    keypoints = dbio.read_keypoints(db, db_ids[image.name])[:, :2].astype(np.float64)
+    found: dict[int, int] = {}  # keypoint of the photo -> 3D point
+    for name, other_id in ids.items():
+        if other_id == image_id:
+            continue
+        geometry = dbio.read_two_view_geometry(db, db_ids[image.name], db_ids[name])
+        if geometry is None or not len(geometry.inlier_matches):
+            continue
+        matches = np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2)
+        mine, theirs = (0, 1) if db_ids[image.name] < db_ids[name] else (1, 0)
+        points2D = rec.images[other_id].points2D
+        for k, j in zip(matches[:, mine], matches[:, theirs]):
+            if k in found or not points2D[j].has_point3D():
+                continue
+            track = rec.points3D[points2D[j].point3D_id].track.elements
+            if sum(el.image_id != image_id for el in track) >= 2:
+                found[int(k)] = points2D[j].point3D_id
+    if len(found) < min_inliers:
+        return None
+    xy = keypoints[list(found)]
+    xyz = np.array([rec.points3D[p].xyz for p in found.values()])
+    with colmap_quiet():
+        estimate = pycolmap.estimate_and_refine_absolute_pose(xy, xyz, rec.cameras[image.camera_id])
+    if estimate is None or estimate["num_inliers"] < min_inliers:
+        return None
+    return estimate["cam_from_world"], xyz[np.asarray(estimate["inlier_mask"], bool)]
+
+
+def agree(old: pycolmap.Rigid3d, new: pycolmap.Rigid3d, points: np.ndarray) -> bool:
+    """Whether two poses of a photo are one (``MAX_ROTATION_DEG``, ``MAX_CENTER_FRAC`` of the
+    median depth of ``points`` in the old one)."""
+    r_old, r_new = old.rotation.matrix(), new.rotation.matrix()
+    cos = np.clip((np.trace(r_new @ r_old.T) - 1) / 2, -1.0, 1.0)
+    centre = lambda pose: -pose.rotation.matrix().T @ pose.translation  # noqa: E731
+    depth = np.median((points @ r_old.T + old.translation)[:, 2])
+    return bool(
+        np.degrees(np.arccos(cos)) < MAX_ROTATION_DEG
+        and np.linalg.norm(centre(old) - centre(new)) < MAX_CENTER_FRAC * abs(depth)
+    )
+
+
+def check_models(
+    database_path: Path,
+    models: dict,
+    selected,
+    kept_path: Path | None,
+    conf: dict,
+    rematch,
+) -> tuple[set[str], dict]:
+    """The check of every model's photos (``to_check``): their pairs (``pairs_to_check``) matched
+    by ``rematch(todo)`` (the full matcher), then each photo taken out of its model where its pose
+    again (``pose_again``) is missing or does not ``agree``. ``conf``: escalation's check_pairs
+    and check_points, and mapping's abs_pose_min_num_inliers. Returns the pairs matched
+    (name_a, name_b) and a record for the report."""
+    kept = read_kept(kept_path)
+    with dbio.open_database(database_path) as db:
+        ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
+        checked, todo = {}, []
+        for key, rec in models.items():
+            model = {rec.images[i].name for i in rec.reg_image_ids()}
+            for name, why in to_check(rec, db, kept, conf["check_points"]).items():
+                pairs = pairs_to_check(name, model, selected, db, ids, kept, conf["check_pairs"])
+                if pairs:
+                    checked[name] = (key, why)
+                    todo += [p for p in pairs if p not in todo]
+    record = {"checked": {name: why for name, (_, why) in sorted(checked.items())}}
+    record.update(pairs=len(todo), taken_out={})
+    if not todo:
+        return set(), record
+    logger.info("Checking %d photo(s) placed on cheap or thin evidence", len(checked))
+    rematch(todo)
+    with dbio.open_database(database_path) as db:
+        for name, (key, why) in checked.items():
+            rec = models[key]
+            image = next(rec.images[i] for i in rec.reg_image_ids() if rec.images[i].name == name)
+            again = pose_again(rec, image.image_id, db, conf["abs_pose_min_num_inliers"])
+            if again is None or not agree(image.cam_from_world(), *again):
+                record["taken_out"][name] = why
+                rec.deregister_frame(image.frame_id)
+    logger.info(
+        "%d photo(s) taken out: the full matcher's matches put them elsewhere",
+        len(record["taken_out"]),
+    )
+    return {key[2:] for key in todo}, record
