@@ -198,7 +198,22 @@ def merge(
     """The larger model of ``pair`` (``sparse_path``/N) continued by incremental mapping with the
     smaller's photos, and why it is kept or not (None), with the evidence: kept where it holds the
     two models' photos (``MAX_LEFT_OUT``), has no model check problem more than the two had and
-    few ``visibility_conflicts`` (``MAX_CONFLICTS``)."""
+    few ``visibility_conflicts`` (``MAX_CONFLICTS``), and the smaller continued with the larger's
+    photos passes the same checks: a merge aligned on look-alike parts may pass them from one side
+    only."""
+    found, merged = {"conflicts": []}, None
+    for order in (pair, pair[::-1]):
+        extended, why = _extend(database_path, image_path, sparse_path, models, order, mapping_conf)
+        found["conflicts"].append(why.pop("conflicts", None))
+        if extended is None:
+            return None, {**found, **why}
+        merged = merged or extended
+    return merged, {**found, "why": f"joined: one model of {merged.num_reg_images()} photos"}
+
+
+def _extend(database_path, image_path, sparse_path, models, pair, mapping_conf) -> tuple:
+    """``pair[0]``'s model continued with ``pair[1]``'s photos: (the model, {}), or (None, why);
+    with the visibility conflicts where counted."""
     both = registered(models[pair[0]]) | registered(models[pair[1]])
     conf = {**mapping_conf, "image_names": sorted(both)}
     extended = mapping.extend_model(database_path, image_path, sparse_path, pair[0], conf)
@@ -217,7 +232,7 @@ def merge(
             f"see there ({agreements} agree): two places that look alike"
         )
         return None, {**found, "why": why}
-    return merged, {**found, "why": f"joined: one model of {held} photos"}
+    return merged, found
 
 
 def visibility_conflicts(rec: pycolmap.Reconstruction, names: set[str]) -> tuple[int, int]:

@@ -69,50 +69,50 @@ def pairs_to_check(
 
 
 def pose_again(rec: pycolmap.Reconstruction, image_id: int, db, min_inliers: int):
-    """The photo's pose from its verified matches with the model's other photos that reach 3D
-    points seen by at least two photos besides it (independent of its own pose): (cam_from_world,
-    2D-3D inliers), or None when fewer than ``min_inliers`` agree."""
+    """The photo's pose from its verified matches with the model's other photos that reach the
+    model's 3D points: those seen by two photos besides it (independent of its own pose), or, where
+    they are fewer than ``min_inliers``, by one. Returns (cam_from_world, the 3D points of the
+    2D-3D inliers, their number), or None when fewer than ``min_inliers`` agree."""
     image = rec.images[image_id]
     ids = {rec.images[i].name: i for i in rec.reg_image_ids()}
     db_ids = {n: i for i, n in dbio.image_names(db).items() if n in ids}
     keypoints = dbio.read_keypoints(db, db_ids[image.name])[:, :2].astype(np.float64)
-    found: dict[int, int] = {}  # keypoint of the photo -> 3D point
+    found: dict[int, tuple[int, int]] = {}  # keypoint of the photo -> (3D point, other observers)
     for name, other_id in ids.items():
-        if other_id == image_id:
-            continue
         geometry = dbio.read_two_view_geometry(db, db_ids[image.name], db_ids[name])
-        if geometry is None or not len(geometry.inlier_matches):
+        if other_id == image_id or geometry is None:
             continue
-        matches = np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2)
-        mine, theirs = (0, 1) if db_ids[image.name] < db_ids[name] else (1, 0)
         points2D = rec.images[other_id].points2D
-        for k, j in zip(matches[:, mine], matches[:, theirs]):
-            if k in found or not points2D[j].has_point3D():
-                continue
-            track = rec.points3D[points2D[j].point3D_id].track.elements
-            if sum(el.image_id != image_id for el in track) >= 2:
-                found[int(k)] = points2D[j].point3D_id
-    if len(found) < min_inliers:
+        for k, j in np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2):
+            if k not in found and points2D[j].has_point3D():
+                point = points2D[j].point3D_id
+                track = rec.points3D[point].track.elements
+                found[int(k)] = point, sum(el.image_id != image_id for el in track)
+    for observers in (2, 1):
+        chosen = [(k, point) for k, (point, n) in found.items() if n >= observers]
+        if len(chosen) >= min_inliers:
+            break
+    else:
         return None
-    xy = keypoints[list(found)]
-    xyz = np.array([rec.points3D[p].xyz for p in found.values()])
+    xy = keypoints[[k for k, _ in chosen]]
+    xyz = np.array([rec.points3D[point].xyz for _, point in chosen])
     with colmap_quiet():
         estimate = pycolmap.estimate_and_refine_absolute_pose(xy, xyz, rec.cameras[image.camera_id])
     if estimate is None or estimate["num_inliers"] < min_inliers:
         return None
-    return estimate["cam_from_world"], xyz[np.asarray(estimate["inlier_mask"], bool)]
+    inliers = np.asarray(estimate["inlier_mask"], bool)
+    return estimate["cam_from_world"], xyz[inliers], int(inliers.sum())
 
 
-def agree(old: pycolmap.Rigid3d, new: pycolmap.Rigid3d, points: np.ndarray) -> bool:
-    """Whether two poses of a photo are one (``MAX_ROTATION_DEG``, ``MAX_CENTER_FRAC`` of the
-    median depth of ``points`` in the old one)."""
+def differences(old: pycolmap.Rigid3d, new: pycolmap.Rigid3d, points: np.ndarray) -> tuple:
+    """(rotation in degrees, centre distance as a fraction of the median depth of ``points`` in
+    the old pose) between two poses of a photo."""
     r_old, r_new = old.rotation.matrix(), new.rotation.matrix()
     cos = np.clip((np.trace(r_new @ r_old.T) - 1) / 2, -1.0, 1.0)
     centre = lambda pose: -pose.rotation.matrix().T @ pose.translation  # noqa: E731
-    depth = np.median((points @ r_old.T + old.translation)[:, 2])
-    return bool(
-        np.degrees(np.arccos(cos)) < MAX_ROTATION_DEG
-        and np.linalg.norm(centre(old) - centre(new)) < MAX_CENTER_FRAC * abs(depth)
+    depth = abs(np.median((points @ r_old.T + old.translation)[:, 2]))
+    return float(np.degrees(np.arccos(cos))), float(
+        np.linalg.norm(centre(old) - centre(new)) / max(depth, 1e-12)
     )
 
 
@@ -126,7 +126,8 @@ def check_models(
 ) -> tuple[set[str], dict]:
     """The check of every model's photos (``to_check``): their pairs (``pairs_to_check``) matched
     by ``rematch(todo)`` (the full matcher), then each photo taken out of its model where its pose
-    again (``pose_again``) is missing or does not ``agree``. ``conf``: escalation's check_pairs
+    again (``pose_again``) is missing or differs (``differences``) by ``MAX_ROTATION_DEG`` or
+    ``MAX_CENTER_FRAC`` or more. ``conf``: escalation's check_pairs
     and check_points, and mapping's abs_pose_min_num_inliers. Returns the pairs matched
     (name_a, name_b) and a record for the report."""
     kept = read_kept(kept_path)
@@ -140,7 +141,7 @@ def check_models(
                 if pairs:
                     checked[name] = (key, why)
                     todo += [p for p in pairs if p not in todo]
-    record = {"checked": {name: why for name, (_, why) in sorted(checked.items())}}
+    record = {"checked": {name: {"why": why} for name, (_, why) in sorted(checked.items())}}
     record.update(pairs=len(todo), taken_out={})
     if not todo:
         return set(), record
@@ -151,7 +152,12 @@ def check_models(
             rec = models[key]
             image = next(rec.images[i] for i in rec.reg_image_ids() if rec.images[i].name == name)
             again = pose_again(rec, image.image_id, db, conf["abs_pose_min_num_inliers"])
-            if again is None or not agree(image.cam_from_world(), *again):
+            if again is not None:
+                turn, moved = differences(image.cam_from_world(), *again[:2])
+                record["checked"][name].update(
+                    rotation_deg=round(turn, 3), centre_frac=round(moved, 4), inliers=again[2]
+                )
+            if again is None or turn >= MAX_ROTATION_DEG or moved >= MAX_CENTER_FRAC:
                 record["taken_out"][name] = why
                 rec.deregister_frame(image.frame_id)
     logger.info(

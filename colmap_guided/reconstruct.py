@@ -289,7 +289,9 @@ def _map(database_path, image_path, output, photos, conf, matcher, match_stats, 
     timings["map"] = time.time() - start
     selected = match_stats.pop("selected")
     models, done, match_stats["check"] = _check(conf, matcher, models, selected, output, image_path)
-    timings["check"] = match_stats["check"].pop("time")
+    seconds = match_stats["check"].pop("time")
+    if match_stats["check"]["pairs"]:
+        timings["check"] = seconds
     models, match_stats["escalation"] = _escalate(
         conf,
         matcher,

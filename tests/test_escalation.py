@@ -335,7 +335,8 @@ def test_a_photo_placed_on_cheap_pairs_is_checked_and_taken_out_where_it_lands_e
     result = reconstruct(scene.image_dir.parent, output=out, conf=conf)
     check = result["database"]["check"]
     assert check["checked"] and not check["taken_out"] and result["num_registered"] == 8
-    assert "cheaply kept pairs only" in " ".join(check["checked"].values())
+    assert "cheaply kept pairs only" in " ".join(c["why"] for c in check["checked"].values())
+    assert all(c["rotation_deg"] < 1 and c["centre_frac"] < 0.02 for c in check["checked"].values())
     kept_path = out / "kept_pairs.jsonl"
     rechecked = read_pairs(out / "check_pairs.txt", scene.names)
     assert len(rechecked) == check["pairs"] <= 2 * len(check["checked"])

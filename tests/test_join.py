@@ -42,7 +42,8 @@ def test_a_landmark_split_in_two_models_is_joined(tmp_path):
     assert photos_of_models(out / "sparse") == [set(scene.reference.names)]
     assert result["num_registered"] == 8 and (out / "join_pairs.txt").is_file()
     errors = pose_errors(pycolmap.Reconstruction(str(out / "sparse" / "0")), scene.reference)
-    assert max(e[0] for e in errors.values()) < 1.0, errors
+    # degrees: the grainy prints' poses differ by about 1° between CPUs; a wrong join by tens
+    assert max(e[0] for e in errors.values()) < 2.0, errors
     assert max(e[1] for e in errors.values()) < 0.01, errors
 
 

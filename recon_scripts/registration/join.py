@@ -191,7 +191,10 @@ class JoinBenchmark(Benchmark):
             tries = on.get("tries", [])
             cross = "; ".join(f"{t['matched']} / {t['verified']}" for t in tries) or "–"
             conflicts = "; ".join(
-                "/".join(map(str, t["conflicts"])) if t.get("conflicts") else "–" for t in tries
+                " · ".join("/".join(map(str, c)) for c in t["conflicts"] if c)
+                if t.get("conflicts")
+                else "–"
+                for t in tries
             )
             why = "; ".join(t["why"] for t in tries) or "no two models"
             seconds = "; ".join(f"{t['time']:.1f}" for t in tries) or "–"
