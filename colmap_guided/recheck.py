@@ -6,9 +6,9 @@ pose, and a photo that observes few 3D points rests on little. After mapping, su
 pairs with its model's photos all kept cheaply, or fewer than ``check_points`` 3D points observed)
 gets its ``check_pairs`` most similar pairs with the model's photos that the full matcher did not
 match (kept cheaply, deferred or gated) matched by the full matcher, and its pose is estimated again
-from the model's 3D points those matches reach. It keeps its place only where the two poses agree;
-elsewhere it is taken out of the model, and escalation's mapping, continued on the full matcher's
-matches, may place it again.
+from the model's 3D points that the full matcher's matches reach. It keeps its place only where the
+two poses agree; elsewhere it is taken out of the model, and escalation's mapping, continued on the
+full matcher's matches, may place it again.
 """
 
 from __future__ import annotations
@@ -68,11 +68,12 @@ def pairs_to_check(
     return todo
 
 
-def pose_again(rec: pycolmap.Reconstruction, image_id: int, db, min_inliers: int):
-    """The photo's pose from its verified matches with the model's other photos that reach the
-    model's 3D points: those seen by two photos besides it (independent of its own pose), or, where
-    they are fewer than ``min_inliers``, by one. Returns (cam_from_world, the 3D points of the
-    2D-3D inliers, their number), or None when fewer than ``min_inliers`` agree."""
+def pose_again(rec: pycolmap.Reconstruction, image_id: int, db, min_inliers: int, kept=frozenset()):
+    """The photo's pose from its verified matches with the model's other photos (not those of
+    pairs ``kept`` by a cheap decision: the full matcher's only) that reach the model's 3D points:
+    those seen by two photos besides it (independent of its own pose), or, where they are fewer
+    than ``min_inliers``, by one. Returns (cam_from_world, the 3D points of the 2D-3D inliers,
+    their number), or None when fewer than ``min_inliers`` agree."""
     image = rec.images[image_id]
     ids = {rec.images[i].name: i for i in rec.reg_image_ids()}
     db_ids = {n: i for i, n in dbio.image_names(db).items() if n in ids}
@@ -80,7 +81,7 @@ def pose_again(rec: pycolmap.Reconstruction, image_id: int, db, min_inliers: int
     found: dict[int, tuple[int, int]] = {}  # keypoint of the photo -> (3D point, other observers)
     for name, other_id in ids.items():
         geometry = dbio.read_two_view_geometry(db, db_ids[image.name], db_ids[name])
-        if other_id == image_id or geometry is None:
+        if other_id == image_id or geometry is None or frozenset((image.name, name)) in kept:
             continue
         points2D = rec.images[other_id].points2D
         for k, j in np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2):
@@ -147,11 +148,12 @@ def check_models(
         return set(), record
     logger.info("Checking %d photo(s) placed on cheap or thin evidence", len(checked))
     rematch(todo)
+    kept = read_kept(kept_path)
     with dbio.open_database(database_path) as db:
         for name, (key, why) in checked.items():
             rec = models[key]
             image = next(rec.images[i] for i in rec.reg_image_ids() if rec.images[i].name == name)
-            again = pose_again(rec, image.image_id, db, conf["abs_pose_min_num_inliers"])
+            again = pose_again(rec, image.image_id, db, conf["abs_pose_min_num_inliers"], kept)
             if again is not None:
                 turn, moved = differences(image.cam_from_world(), *again[:2])
                 record["checked"][name].update(
