@@ -88,15 +88,13 @@ def join_models(
     mapping_conf: dict,
     descriptors: dict | None,
     pairs_path: Path,
-    kept_path: Path | None = None,
 ) -> tuple[dict, list[dict]]:
     """Two ``models`` of ``candidates`` at a time, each two tried once: their ``join_pairs`` most
     similar cross pairs matched with the full matcher where the first pass did not (written to
     ``pairs_path``), the models merged where verified pairs reach ``MIN_PHOTOS`` photos of each
     (``merge``); a join rewrites ``sparse_path`` and the models are tried again. ``descriptors``:
-    the retrieval descriptors by name where matching computed them; ``kept_path``: the record of
-    pairs a cheap decision kept (``escalate.read_kept``), which count as not matched. Returns the
-    models and a record of each try."""
+    the retrieval descriptors by name where matching computed them. Returns the models and a
+    record of each try."""
     num_pairs, tries, tried = conf.escalation.join_pairs, [], set()
     full, descriptors = None, dict(descriptors or {})
     while num_pairs and len(models) > 1:
@@ -120,13 +118,13 @@ def join_models(
             cross,
             set(),
             num_pairs,
-            escalate.read_kept(kept_path),
+            escalate.kept_cheaply(matcher),
         )
         matched = 0
         for part in (todo[:PROBE], todo[PROBE:]):
             if part:
                 full = full or escalate.full_matcher(matcher)
-                match.rematch(database_path, image_path, full, conf, part, pairs_path, kept_path)
+                match.rematch(database_path, image_path, full, conf, part, pairs_path)
                 matched += len(part)
             counted = _with_inliers(database_path, cross)
             verified = [(a, b) for a, b, n in counted if n >= conf.escalation.strong_inliers]

@@ -117,7 +117,7 @@ def _escalate(
             selected,
             done,
             conf.escalation.pairs_per_photo,
-            escalate.read_kept(output / KEPT_PAIRS),
+            escalate.kept_cheaply(matcher),
             _registered(models, [k for k in models if k != 0]),
             conf.escalation.orphan_after,
         )
@@ -316,7 +316,6 @@ def _map(database_path, image_path, output, photos, conf, matcher, match_stats, 
         mapping_conf,
         match_stats.pop("descriptors"),
         output / JOIN_PAIRS,
-        output / KEPT_PAIRS,
     )
     if match_stats["joins"]:
         timings["join"] = time.time() - start
