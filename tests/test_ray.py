@@ -130,6 +130,7 @@ def test_ray_matches_and_registrations_equal_the_local_run(
     )
 
 
+@pytest.mark.slow  # a local run's resume after a kill is tested in test_reliability
 def test_a_killed_ray_run_resumes(ray_cluster, local_database, synthetic_scene, tmp_path):
     """The CLI on the cluster, killed (SIGKILL) once pairs are written: the database holds whole
     pairs only, and the same command again matches the rest into the local run's database."""
