@@ -31,14 +31,16 @@ MAX_CENTER_FRAC = 0.1
 TAKEN_OUT = " Mapping placed it ({why}), but the full matcher's matches did not confirm that pose."
 
 
-def to_check(rec: pycolmap.Reconstruction, db, kept: set[frozenset], min_points: int) -> dict:
-    """{name: why} of the model's photos that the check takes: every verified pair with another
-    photo of the model kept by a cheap decision (``kept``), or fewer than ``min_points`` 3D
-    points observed."""
+def to_check(
+    rec: pycolmap.Reconstruction, verified, ids: dict, kept: set[frozenset], min_points: int
+) -> dict:
+    """{name: why} of the model's photos that the check takes: every ``verified`` pair (database
+    ids; ``ids``: name -> id) with another photo of the model kept by a cheap decision (``kept``),
+    or fewer than ``min_points`` 3D points observed."""
     names = {rec.images[i].name: i for i in rec.reg_image_ids()}
-    by_id = {i: n for i, n in dbio.image_names(db).items() if n in names}
+    by_id = {ids[name]: name for name in names}
     partners: dict[str, list[str]] = {name: [] for name in names}
-    for (a, b), n in dbio.pair_inlier_counts(db).items():
+    for a, b in verified:
         if a in by_id and b in by_id:
             partners[by_id[a]].append(by_id[b])
             partners[by_id[b]].append(by_id[a])
@@ -68,20 +70,24 @@ def pairs_to_check(
     return todo
 
 
-def pose_again(rec: pycolmap.Reconstruction, image_id: int, db, min_inliers: int, kept=frozenset()):
+def pose_again(
+    rec: pycolmap.Reconstruction, image_id: int, db, ids: dict, min_inliers: int, kept=frozenset()
+):
     """The photo's pose from its verified matches with the model's other photos (not those of
     pairs ``kept`` by a cheap decision: the full matcher's only) that reach the model's 3D points:
     those seen by two photos besides it (independent of its own pose), or, where they are fewer
     than ``min_inliers``, by one. Returns (cam_from_world, the 3D points of the 2D-3D inliers,
-    their number), or None when fewer than ``min_inliers`` agree."""
+    their number), or None when fewer than ``min_inliers`` agree. ``ids``: database image id by
+    name."""
     image = rec.images[image_id]
-    ids = {rec.images[i].name: i for i in rec.reg_image_ids()}
-    db_ids = {n: i for i, n in dbio.image_names(db).items() if n in ids}
-    keypoints = dbio.read_keypoints(db, db_ids[image.name])[:, :2].astype(np.float64)
+    keypoints = dbio.read_keypoints(db, ids[image.name])[:, :2].astype(np.float64)
     found: dict[int, tuple[int, int]] = {}  # keypoint of the photo -> (3D point, other observers)
-    for name, other_id in ids.items():
-        geometry = dbio.read_two_view_geometry(db, db_ids[image.name], db_ids[name])
-        if other_id == image_id or geometry is None or frozenset((image.name, name)) in kept:
+    for other_id in rec.reg_image_ids():
+        name = rec.images[other_id].name
+        if other_id == image_id or frozenset((image.name, name)) in kept:
+            continue
+        geometry = dbio.read_two_view_geometry(db, ids[image.name], ids[name])
+        if geometry is None:
             continue
         points2D = rec.images[other_id].points2D
         for k, j in np.asarray(geometry.inlier_matches, np.int64).reshape(-1, 2):
@@ -128,20 +134,22 @@ def check_models(
     """The check of every model's photos (``to_check``): their pairs (``pairs_to_check``) matched
     by ``rematch(todo)`` (the full matcher), then each photo taken out of its model where its pose
     again (``pose_again``) is missing or differs (``differences``) by ``MAX_ROTATION_DEG`` or
-    ``MAX_CENTER_FRAC`` or more. ``conf``: escalation's check_pairs
-    and check_points, and mapping's abs_pose_min_num_inliers. Returns the pairs matched
-    (name_a, name_b) and a record for the report."""
+    ``MAX_CENTER_FRAC`` or more. ``conf``: escalation's check_pairs and check_points, and mapping's
+    abs_pose_min_num_inliers. Returns the pairs matched (name_a, name_b) and a record for the
+    report."""
     kept = read_kept(kept_path)
     with dbio.open_database(database_path) as db:
         ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
-        checked, todo = {}, []
+        verified = dbio.pair_inlier_counts(db)
+        checked, todo, matched = {}, [], set()
         for key, rec in models.items():
             model = {rec.images[i].name for i in rec.reg_image_ids()}
-            for name, why in to_check(rec, db, kept, conf["check_points"]).items():
+            for name, why in to_check(rec, verified, ids, kept, conf["check_points"]).items():
                 pairs = pairs_to_check(name, model, selected, db, ids, kept, conf["check_pairs"])
                 if pairs:
                     checked[name] = (key, why)
-                    todo += [p for p in pairs if p not in todo]
+                    todo += [p for p in pairs if p[2:] not in matched]
+                    matched.update(p[2:] for p in pairs)
     record = {"checked": {name: {"why": why} for name, (_, why) in sorted(checked.items())}}
     record.update(pairs=len(todo), taken_out={})
     if not todo:
@@ -153,7 +161,8 @@ def check_models(
         for name, (key, why) in checked.items():
             rec = models[key]
             image = next(rec.images[i] for i in rec.reg_image_ids() if rec.images[i].name == name)
-            again = pose_again(rec, image.image_id, db, conf["abs_pose_min_num_inliers"], kept)
+            min_inliers = conf["abs_pose_min_num_inliers"]
+            again = pose_again(rec, image.image_id, db, ids, min_inliers, kept)
             if again is not None:
                 turn, moved = differences(image.cam_from_world(), *again[:2])
                 record["checked"][name].update(
@@ -166,4 +175,4 @@ def check_models(
         "%d photo(s) taken out: the full matcher's matches put them elsewhere",
         len(record["taken_out"]),
     )
-    return {key[2:] for key in todo}, record
+    return matched, record
