@@ -137,6 +137,9 @@ def check_models(
     ``MAX_CENTER_FRAC`` or more. ``conf``: escalation's check_pairs and check_points, and mapping's
     abs_pose_min_num_inliers. Returns the pairs matched (name_a, name_b) and a record for the
     report."""
+    record = {"checked": {}, "pairs": 0, "taken_out": {}}
+    if not conf["check_pairs"]:
+        return set(), record
     kept = read_kept(kept_path)
     with dbio.open_database(database_path) as db:
         ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
@@ -150,8 +153,8 @@ def check_models(
                     checked[name] = (key, why)
                     todo += [p for p in pairs if p[2:] not in matched]
                     matched.update(p[2:] for p in pairs)
-    record = {"checked": {name: {"why": why} for name, (_, why) in sorted(checked.items())}}
-    record.update(pairs=len(todo), taken_out={})
+    record.update(checked={name: {"why": why} for name, (_, why) in sorted(checked.items())})
+    record["pairs"] = len(todo)
     if not todo:
         return set(), record
     logger.info("Checking %d photo(s) placed on cheap or thin evidence", len(checked))

@@ -149,28 +149,31 @@ def _escalate(
     return models, rounds
 
 
-def _check(conf, matcher, models, selected, output, image_path) -> tuple[dict, set, dict]:
-    """``recheck``: photos placed on cheap or thin evidence checked by the full matcher, those
-    it puts elsewhere taken out (the models rewritten). Returns the models, the pairs matched and
-    the check's record (with its time)."""
+def _check(conf, matcher, models, selected, output, image_path, timings) -> tuple[dict, set, dict]:
+    """``recheck``: photos placed on cheap or thin evidence checked by the full matcher (made only
+    where there is a pair to match), those it puts elsewhere taken out (the models rewritten).
+    Returns the models, the pairs matched and the check's record."""
     start, database_path = time.time(), output / "database.db"
-    full = escalate.full_matcher(matcher)
     rematch = lambda todo: match.rematch(  # noqa: E731
-        database_path, image_path, full, conf, todo, output / CHECK_PAIRS, output / KEPT_PAIRS
+        database_path,
+        image_path,
+        escalate.full_matcher(matcher),
+        conf,
+        todo,
+        output / CHECK_PAIRS,
+        output / KEPT_PAIRS,
     )
     check_conf = {**conf.escalation.to_dict(), **conf.mapping.to_dict()}
-    done, record = (
-        recheck.check_models(
-            database_path, models, selected, output / KEPT_PAIRS, check_conf, rematch
-        )
-        if conf.escalation.check_pairs
-        else (set(), {"checked": {}, "pairs": 0, "taken_out": {}})
+    done, record = recheck.check_models(
+        database_path, models, selected, output / KEPT_PAIRS, check_conf, rematch
     )
     if record["taken_out"]:
         models = mapping.write_models(
             output / "sparse", [rec for rec in models.values() if rec.num_reg_images() >= 2]
         )
-    return models, done, {**record, "time": time.time() - start}
+    if record["pairs"]:
+        timings["check"] = time.time() - start
+    return models, done, record
 
 
 def reconstruct(
@@ -288,10 +291,9 @@ def _map(database_path, image_path, output, photos, conf, matcher, match_stats, 
         models = mapping.map_weak_start(database_path, image_path, sparse_path, mapping_conf)
     timings["map"] = time.time() - start
     selected = match_stats.pop("selected")
-    models, done, match_stats["check"] = _check(conf, matcher, models, selected, output, image_path)
-    seconds = match_stats["check"].pop("time")
-    if match_stats["check"]["pairs"]:
-        timings["check"] = seconds
+    models, done, match_stats["check"] = _check(
+        conf, matcher, models, selected, output, image_path, timings
+    )
     models, match_stats["escalation"] = _escalate(
         conf,
         matcher,
