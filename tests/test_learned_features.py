@@ -401,7 +401,7 @@ def test_lightglue_weights_as_tensors_give_the_same_matches(aliked, shared_data,
     matcher.net = before
     np.testing.assert_array_equal(got, matcher.match(*sides))
     assert len(got) > 100
-    # bfloat16 layers (the default where the CPU has native bf16) keep nearly every match
+    # bfloat16 layers (an option on CPU) keep nearly every match
     bf16 = lg.LightGlueMatcher({"device": "cpu", "bf16": True})
     assert bf16.describe()["bf16"] and not lg.LightGlueMatcher({"bf16": False}).describe()["bf16"]
     kept = set(map(tuple, bf16.match(*sides).tolist())) & set(map(tuple, got.tolist()))

@@ -104,14 +104,6 @@ def fused_cross_attention(block: torch.nn.Module, x0: torch.Tensor, x1: torch.Te
     return x0 + block.ffn(torch.cat([x0, m0], -1)), x1 + block.ffn(torch.cat([x1, m1], -1))
 
 
-def native_bf16() -> bool:
-    """Whether this CPU computes bfloat16 natively (AVX512-BF16 or AMX tiles)."""
-    return any(
-        getattr(torch.cpu, check, lambda: False)()
-        for check in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
-    )
-
-
 def in_bf16(forward):
     """A LightGlue layer's ``forward`` under bfloat16 autocast, its descriptors back in float32
     (the package's own matching steps fail under a whole-network autocast)."""
@@ -140,10 +132,9 @@ class LightGlueMatcher(Matcher):
         "min_inliers": 60,
         # Off CUDA, cross-attention fused per direction (same matches); False: the package's own
         "fused_attention": True,
-        # Transformer layers in bfloat16 on CPU ('auto': where the CPU computes it natively,
-        # AVX512-BF16 or AMX; emulated it is slower). 97-99 % of the float32 matches kept on 4
-        # sacre_coeur pairs (docs/RESULTS.md, speed section)
-        "bf16": "auto",
+        # Transformer layers in bfloat16 on CPU: 97-99 % of the float32 matches kept, no faster on
+        # native AVX512-BF16, and memory grows with every new pair's shape (docs/RESULTS.md, speed)
+        "bf16": False,
         "device": "auto",
     }
 
@@ -162,11 +153,9 @@ class LightGlueMatcher(Matcher):
             for layer in self.net.transformers:
                 layer.cross_attn.forward = types.MethodType(fused_cross_attention, layer.cross_attn)
         bf16 = self.conf["bf16"]
-        if bf16 not in ("auto", True, False):
-            raise ValueError(f"bf16 must be 'auto', True or False, got {bf16!r}")
-        self.bf16 = self.device.type == "cpu" and (
-            bf16 is True or (bf16 == "auto" and native_bf16())
-        )
+        if bf16 not in (True, False):
+            raise ValueError(f"bf16 must be True or False, got {bf16!r}")
+        self.bf16 = self.device.type == "cpu" and bf16
         if self.bf16:
             for layer in self.net.transformers:
                 layer.forward = in_bf16(layer.forward)
