@@ -14,6 +14,7 @@ import itertools
 import multiprocessing
 import os
 import time
+from concurrent.futures import ProcessPoolExecutor
 
 from colmap_guided.paths import shared_data_dir
 
@@ -67,11 +68,13 @@ def main() -> None:
     args = parser.parse_args()
     photos = next(n for n in itertools.count(2) if n * (n - 1) // 2 >= args.pairs)
     images = sides(str(shared_data_dir() / args.set / "images"), photos)
+    photos, pairs = len(images), min(args.pairs, len(images) * (len(images) - 1) // 2)
     ctx = multiprocessing.get_context("spawn")
     results = {}
     for name, bf16 in (("float32", False), ("bfloat16 layers", True)):
-        with ctx.Pool(1) as pool:
-            results[name] = pool.apply(run, (bf16, images, args.pairs))
+        # the worker exits on its own: a terminated one prints pycolmap's stack trace
+        with ProcessPoolExecutor(1, mp_context=ctx) as pool:
+            results[name] = pool.submit(run, bf16, images, pairs).result()
     ref = results["float32"]["matches"]
     print(f"{args.set}: {len(ref)} pairs of {photos} photos, ALIKED default settings")
     print("| precision | matches (kept of float32's) | s a pair | RSS MB after pair 1 → last |")
