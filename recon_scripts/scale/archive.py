@@ -244,10 +244,11 @@ def compare(
     }
 
 
-def run_archive(archive: Path, out: Path, alone: bool, timeout: float, flags=()) -> dict:
+def run_archive(archive: Path, out: Path, alone, timeout: float, flags=()) -> dict:
     """The archive reconstructed in one run (OUT/run, with reconstruct's ``flags``), then each
-    label of at least MIN_ALONE photos alone (ARCHIVE/../alone/<label>/run, its photos under their
-    archive names; one for every run of the archive), and their comparison."""
+    label of at least MIN_ALONE photos that matches a pattern of ``alone`` (fnmatch; empty: none)
+    alone (ARCHIVE/../alone/<label>/run, its photos under their archive names, the default
+    settings; one for every run of the archive), and their comparison."""
     labels = json.loads((archive / "labels.json").read_text())
     result = {"archive": reconstruct_run(archive, out / "run", timeout, flags), "alone": {}}
     by_label: dict[str, list[str]] = {}
@@ -255,7 +256,7 @@ def run_archive(archive: Path, out: Path, alone: bool, timeout: float, flags=())
         by_label.setdefault(label, []).append(name)
     own_models = {}
     for label, names in sorted(by_label.items()):
-        if not alone or len(names) < MIN_ALONE:
+        if len(names) < MIN_ALONE or not any(fnmatch(label, p) for p in alone or ()):
             continue
         scene = archive.parent / "alone" / method_slug(label)
         if not (scene / "images").is_dir():

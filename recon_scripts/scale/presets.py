@@ -8,6 +8,7 @@
     python -m recon_scripts scale_default sets=1000   # reconstruct end to end, as shipped
     python -m recon_scripts archive                   # the 1,000-photo development archive
     python -m recon_scripts archive sets=60 labels="sacre_coeur wxbs:k*" alone=false
+    python -m recon_scripts archive methods=aliked_1024 alone_labels="sacre_coeur postcards:*"
 
 Photos: the 437 photos of the 20 training scenes of ../shared/data/train pooled (long side <=
 1024 px; symlinked, never copied) and 563 photos of 24 landmarks rendered by
@@ -27,7 +28,8 @@ Markdown tables (printed, WORK/report.md) and WORK/scale.png.
 `archive`: every labelled photo of ../shared/data (landmark sets, postcards, training scenes,
 PhotoTourism landmarks, WxBS pairs: recon_scripts/scale/archive.py) and rendered landmarks up to
 N, shuffled (seeded) into one flat folder under opaque names (WORK/n<N>/archive: symlinks,
-labels.json); ``reconstruct`` of it in one run, then of each label of 3 photos or more alone; per
+labels.json); ``reconstruct`` of it in one run, then of each label of 3 photos or more alone
+(those of ``alone_labels``, with the default settings); per
 label, how many of its own run's photos one archive model holds, and the archive's models that mix
 labels. A run that succeeded is kept (WORK/n<N>/default/run.json, alone/<label>/run.json) and is
 not run again.
@@ -193,6 +195,7 @@ class Archive(Benchmark):
         "seed": 0,  # the shuffle: which photo gets which name
         "take": None,  # a sample: the archive's first N names (all kinds of photos), not all
         "alone": True,  # each label of 3 photos or more reconstructed alone: the reference
+        "alone_labels": ["*"],  # the labels of 3 photos or more run alone (fnmatch patterns)
         "methods": ["default"],  # the archive's runs, named in archive.RUNS: "default orphans_kept"
         "timeout": 4 * 3600,  # seconds per reconstruct run
     }
@@ -215,7 +218,10 @@ class Archive(Benchmark):
 
     def configs(self):
         return {
-            name: {"alone": self.conf["alone"], "flags": RUNS[name]}
+            name: {
+                "alone": self.conf["alone"] and self.conf["alone_labels"],
+                "flags": RUNS[name],
+            }
             for name in self.conf["methods"]
         }
 
