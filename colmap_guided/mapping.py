@@ -274,7 +274,9 @@ def run_mapping(
     conf = check_conf(conf)
     sparse_path = Path(sparse_path)
     if extend:
-        models = extend_model(database_path, image_path, sparse_path, 0, conf)
+        previous = load_models(sparse_path)
+        extended = extend_model(database_path, image_path, sparse_path, 0, conf)
+        models = one_model_per_photo(extended, previous, conf["min_model_size"])
     else:
         tmp = _scratch(sparse_path, conf)
         logger.info("%s mapping", conf["mapper"].capitalize())
@@ -314,6 +316,41 @@ def extend_model(
         )
     shutil.rmtree(tmp)
     return _prune(conf, models)
+
+
+def _names(rec: pycolmap.Reconstruction) -> set[str]:
+    return {rec.images[i].name for i in rec.reg_image_ids()}
+
+
+def one_model_per_photo(
+    extended: dict[int, pycolmap.Reconstruction],
+    previous: dict[int, pycolmap.Reconstruction],
+    min_size: int,
+) -> dict[int, pycolmap.Reconstruction]:
+    """The models of ``extend_model`` (``previous[0]`` continued, and what incremental mapping made
+    of the other photos) with the other ``previous`` models, each photo in one model: the continued
+    model first, then the largest first, each without the photos of a model before it, kept while
+    it holds ``min_size`` photos. Mapping the other photos again can place fewer of a model's photos
+    than the mapper that made it (the global mapper's street walk): that model stays."""
+    base = _names(previous[0]) if 0 in previous else set()
+    # incremental mapping may return the input model as it was beside the one it continued
+    first = max(
+        extended.values(),
+        key=lambda rec: (len(_names(rec) & base), rec.num_reg_images()),
+        default=None,
+    )
+    rest = [rec for rec in extended.values() if rec is not first]
+    rest += [rec for k, rec in previous.items() if k != 0 or first is None]
+    rest.sort(key=lambda rec: -rec.num_reg_images())
+    kept, taken = {}, set()
+    for rec in ([first] if first is not None else []) + rest:
+        for i in list(rec.reg_image_ids()):
+            if rec.images[i].name in taken:
+                rec.deregister_frame(rec.images[i].frame_id)
+        if rec.num_reg_images() >= max(2, min_size):
+            kept[len(kept)] = rec
+            taken |= _names(rec)
+    return kept
 
 
 def write_models(sparse_path: Path, models) -> dict[int, pycolmap.Reconstruction]:

@@ -9,7 +9,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from colmap_guided.mapping import MAPPERS, check_conf, run_mapping
+from colmap_guided.mapping import MAPPERS, check_conf, run_mapping, write_models
 from colmap_guided.model_check import check_models
 from recon_scripts.evaluation.ground_truth import pose_errors
 
@@ -95,6 +95,32 @@ def test_seeded_single_thread_mapping_repeats_exactly(thin_chain, tmp_path, mapp
     assert poses[0].keys() == poses[1].keys()
     for name in poses[0]:
         np.testing.assert_array_equal(poses[0][name], poses[1][name])
+
+
+def test_extending_the_largest_model_keeps_a_model_that_mapping_again_would_shrink(
+    thin_chain, tmp_path
+):
+    """Escalation continues model 0 and maps the other photos again: where that places fewer of
+    another model's photos than the mapper that made it, the model stays (each photo in one
+    model); where the continued model takes a model's photos, that model goes."""
+    conf = {"mapper": "incremental", "num_threads": 1}
+    whole = run_mapping(thin_chain, tmp_path, tmp_path / "all", conf)[0]
+    names = sorted(whole.images[i].name for i in whole.reg_image_ids())
+    halves = [
+        run_mapping(thin_chain, tmp_path, tmp_path / f"half{k}", {**conf, "image_names": part})[0]
+        for k, part in enumerate((names[:6], names[6:]))
+    ]
+    assert [rec.num_reg_images() for rec in halves] == [6, 6]
+    sparse = tmp_path / "sparse"
+    write_models(sparse, halves)
+    # the continued model reaches 2 photos of the other half; mapping again places none of the rest
+    models = run_mapping(thin_chain, tmp_path, sparse, {**conf, "image_names": names[:8]}, True)
+    placed = [sorted(rec.images[i].name for i in rec.reg_image_ids()) for rec in models.values()]
+    assert placed == [names[:8], names[8:]]
+    assert [sorted(p.name for p in sparse.iterdir())] == [["0", "1"]]
+    # mapping every photo: the continued model takes them all
+    models = run_mapping(thin_chain, tmp_path, sparse, conf, True)
+    assert [rec.num_reg_images() for rec in models.values()] == [NUM_FRAMES]
 
 
 def test_mapping_conf_is_strict():
