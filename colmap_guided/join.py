@@ -28,6 +28,7 @@ import pycolmap
 from . import database as dbio
 from . import escalate, mapping, match, model_check
 from .log import logger
+from .mapping import registered
 from .matchers import Matcher
 from .pipeline import PipelineConf
 
@@ -51,10 +52,6 @@ MAX_CONFLICTS = 0.12
 # a point agrees with what a photo sees where their depths differ by at most this share; the
 # photo's view is cut in cells of this share of its larger side (each: its nearest point)
 DEPTH_TOLERANCE, CELL = 0.05, 0.015
-
-
-def registered(rec: pycolmap.Reconstruction) -> set[str]:
-    return {rec.images[i].name for i in rec.reg_image_ids()}
 
 
 def cross_pairs(

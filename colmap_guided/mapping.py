@@ -318,7 +318,8 @@ def extend_model(
     return _prune(conf, models)
 
 
-def _names(rec: pycolmap.Reconstruction) -> set[str]:
+def registered(rec: pycolmap.Reconstruction) -> set[str]:
+    """The names of the model's registered photos."""
     return {rec.images[i].name for i in rec.reg_image_ids()}
 
 
@@ -332,11 +333,11 @@ def one_model_per_photo(
     model first, then the largest first, each without the photos of a model before it, kept while
     it holds ``min_size`` photos. Mapping the other photos again can place fewer of a model's photos
     than the mapper that made it (the global mapper's street walk): that model stays."""
-    base = _names(previous[0]) if 0 in previous else set()
+    base = registered(previous[0]) if 0 in previous else set()
     # incremental mapping may return the input model as it was beside the one it continued
     first = max(
         extended.values(),
-        key=lambda rec: (len(_names(rec) & base), rec.num_reg_images()),
+        key=lambda rec: (len(registered(rec) & base), rec.num_reg_images()),
         default=None,
     )
     rest = [rec for rec in extended.values() if rec is not first]
@@ -349,7 +350,7 @@ def one_model_per_photo(
                 rec.deregister_frame(rec.images[i].frame_id)
         if rec.num_reg_images() >= max(2, min_size):
             kept[len(kept)] = rec
-            taken |= _names(rec)
+            taken |= registered(rec)
     return kept
 
 

@@ -84,9 +84,7 @@ def resolve_paths(
 
 def _registered(models: dict, which=(0,)) -> set[str]:
     """The photos of the largest model (``which``: of those models)."""
-    return {
-        models[k].images[i].name for k in which if k in models for i in models[k].reg_image_ids()
-    }
+    return set().union(*(mapping.registered(models[k]) for k in which if k in models))
 
 
 def _escalate(

@@ -21,13 +21,9 @@ from collections import Counter
 from pathlib import Path, PurePosixPath
 
 
-def names_of(rec) -> list[str]:
-    return [rec.images[i].name for i in rec.reg_image_ids()]
-
-
 def main() -> None:
     from colmap_guided import model_check
-    from colmap_guided.mapping import run_mapping
+    from colmap_guided.mapping import registered, run_mapping
     from recon_scripts.scale.archive import photo_of
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -54,7 +50,7 @@ def main() -> None:
         placed = passed = 0
         print(f"| {what}: model | photos | model check | labels (photos) |\n|---|---|---|---|")
         for key, rec in models.items():
-            names = names_of(rec)
+            names = registered(rec)
             ok = not model_check.check_model(rec)
             placed, passed = placed + len(names), passed + ok * len(names)
             count = Counter(labels.get(photo_of(name, stems), "?") for name in names)
@@ -62,7 +58,7 @@ def main() -> None:
             more = f" and {len(count) - 4} more" if len(count) > 4 else ""
             print(f"| {key} | {len(names)} | {'ok' if ok else 'failed'} | {shown}{more} |")
         twice = sum(
-            n > 1 for n in Counter(n for rec in models.values() for n in names_of(rec)).values()
+            n > 1 for n in Counter(n for rec in models.values() for n in registered(rec)).values()
         )
         print(
             f"\n{what}: {placed} photos placed, {passed} in models that pass the check, "

@@ -4,12 +4,12 @@ which pairs a decision from them would have spared LightGlue, and what it would 
     python -m recon_scripts.scale.pair_signals WORKSPACE [--labels LABELS.json]
 
 For every pair of the run's database that the full matcher matched (written, not kept by a cheap
-decision), the coarse pair score and the cheap pass's verified inliers are computed again (the
-run's features and options), beside the inliers the run verified. Per rule "leave the pair where
-the cheap pass verifies fewer than C inliers or the coarse score is below S": LightGlue calls
-spared, verified and strong (100+ inliers) pairs lost, photos placed in the run whose every verified
-pair is lost, and with the archive's labels (``recon_scripts archive``) lost pairs within one label
-and across two.
+decision), the coarse pair score and the cheap pass's matches inside eq. 1's window are computed
+again (the run's features and options), beside the inliers the run verified. Per rule "leave the
+pair where the cheap pass finds fewer than C matches or the coarse score is below S": LightGlue
+calls spared, verified and strong (100+ inliers) pairs lost, photos placed in the run whose every
+verified pair is lost, and with the archive's labels (``recon_scripts archive``) lost pairs within
+one label and across two.
 """
 
 from __future__ import annotations
