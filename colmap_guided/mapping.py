@@ -114,11 +114,9 @@ def pose_support(rec: pycolmap.Reconstruction, database_path: Path, max_error: f
     ``max_error`` pixels (the verification's RANSAC threshold) of the epipolar geometry of the two
     photos' poses, in undistorted normalized coordinates. A photo placed on a wrong pose contradicts
     the inliers of its pairs."""
-    registered = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
+    placed = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
     with dbio.open_database(database_path) as db:
-        ids = {
-            image_id: name for image_id, name in dbio.image_names(db).items() if name in registered
-        }
+        ids = {image_id: name for image_id, name in dbio.image_names(db).items() if name in placed}
         inliers = dbio.read_verified_inliers(db, set(ids))
         keypoints = {
             image_id: dbio.read_keypoints(db, image_id)[:, :2].astype(np.float64)
@@ -126,7 +124,7 @@ def pose_support(rec: pycolmap.Reconstruction, database_path: Path, max_error: f
         }
     support = 0
     for (id_a, id_b), matches in inliers.items():
-        image_a, image_b = registered[ids[id_a]], registered[ids[id_b]]
+        image_a, image_b = placed[ids[id_a]], placed[ids[id_b]]
         camera_a, camera_b = rec.cameras[image_a.camera_id], rec.cameras[image_b.camera_id]
         b_from_a = image_b.cam_from_world() * image_a.cam_from_world().inverse()
         E = essential_from_pose(b_from_a.rotation.matrix(), b_from_a.translation)
@@ -178,7 +176,7 @@ def _auto(
             placeable = placeable_images(database_path, conf["min_num_matches"])
             if conf["image_names"]:  # only these are mapped
                 placeable &= set(conf["image_names"])
-            left = placeable - {scored[0][3].images[i].name for i in scored[0][3].reg_image_ids()}
+            left = placeable - registered(scored[0][3])
             if not left:
                 logger.info("Incremental mapping placed every photo that has a verified pair")
                 break

@@ -22,6 +22,7 @@ from . import database as dbio
 from .escalate import read_kept
 from .image_data import PairKey
 from .log import colmap_quiet, logger
+from .mapping import registered
 
 # Two poses of a photo are one where they differ by less than this rotation and their centres by
 # less than this fraction of the photo's median depth (the evaluation's bounds of a correct pose).
@@ -146,7 +147,7 @@ def check_models(
         verified = dbio.pair_inlier_counts(db)
         checked, todo, matched = {}, [], set()
         for key, rec in models.items():
-            model = {rec.images[i].name for i in rec.reg_image_ids()}
+            model = registered(rec)
             for name, why in to_check(rec, verified, ids, kept, conf["check_points"]).items():
                 pairs = pairs_to_check(name, model, selected, db, ids, kept, conf["check_pairs"])
                 if pairs:

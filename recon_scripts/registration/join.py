@@ -28,7 +28,7 @@ import numpy as np
 import pycolmap
 
 from colmap_guided import archival, images
-from colmap_guided.mapping import load_models
+from colmap_guided.mapping import load_models, registered
 from colmap_guided.paths import shared_data_dir
 from colmap_guided.pipeline import PipelineConf
 from colmap_guided.reconstruct import reconstruct
@@ -124,7 +124,7 @@ def run(scene: Scene, workspace: Path, pairs: str | Path, join_pairs: int) -> di
 def models_cell(workspace: Path, groups: list[list[str]]) -> str:
     """Each model's photos by group, largest first: 4+0 | 0+4."""
     models = load_models(workspace / "sparse").values()
-    names = [{rec.images[i].name for i in rec.reg_image_ids()} for rec in models]
+    names = [registered(rec) for rec in models]
     return " \\| ".join("+".join(str(len(n & set(g))) for g in groups if g) for n in names) or "–"
 
 

@@ -302,17 +302,13 @@ def photo_costs(workspace: Path) -> dict:
     join) and the seconds of matching (first pass and escalation) that their pairs took, shared
     evenly by the pairs; and the photos that matching took for orphans."""
     from colmap_guided import database as dbio
-    from colmap_guided.mapping import load_models
+    from colmap_guided.mapping import load_models, registered
 
     report = json.loads((workspace / "report.json").read_text())
     with dbio.open_database(workspace / "database.db") as db:
         names = dbio.image_names(db)
     pairs = dbio.written_pairs(workspace / "database.db")
-    placed = {
-        rec.images[i].name
-        for rec in load_models(workspace / "sparse").values()
-        for i in rec.reg_image_ids()
-    }
+    placed = set().union(*map(registered, load_models(workspace / "sparse").values()))
     per_photo = Counter(names[i] for pair in pairs for i in pair)
     t = report["timings"]
     per_pair = (t.get("match", 0) + t.get("escalate_match", 0)) / max(len(pairs), 1)

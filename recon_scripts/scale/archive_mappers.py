@@ -47,19 +47,18 @@ def main() -> None:
         conf = {"mapper": mapper}
         models = run_mapping(database, Path(report["image_path"]), out / mapper, conf, extend)
         seconds = time.perf_counter() - start
-        placed = passed = 0
+        placed, passed, seen = 0, 0, Counter()
         print(f"| {what}: model | photos | model check | labels (photos) |\n|---|---|---|---|")
         for key, rec in models.items():
             names = registered(rec)
+            seen.update(names)
             ok = not model_check.check_model(rec)
             placed, passed = placed + len(names), passed + ok * len(names)
             count = Counter(labels.get(photo_of(name, stems), "?") for name in names)
             shown = ", ".join(f"{lb} {n}" for lb, n in count.most_common(4))
             more = f" and {len(count) - 4} more" if len(count) > 4 else ""
             print(f"| {key} | {len(names)} | {'ok' if ok else 'failed'} | {shown}{more} |")
-        twice = sum(
-            n > 1 for n in Counter(n for rec in models.values() for n in registered(rec)).values()
-        )
+        twice = sum(n > 1 for n in seen.values())
         print(
             f"\n{what}: {placed} photos placed, {passed} in models that pass the check, "
             f"{twice} in two models, {seconds:.0f} s\n",

@@ -106,13 +106,13 @@ def rule_table(rows: list[dict], placed: set[str], verified_by_photo: dict, labe
 
 def main() -> None:
     from colmap_guided import database as dbio
-    from colmap_guided.mapping import load_models
+    from colmap_guided.mapping import load_models, registered
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("workspace", type=Path, help="a reconstruct run's workspace")
     parser.add_argument("--labels", type=Path, help="the archive's labels.json")
     args = parser.parse_args()
-    cache = args.workspace / "pair_signals_v2.json"
+    cache = args.workspace / "pair_signals.json"
     if cache.is_file():
         rows = json.loads(cache.read_text())
     else:
@@ -126,11 +126,7 @@ def main() -> None:
     for i, j in verified:
         for name in (names[i], names[j]):
             by_photo.setdefault(name, set()).add(frozenset((names[i], names[j])))
-    placed = {
-        rec.images[i].name
-        for rec in load_models(args.workspace / "sparse").values()
-        for i in rec.reg_image_ids()
-    }
+    placed = set().union(*map(registered, load_models(args.workspace / "sparse").values()))
     labels = json.loads(args.labels.read_text()) if args.labels else None
     ok = np.array([r["inliers"] > 0 for r in rows])
     for key in ("cheap", "cheap_inliers", "score"):
