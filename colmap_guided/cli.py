@@ -13,6 +13,7 @@ from .executor import EXECUTORS
 from .features import aliked
 from .matchers import AUTO, PRESETS, check_options
 from .matchers.guided import GuidedMatcher
+from .matchers.lightglue import GuidedLightGlueMatcher
 from .pipeline import PipelineConf
 
 # PipelineConf's options given as reconstruct's and match's flags: option -> flag (some flags keep
@@ -32,6 +33,8 @@ ALIKED_FLAGS = {
 MAPPING_FLAGS = {"mapper": "mapper", "random_seed": "seed", "num_threads": "threads"}
 # of the matcher's conf (the guided matcher's comments); not given: the chosen matcher's own
 MATCHER_FLAGS = ["ratio", "weights", "device"]
+# of guided LightGlue's conf (the default matcher's comments); another matcher's error names it
+LIGHTGLUE_FLAGS = ["cheap_matches"]
 PAIRS_FLAGS = [f.name for f in dataclasses.fields(pipeline.PairsConf)]
 
 
@@ -93,12 +96,24 @@ def add_matcher_flags(parser: argparse.ArgumentParser, keys: list[str]):
         what="matcher",
         defaults=dict.fromkeys(keys, argparse.SUPPRESS),
     )
+    add_conf_flags(
+        group,
+        GuidedLightGlueMatcher,
+        LIGHTGLUE_FLAGS,
+        types={"cheap_matches": none_or(int)},
+        what="matcher",
+        defaults=dict.fromkeys(LIGHTGLUE_FLAGS, argparse.SUPPRESS),
+    )
     return group
 
 
 def matcher_options(args: argparse.Namespace, keys: list[str] = MATCHER_FLAGS) -> dict:
-    """The matcher options ``keys`` given as flags (those not given are left out)."""
-    return conf_from_flags(args, GuidedMatcher, keys, "matcher")
+    """The matcher options ``keys`` and ``LIGHTGLUE_FLAGS`` given as flags (those not given are
+    left out)."""
+    return {
+        **conf_from_flags(args, GuidedMatcher, keys, "matcher"),
+        **conf_from_flags(args, GuidedLightGlueMatcher, LIGHTGLUE_FLAGS, "matcher"),
+    }
 
 
 def matcher_conf_from_args(args: argparse.Namespace, matcher: str) -> dict:

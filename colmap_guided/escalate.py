@@ -50,8 +50,8 @@ default_conf = {
 }
 # the options that turn a matcher's cheap decisions off: its pair gate, cheap pass and probe
 GATES_OFF = {"min_pair_score": None, "cheap_inliers": None, "probe_keypoints": None}
-# a cheap decision's option (on) and the verified inliers with which it keeps a pair's matches
-KEEPS = {"cheap_inliers": "cheap_inliers", "probe_keypoints": "probe_inliers"}
+# the options of the cheap decisions that keep a pair's matches without the full matcher (on)
+KEEPS = ("cheap_inliers", "probe_keypoints")
 
 
 def full_matcher(matcher):
@@ -60,11 +60,13 @@ def full_matcher(matcher):
     return type(matcher)({**matcher.conf, **off}) if off else matcher
 
 
-def kept_cheaply(matcher) -> int | None:
-    """The fewest verified inliers with which one of the matcher's cheap decisions keeps a pair
-    (None: it keeps none): a pair written with as many may not be the full matcher's result."""
-    kept = [matcher.conf[k] for on, k in KEEPS.items() if matcher.conf.get(on) is not None]
-    return min(kept, default=None)
+def keeps_cheaply(matcher) -> bool:
+    """Whether one of the matcher's cheap decisions may keep a pair's matches: a pair it writes
+    may then not be the full matcher's result (``record_kept``)."""
+    return any(matcher.conf.get(k) is not None for k in KEEPS)
+
+
+KEPT_PAIRS = "kept_pairs.jsonl"  # in a run's workspace: the pairs a cheap decision kept
 
 
 def record_kept(path: Path | None, pairs: list[tuple[str, str]]) -> None:
@@ -123,33 +125,29 @@ def pairs_to_escalate(
     selected: list[tuple[str, str]],
     done: set,
     per_photo: int,
-    cheap_inliers: int | None = None,
+    kept: set[frozenset] = frozenset(),
     elsewhere: set[str] = frozenset(),
     orphan_after: int | None = None,
 ) -> list[PairKey]:
     """The ``selected`` pairs (most similar first) of the photos ``left`` out of the model that the
     first pass did not match with the full matcher, up to ``per_photo`` for each: deferred or
-    left by a cheap decision (never written) or, where one keeps pairs of ``cheap_inliers``
-    verified inliers (``kept_cheaply``), those with that many (the full matcher finds more, which
-    a photo that mapping could not place may need). A pair written with fewer is the full
-    matcher's own result: matching it again would give it again. ``done``: pairs (name_a, name_b)
-    escalated already. A pair of two photos placed ``elsewhere`` (in models other than the
+    left by a cheap decision (never written) or ``kept`` by one (``read_kept``: the full matcher
+    may find more, which a photo that mapping could not place may need). A pair the full matcher
+    wrote is its own result: matching it again would give it again. ``done``: pairs (name_a,
+    name_b) escalated already. A pair of two photos placed ``elsewhere`` (in models other than the
     largest) is not taken: it cannot bring either into the model. An orphan (``orphans``, with
     ``orphan_after``: nothing it was matched with verified) is not left out: its pairs are taken
     only for their other photo. Returns (id_a, id_b, name_a, name_b)."""
     taken, todo = Counter(), []
     with dbio.open_database(database_path) as db:
         ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
-        inliers = dbio.pair_inlier_counts(db)
         left = left - database_orphans(db, ids, selected, orphan_after)
         for a, b in selected:
             wants = [name for name in (a, b) if name in left and taken[name] < per_photo]
             if not wants or (a, b) in done or {a, b} <= elsewhere:
                 continue
             key = (min(ids[a], ids[b]), max(ids[a], ids[b]))
-            if not dbio.pair_has_matches(db, *key) or (
-                cheap_inliers is not None and inliers.get(key, 0) >= cheap_inliers
-            ):
+            if not dbio.pair_has_matches(db, *key) or frozenset((a, b)) in kept:
                 taken.update(wants)
                 todo.append((ids[a], ids[b], a, b))
     return todo

@@ -85,13 +85,14 @@ def join_models(
     mapping_conf: dict,
     descriptors: dict | None,
     pairs_path: Path,
+    kept: set[frozenset] = frozenset(),
 ) -> tuple[dict, list[dict]]:
     """Two ``models`` of ``candidates`` at a time, each two tried once: their ``join_pairs`` most
     similar cross pairs matched with the full matcher where the first pass did not (written to
     ``pairs_path``), the models merged where verified pairs reach ``MIN_PHOTOS`` photos of each
     (``merge``); a join rewrites ``sparse_path`` and the models are tried again. ``descriptors``:
-    the retrieval descriptors by name where matching computed them. Returns the models and a
-    record of each try."""
+    the retrieval descriptors by name where matching computed them; ``kept``: the pairs a cheap
+    decision kept (``escalate.read_kept``). Returns the models and a record of each try."""
     num_pairs, tries, tried = conf.escalation.join_pairs, [], set()
     full, descriptors = None, dict(descriptors or {})
     while num_pairs and len(models) > 1:
@@ -115,7 +116,7 @@ def join_models(
             cross,
             set(),
             num_pairs,
-            escalate.kept_cheaply(matcher),
+            kept,
         )
         matched = 0
         for part in (todo[:PROBE], todo[PROBE:]):

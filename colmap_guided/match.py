@@ -296,7 +296,7 @@ def _match_pairs(
     kept go to ``kept_path``."""
     pairs = _PairRun(db, image_path, images, todo, matcher, run, schedule)
     # only a matcher with cheap decisions returns a geometry that is not the full matcher's
-    pairs.kept_path = kept_path if escalate.kept_cheaply(matcher) is not None else None
+    pairs.kept_path = kept_path if escalate.keeps_cheaply(matcher) else None
     held = HeldImages(todo, pairs.load, max_held, on_drop=matcher.release)
     total = schedule.first_pass if schedule else len(todo)
     with progress(desc="match", unit="pair", total=total) as pairs.bar:

@@ -39,7 +39,7 @@ from .workspace import Workspace
 ESCALATION_PAIRS = "escalation_pairs.txt"  # the pairs escalate.py chose, in the last round
 JOIN_PAIRS = "join_pairs.txt"  # the pairs join.py matched, for the last two models it tried
 CHECK_PAIRS = "check_pairs.txt"  # the pairs recheck.py matched
-KEPT_PAIRS = "kept_pairs.jsonl"  # the pairs a cheap decision kept (escalate.record_kept)
+KEPT_PAIRS = escalate.KEPT_PAIRS
 # Everything a run writes in its workspace: --overwrite removes these and nothing else.
 WRITES = (
     "database.db",
@@ -115,7 +115,7 @@ def _escalate(
             selected,
             done,
             conf.escalation.pairs_per_photo,
-            escalate.kept_cheaply(matcher),
+            escalate.read_kept(output / KEPT_PAIRS),
             _registered(models, [k for k in models if k != 0]),
             conf.escalation.orphan_after,
         )
@@ -316,6 +316,7 @@ def _map(database_path, image_path, output, photos, conf, matcher, match_stats, 
         mapping_conf,
         match_stats.pop("descriptors"),
         output / JOIN_PAIRS,
+        escalate.read_kept(output / KEPT_PAIRS),
     )
     if match_stats["joins"]:
         timings["join"] = time.time() - start

