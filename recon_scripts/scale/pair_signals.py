@@ -9,7 +9,8 @@ again (the run's features and options), beside the inliers the run verified. Per
 pair where the cheap pass finds fewer than C matches or the coarse score is below S": LightGlue
 calls spared, verified and strong (100+ inliers) pairs lost, photos placed in the run whose every
 verified pair is lost, and with the archive's labels (``recon_scripts archive``) lost pairs within
-one label and across two.
+one label and across two. With the labels also the verified pairs' inlier share (inliers over
+matches) within one label and across two, rendered landmarks apart from real photos.
 """
 
 from __future__ import annotations
@@ -104,6 +105,35 @@ def rule_table(rows: list[dict], placed: set[str], verified_by_photo: dict, labe
     return out
 
 
+def share_table(database: Path, labels: dict) -> list[str]:
+    """Markdown rows: the inlier share of the verified pairs per kind (within one label or across
+    two; both photos rendered landmarks or not), its percentiles."""
+    from colmap_guided import database as dbio
+    from recon_scripts.scale.archive import photo_of
+
+    stems = {PurePosixPath(n).stem: n for n in labels}
+    with dbio.open_database(database) as db:
+        names = dbio.image_names(db)
+        matched, inliers = dbio.pair_match_counts(db), dbio.pair_inlier_counts(db)
+    kinds: dict[str, list[float]] = {}
+    for (i, j), n in inliers.items():
+        a, b = (labels.get(photo_of(names[k], stems)) for k in (i, j))
+        if n == 0 or a is None or b is None:
+            continue
+        rendered = "rendered" if a.startswith("rendered:") and b.startswith("rendered:") else "real"
+        kind = f"{'within one label' if a == b else 'across two'}, {rendered}"
+        kinds.setdefault(kind, []).append(n / max(matched.get((i, j), n), 1))
+    out = [
+        "| verified pairs | number | inlier share 1 / 5 / 25 / 50 % | below 0.8 / 0.9 |",
+        "|---|---|---|---|",
+    ]
+    for kind, shares in sorted(kinds.items()):
+        q = " / ".join(f"{x:.2f}" for x in np.percentile(shares, [1, 5, 25, 50]))
+        below = " / ".join(str(sum(x < t for x in shares)) for t in (0.8, 0.9))
+        out.append(f"| {kind} | {len(shares)} | {q} | {below} |")
+    return out
+
+
 def main() -> None:
     from colmap_guided import database as dbio
     from colmap_guided.mapping import load_models, registered
@@ -134,6 +164,8 @@ def main() -> None:
         q = [f"{x:.3g}" for x in np.percentile(v[ok], [5, 25, 50])] if ok.any() else []
         print(f"{key}: verified pairs 5/25/50 % {q}; not verified median {np.median(v[~ok]):.3g}")
     print("\n".join(rule_table(rows, placed, by_photo, labels)))
+    if labels:
+        print("\n".join(share_table(Path(report["database_path"]), labels)))
 
 
 if __name__ == "__main__":
