@@ -198,6 +198,10 @@ def test_a_photo_with_few_cheap_matches_is_an_orphan_without_lightglue(
     assert len(written) == 3 and {frozenset(p) for p in written} <= kept, (written, kept)
     assert all(n < 10 for n in written.values()), written
     assert result["num_registered"] == 8
+    # the archive benchmark's account: the orphan cost 3 pairs, none of them LightGlue's
+    orphan = photo_costs(out)["in no model"]
+    assert orphan["photos"] == 1 and orphan["pairs_per_photo"] == 3
+    assert orphan["lightglue_per_photo"] == 0
     errors = pose_errors(pycolmap.Reconstruction(str(out / "sparse" / "0")), synthetic_scene)
     assert max(e[0] for e in errors.values()) < 1.0, errors
     todo = escalate.pairs_to_escalate(database, {"unrelated.jpg"}, pairs, set(), 8, kept)

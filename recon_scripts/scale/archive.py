@@ -305,17 +305,21 @@ def label_pairs(workspace: Path, labels: dict[str, str]) -> dict:
 def photo_costs(workspace: Path) -> dict:
     """What a photo in no model and a placed photo cost in the run of ``workspace``: photos, pairs
     the matcher ran on per photo (a pair counts for each of its photos; first pass, escalation and
-    join) and the seconds of matching (first pass and escalation) that their pairs took, shared
-    evenly by the pairs; and the photos that matching took for orphans."""
+    join), those of them the full matcher (LightGlue) matched, not a cheap decision, and the
+    seconds of matching (first pass and escalation) that their pairs took, shared evenly by the
+    pairs; and the photos that matching took for orphans."""
     from colmap_guided import database as dbio
+    from colmap_guided import escalate
     from colmap_guided.mapping import load_models, registered
 
     report = json.loads((workspace / "report.json").read_text())
     with dbio.open_database(workspace / "database.db") as db:
         names = dbio.image_names(db)
-    pairs = dbio.written_pairs(workspace / "database.db")
+    pairs = [[names[i] for i in pair] for pair in dbio.written_pairs(workspace / "database.db")]
+    kept = escalate.read_kept(workspace / escalate.KEPT_PAIRS)
     placed = set().union(*map(registered, load_models(workspace / "sparse").values()))
-    per_photo = Counter(names[i] for pair in pairs for i in pair)
+    per_photo = Counter(name for pair in pairs for name in pair)
+    full = Counter(name for pair in pairs if frozenset(pair) not in kept for name in pair)
     t = report["timings"]
     per_pair = (t.get("match", 0) + t.get("escalate_match", 0)) / max(len(pairs), 1)
     costs = {}
@@ -324,6 +328,7 @@ def photo_costs(workspace: Path) -> dict:
         costs[what] = {
             "photos": len(photos),
             "pairs_per_photo": n / max(len(photos), 1),
+            "lightglue_per_photo": sum(full[name] for name in photos) / max(len(photos), 1),
             "seconds_per_photo": n * per_pair / max(len(photos), 1),
         }
     costs["orphans"] = len(report["database"].get("orphans", []))
@@ -417,18 +422,20 @@ def costs_report(results: dict) -> list[str]:
     photo cost (``photo_costs``)."""
     lines = [
         "| run | photos placed / in no model (orphans) | pairs per photo: placed / in no model "
-        "| matching s per photo: placed / in no model | s per pair | wall s |",
-        "|---|---|---|---|---|---|",
+        "| of them LightGlue's | matching s per photo: placed / in no model | s per pair "
+        "| wall s |",
+        "|---|---|---|---|---|---|---|",
     ]
     for name, result in results.items():
         c = result.get("costs")
         if c is None:
-            lines.append(f"| {name} | failed | – | – | – | – |")
+            lines.append(f"| {name} | failed | – | – | – | – | – |")
             continue
         p, o = c["placed"], c["in no model"]
         lines.append(
             f"| {name} | {p['photos']} / {o['photos']} ({c['orphans']}) "
             f"| {p['pairs_per_photo']:.1f} / {o['pairs_per_photo']:.1f} "
+            f"| {p['lightglue_per_photo']:.1f} / {o['lightglue_per_photo']:.1f} "
             f"| {p['seconds_per_photo']:.1f} / {o['seconds_per_photo']:.1f} "
             f"| {c['seconds_per_pair']:.2f} | {result['archive']['wall']:.0f} |"
         )
