@@ -49,19 +49,17 @@ SAME_PLACE = {
     "train:cut3r_livingroom": "train:cut3r_flat",
     "gtsfm_1dsfm_sample": "alamo",  # four photos of 1DSfM's Alamo set
 }
+# ALIKED's 1,024 best keypoints on photos sized to 1,024 px (default 2,048 at 1,600 px)
+ALIKED_1024 = ["--aliked_max_num_keypoints", "1024", "--aliked_max_image_size", "1024"]
 # reconstruct's flags of a named run of the archive (``runs``): the default, the default with one
 # decision undone or changed, to print what it changes
 RUNS = {
     "default": [],
     "orphans_kept": ["--orphan_after", "none"],
-    # ALIKED's 1,024 best keypoints on photos sized to 1,024 px (default 2,048 at 1,600 px)
-    "aliked_1024": ["--aliked_max_num_keypoints", "1024", "--aliked_max_image_size", "1024"],
+    "aliked_1024": ALIKED_1024,
     # aliked_1024, pairs with fewer than 10 cheap matches in the window left to escalation, and
     # global mapping once (auto runs both mappers where the largest model fails the check)
-    "hour": [
-        *["--aliked_max_num_keypoints", "1024", "--aliked_max_image_size", "1024"],
-        *["--cheap_matches", "10", "--mapper", "global"],
-    ],
+    "hour": [*ALIKED_1024, "--cheap_matches", "10", "--mapper", "global"],
 }
 # a label run on its own (the reference its archive model is compared with) from this many photos
 MIN_ALONE = 3

@@ -67,15 +67,17 @@ def signals(workspace: Path) -> list[dict]:
     return rows
 
 
-def rule_table(rows: list[dict], placed: set[str], verified_by_photo: dict, labels=None) -> list:
-    """Markdown rows: per rule, what it spares and loses (``module docstring``)."""
+def label_of(labels: dict | None):
+    """name -> the archive label of its photo (a collage's panel: its card's; None: no labels)."""
     from recon_scripts.scale.archive import photo_of
 
     stems = {PurePosixPath(n).stem: n for n in labels or {}}
+    return lambda name: labels.get(photo_of(name, stems)) if labels else None
 
-    def label(name: str):
-        return labels.get(photo_of(name, stems)) if labels else None
 
+def rule_table(rows: list[dict], placed: set[str], verified_by_photo: dict, labels=None) -> list:
+    """Markdown rows: per rule, what it spares and loses (``module docstring``)."""
+    label = label_of(labels)
     out = [
         "| cheap matches below | coarse score below | LightGlue pairs spared | verified pairs lost "
         "(strong) | placed photos left without a verified pair | lost within one label / across |",
@@ -105,19 +107,14 @@ def rule_table(rows: list[dict], placed: set[str], verified_by_photo: dict, labe
     return out
 
 
-def share_table(database: Path, labels: dict) -> list[str]:
-    """Markdown rows: the inlier share of the verified pairs per kind (within one label or across
-    two; both photos rendered landmarks or not), its percentiles."""
-    from colmap_guided import database as dbio
-    from recon_scripts.scale.archive import photo_of
-
-    stems = {PurePosixPath(n).stem: n for n in labels}
-    with dbio.open_database(database) as db:
-        names = dbio.image_names(db)
-        matched, inliers = dbio.pair_match_counts(db), dbio.pair_inlier_counts(db)
+def share_table(names: dict, matched: dict, inliers: dict, labels: dict) -> list[str]:
+    """Markdown rows: the inlier share of the verified pairs (``inliers`` over ``matched`` by pair
+    of image ids; ``names``: id -> name) per kind (within one label or across two; both photos
+    rendered landmarks or not), its percentiles."""
+    label = label_of(labels)
     kinds: dict[str, list[float]] = {}
     for (i, j), n in inliers.items():
-        a, b = (labels.get(photo_of(names[k], stems)) for k in (i, j))
+        a, b = label(names[i]), label(names[j])
         if n == 0 or a is None or b is None:
             continue
         rendered = "rendered" if a.startswith("rendered:") and b.startswith("rendered:") else "real"
@@ -151,7 +148,7 @@ def main() -> None:
     report = json.loads((args.workspace / "report.json").read_text())
     with dbio.open_database(Path(report["database_path"])) as db:
         names = dbio.image_names(db)
-        verified = dbio.pair_inlier_counts(db)
+        matched, verified = dbio.pair_match_counts(db), dbio.pair_inlier_counts(db)
     by_photo: dict[str, set] = {}
     for i, j in verified:
         for name in (names[i], names[j]):
@@ -165,7 +162,7 @@ def main() -> None:
         print(f"{key}: verified pairs 5/25/50 % {q}; not verified median {np.median(v[~ok]):.3g}")
     print("\n".join(rule_table(rows, placed, by_photo, labels)))
     if labels:
-        print("\n".join(share_table(Path(report["database_path"]), labels)))
+        print("\n".join(share_table(names, matched, verified, labels)))
 
 
 if __name__ == "__main__":
