@@ -13,7 +13,7 @@ import pytest
 
 from colmap_guided import archival, escalate, join, recheck
 from colmap_guided import database as dbio
-from colmap_guided.mapping import load_models
+from colmap_guided.mapping import load_models, registered
 from colmap_guided.match import match_database, rematch
 from colmap_guided.matchers import lightglue
 from colmap_guided.pairs import read_pairs
@@ -21,11 +21,6 @@ from colmap_guided.pipeline import PipelineConf
 from colmap_guided.reconstruct import reconstruct
 from recon_scripts.evaluation.ground_truth import pose_errors
 from recon_scripts.scale.archive import label_pairs, photo_costs
-
-
-def photos_of_models(sparse) -> list[set[str]]:
-    """The photos of each model in ``sparse``, largest first."""
-    return [{m.images[i].name for i in m.reg_image_ids()} for m in load_models(sparse).values()]
 
 
 def strong_neighbours(database_path, strong_inliers: int) -> tuple[Counter, dict, dict, dict]:
@@ -308,12 +303,10 @@ def test_without_other_models_only_photos_in_no_model_escalate(
     as it was mapped."""
     scene = tmp_path / "scene" / "images"
     shutil.copytree(synthetic_scene.image_dir, scene)
-    kermit = [
-        f"kermit_{photo.name}"
-        for photo in sorted((shared_data / "train" / "bundler_kermit" / "images").iterdir())[:6]
-    ]
-    for name in kermit:
-        shutil.copy(shared_data / "train" / "bundler_kermit" / "images" / name[7:], scene / name)
+    kermit = sorted((shared_data / "train" / "bundler_kermit" / "images").iterdir())[:6]
+    for photo in kermit:
+        shutil.copy(photo, scene / f"kermit_{photo.name}")
+    kermit = [f"kermit_{photo.name}" for photo in kermit]
     names = [*synthetic_scene.names, *kermit]
     pairs = tmp_path / "pairs.txt"
     pairs.write_text("".join(f"{a} {b}\n" for a, b in combinations(names, 2)))
@@ -332,7 +325,7 @@ def test_without_other_models_only_photos_in_no_model_escalate(
     assert rounds[0]["registered"] == ["view_007.jpg"], rounds
     assert not set(kermit) & set().union(*(r["photos"] for r in rounds)), rounds
     sparse = scene.parent / "colmap_guided" / "sparse"
-    placed = photos_of_models(sparse)
+    placed = [registered(model) for model in load_models(sparse).values()]
     assert placed[0] == set(synthetic_scene.names) and len(placed[1] & set(kermit)) >= 3, placed
     escalated = [
         line.split() for line in (sparse.parent / "escalation_pairs.txt").read_text().splitlines()

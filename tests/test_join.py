@@ -7,7 +7,7 @@ import pycolmap
 import pytest
 
 from colmap_guided.join import cross_pairs
-from colmap_guided.mapping import load_models
+from colmap_guided.mapping import load_models, registered
 from colmap_guided.matchers import lightglue
 from recon_scripts.evaluation.ground_truth import pose_errors
 from recon_scripts.registration.join import halls_scene, run, split_scene, within_pairs
@@ -17,9 +17,7 @@ needs_lightglue = pytest.mark.skipif(not lightglue.installed(), reason="needs sc
 
 def photos_of_models(sparse) -> list[set[str]]:
     """The photos of each model in ``sparse``, largest first."""
-    return [
-        {rec.images[i].name for i in rec.reg_image_ids()} for rec in load_models(sparse).values()
-    ]
+    return [registered(rec) for rec in load_models(sparse).values()]
 
 
 @needs_lightglue
