@@ -452,7 +452,7 @@ def render_html(
     if rec is not None and rec.num_reg_images():
         others = _other_models(report)
         out += _model_section(rec, eras, geo, image_path if thumbnails else None, others)
-    out += _models_table(report) + _joins_table(report)
+    out += _models_table(report) + _splits_table(report) + _joins_table(report)
     out += _ratio_section(report)
     out += _why_table(report, image_path, thumbnails)
     out += _localized_table(report, image_path, thumbnails)
@@ -544,6 +544,27 @@ def _models_table(report: dict) -> list[str]:
             f"<tr><td>{esc(m['path'])}</td><td class='num'>{m['num_registered']}</td>"
             f"<td class='num'>{m['num_points3D']}</td>{check}<td>{esc(names)}</td></tr>"
         )
+    return out + ["</table>"]
+
+
+def _splits_table(report: dict) -> list[str]:
+    """Each model cut in two: the photos of each side, and the evidence."""
+    cuts = (report.get("database") or {}).get("splits") or []
+    if not cuts:
+        return []
+    out = [
+        f"<h2>Models cut in two ({len(cuts)})</h2><p>A model whose two sides put most of their "
+        "points in front of what the other side's photos see there is two places that look "
+        "alike (a repeated facade, one architect's windows) mapped as one: each side is a model "
+        "of its own.</p><table><tr><th>photos of each side</th><th>points in front / at the "
+        "depth seen</th></tr>",
+    ]
+    for cut in cuts:
+        sides = " | ".join(
+            html.escape(", ".join(p[:4]) + (" ..." if len(p) > 4 else "")) for p in cut["photos"]
+        )
+        evidence = f"{cut['conflicts']} / {cut['agreements']}"
+        out.append(f"<tr><td>{sides}</td><td class='num'>{evidence}</td></tr>")
     return out + ["</table>"]
 
 

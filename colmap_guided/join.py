@@ -13,6 +13,11 @@ problem they did not have, and its two parts agree on what their photos see
 (``visibility_conflicts``). Two buildings of one style (an architect's, a repeated facade) verify
 on their look-alike windows, and a merge aligned on them passes every other check; the rest of
 each building stands in front of what the other's photos see, and they stay two models.
+
+The same test cuts a model that mapping made of two such buildings (``split_models``, after the
+first mapping and after escalation): the model's weakest seam in shared points, where most of what
+each side's photos see of the other side conflicts. The photos a cut put apart are not mapped
+together again, neither by escalation nor by the join.
 """
 
 from __future__ import annotations
@@ -27,9 +32,10 @@ import pycolmap
 
 from . import database as dbio
 from . import escalate, mapping, match, model_check
-from .log import logger
+from .log import colmap_quiet, logger
 from .mapping import registered
 from .matchers import Matcher
+from .model_check import covisibility
 from .pipeline import PipelineConf
 
 # verified pairs must reach this many photos of each model: a single look-alike pair (one
@@ -49,6 +55,17 @@ MAX_LEFT_OUT = 0.1
 # one style, 0.01-0.04 on landmarks joined right (synthetic, lund_door; docs/RESULTS.md), ~2.7x
 # from each.
 MAX_CONFLICTS = 0.12
+# A model whose two sides (its ``seam``) put more of their points well in front of what the other
+# side's photos see there (``SPLIT_IN_FRONT``) than at its depth is two places mapped as one: 0.88
+# on two halls of one style the first pass mapped as one, at most 0.20 on 23 COLMAP models of
+# single places and on the archive's models of one place (docs/RESULTS.md). The join refuses at
+# MAX_CONFLICTS: a model is cut on a majority, two models joined on agreement.
+SPLIT_CONFLICTS = 0.5
+# well in front: at most this share of the depth seen, a building where another stands; points a
+# little in front (a pillar's edge in a cell of a wall) reach 0.44 of a sparse model of one hall
+SPLIT_IN_FRONT = 0.7
+# and at least this many conflicts, as many matches as a pair needs to verify: fewer say nothing
+MIN_CONFLICTS = 15
 # a point agrees with what a photo sees where their depths differ by at most this share; the
 # photo's view is cut in cells of this share of its larger side (each: its nearest point)
 DEPTH_TOLERANCE, CELL = 0.05, 0.015
@@ -86,13 +103,15 @@ def join_models(
     descriptors: dict | None,
     pairs_path: Path,
     kept: set[frozenset] = frozenset(),
+    cuts: list[dict] = (),
 ) -> tuple[dict, list[dict]]:
     """Two ``models`` of ``candidates`` at a time, each two tried once: their ``join_pairs`` most
     similar cross pairs matched with the full matcher where the first pass did not (written to
     ``pairs_path``), the models merged where verified pairs reach ``MIN_PHOTOS`` photos of each
     (``merge``); a join rewrites ``sparse_path`` and the models are tried again. ``descriptors``:
     the retrieval descriptors by name where matching computed them; ``kept``: the pairs a cheap
-    decision kept (``escalate.read_kept``). Returns the models and a record of each try."""
+    decision kept (``escalate.read_kept``); ``cuts``: ``split_models``'s, two models it put apart
+    are not tried. Returns the models and a record of each try."""
     num_pairs, tries, tried = conf.escalation.join_pairs, [], set()
     full, descriptors = None, dict(descriptors or {})
     while num_pairs and len(models) > 1:
@@ -102,7 +121,10 @@ def join_models(
                 zip(missing, match._global_descriptors(matcher, image_path, missing))
             )
         untried = [
-            pair for pair in candidates(models, descriptors) if _key(models, pair) not in tried
+            pair
+            for pair in candidates(models, descriptors)
+            if _key(models, pair) not in tried
+            and not _cut_apart(cuts, *(registered(models[k]) for k in pair))
         ]
         if not untried:
             break
@@ -233,14 +255,115 @@ def _extend(database_path, image_path, sparse_path, models, pair, mapping_conf) 
     return merged, found
 
 
-def visibility_conflicts(rec: pycolmap.Reconstruction, names: set[str]) -> tuple[int, int]:
+def seam(rec: pycolmap.Reconstruction) -> set[str] | None:
+    """The photos of one side of ``rec``'s weakest cut in shared 3D points: of the cuts along the
+    normalized Laplacian's second eigenvector, the one of least conductance (Shi and Malik's
+    normalized cut), each side ``MIN_PHOTOS`` photos or more. None where no cut leaves both."""
+    ids = sorted(rec.reg_image_ids())
+    if len(ids) < 2 * MIN_PHOTOS:
+        return None
+    index = {image_id: k for k, image_id in enumerate(ids)}
+    weights = np.zeros((len(ids), len(ids)))
+    for (a, b), shared in covisibility(rec).items():
+        weights[index[a], index[b]] = weights[index[b], index[a]] = shared
+    degree = np.maximum(weights.sum(axis=1), 1e-9)
+    scale = 1 / np.sqrt(degree)
+    _, vectors = np.linalg.eigh(np.eye(len(ids)) - scale[:, None] * weights * scale[None, :])
+    order = np.argsort(vectors[:, 1] * scale, kind="stable")
+    # the weight across each cut of the order, and the degree on its first side
+    across = np.cumsum(
+        [
+            weights[i, order[k + 1 :]].sum() - weights[i, order[:k]].sum()
+            for k, i in enumerate(order)
+        ]
+    )
+    volume = np.cumsum(degree[order])
+    cuts = range(MIN_PHOTOS, len(ids) - MIN_PHOTOS + 1)
+    k = min(cuts, key=lambda k: across[k - 1] / min(volume[k - 1], volume[-1] - volume[k - 1]))
+    return {rec.images[ids[i]].name for i in order[k:]}
+
+
+def find_cut(rec: pycolmap.Reconstruction) -> dict:
+    """``rec``'s ``seam`` (``side``: the photos of one side, None where none), its
+    ``visibility_conflicts`` (``SPLIT_IN_FRONT``) and whether it is cut there: two places that look
+    alike mapped as one where its sides conflict (``SPLIT_CONFLICTS``, ``MIN_CONFLICTS``)."""
+    side = seam(rec)
+    conflicts, agreements = visibility_conflicts(rec, side, SPLIT_IN_FRONT) if side else (0, 0)
+    cut = conflicts >= max(MIN_CONFLICTS, SPLIT_CONFLICTS * (conflicts + agreements))
+    return {"side": side, "conflicts": conflicts, "agreements": agreements, "cut": cut}
+
+
+def split_models(models: dict, sparse_path: Path) -> tuple[dict, list[dict]]:
+    """Each model cut at its seam where ``find_cut`` says so: two places that look alike (a
+    repeated facade, one architect's windows) mapped as one. Each side becomes a model of its own
+    (the other's photos taken out, bundle adjusted) and is cut again; ``sparse_path`` is rewritten
+    where a model was cut. Returns the models and each cut made."""
+    todo, kept, cuts = list(models.values()), [], []
+    while todo:
+        rec = todo.pop()
+        found = find_cut(rec)
+        if not found["cut"]:
+            kept.append(rec)
+            continue
+        parts = [_part(rec, found["side"]), _part(rec, registered(rec) - found["side"])]
+        cuts.append(
+            {
+                "photos": [sorted(registered(p)) for p in parts],
+                "conflicts": found["conflicts"],
+                "agreements": found["agreements"],
+            }
+        )
+        logger.info(
+            "Cut a model of %d photos in two (%d and %d): %d of its points lie in front of what "
+            "the other side's photos see there (%d agree), two places that look alike",
+            rec.num_reg_images(),
+            *map(pycolmap.Reconstruction.num_reg_images, parts),
+            found["conflicts"],
+            found["agreements"],
+        )
+        todo += parts
+    return (mapping.write_models(sparse_path, kept) if cuts else models), cuts
+
+
+def cut_away(cuts: list[dict], names: set[str]) -> set[str]:
+    """The photos that a cut of ``cuts`` put on the other side from most of ``names``: a model
+    of ``names`` is not continued with them (mapping a look-alike's photos one by one into a
+    building's model can agree with it, as a merge of the two sides cannot)."""
+    away = set()
+    for cut in cuts:
+        sides = [set(side) for side in cut["photos"]]
+        held = [len(side & names) for side in sides]
+        if held[0] != held[1]:
+            away |= sides[held[0] > held[1]]
+    return away
+
+
+def _cut_apart(cuts: list[dict], names_a: set[str], names_b: set[str]) -> bool:
+    """Whether ``cuts`` put most of ``names_b`` away from most of ``names_a``."""
+    return 2 * len(names_b & cut_away(cuts, names_a)) > len(names_b)
+
+
+def _part(rec: pycolmap.Reconstruction, names: set[str]) -> pycolmap.Reconstruction:
+    """A copy of ``rec`` with the photos ``names`` only, bundle adjusted."""
+    part = pycolmap.Reconstruction(rec)
+    for image_id in list(part.reg_image_ids()):
+        if part.images[image_id].name not in names:
+            part.deregister_frame(part.images[image_id].frame_id)
+    with colmap_quiet():
+        pycolmap.bundle_adjustment(part, pycolmap.BundleAdjustmentOptions(print_summary=False))
+    return part
+
+
+def visibility_conflicts(
+    rec: pycolmap.Reconstruction, names: set[str], in_front: float = 1 - DEPTH_TOLERANCE
+) -> tuple[int, int]:
     """How the two parts of ``rec`` (the photos ``names`` and the others) see each other: of the
     points only one part observes, those that a photo of the other part would see where it
     observes a point (the nearest in a ``CELL`` of its view), in front of that point (conflicts:
-    it would hide what the photo sees) or at its depth (``DEPTH_TOLERANCE``: agreements). A
-    landmark joined right agrees with itself; two buildings that share a facade, aligned on it,
-    conflict everywhere else. Points behind are hidden and say nothing. Returns (conflicts,
-    agreements)."""
+    it would hide what the photo sees; ``in_front``: at most this share of its depth) or at its
+    depth (``DEPTH_TOLERANCE``: agreements). A landmark joined right agrees with itself; two
+    buildings that share a facade, aligned on it, conflict everywhere else. Points behind are
+    hidden and say nothing. Returns (conflicts, agreements)."""
     part = {i: rec.images[i].name in names for i in rec.reg_image_ids()}
     xyz = {True: [], False: []}
     for point in rec.points3D.values():
@@ -262,7 +385,7 @@ def visibility_conflicts(rec: pycolmap.Reconstruction, names: set[str]) -> tuple
         cells, depth = _project(image, camera, np.array(xyz[not side]), cell)
         seen = nearest[cells]
         depth, seen = depth[np.isfinite(seen)], seen[np.isfinite(seen)]
-        conflicts += int(np.sum(depth < (1 - DEPTH_TOLERANCE) * seen))
+        conflicts += int(np.sum(depth < in_front * seen))
         agreements += int(np.sum(np.abs(depth - seen) <= DEPTH_TOLERANCE * seen))
     return conflicts, agreements
 

@@ -99,20 +99,24 @@ def _escalate(
     timings: dict,
     done: set = frozenset(),
     extend: bool = False,
+    cuts: list[dict] = (),
 ) -> tuple[dict, list[dict]]:
     """``escalate``'s rounds: the photos left out of the model (and out of every model, without
     ``other_models``) get their deferred, gated and cheaply matched pairs matched with the full
     matcher (but ``done``), then the model (of the ``usable`` photos, mapped with ``mapping_conf``)
     is extended with them; with ``extend`` (photos taken out by the check) the first round maps
-    even without pairs. Returns the models and what each round did."""
+    even without pairs. The photos that ``cuts`` (``join.split_models``) put away from the model
+    are kept out of it. Returns the models and what each round did."""
     database_path, rounds, full = output / "database.db", [], None
     for _ in range(conf.escalation.rounds):
         registered = _registered(models)
         elsewhere = _registered(models, [k for k in models if k != 0])
         left, candidates = set(usable) - registered, selected
-        if not conf.escalation.other_models:  # the other models' photos neither escalate nor map
-            left -= elsewhere
-            candidates = [pair for pair in selected if not set(pair) & elsewhere]
+        # other models' photos (all without other_models, or those cut away) stay out of it
+        apart = elsewhere if not conf.escalation.other_models else join.cut_away(cuts, registered)
+        if apart:
+            left -= apart
+            candidates = [pair for pair in selected if not set(pair) & apart]
             mapping_conf = {**mapping_conf, "image_names": sorted(left | registered)}
         todo = escalate.pairs_to_escalate(
             database_path,
@@ -292,6 +296,7 @@ def _map(database_path, image_path, output, photos, conf, matcher, match_stats, 
     match_stats["weak_start"] = not models and match_stats["num_verified_pairs"] > 0
     if match_stats["weak_start"]:
         models = mapping.map_weak_start(database_path, image_path, sparse_path, mapping_conf)
+    models, match_stats["splits"] = join.split_models(models, sparse_path)
     timings["map"] = time.time() - start
     selected = match_stats.pop("selected")
     models, done, match_stats["check"] = _check(
@@ -309,8 +314,11 @@ def _map(database_path, image_path, output, photos, conf, matcher, match_stats, 
         timings,
         done,
         bool(match_stats["check"]["taken_out"]),
+        match_stats["splits"],
     )
     start = time.time()
+    models, cuts = join.split_models(models, sparse_path)
+    match_stats["splits"] += cuts
     models, match_stats["joins"] = join.join_models(
         database_path,
         image_path,
@@ -322,6 +330,7 @@ def _map(database_path, image_path, output, photos, conf, matcher, match_stats, 
         match_stats.pop("descriptors"),
         output / JOIN_PAIRS,
         escalate.read_kept(output / KEPT_PAIRS),
+        match_stats["splits"],
     )
     if match_stats["joins"]:
         timings["join"] = time.time() - start

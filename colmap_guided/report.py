@@ -350,6 +350,9 @@ def summary_text(report: dict) -> str:
             f"{len(others)} other model(s), photos in each: {shown}"
             + (" ..." if len(others) > 10 else "")
         )
+    cuts = (report.get("database") or {}).get("splits") or []
+    if cuts:
+        lines.append(f"Models cut in two (two places that look alike): {len(cuts)} (report.html)")
     tries = (report.get("database") or {}).get("joins") or []
     if tries:
         joined = sum(t["joined"] for t in tries)
