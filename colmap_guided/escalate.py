@@ -45,6 +45,9 @@ default_conf = {
     # after escalation, the pairs of two models' most similar photos that the full matcher tries,
     # to join the models into one (0: none)
     "join_pairs": 10,
+    # a model whose two sides conflict on what they see is cut in two, before escalation and
+    # before joining (join.split_models: two places that look alike mapped as one)
+    "cut_models": True,
     # a placed photo whose pairs with its model's photos were all kept by a cheap decision, or that
     # observes fewer than check_points 3D points, gets this many of those pairs matched by the
     # full matcher and keeps its place only where its pose from them agrees (recheck.py; 0: none)

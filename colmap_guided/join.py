@@ -64,7 +64,9 @@ SPLIT_CONFLICTS = 0.5
 # well in front: at most this share of the depth seen, a building where another stands; points a
 # little in front (a pillar's edge in a cell of a wall) reach 0.44 of a sparse model of one hall
 SPLIT_IN_FRONT = 0.7
-# and at least this many conflicts, as many matches as a pair needs to verify: fewer say nothing
+# and at least this many conflicts a photo of the smaller side, as many matches as a pair needs to
+# verify: a building where the other's photos look is seen by each of them (3.4 a photo where a hall
+# of one place was cut, 78 on the halls of one style)
 MIN_CONFLICTS = 15
 # a point agrees with what a photo sees where their depths differ by at most this share; the
 # photo's view is cut in cells of this share of its larger side (each: its nearest point)
@@ -283,13 +285,15 @@ def seam(rec: pycolmap.Reconstruction) -> set[str] | None:
     return {rec.images[ids[i]].name for i in order[k:]}
 
 
-def find_cut(rec: pycolmap.Reconstruction) -> dict:
+def find_cut(rec: pycolmap.Reconstruction, in_front: float = SPLIT_IN_FRONT) -> dict:
     """``rec``'s ``seam`` (``side``: the photos of one side, None where none), its
-    ``visibility_conflicts`` (``SPLIT_IN_FRONT``) and whether it is cut there: two places that look
-    alike mapped as one where its sides conflict (``SPLIT_CONFLICTS``, ``MIN_CONFLICTS``)."""
+    ``visibility_conflicts`` (``in_front``) and whether it is cut there: two places that look
+    alike mapped as one where its sides conflict (``SPLIT_CONFLICTS``; ``MIN_CONFLICTS`` a photo
+    of the smaller side)."""
     side = seam(rec)
-    conflicts, agreements = visibility_conflicts(rec, side, SPLIT_IN_FRONT) if side else (0, 0)
-    cut = conflicts >= max(MIN_CONFLICTS, SPLIT_CONFLICTS * (conflicts + agreements))
+    conflicts, agreements = visibility_conflicts(rec, side, in_front) if side else (0, 0)
+    smaller = min(len(side), rec.num_reg_images() - len(side)) if side else 0
+    cut = conflicts >= max(1, MIN_CONFLICTS * smaller, SPLIT_CONFLICTS * (conflicts + agreements))
     return {"side": side, "conflicts": conflicts, "agreements": agreements, "cut": cut}
 
 

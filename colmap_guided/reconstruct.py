@@ -296,7 +296,9 @@ def _map(database_path, image_path, output, photos, conf, matcher, match_stats, 
     match_stats["weak_start"] = not models and match_stats["num_verified_pairs"] > 0
     if match_stats["weak_start"]:
         models = mapping.map_weak_start(database_path, image_path, sparse_path, mapping_conf)
-    models, match_stats["splits"] = join.split_models(models, sparse_path)
+    match_stats["splits"] = []
+    if conf.escalation.cut_models:
+        models, match_stats["splits"] = join.split_models(models, sparse_path)
     timings["map"] = time.time() - start
     selected = match_stats.pop("selected")
     models, done, match_stats["check"] = _check(
@@ -317,8 +319,9 @@ def _map(database_path, image_path, output, photos, conf, matcher, match_stats, 
         match_stats["splits"],
     )
     start = time.time()
-    models, cuts = join.split_models(models, sparse_path)
-    match_stats["splits"] += cuts
+    if conf.escalation.cut_models:
+        models, cuts = join.split_models(models, sparse_path)
+        match_stats["splits"] += cuts
     models, match_stats["joins"] = join.join_models(
         database_path,
         image_path,

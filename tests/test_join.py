@@ -2,8 +2,6 @@
 with the full matcher, the larger model continued with the smaller's photos), and two buildings of
 one style are not."""
 
-from itertools import combinations
-
 import numpy as np
 import pycolmap
 import pytest
@@ -69,24 +67,27 @@ def test_two_buildings_of_one_style_stay_two_models(shared_data, tmp_path):
 def test_two_buildings_of_one_style_mapped_as_one_are_cut_in_two(shared_data, tmp_path):
     """The same halls with every pair matched in the first pass: their windows verify across the
     halls, and mapping makes one model of both that passes the model check. Its weakest cut in
-    shared points puts most of one side's points in front of what the other side's photos see:
-    it is cut in two, and neither escalation nor the join puts the sides together again. No model
-    holds two photos of each hall (a photo tied to the other hall by more matches than to its own
-    may go with it); without the cut one model held all ten."""
+    shared points puts most of one side's points well in front of what the other side's photos
+    see: it is cut in two, and neither escalation nor the join puts the sides together again. No
+    model holds two photos of each hall (a photo tied to the other hall by more matches than to
+    its own may go with it)."""
     scene = halls_scene(tmp_path / "scene", shared_data)
-    names = [name for group in scene.groups for name in group]
-    pairs = tmp_path / "pairs.txt"
-    pairs.write_text("".join(f"{a} {b}\n" for a, b in combinations(names, 2)))
+    pairs = within_pairs(tmp_path / "pairs.txt", [sum(scene.groups, [])])
+    halls = [set(group) for group in scene.groups[:2]]
+    uncut = run(scene, tmp_path / "ws", pairs, join_pairs=10, cut_models=False)
+    assert not uncut["database"]["splits"]
+    assert halls[0] | halls[1] <= photos_of_models(tmp_path / "ws" / "sparse")[0]
+    # a rerun continues from the database: only mapping and what follows run again
     result = run(scene, tmp_path / "ws", pairs, join_pairs=10)
     (cut,) = result["database"]["splits"]
     assert cut["conflicts"] > cut["agreements"], cut
-    halls = [set(group) for group in scene.groups[:2]]
     models = photos_of_models(tmp_path / "ws" / "sparse")
     assert len(models) == 2 and sum(map(len, models)) >= 9, models
     for photos in models:
         assert min(len(photos & hall) for hall in halls) < 2, models
     assert not any(t["joined"] for t in result["database"]["joins"])
     assert result["models"][1]["num_registered"] == len(models[1])
+    assert "Models cut in two (1)" in (tmp_path / "ws" / "report.html").read_text()
 
 
 def test_cross_pairs_are_the_most_similar_and_reach_several_photos_of_each_model():

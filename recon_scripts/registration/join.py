@@ -1,18 +1,19 @@
 """Models joined after escalation: a landmark's two models joined, two look-alike buildings not.
 
-    python -m recon_scripts join [sets="lund split halls"] [methods="off on"] [pairs=within]
+    python -m recon_scripts join [sets="lund split halls"] [methods="off on uncut"] [pairs=within]
 
 A landmark whose modern photos and prints map as two models, and two buildings of one style, each
-reconstructed with the join off (``join_pairs`` 0) and on (the default, 10 cross pairs), each in
-its own workspace from the same photos and pairs.
+reconstructed with the join off (``join_pairs`` 0), on (the default, 10 cross pairs) and on with
+models not cut (``cut_models`` off), each in its own workspace from the same photos and pairs.
 
 Sets: ``lund`` (lund_door_gtsfm at 512 px, 6 of its 12 photos printed grey and grainy;
 reference: its COLMAP ground truth), ``split`` (the synthetic landmark, 8 views at 384 x 288, 4
 of them printed; reference: the rendering's cameras), ``halls`` (two synthetic halls of one style:
 one window on every facade, 12 x 8 and 9 x 7 m, 5 views each at 384 x 288, and 2 unrelated photos
 of gtsfm_1dsfm_sample; no model may hold both halls). ``pairs=within``: each group's pairs only
-(modern photos and prints, or each hall), as where retrieval ranks the groups apart; ``retrieval``:
-each photo's 3 most similar.
+(modern photos and prints, or each hall), as where retrieval ranks the groups apart; ``all``: every
+pair, as where retrieval pairs two look-alike buildings (mapping may make one model of both, which
+is cut in two); ``retrieval``: each photo's 3 most similar.
 """
 
 from __future__ import annotations
@@ -37,7 +38,12 @@ from recon_scripts.bench import Benchmark
 from recon_scripts.evaluation.ground_truth import pose_errors
 
 LUND_PRINTED = (0, 2, 3, 7, 8, 9)  # lund_door_gtsfm's photos printed (sorted by name)
-JOIN_PAIRS = {"off": 0, "on": 10}  # a method: the join off or on
+# a method's escalation options: the join off or on, or on with models not cut
+METHODS = {
+    "off": {"join_pairs": 0},
+    "on": {"join_pairs": 10},
+    "uncut": {"join_pairs": 10, "cut_models": False},
+}
 
 
 @dataclasses.dataclass
@@ -109,8 +115,9 @@ def lund_scene(out: Path, data: Path) -> Scene:
     return Scene(images, groups, data / "lund_door_gtsfm" / "colmap_ground_truth", {})
 
 
-def run(scene: Scene, workspace: Path, pairs: str | Path, join_pairs: int) -> dict:
-    conf = {**scene.conf, "mapping": {"num_threads": 1}, "escalation": {"join_pairs": join_pairs}}
+def run(scene: Scene, workspace: Path, pairs: str | Path, join_pairs: int, **escalation) -> dict:
+    escalation = {"join_pairs": join_pairs, **escalation}
+    conf = {**scene.conf, "mapping": {"num_threads": 1}, "escalation": escalation}
     if pairs == "retrieval":
         conf["pairs"] = {"pairs": "retrieval", "num_neighbors": 3}
     else:
@@ -132,13 +139,14 @@ class JoinBenchmark(Benchmark):
     name = "join"
     default_conf = {
         "sets": ["lund", "split", "halls"],
-        "methods": ["off", "on"],  # the join off (join_pairs 0) or on (10)
-        "pairs": "within",  # within: each group's pairs only; retrieval: 3 most similar each
+        "methods": ["off", "on", "uncut"],  # METHODS: join off, on, on with models not cut
+        # within: each group's pairs only; all: every pair; retrieval: 3 most similar each
+        "pairs": "within",
     }
 
     def configs(self):
         pairs = self.conf["pairs"]
-        return {m: {"join_pairs": JOIN_PAIRS[m], "pairs": pairs} for m in self.conf["methods"]}
+        return {m: {**METHODS[m], "pairs": pairs} for m in self.conf["methods"]}
 
     def images(self, name, work):
         return work / "scene" / "images"
@@ -149,14 +157,15 @@ class JoinBenchmark(Benchmark):
         builders = {"split": split_scene, "halls": halls_scene, "lund": lund_scene}
         scene = builders[name](image_path.parent, *([] if name == "split" else [shared_data_dir()]))
         pairs = self.conf["pairs"]
-        return {
-            "scene": scene,
-            "pairs": within_pairs(work / "pairs.txt", scene.groups) if pairs == "within" else pairs,
-        }
+        if pairs in ("within", "all"):  # all: one group of every photo
+            groups = scene.groups if pairs == "within" else [sum(scene.groups, [])]
+            pairs = within_pairs(work / "pairs.txt", groups)
+        return {"scene": scene, "pairs": pairs}
 
     def run_config(self, name, image_path, prepared, label, config, out):
         scene = prepared["scene"]
-        result = run(scene, out, prepared["pairs"], config["join_pairs"])
+        options = {k: v for k, v in config.items() if k != "pairs"}
+        result = run(scene, out, prepared["pairs"], **options)
         errors = (
             pose_errors(pycolmap.Reconstruction(str(out / "sparse" / "0")), scene.reference)
             if scene.reference is not None and result["num_registered"]
@@ -172,6 +181,7 @@ class JoinBenchmark(Benchmark):
             "photos": "+".join(str(len(g)) for g in scene.groups if g),
             "models": models_cell(out, scene.groups),
             "tries": result["database"]["joins"],
+            "cuts": result["database"]["splits"],
             "pose": pose,
             "timings": result["timings"],
         }
@@ -181,13 +191,15 @@ class JoinBenchmark(Benchmark):
 
     def summarize(self, results):
         lines = [
-            "| scene | photos (groups) | pairs | models, join off | models, join on | cross pairs "
-            "matched / verified | conflicts / agreements | joined: why | join s | largest model vs "
-            "reference: max rotation °, centre % of extent |",
-            "|---|---|---|---|---|---|---|---|---|---|",
+            "| scene | photos (groups) | pairs | models, join off | models, join on | models, not "
+            "cut | models cut: "
+            "conflicts / agreements | cross pairs matched / verified | conflicts / agreements "
+            "| joined: why | join s | largest model vs reference: max rotation °, centre % of "
+            "extent |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for name, by_method in results.items():
-            off, on = by_method.get("off", {}), by_method.get("on", {})
+            off, on, uncut = (by_method.get(m, {}) for m in ("off", "on", "uncut"))
             tries = on.get("tries", [])
             cross = "; ".join(f"{t['matched']} / {t['verified']}" for t in tries) or "–"
             conflicts = "; ".join(
@@ -199,9 +211,12 @@ class JoinBenchmark(Benchmark):
             why = "; ".join(t["why"] for t in tries) or "no two models"
             seconds = "; ".join(f"{t['time']:.1f}" for t in tries) or "–"
             photos = next(iter(by_method.values()))["photos"]
+            cuts = "; ".join(f"{c['conflicts']} / {c['agreements']}" for c in on.get("cuts", []))
             lines.append(
                 f"| {name} | {photos} | {self.conf['pairs']} | {off.get('models', '–')} | "
-                f"{on.get('models', '–')} | {cross} | {conflicts} | {why} | {seconds} | "
+                f"{on.get('models', '–')} | {uncut.get('models', '–')} | {cuts or 'none'} "
+                f"| {cross} | {conflicts} | {why} "
+                f"| {seconds} | "
                 f"{on.get('pose', '–')} |"
             )
         return "\n".join(lines)

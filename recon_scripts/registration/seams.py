@@ -2,10 +2,12 @@
 how its two sides see each other; a model of one place should not be cut, two places that look
 alike mapped as one should.
 
-    python -m recon_scripts.registration.seams [MODEL ...]
+    python -m recon_scripts.registration.seams [in_front=X] [MODEL ...]
 
 MODEL: a COLMAP model folder, or a workspace's sparse/ (each model in it); default: every COLMAP
-model of ../shared/data (the sets' reference models, each of one place).
+model of ../shared/data (the sets' reference models, each of one place). ``in_front``: a conflict
+is a point at most this share of the depth seen (default ``join.SPLIT_IN_FRONT``; the join's own
+test counts 0.95).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from pathlib import Path
 
 import pycolmap
 
-from colmap_guided.join import find_cut
+from colmap_guided import join
 from colmap_guided.paths import shared_data_dir
 
 
@@ -37,11 +39,14 @@ def model_folders(paths: list[str]) -> list[Path]:
 
 def main(argv: list[str]) -> None:
     root = shared_data_dir()
+    in_front = join.SPLIT_IN_FRONT
+    if argv and argv[0].startswith("in_front="):
+        in_front = float(argv.pop(0).split("=", 1)[1])
     print("| model | photos | seam: photos of one side | conflicts / agreements | share | cut |")
     print("|---|---|---|---|---|---|")
     for folder in model_folders(argv):
         rec = pycolmap.Reconstruction(str(folder))
-        found = find_cut(rec)
+        found = join.find_cut(rec, in_front)
         c, a = found["conflicts"], found["agreements"]
         side = len(found["side"]) if found["side"] else "–"
         name = folder.relative_to(root) if folder.is_relative_to(root) else folder
