@@ -279,7 +279,26 @@ def run_archive(archive: Path, out: Path, alone, timeout: float, flags=()) -> di
         result["comparison"] = compare(labels, models, own_models)
         result["costs"] = photo_costs(out / "run")
         result["pairs"] = label_pairs(out / "run", labels)
+        result["cuts"] = label_cuts(out / "run", labels)
     return result
+
+
+def label_cuts(workspace: Path, labels: dict[str, str]) -> list[dict]:
+    """The models the run of ``workspace`` cut in two: the labels of each side's photos (counts),
+    and the cut's conflicts and agreements."""
+    report = json.loads((workspace / "report.json").read_text())
+    stems = {PurePosixPath(n).stem: n for n in labels}
+    return [
+        {
+            "sides": [
+                dict(Counter(labels.get(photo_of(n, stems), "?") for n in side))
+                for side in cut["photos"]
+            ],
+            "conflicts": cut["conflicts"],
+            "agreements": cut["agreements"],
+        }
+        for cut in report["database"].get("splits", [])
+    ]
 
 
 def label_pairs(workspace: Path, labels: dict[str, str]) -> dict:
@@ -393,6 +412,16 @@ def archive_report(n: int, result: dict) -> list[str]:
             f"Pairs verified across two labels: {a['pairs']} (inliers: median {a['median']}, "
             f"largest {a['max']}); within one label: {w['pairs']} (median {w['median']}).",
         ]
+    cuts = result.get("cuts") or []
+    lines += ["", "Models cut in two (labels of each side; conflicts / agreements):", ""]
+    lines += [
+        "- "
+        + " | ".join(
+            ", ".join(f"{lb} {k}" for lb, k in sorted(side.items())) for side in c["sides"]
+        )
+        + f" ({c['conflicts']} / {c['agreements']})"
+        for c in cuts
+    ] or ["- none"]
     lines += ["", "Models that mix labels:", ""]
     lines += [
         f"- model {m['model']} ({m['photos']} photos): "
