@@ -554,10 +554,10 @@ def _splits_table(report: dict) -> list[str]:
         return []
     out = [
         f"<h2>Models cut in two ({len(cuts)})</h2><p>A model whose two sides put most of their "
-        "points in front of what the other side's photos see there is two places that look "
+        "points well in front of what the other side's photos see there is two places that look "
         "alike (a repeated facade, one architect's windows) mapped as one: each side is a model "
-        "of its own.</p><table><tr><th>photos of each side</th><th>points in front / at the "
-        "depth seen</th></tr>",
+        "of its own.</p><table><tr><th>photos of each side</th><th>points well in front / at "
+        "the depth seen</th></tr>",
     ]
     for cut in cuts:
         sides = " | ".join(
