@@ -253,8 +253,9 @@ def compare(
 def run_archive(archive: Path, out: Path, alone, timeout: float, flags=()) -> dict:
     """The archive reconstructed in one run (OUT/run, with reconstruct's ``flags``), then each
     label of at least MIN_ALONE photos that matches a pattern of ``alone`` (fnmatch; empty: none)
-    alone (ARCHIVE/../alone/<label>/run, its photos under their archive names, the default
-    settings; one for every run of the archive), and their comparison."""
+    alone with the same flags (ARCHIVE/../alone/<label>/run, or run_<OUT's name> with flags; its
+    photos under their archive names): what sorting the photos by hand would have given the same
+    settings; and their comparison."""
     labels = json.loads((archive / "labels.json").read_text())
     result = {"archive": reconstruct_run(archive, out / "run", timeout, flags), "alone": {}}
     by_label: dict[str, list[str]] = {}
@@ -272,8 +273,9 @@ def run_archive(archive: Path, out: Path, alone, timeout: float, flags=()) -> di
             for name in names:
                 (tmp / name).symlink_to(os.path.relpath(archive / "images" / name, tmp))
             tmp.rename(scene / "images")
-        r = result["alone"][label] = reconstruct_run(scene, scene / "run", timeout)
-        own_models[label] = {} if "failed" in r else read_models(scene / "run" / "sparse", names)
+        own = scene / (f"run_{out.name}" if flags else "run")
+        r = result["alone"][label] = reconstruct_run(scene, own, timeout, flags)
+        own_models[label] = {} if "failed" in r else read_models(own / "sparse", names)
     if "failed" not in result["archive"]:
         models = read_models(out / "run" / "sparse", labels)
         result["comparison"] = compare(labels, models, own_models)

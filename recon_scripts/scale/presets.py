@@ -29,10 +29,9 @@ Markdown tables (printed, WORK/report.md) and WORK/scale.png.
 PhotoTourism landmarks, WxBS pairs: recon_scripts/scale/archive.py) and rendered landmarks up to
 N, shuffled (seeded) into one flat folder under opaque names (WORK/n<N>/archive: symlinks,
 labels.json); ``reconstruct`` of it in one run, then of each label of 3 photos or more alone
-(those of ``alone_labels``, with the default settings); per
-label, how many of its own run's photos one archive model holds, and the archive's models that mix
-labels. A run that succeeded is kept (WORK/n<N>/default/run.json, alone/<label>/run.json) and is
-not run again.
+(those of ``alone_labels``, with the archive run's flags); per label, how many of its own run's
+photos one archive model holds, and the archive's models that mix labels. A run that succeeded is
+kept (WORK/n<N>/<run>.json, alone/<label>/run.json or run_<run>.json) and is not run again.
 """
 
 from __future__ import annotations
