@@ -388,66 +388,6 @@ def map_weak_start(
     return models
 
 
-def map_left_groups(
-    database_path: Path,
-    image_path: Path,
-    sparse_path: Path,
-    models: dict[int, pycolmap.Reconstruction],
-    conf: dict,
-    usable: list[str],
-) -> tuple[dict[int, pycolmap.Reconstruction], list[list[str]]]:
-    """The ``usable`` photos in no model that verified pairs link into groups of ``min_model_size``
-    or more, each group mapped alone with ``WEAK_START``'s thresholds (continuing one model does not
-    start another from a few photos with little parallax: a small building's postcards); the
-    models that pass the model check join ``models`` (``sparse_path`` rewritten). Returns the
-    models and the photos of each model added."""
-    conf = check_conf(conf)
-    placed = set().union(*(registered(rec) for rec in models.values()))
-    groups = _linked_groups(database_path, set(usable) - placed, conf["min_num_matches"])
-    added = []
-    for group in groups:
-        if len(group) < max(2, conf["min_model_size"]):
-            continue
-        tmp = _scratch(sparse_path.with_name(sparse_path.name + ".group"), conf)
-        group_conf = {**conf, **WEAK_START, "image_names": group}
-        with colmap_quiet():
-            found = _run(group_conf, database_path, image_path, tmp)
-        shutil.rmtree(tmp)
-        added += [rec for rec in found.values() if not model_check.check_model(rec)]
-    if added:
-        logger.info(
-            "Photos in no model that verified pairs link: %d model(s) of %s photos made",
-            len(added),
-            ", ".join(str(rec.num_reg_images()) for rec in added),
-        )
-        models = write_models(sparse_path, [*models.values(), *added])
-    return models, [sorted(registered(rec)) for rec in added]
-
-
-def _linked_groups(database_path: Path, names: set[str], min_inliers: int) -> list[list[str]]:
-    """The photos of ``names`` that pairs verified with ``min_inliers`` link, in groups (connected
-    components), largest first."""
-    with dbio.open_database(database_path) as db:
-        ids = dbio.image_names(db)
-        counts = dbio.pair_inlier_counts(db)
-    linked: dict[str, str] = {}
-
-    def root(name: str) -> str:
-        while linked.get(name, name) != name:
-            name = linked[name]
-        return name
-
-    for (a, b), n in counts.items():
-        if n >= min_inliers and ids[a] in names and ids[b] in names:
-            linked.setdefault(ids[a], ids[a])
-            linked.setdefault(ids[b], ids[b])
-            linked[root(ids[a])] = root(ids[b])
-    groups: dict[str, list[str]] = {}
-    for name in sorted(linked):
-        groups.setdefault(root(name), []).append(name)
-    return sorted(groups.values(), key=lambda g: (-len(g), g))
-
-
 def load_models(sparse_path: Path) -> dict[int, pycolmap.Reconstruction]:
     sparse_path = Path(sparse_path)
     if not sparse_path.is_dir():

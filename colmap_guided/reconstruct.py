@@ -285,8 +285,7 @@ def _extract(database_path, image_path, output, image_names, feature_conf, timin
 
 def _map(database_path, image_path, output, photos, conf, matcher, match_stats, timings) -> dict:
     """Mapping of the photos but repeated prints' copies, a weaker start where no model starts,
-    escalation's rounds, models of the linked photos left out, then models joined; the rounds,
-    those models and the joins go to ``match_stats``."""
+    escalation's rounds, then models joined; the rounds and joins go to ``match_stats``."""
     start, sparse_path = time.time(), output / "sparse"
     photos.prints = cards.repeated_prints(database_path, photos.card_conf)
     prints = photos.prints
@@ -319,11 +318,6 @@ def _map(database_path, image_path, output, photos, conf, matcher, match_stats, 
         bool(match_stats["check"]["taken_out"]),
         match_stats["splits"],
     )
-    start = time.time()
-    models, match_stats["groups"] = mapping.map_left_groups(
-        database_path, image_path, sparse_path, models, mapping_conf, mapped or photos.usable
-    )
-    timings["map"] += time.time() - start
     start = time.time()
     if conf.escalation.cut_models:
         models, cuts = join.split_models(models, sparse_path)

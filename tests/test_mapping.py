@@ -9,13 +9,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from colmap_guided.mapping import (
-    MAPPERS,
-    check_conf,
-    map_left_groups,
-    run_mapping,
-    write_models,
-)
+from colmap_guided.mapping import MAPPERS, check_conf, run_mapping, write_models
 from colmap_guided.model_check import check_models
 from recon_scripts.evaluation.ground_truth import pose_errors
 
@@ -127,29 +121,6 @@ def test_extending_the_largest_model_keeps_a_model_that_mapping_again_would_shri
     # mapping every photo: the continued model takes them all
     models = run_mapping(thin_chain, tmp_path, sparse, conf, True)
     assert [rec.num_reg_images() for rec in models.values()] == [NUM_FRAMES]
-
-
-def test_photos_in_no_model_that_verified_pairs_link_get_a_model_of_their_own(
-    two_buildings, tmp_path
-):
-    """Two rendered buildings mapped as two models: with the second one's model gone, its photos,
-    linked by verified pairs but in no model, are mapped again into a model that passes the check
-    (the first unchanged); two of them (below min_model_size) are not."""
-    _, workspace, _ = two_buildings
-    models = run_mapping(workspace / "database.db", tmp_path, tmp_path / "all", {"num_threads": 1})
-    groups = [sorted(rec.images[i].name for i in rec.reg_image_ids()) for rec in models.values()]
-    first, second = groups[0], groups[1]
-    assert len(groups) == 2 and {n.startswith("other_") for n in second} == {True}
-    sparse, conf = tmp_path / "sparse", {"num_threads": 1}
-    write_models(sparse, [models[0]])
-    args = (workspace / "database.db", tmp_path, sparse, {0: models[0]}, conf)
-    kept, added = map_left_groups(*args, first + second[:2])
-    assert added == [] and len(kept) == 1
-    kept, added = map_left_groups(*args, first + second)
-    placed = [sorted(rec.images[i].name for i in rec.reg_image_ids()) for rec in kept.values()]
-    assert placed == [first, second] and added == [second] and not check_models(kept)["problems"]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["all", "sparse"]  # no scratch left
-    assert sorted(p.name for p in sparse.iterdir()) == ["0", "1"]
 
 
 def test_mapping_conf_is_strict():
