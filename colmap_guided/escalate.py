@@ -34,10 +34,10 @@ default_conf = {
     # photos placed in a model other than the largest get escalated too (off: only photos in no
     # model, and the model is extended with those alone; joining links the models)
     "other_models": True,
-    # a photo whose first this many pairs matched by the full matcher (most similar first; the
-    # gate's pairs not counted) verified none is an orphan: its other pairs are not matched, and
-    # escalation takes its pairs only for their other photo (None: off); an archive's photos of
-    # nothing else cost that many
+    # a photo whose first this many pairs matched by the full matcher (the gate's pairs not
+    # counted) verified none is an orphan: its other pairs but its this many most similar are not
+    # matched, and escalation takes its pairs only for their other photo (None: off); an archive's
+    # photos of nothing else cost that many
     "orphan_after": 3,
     # deferred pairs that a group of photos no strong pair links to the others may try, most
     # similar first, before mapping (0: none); two groups would be two models
@@ -179,6 +179,13 @@ class BestFirst:
         self.similarity = {
             key: float(descriptors[key[2]] @ descriptors[key[3]]) for key in id_pairs
         }
+        # each photo's orphan_after most similar pairs: matched even once it is an orphan (past
+        # max_images_held, pairs come in memory order and a photo's first pairs may be others)
+        ranked: dict[str, list] = {}
+        for key in sorted(id_pairs, key=lambda key: (-self.similarity[key], key)):
+            for name in key[2:]:
+                ranked.setdefault(name, []).append(key)
+        self.first = {name: set(keys[: self.orphan_after or 0]) for name, keys in ranked.items()}
         # panels of one collage card: a publisher's different views (none of their pairs verified
         # on the scanned collages), deferred to escalation
         self.group = {name: i for i, names in enumerate(apart) for name in names}
@@ -218,7 +225,7 @@ class BestFirst:
         in flight decide it, wait for them."""
         if key in self.started or (position >= 2 * self.first_pass and key not in self.deferred):
             return False
-        lone = [self.orphan(name) for name in key[2:]]
+        lone = [self.orphan(name) and key not in self.first[name] for name in key[2:]]
         if True in lone:
             self.orphaned[key] = None
             return False

@@ -173,8 +173,9 @@ def test_a_photo_with_few_cheap_matches_is_an_orphan_without_lightglue(
 ):
     """With cheap_matches, a pair whose cheap pass finds fewer matches in the window keeps them
     instead of calling LightGlue: an unrelated photo's first orphan_after pairs are kept so, it is
-    an orphan, its other pairs are never matched, and the scene's photos still land on their
-    pose. The kept pairs stay escalation's: a photo left out (not an orphan) gets them again."""
+    an orphan, its other pairs but its orphan_after most similar are never matched, and the scene's
+    photos still land on their pose. The kept pairs stay escalation's: a photo left out (not an
+    orphan) gets them again."""
     scene = tmp_path / "scene" / "images"
     shutil.copytree(synthetic_scene.image_dir, scene)
     fern = sorted((shared_data / "train" / "llff_fern" / "images").iterdir())[0]
@@ -196,12 +197,12 @@ def test_a_photo_with_few_cheap_matches_is_an_orphan_without_lightglue(
         counts = dbio.pair_match_counts(db)
         keys = {p: (ids[p[0]], ids[p[1]]) for p in pairs}
         written = {p: counts.get(k, 0) for p, k in keys.items() if dbio.pair_is_verified(db, *k)}
-    assert len(written) == 3 and {frozenset(p) for p in written} <= kept, (written, kept)
+    assert 3 <= len(written) <= 6 and {frozenset(p) for p in written} <= kept, (written, kept)
     assert all(n < 10 for n in written.values()), written
     assert result["num_registered"] == 8
-    # the archive benchmark's account: the orphan cost 3 pairs, none of them LightGlue's
+    # the archive benchmark's account: the orphan cost those pairs, none of them LightGlue's
     orphan = photo_costs(out)["in no model"]
-    assert orphan["photos"] == 1 and orphan["pairs_per_photo"] == 3
+    assert orphan["photos"] == 1 and orphan["pairs_per_photo"] == len(written)
     assert orphan["lightglue_per_photo"] == 0
     errors = pose_errors(pycolmap.Reconstruction(str(out / "sparse" / "0")), synthetic_scene)
     assert max(e[0] for e in errors.values()) < 1.0, errors
@@ -384,14 +385,14 @@ def _orphan_run(scene, out, orphan_after) -> tuple[dict, Counter]:
 def test_a_photo_that_matches_nothing_costs_its_first_pairs_only(
     synthetic_scene, shared_data, tmp_path
 ):
-    """Four photos of other places beside the landmark's eight: each is matched with its 3 most
-    similar photos, none verifies, and it is an orphan: no other pair of it is matched, escalation
-    gives it none, and every view of the landmark is placed."""
+    """Four photos of other places beside the landmark's eight: each is matched with its first 3
+    photos and its 3 most similar, none verifies, and it is an orphan: no other pair of it is
+    matched, escalation gives it none, and every view of the landmark is placed."""
     scene, strays = _with_strays(synthetic_scene, shared_data, tmp_path)
     result, written = _orphan_run(scene, tmp_path / "ws_3", 3)
     stats = result["database"]
     assert {name.split(".")[0] for name in stats["orphans"]} == strays
-    assert all(written[name] == 3 for name in strays), written
+    assert all(3 <= written[name] <= 6 for name in strays), written
     assert all(not set(r["photos"]) & set(stats["orphans"]) for r in stats["escalation"])
     assert stats["num_pairs_orphaned"] >= 10
     assert result["num_registered"] == len(synthetic_scene.names)
