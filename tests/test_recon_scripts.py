@@ -91,7 +91,7 @@ def test_the_archive_comparison_finds_a_label_split_and_a_model_mixing_labels(
     import pycolmap
 
     from colmap_guided.cards import panel_name
-    from recon_scripts.scale.archive import compare, photo_of, read_models
+    from recon_scripts.scale.archive import compare, label_of, read_models
 
     names = synthetic_scene.names  # view_000 ... view_007
     labels = {n: "a" if i < 4 else "b" for i, n in enumerate(names)}
@@ -114,6 +114,6 @@ def test_the_archive_comparison_finds_a_label_split_and_a_model_mixing_labels(
     assert c["mixing"] == [{"model": "0", "photos": 6, "labels": {"a": 4, "b": 2}}]
     assert (c["labels_checked"], c["labels_ok"]) == (2, 1)
     # a collage card's panel counts as its card
-    stems = {"p0007": "p0007.jpg", "p0012": "p0012.png"}
-    assert photo_of("../default/run/panels/" + panel_name("p0012.png", 2), stems) == "p0012.png"
-    assert photo_of("p0007.jpg", stems) == "p0007.jpg" and photo_of("x.jpg", stems) is None
+    label = label_of({"p0007.jpg": "a", "p0012.png": "b"})
+    assert label("../default/run/panels/" + panel_name("p0012.png", 2)) == "b"
+    assert label("p0007.jpg") == "a" and label("x.jpg") is None

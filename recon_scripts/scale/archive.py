@@ -17,6 +17,7 @@ import shutil
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable
 from fnmatch import fnmatch
 from pathlib import Path, PurePosixPath
 
@@ -185,23 +186,34 @@ def reconstruct_run(scene: Path, out: Path, timeout: float, flags=()) -> dict:
     return r
 
 
-def photo_of(image: str, names: dict[str, str]) -> str | None:
-    """The archive photo of a model's image: itself, or the collage card of a panel
-    (../WORKSPACE/panels/<card>_p<k>.jpg); ``names``: {stem: name} of the archive's photos."""
-    base = PurePosixPath(image)
-    card = re.fullmatch(r"(.+)_p[0-9]+", base.stem)
-    return names.get(base.stem) or (names.get(card[1]) if card else None)
+def photo_finder(photos) -> Callable[[str], str | None]:
+    """image -> its archive photo of ``photos`` (names): itself, or the collage card of a panel
+    (../WORKSPACE/panels/<card>_p<k>.jpg); None where it is neither."""
+    stems = {PurePosixPath(n).stem: n for n in photos}
+
+    def photo_of(image: str) -> str | None:
+        base = PurePosixPath(image)
+        card = re.fullmatch(r"(.+)_p[0-9]+", base.stem)
+        return stems.get(base.stem) or (stems.get(card[1]) if card else None)
+
+    return photo_of
+
+
+def label_of(labels: dict[str, str] | None) -> Callable[[str], str | None]:
+    """image -> the archive label of its photo (``photo_finder``; None: no labels or no photo)."""
+    photo_of = photo_finder(labels or {})
+    return lambda image: labels.get(photo_of(image)) if labels else None
 
 
 def read_models(sparse: Path, photos) -> dict[str, set[str]]:
     """{model folder: the photos registered in it} of every model in SPARSE/*/ (pycolmap)."""
     import pycolmap
 
-    stems = {PurePosixPath(n).stem: n for n in photos}
+    photo_of = photo_finder(photos)
     models = {}
     for folder in sorted(p for p in Path(sparse).glob("*") if (p / "images.bin").exists()):
         rec = pycolmap.Reconstruction(folder)
-        registered = {photo_of(rec.images[i].name, stems) for i in rec.reg_image_ids()}
+        registered = {photo_of(rec.images[i].name) for i in rec.reg_image_ids()}
         models[folder.name] = registered - {None}
     return models
 
@@ -289,13 +301,10 @@ def label_cuts(workspace: Path, labels: dict[str, str]) -> list[dict]:
     """The models the run of ``workspace`` cut in two: the labels of each side's photos (counts),
     and the cut's conflicts and agreements."""
     report = json.loads((workspace / "report.json").read_text())
-    stems = {PurePosixPath(n).stem: n for n in labels}
+    label = label_of(labels)
     return [
         {
-            "sides": [
-                dict(Counter(labels.get(photo_of(n, stems), "?") for n in side))
-                for side in cut["photos"]
-            ],
+            "sides": [dict(Counter(label(n) or "?" for n in side)) for side in cut["photos"]],
             "conflicts": cut["conflicts"],
             "agreements": cut["agreements"],
         }
@@ -308,13 +317,13 @@ def label_pairs(workspace: Path, labels: dict[str, str]) -> dict:
     their inliers (median, largest). A pair across labels is two places that look alike."""
     from colmap_guided import database as dbio
 
-    stems = {PurePosixPath(n).stem: n for n in labels}
+    label = label_of(labels)
     with dbio.open_database(workspace / "database.db") as db:
         names = dbio.image_names(db)
         inliers = dbio.pair_inlier_counts(db)
     found = {"across": [], "within": []}
     for pair, n in inliers.items():
-        a, b = (labels.get(photo_of(names[i], stems)) for i in pair)
+        a, b = (label(names[i]) for i in pair)
         if a is not None and b is not None:
             found["across" if a != b else "within"].append(n)
     return {

@@ -18,13 +18,13 @@ import json
 import shutil
 import time
 from collections import Counter
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
 
 def main() -> None:
     from colmap_guided import model_check
     from colmap_guided.mapping import registered, run_mapping
-    from recon_scripts.scale.archive import photo_of
+    from recon_scripts.scale.archive import label_of
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("workspace", type=Path, help="a reconstruct run's workspace")
@@ -35,7 +35,7 @@ def main() -> None:
     args = parser.parse_args()
     report = json.loads((args.workspace / "report.json").read_text())
     labels = json.loads(args.labels.read_text())
-    stems = {PurePosixPath(n).stem: n for n in labels}
+    label = label_of(labels)
     out = args.out or args.workspace.parent / "mappers"
     out.mkdir(parents=True, exist_ok=True)
     database = out / "database.db"
@@ -54,7 +54,7 @@ def main() -> None:
             seen.update(names)
             ok = not model_check.check_model(rec)
             placed, passed = placed + len(names), passed + ok * len(names)
-            count = Counter(labels.get(photo_of(name, stems), "?") for name in names)
+            count = Counter(label(name) or "?" for name in names)
             shown = ", ".join(f"{lb} {n}" for lb, n in count.most_common(4))
             more = f" and {len(count) - 4} more" if len(count) > 4 else ""
             print(f"| {key} | {len(names)} | {'ok' if ok else 'failed'} | {shown}{more} |")

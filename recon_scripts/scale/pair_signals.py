@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
 import numpy as np
+
+from recon_scripts.scale.archive import label_of
 
 CHEAP = (None, 10, 20, 40, 80)
 SCORE = (None, 0.1, 0.15, 0.2)
@@ -65,14 +67,6 @@ def signals(workspace: Path) -> list[dict]:
         if k % 500 == 0:
             print(f"{k}/{len(pairs)} pairs", flush=True)
     return rows
-
-
-def label_of(labels: dict | None):
-    """name -> the archive label of its photo (a collage's panel: its card's; None: no labels)."""
-    from recon_scripts.scale.archive import photo_of
-
-    stems = {PurePosixPath(n).stem: n for n in labels or {}}
-    return lambda name: labels.get(photo_of(name, stems)) if labels else None
 
 
 def rule_table(rows: list[dict], placed: set[str], verified_by_photo: dict, labels=None) -> list:
