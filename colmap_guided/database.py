@@ -11,7 +11,7 @@ from __future__ import annotations
 import contextlib
 import sqlite3
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator, TypeVar
 
 import numpy as np
 import pycolmap
@@ -26,6 +26,10 @@ class DatabaseError(ValueError):
 COLMAP_TABLES = {"cameras", "images", "keypoints", "descriptors", "matches", "two_view_geometries"}
 BUSY_TIMEOUT_S = 30.0  # how long to wait for another program's lock on the database
 ANOTHER = "pass another --database_path or a new --output (the file is left as it is)"
+# how COLMAP says it could not open the database: its open sets no SQLite busy timeout
+COLMAP_OPEN_FAILED = ("database factory", "locked", "busy")
+OPEN_TRIES = 10
+T = TypeVar("T")
 
 
 @contextlib.contextmanager
@@ -71,16 +75,13 @@ def open_database(path: Path, must_exist: bool = True) -> Iterator[pycolmap.Data
             f"No COLMAP database at {path}: run `colmap feature_extractor` "
             "(or `python -m colmap_guided reconstruct`) first."
         )
-    existed = path.exists()
-    if existed:
+    if path.exists():
         check_database(path)
     try:
-        db = pycolmap.Database.open(str(path))
+        db = colmap_opening(path, lambda: pycolmap.Database.open(str(path)))
+    except DatabaseError:
+        raise
     except Exception as err:  # pycolmap raises RuntimeError / ValueError for a file it cannot open
-        if existed:  # a checked database: another program's write lock is the usual cause
-            with sqlite_connection(path) as conn:
-                conn.execute("BEGIN IMMEDIATE")
-                conn.rollback()
         first = str(err).splitlines()[0]
         raise DatabaseError(
             f"{path} is not a readable COLMAP database; {ANOTHER} ({first})."
@@ -89,6 +90,23 @@ def open_database(path: Path, must_exist: bool = True) -> Iterator[pycolmap.Data
         yield db
     finally:
         db.close()
+
+
+def colmap_opening(path: Path, call: Callable[[], T]) -> T:
+    """``call()``, a COLMAP function that opens the database at ``path``, tried again once another
+    connection's lock is gone (COLMAP fails at once where SQLite would wait)."""
+    for attempt in range(OPEN_TRIES):
+        try:
+            return call()
+        except (RuntimeError, ValueError) as err:
+            if attempt + 1 == OPEN_TRIES or not path.exists():
+                raise
+            if not any(word in str(err) for word in COLMAP_OPEN_FAILED):
+                raise
+            with sqlite_connection(path) as conn:  # waits for the lock, or says why it cannot
+                conn.execute("BEGIN IMMEDIATE")
+                conn.rollback()
+    raise AssertionError("unreachable")
 
 
 @contextlib.contextmanager

@@ -244,19 +244,22 @@ def _prune(
 def _run(
     conf: dict, database_path: Path, image_path: Path, out: Path
 ) -> dict[int, pycolmap.Reconstruction]:
-    args = (str(database_path), str(image_path), str(out))
+    def opening(mapper, options):
+        args = (str(database_path), str(image_path), str(out), options)
+        return dbio.colmap_opening(database_path, lambda: mapper(*args))
+
     if conf["mapper"] == "auto":
         return _auto(conf, database_path, image_path, out)
     if conf["mapper"] == "global":
-        return _prune(conf, pycolmap.global_mapping(*args, _global_options(conf)))
+        return _prune(conf, opening(pycolmap.global_mapping, _global_options(conf)))
     if conf["mapper"] == "hierarchical":
         options = pycolmap.HierarchicalPipelineOptions()
         options.num_threads = conf["num_threads"]
         # one cluster at a time: reproducible
         options.num_workers = 1 if conf["num_threads"] == 1 else -1
         options.incremental_options = _incremental_options(conf)
-        return _prune(conf, pycolmap.hierarchical_mapping(*args, options))
-    return _prune(conf, pycolmap.incremental_mapping(*args, _incremental_options(conf)))
+        return _prune(conf, opening(pycolmap.hierarchical_mapping, options))
+    return _prune(conf, opening(pycolmap.incremental_mapping, _incremental_options(conf)))
 
 
 def run_mapping(
@@ -305,12 +308,15 @@ def extend_model(
     tmp = _scratch(sparse_path, conf)
     logger.info("Extending the model by mapping")
     with colmap_quiet():
-        models = pycolmap.incremental_mapping(
-            str(database_path),
-            str(image_path),
-            str(tmp),
-            _incremental_options(conf),
-            input_path=str(sparse_path / str(index)),
+        models = dbio.colmap_opening(
+            database_path,
+            lambda: pycolmap.incremental_mapping(
+                str(database_path),
+                str(image_path),
+                str(tmp),
+                _incremental_options(conf),
+                input_path=str(sparse_path / str(index)),
+            ),
         )
     shutil.rmtree(tmp)
     return _prune(conf, models)

@@ -83,7 +83,12 @@ def import_new(
         new = [name for name in names if dbio.read_image(db, name) is None]
     if new:
         with colmap_quiet():
-            pycolmap.import_images(database_path, image_path, mode, image_names=new, options=reader)
+            dbio.colmap_opening(
+                database_path,
+                lambda: pycolmap.import_images(
+                    database_path, image_path, mode, image_names=new, options=reader
+                ),
+            )
 
 
 def skip_unread(names: list[str], present, skipped: dict[str, str]) -> None:

@@ -95,14 +95,19 @@ def _extract_chunk(
     import_new(database_path, image_path, names, reader, mode)
     try:
         with colmap_quiet():
-            pycolmap.extract_features(
+            dbio.colmap_opening(
                 database_path,
-                image_path,
-                image_names=names,
-                camera_mode=mode,
-                reader_options=reader,
-                extraction_options=options,
+                lambda: pycolmap.extract_features(
+                    database_path,
+                    image_path,
+                    image_names=names,
+                    camera_mode=mode,
+                    reader_options=reader,
+                    extraction_options=options,
+                ),
             )
+    except dbio.DatabaseError:
+        raise
     except Exception as err:  # noqa: BLE001 - pycolmap raises RuntimeError/ValueError from C++
         raise RuntimeError(
             f"COLMAP feature extraction failed on {names[0]}... "
