@@ -119,9 +119,9 @@ def join_models(
     while num_pairs and len(models) > 1:
         missing = sorted(set().union(*map(registered, models.values())) - set(descriptors))
         if missing:
-            descriptors.update(
-                zip(missing, match._global_descriptors(matcher, image_path, missing))
-            )
+            with dbio.open_database(database_path) as db:
+                computed = match._global_descriptors(matcher, image_path, missing, db)
+            descriptors.update(zip(missing, computed))
         untried = [
             pair
             for pair in candidates(models, descriptors)

@@ -15,6 +15,7 @@ from collections import Counter, deque
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 from tqdm import tqdm
 
 from . import database as dbio
@@ -26,7 +27,15 @@ from .executor import get_executor
 from .image_data import MAX_IMAGES_HELD, HeldImages, PairKey, pair_order
 from .log import add_verbosity_flags, colmap_quiet, logger, progress
 from .matchers.base import Matcher, scoped_torch_threads
-from .pairs import global_descriptors, pair_mode, retrieves, select_pairs, write_pairs
+from .pairs import (
+    global_descriptors,
+    load_codebook,
+    pair_mode,
+    retrieves,
+    select_pairs,
+    vlad,
+    write_pairs,
+)
 from .pipeline import PipelineConf
 
 
@@ -119,7 +128,7 @@ def match_pairs(
     with dbio.open_database(database_path) as db:
         images = _images_to_match(db, image_path, matcher, overwrite)
         names = sorted(images)
-        selected, mode, stats["pairs"], descriptors = _select(image_path, names, matcher, conf)
+        selected, mode, stats["pairs"], descriptors = _select(db, image_path, names, matcher, conf)
         id_pairs = [(images[a].image_id, images[b].image_id, a, b) for a, b in selected]
         todo = [p for p in id_pairs if not dbio.pair_has_matches(db, p[0], p[1])]
         done = len(id_pairs) - len(todo)
@@ -129,7 +138,7 @@ def match_pairs(
         schedule = None
         if enough is not None and todo:
             if descriptors is None:
-                descriptors = _global_descriptors(matcher, image_path, names)
+                descriptors = _global_descriptors(matcher, image_path, names, db)
             descriptors = dict(zip(names, descriptors))
             rule = {"enough": enough, "strong_inliers": strong_inliers}
             rule.update(join_tries=join_tries, orphan_after=orphan_after)
@@ -229,13 +238,15 @@ def _images_to_match(db, image_path: Path, matcher: Matcher, overwrite: bool) ->
     return images
 
 
-def _select(image_path: Path, names: list[str], matcher: Matcher, conf: PipelineConf) -> tuple:
+def _select(
+    db: pycolmap.Database, image_path: Path, names: list[str], matcher: Matcher, conf: PipelineConf
+) -> tuple:
     """The pairs to match (``conf.pairs``), their mode and record for the report, and
     the retrieval descriptors of ``names`` where retrieval computed them."""
     start, pairs = time.time(), conf.pairs
     mode = pair_mode(pairs.pairs, len(names), pairs.num_neighbors)
     descriptors = (
-        _global_descriptors(matcher, image_path, names)
+        _global_descriptors(matcher, image_path, names, db)
         if retrieves(mode, len(names), pairs.num_neighbors)
         else None
     )
@@ -263,9 +274,17 @@ def _verified(db, by_id: dict, id_a, id_b, matches, geometry, options) -> tuple:
     return id_a, id_b, matches, geometry
 
 
-def _global_descriptors(matcher: Matcher, image_path: Path, names: list[str]) -> np.ndarray:
-    """Retrieval descriptors from the matcher's own backbone (``retrieval_backbone``; else an
-    ImageNet backbone), under the matcher's torch threads as in matching."""
+def _global_descriptors(
+    matcher: Matcher, image_path: Path, names: list[str], db: pycolmap.Database | None = None
+) -> np.ndarray:
+    """Retrieval descriptors of ``names``: the VLAD of their ALIKED descriptors where ``db`` holds
+    ALIKED (``pairs.vlad``), else GeM of the matcher's own backbone (``retrieval_backbone``; else
+    an ImageNet backbone) under the matcher's torch threads as in matching."""
+    if db is not None and features.database_feature_type(db) == "aliked":
+        words, images = load_codebook(), dbio.images_by_name(db)
+        return np.stack(
+            [vlad(dbio.read_descriptors(db, images[n].image_id)[0], words) for n in names]
+        )
     coarse = matcher.retrieval_backbone()
     if coarse is None:
         from .coarse import CoarseMatcher

@@ -2,9 +2,10 @@
 
 - ``exhaustive``: all N(N-1)/2 pairs (COLMAP's exhaustive_matcher).
 - ``retrieval``: each image with its ``num_neighbors`` most similar images by a global descriptor
-  (GeM pooling of the coarse network's backbone features, L2-normalised), symmetric union — the
-  visibility graph that hloc / COLMAP's vocabulary tree build; the coarse matches alone cannot
-  (the paper's §Limitations: they look consistent even between different places).
+  (VLAD of its ALIKED descriptors over a trained codebook; GeM pooling of the coarse network's
+  backbone features for other features), symmetric union — the visibility graph that hloc /
+  COLMAP's vocabulary tree build; the coarse matches alone cannot (the paper's §Limitations: they
+  look consistent even between different places).
 - ``sequential``: each image with the ``num_neighbors`` next ones in name order
   (video, a scanned film).
 - ``auto`` (default): exhaustive up to ``AUTO_EXHAUSTIVE_MAX`` images, retrieval above.
@@ -18,6 +19,9 @@ from itertools import combinations
 from pathlib import Path
 
 import numpy as np
+
+# k-means words of ALIKED descriptors (python -m colmap_guided.train.codebook; MODEL_CARD.md)
+CODEBOOK = Path(__file__).resolve().parent / "weights" / "retrieval_codebook.safetensors"
 
 PAIR_MODES = ("auto", "exhaustive", "retrieval", "sequential")
 # Above this many images ``auto`` picks retrieval (README "Large archives": measured recall vs k).
@@ -46,6 +50,27 @@ def gem(features: np.ndarray, p: float = 3.0) -> np.ndarray:
     x = np.clip(features.reshape(features.shape[0], -1).astype(np.float64), 1e-6, None)
     d = np.power(np.power(x, p).mean(1), 1.0 / p)
     return (d / max(np.linalg.norm(d), 1e-12)).astype(np.float32)
+
+
+def load_codebook(path: Path = CODEBOOK) -> np.ndarray:
+    """The (K, D) unit visual words of a codebook file."""
+    from safetensors.numpy import load_file
+
+    return load_file(str(path))["words"]
+
+
+def vlad(descriptors: np.ndarray, words: np.ndarray) -> np.ndarray:
+    """VLAD (Jégou et al. 2010) of one image's local descriptors (N, D) over ``words`` (K, D):
+    per word the summed residuals of the descriptors nearest it, each word's sum L2-normalised
+    (Arandjelović & Zisserman 2013), square-rooted with its sign, L2-normalised → (K * D,)."""
+    d = np.asarray(descriptors, np.float32)
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    nearest = np.argmax(d @ words.T, axis=1)
+    v = np.zeros_like(words)
+    np.add.at(v, nearest, d - words[nearest])
+    v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+    v = (np.sign(v) * np.sqrt(np.abs(v))).ravel()
+    return (v / max(np.linalg.norm(v), 1e-12)).astype(np.float32)
 
 
 def retrieval_pairs(

@@ -1,8 +1,10 @@
-"""Pair selection: exhaustive, sequential, retrieval by the backbone's GeM descriptor, auto."""
+"""Pair selection: exhaustive, sequential, retrieval (VLAD of ALIKED, the backbone's GeM), auto."""
 
 import numpy as np
 import pytest
 
+from colmap_guided import database as dbio
+from colmap_guided.features import extract_features
 from colmap_guided.match import _global_descriptors
 from colmap_guided.matchers import get_matcher
 from colmap_guided.pairs import (
@@ -14,6 +16,7 @@ from colmap_guided.pairs import (
     sequential_pairs,
 )
 from colmap_guided.reconstruct import reconstruct
+from colmap_guided.synthetic import render_scene
 
 
 def test_sequential_pairs_link_each_image_to_the_next_ones():
@@ -82,6 +85,26 @@ def test_retrieval_separates_three_real_places(shared_data):
             if a.startswith(scene):
                 parent[find(a)] = find(b)
         assert len({find(n) for n in parent}) == 1, (scene, pairs)
+
+
+def test_retrieval_on_aliked_pairs_each_look_alike_landmark_with_its_own_views(tmp_path):
+    """Two rendered landmarks of one make (brick halls with windows, a tower, an annex; each its own
+    size) in one folder, ALIKED extracted: each photo's 3 retrieval neighbours (VLAD over the
+    shipped codebook) are views of its own landmark."""
+    images = tmp_path / "images"
+    images.mkdir()
+    for seed, hall in ((1000, (12.2, 7.7)), (1001, (9.1, 6.6))):
+        conf = {"hall_size": hall}
+        scene = render_scene(tmp_path / str(seed), 6, 512, 384, seed=seed, conf=conf)
+        for name in scene.names:
+            (images / f"{seed}_{name}").symlink_to(scene.image_dir / name)
+    names = sorted(p.name for p in images.iterdir())
+    extract_features(tmp_path / "database.db", images, names, {"type": "aliked"})
+    with dbio.open_database(tmp_path / "database.db") as db:
+        desc = _global_descriptors(get_matcher("guided_lightglue"), images, names, db)
+    pairs = retrieval_pairs(names, desc, 3)
+    assert desc.shape == (12, 64 * 128)
+    assert all(a[:4] == b[:4] for a, b in pairs), pairs
 
 
 def test_reconstruct_with_retrieval_pairs_registers_every_image(synthetic_scene, tmp_path):
