@@ -95,18 +95,16 @@ def open_database(path: Path, must_exist: bool = True) -> Iterator[pycolmap.Data
 def colmap_opening(path: Path, call: Callable[[], T]) -> T:
     """``call()``, a COLMAP function that opens the database at ``path``, tried again once another
     connection's lock is gone (COLMAP fails at once where SQLite would wait)."""
-    for attempt in range(OPEN_TRIES):
+    for _ in range(OPEN_TRIES - 1):
         try:
             return call()
         except (RuntimeError, ValueError) as err:
-            if attempt + 1 == OPEN_TRIES or not path.exists():
-                raise
-            if not any(word in str(err) for word in COLMAP_OPEN_FAILED):
+            if not path.exists() or not any(word in str(err) for word in COLMAP_OPEN_FAILED):
                 raise
             with sqlite_connection(path) as conn:  # waits for the lock, or says why it cannot
                 conn.execute("BEGIN IMMEDIATE")
                 conn.rollback()
-    raise AssertionError("unreachable")
+    return call()
 
 
 @contextlib.contextmanager
