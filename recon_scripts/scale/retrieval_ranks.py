@@ -7,7 +7,7 @@ WORKSPACE: a run's output (its database.db holds ALIKED); ARCHIVE: the archive (
 ``labels.json``). Per kind of label (training scenes left out: the codebook's and the network's
 data), over the photos whose label has another photo: the share whose most similar photo of their
 own label ranks first, within 5 and within 10 among all the archive's photos, the median rank, and
-for rendered landmarks the share of the 10 nearest that are of other labels.
+the share of the 10 nearest that are of other labels.
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ from recon_scripts.scale.archive import label_of
 
 
 def kind(label: str) -> str:
-    return label.split(":")[0] if label.split(":")[0] in ("rendered", "wxbs") else "real"
+    prefix = label.split(":")[0]
+    return prefix if prefix in ("rendered", "wxbs") else "real"
 
 
 def ranks(desc: np.ndarray, labels: list[str]) -> dict[str, dict]:
